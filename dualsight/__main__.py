@@ -1,0 +1,3 @@
+from dualsight.jobs.cli import main
+
+raise SystemExit(main())

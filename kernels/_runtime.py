@@ -1,0 +1,64 @@
+"""Lazy, once-per-process Taichi initialisation on the CPU backend.
+
+Taichi is never initialised at import time.  The first kernel call in a
+process calls :func:`ensure_init`, which sets ``TI_SKIP_VERSION_CHECK`` and an
+explicit offline-cache folder and then calls ``ti.init(arch=ti.cpu)`` once.
+Worker processes must be *spawned* (a fork of an initialised runtime hangs).
+
+Environment:
+    DUALSIGHT_TI_CACHE    offline kernel cache folder (default ~/.cache/dualsight/taichi)
+    DUALSIGHT_TI_THREADS  CPU threads Taichi may use in this process (default: all cores)
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from pathlib import Path
+
+_lock = threading.Lock()
+_initialised = False
+
+
+def cache_dir() -> Path:
+    """Folder of Taichi's offline kernel cache."""
+    env = os.environ.get("DUALSIGHT_TI_CACHE")
+    if env:
+        return Path(env)
+    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "dualsight" / "taichi"
+
+
+def ensure_init(threads: int | None = None):
+    """Initialise Taichi (CPU) once in this process and return the module.
+
+    Parameters
+    ----------
+    threads : optional cap on Taichi's CPU threads; only honoured by the first
+        call in a process (``DUALSIGHT_TI_THREADS`` overrides it).
+    """
+    global _initialised
+    os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
+    os.environ.setdefault("TI_LOG_LEVEL", "warn")
+    import taichi as ti
+
+    if _initialised:
+        return ti
+    with _lock:
+        if _initialised:
+            return ti
+        cdir = cache_dir()
+        cdir.mkdir(parents=True, exist_ok=True)
+        kwargs = dict(arch=ti.cpu, offline_cache=True, offline_cache_file_path=str(cdir),
+                      log_level=ti.WARN, default_fp=ti.f32, random_seed=0)
+        env_threads = os.environ.get("DUALSIGHT_TI_THREADS")
+        if env_threads:
+            threads = int(env_threads)
+        if threads:
+            kwargs["cpu_max_num_threads"] = int(threads)
+        ti.init(**kwargs)
+        _initialised = True
+    return ti
+
+
+def is_initialised() -> bool:
+    return _initialised

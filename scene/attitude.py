@@ -1,0 +1,132 @@
+"""Attitude math over arrays: elementary rotations, Euler 1-2-3, random attitudes, RA/Dec.
+
+Attitude matrices ``A`` map inertial (ICRS) vectors into the camera frame: ``v_cam = A @ v_icrs``
+(DESIGN.md conventions).  All functions are vectorised over a leading batch axis.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def rot_axis(axis: int, angle: np.ndarray) -> np.ndarray:
+    """Frame (passive) rotation matrices about a coordinate axis.
+
+    Parameters
+    ----------
+    axis : 1, 2 or 3 (x, y, z).
+    angle : (B,) or scalar, radians.
+
+    Returns
+    -------
+    (B, 3, 3) matrices R_axis(angle); e.g. R_3(a) = [[c, s, 0], [-s, c, 0], [0, 0, 1]]
+    (Markley & Crassidis 2014, Eq. 2.165).
+    """
+    a = np.atleast_1d(np.asarray(angle, dtype=np.float64))
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    if axis == 1:
+        m = [[o, z, z], [z, c, s], [z, -s, c]]
+    elif axis == 2:
+        m = [[c, z, -s], [z, o, z], [s, z, c]]
+    elif axis == 3:
+        m = [[c, s, z], [-s, c, z], [z, z, o]]
+    else:
+        raise ValueError(f"axis must be 1, 2 or 3, got {axis}")
+    return np.moveaxis(np.array(m), -1, 0)
+
+
+def euler123_to_dcm(angles: np.ndarray) -> np.ndarray:
+    """Direction-cosine matrices of a 1-2-3 rotation sequence.
+
+    Parameters
+    ----------
+    angles : (B, 3) radians (theta1 about x, then theta2 about the new y, then theta3 about the new z).
+
+    Returns
+    -------
+    (B, 3, 3) A = R_3(theta3) R_2(theta2) R_1(theta1), mapping inertial to body/camera.
+    """
+    a = np.asarray(angles, dtype=np.float64).reshape(-1, 3)
+    return rot_axis(3, a[:, 2]) @ rot_axis(2, a[:, 1]) @ rot_axis(1, a[:, 0])
+
+
+def random_euler123(rng: np.random.Generator, n: int) -> np.ndarray:
+    """(n, 3) angles uniform in [-pi, pi), as the reference's star Monte Carlo draws them."""
+    return rng.uniform(-np.pi, np.pi, size=(n, 3))
+
+
+def random_quaternions(rng: np.random.Generator, n: int) -> np.ndarray:
+    """(n, 4) unit quaternions (x, y, z, w) uniform on SO(3) (Shoemake 1992, "Uniform random rotations")."""
+    u1, u2, u3 = rng.random((3, n))
+    a, b = np.sqrt(1 - u1), np.sqrt(u1)
+    return np.stack([a * np.sin(2 * np.pi * u2), a * np.cos(2 * np.pi * u2),
+                     b * np.sin(2 * np.pi * u3), b * np.cos(2 * np.pi * u3)], axis=-1)
+
+
+def quat_to_dcm(q: np.ndarray) -> np.ndarray:
+    """(B, 3, 3) rotation matrices of (B, 4) unit quaternions (x, y, z, w), active convention
+    (R v rotates v); used for uniformly random rotations, where active/passive is immaterial."""
+    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
+    x, y, z, w = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], axis=-2)
+
+
+def dcm_to_quat(R: np.ndarray) -> np.ndarray:
+    """(B, 4) quaternions (x, y, z, w), w >= 0, of (B, 3, 3) rotation matrices (inverse of :func:`quat_to_dcm`)."""
+    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+    tr = np.trace(R, axis1=1, axis2=2)
+    cand = np.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2], tr], axis=-1)
+    k = np.argmax(cand, axis=-1)
+    q = np.empty((R.shape[0], 4))
+    # Shepperd's method: pick the largest of (x, y, z, w) to divide by.
+    for idx in range(4):  # four branches, each vectorised over the batch
+        m = k == idx
+        if not m.any():
+            continue
+        r = R[m]
+        if idx == 3:
+            w = 0.5 * np.sqrt(1 + tr[m])
+            q[m] = np.stack([(r[:, 2, 1] - r[:, 1, 2]) / (4 * w), (r[:, 0, 2] - r[:, 2, 0]) / (4 * w),
+                             (r[:, 1, 0] - r[:, 0, 1]) / (4 * w), w], -1)
+        else:
+            i, j, l = idx, (idx + 1) % 3, (idx + 2) % 3
+            s = 0.5 * np.sqrt(1 + r[:, i, i] - r[:, j, j] - r[:, l, l])
+            out = np.empty((r.shape[0], 4))
+            out[:, i] = s
+            out[:, j] = (r[:, j, i] + r[:, i, j]) / (4 * s)
+            out[:, l] = (r[:, l, i] + r[:, i, l]) / (4 * s)
+            out[:, 3] = (r[:, l, j] - r[:, j, l]) / (4 * s)
+            q[m] = out
+    q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
+    return q
+
+
+def radec_to_unit(ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
+    """(..., 3) ICRS unit vectors from right ascension and declination (rad)."""
+    ra, dec = np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
+    cd = np.cos(dec)
+    return np.stack([cd * np.cos(ra), cd * np.sin(ra), np.sin(dec)], axis=-1)
+
+
+def unit_to_radec(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ra in [0, 2pi), dec in [-pi/2, pi/2]) in radians of (..., 3) vectors."""
+    v = np.asarray(v, dtype=np.float64)
+    v = v / np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.mod(np.arctan2(v[..., 1], v[..., 0]), 2 * np.pi), np.arcsin(np.clip(v[..., 2], -1, 1))
+
+
+def boresight_radec(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """RA/Dec (rad) of the camera +z axis for (B, 3, 3) inertial-to-camera matrices: the third row of A."""
+    A = np.asarray(A, dtype=np.float64)
+    return unit_to_radec(A[..., 2, :])
+
+
+def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle (rad) between (..., 3) vectors, accurate for small angles (atan2 of |a x b| and a . b)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1))
