@@ -1,0 +1,83 @@
+"""The folder where derived catalogs are cached, content keys, and atomic Parquet writes.
+
+Environment:
+    DUALSIGHT_CACHE   cache folder (default ``$XDG_CACHE_HOME/dualsight``, else ``~/.cache/dualsight``)
+
+Files are written to a temporary name in the destination folder and renamed into place
+(``os.replace`` is atomic on POSIX and Windows within one file system), so a reader never sees
+a half-written file and two processes building the same entry at once both end with a whole one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+
+def cache_dir() -> Path:
+    """Folder for dualsight's cached catalogs (not created here).
+
+    ``DUALSIGHT_CACHE`` if set, else ``$XDG_CACHE_HOME/dualsight``, else ``~/.cache/dualsight``.
+    """
+    env = os.environ.get("DUALSIGHT_CACHE")
+    if env:
+        return Path(env).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    base = Path(xdg).expanduser() if xdg else Path.home() / ".cache"
+    return base / "dualsight"
+
+
+def resolve_cache_dir(folder: str | os.PathLike | None) -> Path:
+    """``folder`` if given, else :func:`cache_dir`; created if missing."""
+    d = Path(folder).expanduser() if folder is not None else cache_dir()
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def short_hash(payload: dict | str | bytes, n: int = 16) -> str:
+    """First ``n`` hex digits of the SHA-256 of ``payload`` (dicts as canonical JSON)."""
+    if isinstance(payload, dict):
+        payload = json.dumps(payload, sort_keys=True, separators=(",", ":"))
+    if isinstance(payload, str):
+        payload = payload.encode()
+    return hashlib.sha256(payload).hexdigest()[:n]
+
+
+def write_parquet_atomic(table: pa.Table, path: str | os.PathLike) -> Path:
+    """Write ``table`` to ``path`` via a temporary file in the same folder and an atomic rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        pq.write_table(table, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return path
+
+
+def read_parquet_or_none(path: str | os.PathLike, metadata_key: bytes, expected: bytes) -> pa.Table | None:
+    """Read a cached table, or ``None`` if it is missing, unreadable, or its schema metadata
+    ``metadata_key`` is not ``expected`` (a stale or foreign file: the caller rebuilds it)."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        table = pq.read_table(path)
+    except (OSError, pa.ArrowException):
+        return None
+    meta = table.schema.metadata or {}
+    if meta.get(metadata_key) != expected:
+        return None
+    return table

@@ -1,0 +1,392 @@
+"""Star-tracker software-in-the-loop job: the whole chain for a batch of cases.
+
+    draw attitudes -> stars in the field -> render (Taichi) -> detect/centroid (Taichi)
+    -> back-project -> geometric voting (+ verification, T) -> SVD attitude -> Eqs. 4-7 -> Arrow rows
+
+One row per case in ``star_cases`` and one row per detection in ``star_detections``.  Case ``i`` draws
+its attitude and its sensor-noise seed from ``default_rng([seed, i])`` only.
+
+Spec (TOML; every table optional, defaults = preset ``paper``)::
+
+    seed = 1
+    cases = 200
+    batch_size = 64               # frames per kernel batch
+    attitudes = "euler123"        # reference: 3 angles uniform in [-180, 180) deg, 1-2-3; or "uniform" (SO(3))
+    error_frame = "camera"        # axes of Eqs. 4-7: "camera" (x, y across the boresight, z roll) or "inertial"
+    [camera]   ... (scene/camera.py)
+    [catalog]  mag_limit = 5.5, epoch_jyear = 2000.0
+    [sensor]   ... (kernels/starfield.py SensorConfig)
+    [detect]   ... (kernels/detect.py DetectConfig)
+    [voting]   ... (nav/starid.py VotingConfig; angles as *_arcsec)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pyarrow as pa
+
+from dualsight.catalogs.pairs import load_pair_catalog
+from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
+from dualsight.errors import ConfigError, InputError
+from dualsight.jobs.config import dataclass_from_table, dataclass_to_table
+from dualsight.kernels.detect import DetectConfig
+from dualsight.kernels.starfield import SensorConfig
+from dualsight.jobs import star_pipeline as pipe
+from dualsight.nav.errors import STATUS_NAMES
+from dualsight.nav.starid import VotingConfig
+from dualsight.scene.attitude import boresight_radec, euler123_to_dcm, quat_to_dcm, random_quaternions
+from dualsight.scene.camera import Camera, read_toml
+
+NAME = "star"
+DATASETS = ["star_cases", "star_detections"]
+PRIMARY = "star_cases"
+
+PRESETS = {
+    # The reference's star SIL (section 3.2-3.3): 1024x768, 4.65 um, 17 mm (19.9 deg diagonal),
+    # catalog to V 5.5, ideal images, slight defocus; 200 random 1-2-3 attitudes.
+    "paper": {
+        "seed": 1, "cases": 200, "batch_size": 64, "attitudes": "euler123", "error_frame": "camera",
+        "camera": {"width": 1024, "height": 768, "pixel_pitch_um": 4.65, "focal_length_mm": 17.0},
+        "catalog": {"mag_limit": 5.5, "epoch_jyear": 2000.0},
+        "sensor": {},
+        "detect": {},
+        "voting": {},
+        "compare_robust": True,
+        "robust": {},
+    },
+}
+PRESETS["noisy"] = {**PRESETS["paper"], "sensor": {"shot_noise": True, "read_noise_e": 10.0,
+                                                   "sky_background_e": 50.0, "dark_current_e_per_s": 20.0}}
+
+
+@dataclass(frozen=True)
+class StarSpec:
+    """A validated star-tracker job."""
+
+    camera: Camera
+    catalog: StarCatalogConfig
+    sensor: SensorConfig
+    detect: DetectConfig
+    voting: VotingConfig
+    robust: VotingConfig | None = None
+    seed: int = 1
+    batch_size: int = 64
+    attitudes: Literal["euler123", "uniform"] = "euler123"
+    error_frame: Literal["camera", "inertial"] = "camera"
+    source: str = field(default="defaults", compare=False)
+
+    def to_dict(self) -> dict:
+        return {"seed": self.seed, "batch_size": self.batch_size, "attitudes": self.attitudes,
+                "error_frame": self.error_frame, "camera": self.camera.to_dict(),
+                "catalog": dataclass_to_table(self.catalog), "sensor": dataclass_to_table(self.sensor),
+                "detect": dataclass_to_table(self.detect), "voting": dataclass_to_table(self.voting),
+                "compare_robust": self.robust is not None,
+                "robust": dataclass_to_table(self.robust) if self.robust is not None else {}}
+
+
+_TOP_KEYS = {"seed", "cases", "batch_size", "attitudes", "error_frame", "camera", "catalog", "sensor",
+             "detect", "voting", "compare_robust", "robust", "preset"}
+
+
+def spec_from_dict(d: dict, source: str = "spec") -> StarSpec:
+    """Validate a spec dict (TOML layout); every error names ``source`` and the key."""
+    unknown = sorted(set(d) - _TOP_KEYS)
+    if unknown:
+        raise ConfigError(f"unknown key(s) {unknown}; allowed: {sorted(_TOP_KEYS)}", source=source)
+    cam_t = d.get("camera")
+    if not isinstance(cam_t, dict):
+        raise ConfigError("missing table [camera]", source=source, field="camera")
+    camera = Camera.from_dict(cam_t, source=source)
+    seed = d.get("seed", 1)
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**63:
+        raise ConfigError(f"must be an integer in [0, 2^63), got {seed!r}", source=source, field="seed")
+    bs = d.get("batch_size", 64)
+    if isinstance(bs, bool) or not isinstance(bs, int) or not 1 <= bs <= 4096:
+        raise ConfigError(f"must be an integer in [1, 4096], got {bs!r}", source=source, field="batch_size")
+    att = d.get("attitudes", "euler123")
+    if att not in ("euler123", "uniform"):
+        raise ConfigError(f"must be 'euler123' or 'uniform', got {att!r}", source=source, field="attitudes")
+    frame = d.get("error_frame", "camera")
+    if frame not in ("camera", "inertial"):
+        raise ConfigError(f"must be 'camera' or 'inertial', got {frame!r}", source=source, field="error_frame")
+    for sec in ("catalog", "sensor", "detect", "voting", "robust"):
+        if sec in d and not isinstance(d[sec], dict):
+            raise ConfigError("must be a table", source=source, field=sec)
+    catalog = dataclass_from_table(StarCatalogConfig, d.get("catalog"), source=source, section="catalog")
+    sensor = dataclass_from_table(SensorConfig, d.get("sensor"), source=source, section="sensor")
+    detect = dataclass_from_table(DetectConfig, d.get("detect"), source=source, section="detect")
+    voting = dataclass_from_table(VotingConfig, d.get("voting"), source=source, section="voting",
+                                  base=VotingConfig.paper())
+    cmp_ = d.get("compare_robust", True)
+    if not isinstance(cmp_, bool):
+        raise ConfigError(f"must be true or false, got {cmp_!r}", source=source, field="compare_robust")
+    robust = (dataclass_from_table(VotingConfig, d.get("robust"), source=source, section="robust",
+                                   base=VotingConfig.robust(tolerance_rad=voting.tolerance_rad))
+              if cmp_ else None)
+    return StarSpec(camera=camera, catalog=catalog, sensor=sensor, detect=detect, voting=voting, robust=robust,
+                    seed=int(seed),
+                    batch_size=int(bs), attitudes=att, error_frame=frame, source=source)
+
+
+def resolve_spec(preset: str | None, config: Path | None, *, seed: int | None = None,
+                 cases: int | None = None) -> tuple[dict, int]:
+    """Merge preset, config file and flags; validate; return (canonical spec dict, number of cases)."""
+    name = preset or "paper"
+    if name not in PRESETS:
+        raise InputError(f"unknown preset {name!r}; known presets: {', '.join(sorted(PRESETS))}", source="--preset")
+    d = _deep_copy(PRESETS[name])
+    source = f"preset {name!r}"
+    if config is not None:
+        user = read_toml(Path(config))
+        source = str(config)
+        if "preset" in user:
+            if user["preset"] not in PRESETS:
+                raise ConfigError(f"unknown preset {user['preset']!r}; known: {sorted(PRESETS)}", source=source,
+                                  field="preset")
+            d = _deep_copy(PRESETS[user["preset"]])
+        d = _merge(d, user)
+    if seed is not None:
+        d["seed"] = seed
+    n = cases if cases is not None else d.get("cases", 200)
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1 or n > 10**9:
+        raise InputError(f"number of cases must be an integer in [1, 1e9], got {n!r}",
+                         source="--cases" if cases is not None else source)
+    spec = spec_from_dict(d, source=source)
+    # the catalog must leave enough stars: checked now, before anything touches the lake
+    ctx_check = load_star_catalog(spec.catalog)
+    del ctx_check
+    return spec.to_dict(), int(n)
+
+
+def _deep_copy(d):
+    return {k: (_deep_copy(v) if isinstance(v, dict) else v) for k, v in d.items()}
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+# ------------------------------------------------------------------------------------------ context
+@dataclass
+class StarContext:
+    """Per-process state: the catalogs (read from the cache) and kernel buffers."""
+
+    catalog: object
+    pairs: object
+    buffers: dict
+
+
+def make_context(spec: StarSpec) -> StarContext:
+    cat = load_star_catalog(spec.catalog)
+    diag = spec.camera.fov_rad[2]
+    pairs = load_pair_catalog(cat, diag)
+    return StarContext(cat, pairs, {})
+
+
+# ------------------------------------------------------------------------------------------ cases
+def draw_cases(spec: StarSpec, case_ids: np.ndarray) -> dict:
+    """Inputs of each case from ``default_rng([seed, case_id])``: attitude and the sensor-noise seed.
+
+    Returns dict of arrays: angles (B,3) rad (NaN for "uniform"), quat (B,4), A_true (B,3,3), noise_seed (B,) uint64.
+    """
+    B = len(case_ids)
+    angles = np.full((B, 3), np.nan)
+    quat = np.full((B, 4), np.nan)
+    noise = np.empty(B, dtype=np.uint64)
+    for k, i in enumerate(case_ids):  # one generator per case (cheap), so a case never depends on its batch
+        rng = np.random.default_rng([spec.seed, int(i)])
+        if spec.attitudes == "euler123":
+            angles[k] = rng.uniform(-np.pi, np.pi, 3)
+        else:
+            quat[k] = random_quaternions(rng, 1)[0]
+        noise[k] = rng.integers(0, 2**63, dtype=np.uint64)
+    A = euler123_to_dcm(angles) if spec.attitudes == "euler123" else quat_to_dcm(quat)
+    return {"angles": angles, "quat": quat, "A_true": A, "noise_seed": noise}
+
+
+def run_cases(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray) -> dict[str, pa.Table]:
+    """Compute the cases in ``case_ids`` in kernel batches of ``spec.batch_size``; Arrow tables per dataset."""
+    parts = {d: [] for d in DATASETS}
+    for s in range(0, len(case_ids), spec.batch_size):
+        out = run_batch(spec, ctx, case_ids[s: s + spec.batch_size])
+        for d in DATASETS:
+            parts[d].append(out[d])
+    return {d: pa.concat_tables(parts[d]) if parts[d] else empty_table(d) for d in DATASETS}
+
+
+def run_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray) -> dict[str, pa.Table]:
+    """One kernel batch: every stage batched over the cases; per-stage time split evenly over them."""
+    return compute_batch(spec, ctx, case_ids)["tables"]
+
+
+def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_images: bool = False) -> dict:
+    """The whole chain for a batch; returns every intermediate result and the Arrow tables.
+
+    Keys: draw, field, rendered (detections, images if ``keep_images``), obs, ident, sol, alt, truth, tables.
+    """
+    B = len(case_ids)
+    t = {}
+    t0 = time.perf_counter_ns()
+    draw = draw_cases(spec, case_ids)
+    field_ = pipe.stars_in_field(draw["A_true"], ctx.catalog, spec.camera, spec.sensor)
+    t["sample"] = time.perf_counter_ns() - t0
+
+    r = pipe.render_and_detect(field_, draw["noise_seed"], spec.camera, spec.sensor, spec.detect, ctx.buffers,
+                               keep_images=keep_images)
+    t["render"], t["detect"] = r.t_render_ns, r.t_detect_ns
+
+    t1 = time.perf_counter_ns()
+    obs = pipe.observations(r.detections, B, spec.camera)
+    ident = pipe.identify(obs, ctx.catalog, ctx.pairs, spec.voting)
+    t["identify"] = time.perf_counter_ns() - t1
+
+    t2 = time.perf_counter_ns()
+    sol = pipe.solve(obs, ident, ctx.catalog, draw["A_true"], spec.error_frame)
+    t["attitude"] = time.perf_counter_ns() - t2
+
+    alt = None
+    if spec.robust is not None:   # dualsight's method beside the reference's, on the same detections
+        t3 = time.perf_counter_ns()
+        ident_r = pipe.identify(obs, ctx.catalog, ctx.pairs, spec.robust)
+        alt = (ident_r, pipe.solve(obs, ident_r, ctx.catalog, draw["A_true"], spec.error_frame))
+        t["robust"] = time.perf_counter_ns() - t3
+
+    truth = pipe.match_truth(r.detections, field_, obs, ctx.catalog)
+    per_case = {k: np.full(B, v // max(B, 1), dtype=np.int64) for k, v in t.items()}
+    tables = {"star_cases": cases_table(case_ids, spec, draw, field_, r.detections, obs, ident, sol, truth, per_case,
+                                        alt),
+              "star_detections": detections_table(case_ids, r.detections, obs, ident, sol, truth, ctx.catalog)}
+    return {"draw": draw, "field": field_, "rendered": r, "obs": obs, "ident": ident, "sol": sol, "alt": alt,
+            "truth": truth, "tables": tables}
+
+
+# ------------------------------------------------------------------------------------------ tables
+_MAT9 = pa.list_(pa.float64(), 9)
+
+CASES_SCHEMA = pa.schema([
+    ("case_id", pa.int64()), ("seed", pa.int64()), ("attitude_model", pa.string()),
+    ("theta1_rad", pa.float64()), ("theta2_rad", pa.float64()), ("theta3_rad", pa.float64()),
+    ("A_true", _MAT9), ("A_est", _MAT9),
+    ("ra_true_rad", pa.float64()), ("dec_true_rad", pa.float64()),
+    ("ra_est_rad", pa.float64()), ("dec_est_rad", pa.float64()),
+    ("noise_seed", pa.uint64()),
+    ("n_generated", pa.int32()), ("n_observed", pa.int32()), ("n_used", pa.int32()),
+    ("n_identified", pa.int32()), ("n_correct_ids", pa.int32()), ("n_wrong_ids", pa.int32()),
+    ("id_correct", pa.bool_()), ("T", pa.int32()),
+    ("err_x_rad", pa.float64()), ("err_y_rad", pa.float64()), ("err_z_rad", pa.float64()),
+    ("err_total_rad", pa.float64()), ("status", pa.string()),
+    ("T_robust", pa.int32()), ("n_identified_robust", pa.int32()), ("id_correct_robust", pa.bool_()),
+    ("err_x_robust_rad", pa.float64()), ("err_y_robust_rad", pa.float64()), ("err_z_robust_rad", pa.float64()),
+    ("err_total_robust_rad", pa.float64()), ("status_robust", pa.string()),
+    ("t_sample_ns", pa.int64()), ("t_render_ns", pa.int64()), ("t_detect_ns", pa.int64()),
+    ("t_identify_ns", pa.int64()), ("t_attitude_ns", pa.int64()), ("t_robust_ns", pa.int64()),
+    ("t_total_ns", pa.int64()),
+])
+
+DETECTIONS_SCHEMA = pa.schema([
+    ("case_id", pa.int64()), ("det_index", pa.int32()),
+    ("x_px", pa.float64()), ("y_px", pa.float64()), ("flux", pa.float64()), ("npix", pa.int32()),
+    ("used", pa.bool_()), ("votes", pa.int32()), ("verify_votes", pa.int32()), ("accepted", pa.bool_()),
+    ("hip_assigned", pa.int32()), ("hip_true", pa.int32()), ("true_dist_px", pa.float64()),
+    ("residual_rad", pa.float64()),
+])
+
+
+def empty_table(dataset: str) -> pa.Table:
+    return (CASES_SCHEMA if dataset == "star_cases" else DETECTIONS_SCHEMA).empty_table()
+
+
+def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, alt=None) -> pa.Table:
+    B = len(case_ids)
+    ra_t, dec_t = boresight_radec(draw["A_true"])
+    ra_e, dec_e = boresight_radec(sol.A_est)
+    total = sum(t.values())
+    status = np.asarray(STATUS_NAMES, dtype=object)[sol.status]
+    names = np.asarray(STATUS_NAMES, dtype=object)
+    if alt is not None:
+        ident_r, sol_r = alt
+        robust = {"T_robust": ident_r.T, "n_identified_robust": ident_r.accepted.sum(1),
+                  "id_correct_robust": truth.id_correct(ident_r, obs),
+                  "err_x_robust_rad": sol_r.axis_err[:, 0], "err_y_robust_rad": sol_r.axis_err[:, 1],
+                  "err_z_robust_rad": sol_r.axis_err[:, 2], "err_total_robust_rad": sol_r.total_err,
+                  "status_robust": names[sol_r.status]}
+    else:
+        robust = {k: [None] * B for k in ("T_robust", "n_identified_robust", "id_correct_robust", "err_x_robust_rad",
+                                          "err_y_robust_rad", "err_z_robust_rad", "err_total_robust_rad",
+                                          "status_robust")}
+    cols = {
+        "case_id": np.asarray(case_ids, dtype=np.int64), "seed": np.full(B, spec.seed, dtype=np.int64),
+        "attitude_model": np.full(B, spec.attitudes, dtype=object),
+        "theta1_rad": draw["angles"][:, 0], "theta2_rad": draw["angles"][:, 1], "theta3_rad": draw["angles"][:, 2],
+        "A_true": _mat9(draw["A_true"]), "A_est": _mat9(sol.A_est),
+        "ra_true_rad": ra_t, "dec_true_rad": dec_t, "ra_est_rad": ra_e, "dec_est_rad": dec_e,
+        "noise_seed": draw["noise_seed"],
+        "n_generated": field_.n_generated.astype(np.int32), "n_observed": np.diff(det.offsets).astype(np.int32),
+        "n_used": obs.valid.sum(1).astype(np.int32), "n_identified": ident.accepted.sum(1).astype(np.int32),
+        "n_correct_ids": truth.n_correct(ident, obs).astype(np.int32),
+        "n_wrong_ids": truth.n_wrong(ident, obs).astype(np.int32),
+        "id_correct": truth.id_correct(ident, obs), "T": ident.T.astype(np.int32),
+        "err_x_rad": sol.axis_err[:, 0], "err_y_rad": sol.axis_err[:, 1], "err_z_rad": sol.axis_err[:, 2],
+        "err_total_rad": sol.total_err, "status": status,
+        **robust,
+        "t_sample_ns": t["sample"], "t_render_ns": t["render"], "t_detect_ns": t["detect"],
+        "t_identify_ns": t["identify"], "t_attitude_ns": t["attitude"],
+        "t_robust_ns": t.get("robust", np.zeros(B, dtype=np.int64)), "t_total_ns": total,
+    }
+    return pa.table({k: pa.array(v, type=CASES_SCHEMA.field(k).type) if k not in ("A_true", "A_est") else v
+                     for k, v in cols.items()}, schema=CASES_SCHEMA)
+
+
+def _mat9(A: np.ndarray) -> pa.FixedSizeListArray:
+    flat = np.ascontiguousarray(A.reshape(-1, 9), dtype=np.float64).ravel()
+    return pa.FixedSizeListArray.from_arrays(pa.array(flat), 9)
+
+
+def detections_table(case_ids, det, obs, ident, sol, truth, catalog) -> pa.Table:
+    K = len(det.case)
+    case_local = det.case.astype(np.int64)
+    rank = np.arange(K) - det.offsets[case_local]
+    S = obs.valid.shape[1]
+    used = rank < S
+    r_ok = np.where(used, rank, 0)
+    pick = lambda a, fill: np.where(used, a[case_local, r_ok], fill)  # noqa: E731
+    ids = pick(ident.ids, -1)
+    hip_assigned = np.where(ids >= 0, catalog.hip[np.maximum(ids, 0)], -1)
+    cols = {
+        "case_id": np.asarray(case_ids, dtype=np.int64)[case_local], "det_index": rank.astype(np.int32),
+        "x_px": det.x, "y_px": det.y, "flux": det.flux, "npix": det.npix.astype(np.int32),
+        "used": used & pick(obs.valid, False), "votes": pick(ident.votes, 0).astype(np.int32),
+        "verify_votes": pick(ident.verify_votes, 0).astype(np.int32),
+        "accepted": pick(ident.accepted, False), "hip_assigned": hip_assigned.astype(np.int32),
+        "hip_true": truth.hip_true.astype(np.int32), "true_dist_px": truth.dist_px,
+        "residual_rad": pick(sol.residual, np.nan),
+    }
+    t = pa.table({k: pa.array(v, type=DETECTIONS_SCHEMA.field(k).type) for k, v in cols.items()},
+                 schema=DETECTIONS_SCHEMA)
+    return t
+
+
+# ------------------------------------------------------------------------------------------ progress
+def shard_summary(tables: dict[str, pa.Table]) -> dict:
+    st = tables["star_cases"].column("status").to_numpy(zero_copy_only=False)
+    return {name: int((st == name).sum()) for name in STATUS_NAMES}
+
+
+def progress_postfix(stats: dict) -> str:
+    n = sum(stats.get(k, 0) for k in STATUS_NAMES)
+    if not n:
+        return ""
+    return f"success {100 * stats.get('success', 0) / n:.1f}%, conf-wrong {100 * stats.get('confident_wrong', 0) / n:.1f}%"

@@ -1,0 +1,232 @@
+"""Counter-based hash random numbers for Taichi kernels (and a numpy twin).
+
+Why: a case must render bit-identically whatever batch, position in the batch or thread
+computes it (DESIGN.md, "Seeds" and "Performance notes").  ``ti.random`` keeps per-thread
+state, so the numbers a pixel gets would depend on scheduling.  Here every random number is a
+pure function of ``(seed, stream, draw, index)``:
+
+    key   = mix64(seed ^ (((stream << 32) | draw) * K_STREAM + K_OFFSET))
+    value = mix64(key + (index + 1) * GOLDEN)
+
+``mix64`` is the SplitMix64 output finaliser (Steele, Lea & Flood, "Fast splittable
+pseudorandom number generators", OOPSLA 2014; constants from Stafford's "Mix13"), a bijection
+on 64-bit words with full avalanche.  For a fixed key, ``value`` over consecutive ``index`` is
+exactly the SplitMix64 sequence started at ``key`` (which passes BigCrush); different
+(seed, stream, draw) give different start points 2^64 apart in expectation, so two streams of
+< 2^32 draws overlap with probability < 2^-30.
+
+Conventions
+-----------
+seed   : uint64, one per case (``seeds[b]``).
+stream : small uint32 naming *what* the number is for (see ``STREAM_*``), so that turning one
+         sensor effect on or off never changes the numbers another effect draws.
+draw   : uint32, the n-th number a consumer needs for the same (stream, index) (e.g. the two
+         uniforms of a Box-Muller pair, or rejection-sampler retries).
+index  : uint64 counter, usually the pixel index ``row * width + col`` inside the frame.
+
+All functions decorated with ``@ti.func`` are meant to be called from kernels; the numpy
+functions (``*_np``) compute the very same bits on arrays (used for the per-case false-star
+lists and for tests).  Importing this module does not initialise Taichi.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import taichi as ti
+
+# ----------------------------------------------------------------------------- constants
+_M1 = 0xBF58476D1CE4E5B9
+_M2 = 0x94D049BB133111EB
+GOLDEN = 0x9E3779B97F4A7C15
+K_STREAM = 0xD1342543DE82EF95
+K_OFFSET = 0x2545F4914F6CDD1D
+
+# Stream ids used by the dualsight kernels (each effect has its own stream).
+STREAM_SHOT = 1
+STREAM_READ = 2
+STREAM_HOT = 3
+STREAM_FALSE_STAR = 4
+STREAM_TEST = 99
+
+_TWO_PI = 2.0 * math.pi
+_INV_2_53 = 1.0 / 9007199254740992.0  # 2^-53
+
+
+# ----------------------------------------------------------------------------- Taichi funcs
+@ti.func
+def mix64(z):
+    """SplitMix64 finaliser of a u64 (bijective, full avalanche)."""
+    z = (z ^ ti.bit_shr(z, 30)) * ti.u64(_M1)
+    z = (z ^ ti.bit_shr(z, 27)) * ti.u64(_M2)
+    return z ^ ti.bit_shr(z, 31)
+
+
+@ti.func
+def stream_key(seed, stream, draw):
+    """u64 key of (seed: u64, stream: int, draw: int); hoist it out of pixel loops."""
+    sd = (ti.cast(stream, ti.u64) << ti.u64(32)) | ti.cast(draw, ti.u64)
+    return mix64(seed ^ (sd * ti.u64(K_STREAM) + ti.u64(K_OFFSET)))
+
+
+@ti.func
+def hash_key(key, index):
+    """u64 random word for counter ``index`` (u64) under ``key`` (from :func:`stream_key`)."""
+    return mix64(key + (ti.cast(index, ti.u64) + ti.u64(1)) * ti.u64(GOLDEN))
+
+
+@ti.func
+def u01_key(key, index):
+    """Uniform f64 in the open interval (0, 1): 53 random bits + 1/2 ulp."""
+    h = hash_key(key, index)
+    return (ti.cast(ti.bit_shr(h, 11), ti.f64) + ti.f64(0.5)) * ti.f64(_INV_2_53)
+
+
+@ti.func
+def uniform(seed, stream, draw, index):
+    """Uniform f64 in (0, 1) for (seed, stream, draw, index)."""
+    return u01_key(stream_key(seed, stream, draw), index)
+
+
+@ti.func
+def normal_keys(key0, key1, index):
+    """Standard normal f64 by Box-Muller (Box & Muller 1958) from two keyed uniforms."""
+    u1 = u01_key(key0, index)
+    u2 = u01_key(key1, index)
+    return ti.sqrt(ti.f64(-2.0) * ti.log(u1)) * ti.cos(ti.f64(_TWO_PI) * u2)
+
+
+@ti.func
+def normal(seed, stream, index):
+    """Standard normal f64 for (seed, stream, index) (uses draws 0 and 1 of the stream)."""
+    return normal_keys(stream_key(seed, stream, 0), stream_key(seed, stream, 1), index)
+
+
+@ti.func
+def log_gamma(x):
+    """ln Gamma(x) for f64 x >= 1: Stirling series with upward shift below 7.
+
+    Same algorithm and coefficients as numpy's ``random_loggam`` (distributions.c),
+    absolute error < 1e-14 for x >= 1.
+    """
+    result = ti.f64(0.0)
+    if x != ti.f64(1.0) and x != ti.f64(2.0):
+        n = 0
+        if x < ti.f64(7.0):
+            n = ti.cast(ti.f64(7.0) - x, ti.i32)
+        x0 = x + ti.cast(n, ti.f64)
+        x2 = (ti.f64(1.0) / x0) * (ti.f64(1.0) / x0)
+        gl0 = ti.f64(-1.39243221690590e00)
+        gl0 = gl0 * x2 + ti.f64(1.796443723688307e-01)
+        gl0 = gl0 * x2 + ti.f64(-2.955065359477124e-02)
+        gl0 = gl0 * x2 + ti.f64(6.410256410256410e-03)
+        gl0 = gl0 * x2 + ti.f64(-1.917526917526918e-03)
+        gl0 = gl0 * x2 + ti.f64(8.417508417508418e-04)
+        gl0 = gl0 * x2 + ti.f64(-5.952380952380952e-04)
+        gl0 = gl0 * x2 + ti.f64(7.936507936507937e-04)
+        gl0 = gl0 * x2 + ti.f64(-2.777777777777778e-03)
+        gl0 = gl0 * x2 + ti.f64(8.333333333333333e-02)
+        gl = gl0 / x0 + ti.f64(0.5 * 1.8378770664093453) + (x0 - ti.f64(0.5)) * ti.log(x0) - x0
+        for _k in range(n):
+            x0 -= ti.f64(1.0)
+            gl -= ti.log(x0)
+        result = gl
+    return result
+
+
+@ti.func
+def poisson(lam, seed, stream, index):
+    """Exact Poisson(lam) sample (f64 holding an integer) for f64 lam >= 0.
+
+    lam < 10: inversion by sequential search (one uniform, draw 0).
+    lam >= 10: PTRS transformed rejection (Hörmann 1993, "The transformed rejection method for
+    generating Poisson random variables", Insurance: Math. & Econ. 12, 39-45; the variant used by
+    numpy), drawing uniform pairs (draws 2k, 2k+1) until acceptance (~1.1 pairs on average).
+    """
+    k = ti.f64(0.0)
+    if lam <= ti.f64(0.0):
+        k = ti.f64(0.0)
+    elif lam < ti.f64(10.0):
+        u = uniform(seed, stream, 0, index)
+        p = ti.exp(-lam)
+        cdf = p
+        n = 0
+        while u > cdf and n < 200:
+            n += 1
+            p *= lam / ti.cast(n, ti.f64)
+            cdf += p
+        k = ti.cast(n, ti.f64)
+    else:
+        slam = ti.sqrt(lam)
+        loglam = ti.log(lam)
+        b = ti.f64(0.931) + ti.f64(2.53) * slam
+        a = ti.f64(-0.059) + ti.f64(0.02483) * b
+        invalpha = ti.f64(1.1239) + ti.f64(1.1328) / (b - ti.f64(3.4))
+        vr = ti.f64(0.9277) - ti.f64(3.6224) / (b - ti.f64(2.0))
+        draw = 0
+        done = False
+        while not done and draw < 2000:
+            U = uniform(seed, stream, draw, index) - ti.f64(0.5)
+            V = uniform(seed, stream, draw + 1, index)
+            draw += 2
+            us = ti.f64(0.5) - ti.abs(U)
+            kk = ti.floor((ti.f64(2.0) * a / us + b) * U + lam + ti.f64(0.43))
+            if us >= ti.f64(0.07) and V <= vr:
+                k = kk
+                done = True
+            elif kk < ti.f64(0.0) or (us < ti.f64(0.013) and V > us):
+                pass
+            elif (ti.log(V) + ti.log(invalpha) - ti.log(a / (us * us) + b)
+                  <= -lam + kk * loglam - log_gamma(kk + ti.f64(1.0))):
+                k = kk
+                done = True
+        if not done:  # practically unreachable (p < 1e-1000); keep the mean
+            k = ti.floor(lam + ti.f64(0.5))
+    return k
+
+
+# ----------------------------------------------------------------------------- numpy twins
+_U = np.uint64
+
+
+def mix64_np(z: np.ndarray) -> np.ndarray:
+    """numpy twin of :func:`mix64` on uint64 arrays."""
+    z = np.asarray(z, dtype=np.uint64)
+    with np.errstate(over="ignore"):
+        z = (z ^ (z >> _U(30))) * _U(_M1)
+        z = (z ^ (z >> _U(27))) * _U(_M2)
+    return z ^ (z >> _U(31))
+
+
+def stream_key_np(seed, stream: int, draw: int) -> np.ndarray:
+    """numpy twin of :func:`stream_key`; ``seed`` (...,) uint64."""
+    sd = _U((int(stream) << 32) | int(draw))
+    with np.errstate(over="ignore"):
+        return mix64_np(np.asarray(seed, dtype=np.uint64) ^ (sd * _U(K_STREAM) + _U(K_OFFSET)))
+
+
+def hash_np(seed, stream: int, draw: int, index) -> np.ndarray:
+    """uint64 words for broadcastable ``seed`` and ``index`` arrays (twin of ``hash_key``)."""
+    key = stream_key_np(seed, stream, draw)
+    idx = np.asarray(index, dtype=np.uint64)
+    with np.errstate(over="ignore"):
+        return mix64_np(key + (idx + _U(1)) * _U(GOLDEN))
+
+
+def uniform_np(seed, stream: int, draw: int, index) -> np.ndarray:
+    """Uniform float64 in (0, 1), bit-identical to :func:`uniform`."""
+    h = hash_np(seed, stream, draw, index)
+    return ((h >> _U(11)).astype(np.float64) + 0.5) * _INV_2_53
+
+
+def as_seeds(seeds, n: int, name: str = "seeds") -> np.ndarray:
+    """Validate per-case seeds: (n,) non-negative integers -> contiguous uint64."""
+    a = np.asarray(seeds)
+    if a.shape != (n,):
+        raise ValueError(f"{name} must have shape ({n},) (one seed per case), got {a.shape}")
+    if a.dtype.kind not in "ui":
+        raise ValueError(f"{name} must be integers (uint64), got dtype {a.dtype}")
+    if a.dtype.kind == "i" and a.size and a.min() < 0:
+        raise ValueError(f"{name} must be >= 0, got min {a.min()}")
+    return np.ascontiguousarray(a.astype(np.uint64))

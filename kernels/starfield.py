@@ -1,0 +1,523 @@
+"""Batched star-field rendering on the CPU (Taichi): exact pixel-integrated Gaussian PSFs plus sensor effects.
+
+Coordinates (DESIGN.md): continuous pixel coordinates (col, row) = (x, y) measured from the image's
+top-left *corner*; pixel (r, c) covers [c, c+1) x [r, r+1) and has its centre at (c + 0.5, r + 0.5).
+
+Signal model (electrons, per pixel (r, c) of case b)::
+
+    S      = sum_s  F_s * [Phi((c+1-x_s)/sigma) - Phi((c-x_s)/sigma)] * [Phi((r+1-y_s)/sigma) - Phi((r-y_s)/sigma)]
+    e      = S + dark_current * exposure + sky_background  (+ hot_pixel_e on hot pixels)
+    e      = Poisson(e)                       if shot_noise
+    e      = min(e, full_well)
+    e      = e + read_noise * N(0, 1)
+    ADU    = clip(floor(e / gain + bias_adu + 1e-9), 0, 2^bit_depth - 1)   (no floor if not quantize)
+
+The PSF is a circular Gaussian of standard deviation ``psf_sigma_px`` integrated exactly over each
+pixel's area (the erf-difference form above; Phi is the standard normal CDF), evaluated in a window of
+half-width ``ceil(psf_window_sigma * sigma + 1)`` pixels around the star's pixel, so at most
+2 * Phi(-psf_window_sigma) of the flux (6.3e-5 for 4 sigma) falls outside per axis.  Stars are added in
+star order, one case per thread (no atomics), so a case's float sums do not depend on scheduling.
+
+Random numbers come from :mod:`dualsight.kernels.rng` (a counter-based hash of (case seed, stream,
+pixel index)), never from ``ti.random``: a case renders bit-identically whatever batch, position or
+thread computes it.  Shot noise is exact Poisson (inversion below 10 e-, PTRS rejection above).
+
+Magnitudes: ``flux_from_magnitude`` uses ``F = zero_mag_rate_e_per_s * 10^(-0.4 m) * exposure_s``.  The
+default zero point, 1.5e6 e-/s for a V = 0 star, is a round figure for a ~1 cm^2 clear aperture
+(e.g. 17 mm f/1.4): about 1000 photons s^-1 cm^-2 A^-1 at V = 0 (Bessell 1979, 3.6e-9 erg s^-1 cm^-2 A^-1
+at 550 nm) over a ~3000 A silicon pass band at ~50 % quantum efficiency.  It is a config field; set it
+from your optics.
+
+Taichi is initialised lazily (``dualsight.kernels._runtime.ensure_init``) on the first call.
+"""
+
+
+import math
+import threading
+from dataclasses import dataclass, fields
+
+import numpy as np
+import taichi as ti
+
+from dualsight.kernels import rng
+from dualsight.kernels._runtime import ensure_init
+
+__all__ = ["SensorConfig", "flux_from_magnitude", "render_star_fields", "false_star_lists",
+           "append_false_stars", "release_scratch"]
+
+_INV_SQRT2 = 1.0 / math.sqrt(2.0)
+_QUANT_EPS = 1e-9  # ADU; keeps exact multiples of the gain from flooring one count low
+
+
+# ============================================================================ configuration
+@dataclass(frozen=True)
+class SensorConfig:
+    """Optics + detector model for star-field rendering.  The defaults describe an *ideal* sensor
+    (every noise source off) that still quantises to 12-bit ADU.
+
+    Attributes
+    ----------
+    psf_sigma_px : Gaussian PSF standard deviation (px); 0.8 = slight defocus (FWHM 1.9 px).
+    exposure_s : exposure time (s).
+    gain_e_per_adu : electrons per ADU (conversion gain).
+    full_well_e : pixel saturation charge (e-); charge is clipped here before read noise.
+    bit_depth : ADC bits; ADU are clipped to [0, 2^bit_depth - 1] (<= 16 for uint16 output).
+    bias_adu : constant ADC offset (ADU) added before quantisation (lets read noise go below zero).
+    quantize : floor to integer ADU (True for a real ADC; False gives continuous ADU).
+    zero_mag_rate_e_per_s : electrons per second collected from a magnitude-0 star (see module doc).
+    psf_window_sigma : render each PSF out to this many sigma (+1 px) from the star.
+    read_noise_e : Gaussian read noise standard deviation (e- rms); 0 = off.
+    dark_current_e_per_s : mean dark current (e-/s/px); 0 = off.
+    sky_background_e : mean sky background (e-/px per exposure); 0 = off.
+    shot_noise : Poisson noise on signal + dark + background (+ hot pixel charge).
+    hot_pixel_fraction : probability that a pixel is hot; 0 = off.
+    hot_pixel_e : extra charge of a hot pixel (e- per exposure).
+    hot_pixel_seed : None = hot pixels drawn per case from the case seed; an integer = one fixed
+        hot-pixel map (a property of the sensor) shared by every case.
+    false_stars_per_frame : number of spurious point sources (glints, debris, planets) added to every
+        frame at uniform random positions; 0 = off.
+    false_star_flux_min_e, false_star_flux_max_e : their flux is log-uniform in this range (e-).
+    """
+
+    psf_sigma_px: float = 0.8
+    exposure_s: float = 0.1
+    gain_e_per_adu: float = 5.0
+    full_well_e: float = 20000.0
+    bit_depth: int = 12
+    bias_adu: float = 0.0
+    quantize: bool = True
+    zero_mag_rate_e_per_s: float = 1.5e6
+    psf_window_sigma: float = 4.0
+    read_noise_e: float = 0.0
+    dark_current_e_per_s: float = 0.0
+    sky_background_e: float = 0.0
+    shot_noise: bool = False
+    hot_pixel_fraction: float = 0.0
+    hot_pixel_e: float = 5000.0
+    hot_pixel_seed: int | None = None
+    false_stars_per_frame: int = 0
+    false_star_flux_min_e: float = 500.0
+    false_star_flux_max_e: float = 20000.0
+
+    def __post_init__(self):
+        def bad(name, allowed):
+            raise ValueError(f"SensorConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
+
+        def finite(v):
+            return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+        for name, lo, lo_open in [("psf_sigma_px", 0.05, False), ("exposure_s", 0.0, True),
+                                  ("gain_e_per_adu", 0.0, True), ("full_well_e", 0.0, True),
+                                  ("zero_mag_rate_e_per_s", 0.0, False), ("psf_window_sigma", 1.0, False),
+                                  ("read_noise_e", 0.0, False), ("dark_current_e_per_s", 0.0, False),
+                                  ("sky_background_e", 0.0, False), ("hot_pixel_e", 0.0, False),
+                                  ("false_star_flux_min_e", 0.0, True)]:
+            v = getattr(self, name)
+            if not finite(v) or (v <= lo if lo_open else v < lo):
+                bad(name, f"a finite number {'>' if lo_open else '>='} {lo}")
+        if self.psf_sigma_px > 50:
+            bad("psf_sigma_px", "<= 50 px")
+        if not finite(self.bias_adu):
+            bad("bias_adu", "finite")
+        if not isinstance(self.bit_depth, int) or isinstance(self.bit_depth, bool) or not 1 <= self.bit_depth <= 24:
+            bad("bit_depth", "an integer in [1, 24]")
+        if not finite(self.hot_pixel_fraction) or not 0.0 <= self.hot_pixel_fraction <= 1.0:
+            bad("hot_pixel_fraction", "in [0, 1]")
+        if (not isinstance(self.false_stars_per_frame, int) or isinstance(self.false_stars_per_frame, bool)
+                or not 0 <= self.false_stars_per_frame <= 10_000):
+            bad("false_stars_per_frame", "an integer in [0, 10000]")
+        if not finite(self.false_star_flux_max_e) or self.false_star_flux_max_e < self.false_star_flux_min_e:
+            bad("false_star_flux_max_e", f">= false_star_flux_min_e ({self.false_star_flux_min_e})")
+        if self.hot_pixel_seed is not None and (not isinstance(self.hot_pixel_seed, int)
+                                                or not 0 <= self.hot_pixel_seed < 2 ** 64):
+            bad("hot_pixel_seed", "None or an integer in [0, 2^64)")
+        for name in ("shot_noise", "quantize"):
+            if not isinstance(getattr(self, name), bool):
+                bad(name, "a bool")
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def max_adu(self) -> int:
+        """Largest ADU value, 2^bit_depth - 1."""
+        return (1 << self.bit_depth) - 1
+
+    @property
+    def base_e(self) -> float:
+        """Mean charge every pixel collects without stars: dark * exposure + sky background (e-)."""
+        return self.dark_current_e_per_s * self.exposure_s + self.sky_background_e
+
+    @property
+    def has_pixel_noise(self) -> bool:
+        """True if any per-pixel random effect is on (shot, read or hot pixels)."""
+        return self.shot_noise or self.read_noise_e > 0 or self.hot_pixel_fraction > 0
+
+    @property
+    def needs_seeds(self) -> bool:
+        """True if rendering draws random numbers (pixel noise or false stars)."""
+        return self.has_pixel_noise or self.false_stars_per_frame > 0
+
+    @property
+    def is_ideal(self) -> bool:
+        """No random effect at all (the image is a deterministic function of the star list)."""
+        return not self.needs_seeds
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def empty_pixel_adu(self) -> float:
+        """ADU value of a star-free pixel of a noise-free frame (same arithmetic as the kernels)."""
+        e = min(np.float64(np.float32(0.0)) + self.base_e, self.full_well_e)
+        adu = e / self.gain_e_per_adu + self.bias_adu
+        if self.quantize:
+            adu = math.floor(adu + _QUANT_EPS)
+        return float(min(max(adu, 0.0), float(self.max_adu)))
+
+
+def flux_from_magnitude(vmag, cfg: SensorConfig = SensorConfig()) -> np.ndarray:
+    """Electrons collected from stars of visual magnitude ``vmag`` during one exposure.
+
+    F = cfg.zero_mag_rate_e_per_s * 10^(-0.4 vmag) * cfg.exposure_s   (Pogson's ratio; any shape, float64).
+    """
+    m = np.asarray(vmag, dtype=np.float64)
+    return cfg.zero_mag_rate_e_per_s * np.power(10.0, -0.4 * m) * cfg.exposure_s
+
+
+# ============================================================================ Taichi funcs
+@ti.func
+def erfc(x):
+    """Complementary error function, f64, fractional error < 1.2e-7 everywhere.
+
+    Chebyshev fit of Press et al., Numerical Recipes (2nd ed., section 6.2, ``erfcc``).
+    """
+    z = ti.abs(x)
+    t = ti.f64(1.0) / (ti.f64(1.0) + ti.f64(0.5) * z)
+    p = ti.f64(0.17087277)
+    p = ti.f64(-0.82215223) + t * p
+    p = ti.f64(1.48851587) + t * p
+    p = ti.f64(-1.13520398) + t * p
+    p = ti.f64(0.27886807) + t * p
+    p = ti.f64(-0.18628806) + t * p
+    p = ti.f64(0.09678418) + t * p
+    p = ti.f64(0.37409196) + t * p
+    p = ti.f64(1.00002368) + t * p
+    ans = t * ti.exp(-z * z - ti.f64(1.26551223) + t * p)
+    if x < ti.f64(0.0):
+        ans = ti.f64(2.0) - ans
+    return ans
+
+
+@ti.func
+def phi(z):
+    """Standard normal CDF Phi(z) = erfc(-z / sqrt 2) / 2 (f64)."""
+    return ti.f64(0.5) * erfc(-z * ti.f64(_INV_SQRT2))
+
+
+@ti.func
+def star_window(xc, yc, flux, ok, sigma, wsig, width, height):
+    """Pixel window of one star: (c0, c1, r0, r1), half-open, clipped to the image.
+
+    Half-width R = ceil(wsig * sigma + 1) around the star's pixel (floor(xc), floor(yc)).
+    Returns an empty window (c1 <= c0) for invalid, non-finite, non-positive or off-image stars.
+    """
+    c0 = 0
+    c1 = 0
+    r0 = 0
+    r1 = 0
+    lim = ti.f64(1.0e7)
+    # the comparisons are False for NaN, so NaN coordinates or fluxes give an empty window
+    if ok != 0 and flux > ti.f64(0.0) and flux < ti.f64(1.0e300) and ti.abs(xc) < lim and ti.abs(yc) < lim:
+        R = ti.cast(ti.ceil(wsig * sigma + ti.f64(1.0)), ti.i32)
+        ci = ti.cast(ti.floor(xc), ti.i32)
+        ri = ti.cast(ti.floor(yc), ti.i32)
+        c0 = ti.max(ci - R, 0)
+        c1 = ti.min(ci + R + 1, width)
+        r0 = ti.max(ri - R, 0)
+        r1 = ti.min(ri + R + 1, height)
+        if c1 <= c0 or r1 <= r0:
+            c0 = 0
+            c1 = 0
+            r0 = 0
+            r1 = 0
+    return c0, c1, r0, r1
+
+
+@ti.func
+def splat_star(buf: ti.template(), b, base, pitch, pr0, pc0, flat: ti.template(), xc, yc, flux, sigma,
+               c0, c1, r0, r1):
+    """Add one star's pixel-integrated Gaussian to ``buf`` over the window [c0,c1) x [r0,r1).
+
+    flat=False: ``buf`` is (B, H, W) and pixel (r, c) is ``buf[b, r, c]``.
+    flat=True: ``buf`` is 1-D and pixel (r, c) is ``buf[base + (r - pr0) * pitch + (c - pc0)]``.
+    Each pixel gets f32(flux * fy * fx) with fx, fy erf differences in f64 (CDF carried between edges).
+    Not atomic: the caller must own the frame/patch (one thread per case or per patch).
+    """
+    inv = ti.f64(1.0) / sigma
+    py_lo = phi((ti.cast(r0, ti.f64) - yc) * inv)
+    for r in range(r0, r1):
+        py_hi = phi((ti.cast(r + 1, ti.f64) - yc) * inv)
+        fy = flux * (py_hi - py_lo)
+        py_lo = py_hi
+        px_lo = phi((ti.cast(c0, ti.f64) - xc) * inv)
+        for c in range(c0, c1):
+            px_hi = phi((ti.cast(c + 1, ti.f64) - xc) * inv)
+            v = ti.cast(fy * (px_hi - px_lo), ti.f32)
+            px_lo = px_hi
+            if ti.static(flat):
+                i = base + (r - pr0) * pitch + (c - pc0)
+                buf[i] = buf[i] + v
+            else:
+                buf[b, r, c] = buf[b, r, c] + v
+
+
+@ti.func
+def ideal_adu(s, base_e, full_well, gain, bias, max_adu, quantize):
+    """ADU of a pixel holding f32 star signal ``s`` (e-) without random effects (f64 result)."""
+    e = ti.min(ti.cast(s, ti.f64) + base_e, full_well)
+    adu = e / gain + bias
+    if quantize != 0:
+        adu = ti.floor(adu + ti.f64(_QUANT_EPS))
+    return ti.min(ti.max(adu, ti.f64(0.0)), max_adu)
+
+
+# ============================================================================ kernels (built lazily)
+_kernels: dict = {}
+_klock = threading.Lock()
+
+
+def _get(name: str, dtype=None):
+    key = (name, None if dtype is None else np.dtype(dtype).str)
+    k = _kernels.get(key)
+    if k is None:
+        with _klock:
+            k = _kernels.get(key)
+            if k is None:
+                ensure_init()
+                k = _BUILDERS[name](dtype)
+                _kernels[key] = k
+    return k
+
+
+def _build_splat(_dtype=None):
+    @ti.kernel
+    def splat(x: ti.types.ndarray(dtype=ti.f64, ndim=2), y: ti.types.ndarray(dtype=ti.f64, ndim=2),
+              flux: ti.types.ndarray(dtype=ti.f64, ndim=2), ok: ti.types.ndarray(dtype=ti.u8, ndim=2),
+              buf: ti.types.ndarray(dtype=ti.f32, ndim=3), sigma: ti.f64, wsig: ti.f64):
+        W = buf.shape[2]
+        H = buf.shape[1]
+        for b in range(x.shape[0]):  # parallel over cases; stars of a case in order (deterministic sums)
+            for s in range(x.shape[1]):
+                c0, c1, r0, r1 = star_window(x[b, s], y[b, s], flux[b, s], ti.cast(ok[b, s], ti.i32),
+                                             sigma, wsig, W, H)
+                if c1 > c0:
+                    splat_star(buf, b, 0, 0, 0, 0, False, x[b, s], y[b, s], flux[b, s], sigma, c0, c1, r0, r1)
+    return splat
+
+
+def _build_finalize(dtype):
+    tdt = {np.dtype(np.uint16).str: ti.u16, np.dtype(np.float32).str: ti.f32}[np.dtype(dtype).str]
+
+    @ti.kernel
+    def finalize(buf: ti.types.ndarray(dtype=ti.f32, ndim=3), out: ti.types.ndarray(dtype=tdt, ndim=3),
+                 seeds: ti.types.ndarray(dtype=ti.u64, ndim=1), hot_seed: ti.u64, use_hot_seed: ti.i32,
+                 base_e: ti.f64, full_well: ti.f64, gain: ti.f64, bias: ti.f64, max_adu: ti.f64,
+                 quantize: ti.i32, shot: ti.i32, read_e: ti.f64, hot_frac: ti.f64, hot_e: ti.f64):
+        H = buf.shape[1]
+        W = buf.shape[2]
+        for b, r in ti.ndrange(buf.shape[0], H):  # (frame, row) outer loop, columns serial
+            seed = seeds[b]
+            hseed = seed
+            if use_hot_seed != 0:
+                hseed = hot_seed
+            k_hot = rng.stream_key(hseed, rng.STREAM_HOT, 0)
+            k_r0 = rng.stream_key(seed, rng.STREAM_READ, 0)
+            k_r1 = rng.stream_key(seed, rng.STREAM_READ, 1)
+            row0 = ti.cast(r, ti.u64) * ti.cast(W, ti.u64)
+            for c in range(W):
+                s = buf[b, r, c]
+                buf[b, r, c] = ti.f32(0.0)  # restore the all-zero scratch invariant
+                idx = row0 + ti.cast(c, ti.u64)
+                adu = ti.f64(0.0)
+                if shot == 0 and read_e <= ti.f64(0.0) and hot_frac <= ti.f64(0.0):
+                    adu = ideal_adu(s, base_e, full_well, gain, bias, max_adu, quantize)
+                else:
+                    e = ti.cast(s, ti.f64) + base_e
+                    if hot_frac > ti.f64(0.0):
+                        if rng.u01_key(k_hot, idx) < hot_frac:
+                            e += hot_e
+                    if shot != 0:
+                        e = rng.poisson(e, seed, rng.STREAM_SHOT, idx)
+                    e = ti.min(e, full_well)
+                    if read_e > ti.f64(0.0):
+                        e += read_e * rng.normal_keys(k_r0, k_r1, idx)
+                    adu = e / gain + bias
+                    if quantize != 0:
+                        adu = ti.floor(adu + ti.f64(_QUANT_EPS))
+                    adu = ti.min(ti.max(adu, ti.f64(0.0)), max_adu)
+                out[b, r, c] = ti.cast(adu, tdt)
+    return finalize
+
+
+_BUILDERS = {"splat": _build_splat, "finalize": _build_finalize}
+
+
+# ============================================================================ scratch buffer
+class _Scratch:
+    """One process-wide float32 signal buffer that is all zero between calls.
+
+    The finalize pass zeroes every pixel right after reading it, so the buffer never needs a
+    separate clearing pass and its pages stay mapped (no page faults on reuse).
+    """
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.buf: np.ndarray | None = None
+
+    def get(self, n: int) -> np.ndarray:
+        if self.buf is None or self.buf.size < n:
+            self.buf = None
+            self.buf = np.zeros(n, dtype=np.float32)
+        return self.buf[:n]
+
+    def drop(self):
+        self.buf = None
+
+
+_scratch = _Scratch()
+
+
+def release_scratch() -> None:
+    """Free the cached float32 signal buffer (it is re-created on the next render)."""
+    with _scratch.lock:
+        _scratch.drop()
+
+
+# ============================================================================ helpers
+def check_star_arrays(x, y, flux_e, valid=None):
+    """Validate and convert star lists: returns contiguous (x, y, flux float64, ok uint8), each (B, S).
+
+    ``valid`` may be None (all valid) or a bool array broadcastable to (B, S).
+    """
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 2:
+        raise ValueError(f"x must have shape (B, S), got {x.shape}")
+    y = np.asarray(y, dtype=np.float64)
+    f = np.asarray(flux_e, dtype=np.float64)
+    if y.shape != x.shape or f.shape != x.shape:
+        raise ValueError(f"x, y, flux_e must share shape (B, S); got {x.shape}, {y.shape}, {f.shape}")
+    if valid is None:
+        ok = np.ones(x.shape, dtype=np.uint8)
+    else:
+        v = np.asarray(valid)
+        if v.dtype != np.bool_:
+            raise ValueError(f"valid must be a bool array, got dtype {v.dtype}")
+        try:
+            ok = np.broadcast_to(v, x.shape).astype(np.uint8)
+        except ValueError:
+            raise ValueError(f"valid must have shape {x.shape}, got {v.shape}") from None
+    return (np.ascontiguousarray(x), np.ascontiguousarray(y), np.ascontiguousarray(f),
+            np.ascontiguousarray(ok))
+
+
+def false_star_lists(seeds: np.ndarray, width: int, height: int, cfg: SensorConfig):
+    """The false stars of each case: (x, y, flux_e) each (B, F), F = cfg.false_stars_per_frame.
+
+    Positions uniform over the frame, flux log-uniform in [false_star_flux_min_e, false_star_flux_max_e];
+    drawn from the counter-based hash of (case seed, STREAM_FALSE_STAR, draw 0/1/2, star index).
+    """
+    n = cfg.false_stars_per_frame
+    s = np.asarray(seeds, dtype=np.uint64)[:, None]
+    k = np.arange(n, dtype=np.uint64)[None, :]
+    fx = rng.uniform_np(s, rng.STREAM_FALSE_STAR, 0, k) * width
+    fy = rng.uniform_np(s, rng.STREAM_FALSE_STAR, 1, k) * height
+    lo, hi = math.log(cfg.false_star_flux_min_e), math.log(cfg.false_star_flux_max_e)
+    ff = np.exp(lo + rng.uniform_np(s, rng.STREAM_FALSE_STAR, 2, k) * (hi - lo))
+    return fx, fy, ff
+
+
+def append_false_stars(x, y, f, ok, seeds, width, height, cfg: SensorConfig):
+    """Star arrays with the case's false stars appended as extra columns (no-op if none)."""
+    if cfg.false_stars_per_frame == 0:
+        return x, y, f, ok
+    fx, fy, ff = false_star_lists(seeds, width, height, cfg)
+    cat = lambda a, b: np.ascontiguousarray(np.concatenate([a, b.astype(a.dtype)], axis=1))
+    return cat(x, fx), cat(y, fy), cat(f, ff), cat(ok, np.ones(fx.shape, np.uint8))
+
+
+def check_size(width, height):
+    for name, v in (("width", width), ("height", height)):
+        if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or not 1 <= int(v) <= 65536:
+            raise ValueError(f"{name} must be an integer in [1, 65536], got {v!r}")
+    return int(width), int(height)
+
+
+def prepare_stars(x, y, flux_e, valid, width, height, cfg, seeds):
+    """Shared input handling of the renderers: validated arrays, false stars appended, uint64 seeds."""
+    width, height = check_size(width, height)
+    x, y, f, ok = check_star_arrays(x, y, flux_e, valid)
+    B = x.shape[0]
+    if seeds is None:
+        if cfg.needs_seeds:
+            raise ValueError("seeds (one uint64 per case) are required when noise or false stars are on")
+        seeds = np.zeros(B, dtype=np.uint64)
+    else:
+        seeds = rng.as_seeds(seeds, B)
+    x, y, f, ok = append_false_stars(x, y, f, ok, seeds, width, height, cfg)
+    if x.shape[1] == 0:  # Taichi wants non-empty arrays: one invalid star
+        x = np.zeros((B, 1)); y = np.zeros((B, 1)); f = np.zeros((B, 1)); ok = np.zeros((B, 1), np.uint8)
+    return x, y, f, ok, seeds, width, height
+
+
+# ============================================================================ public API
+def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: SensorConfig = SensorConfig(),
+                       seeds=None, *, dtype=np.uint16, out: np.ndarray | None = None) -> np.ndarray:
+    """Render a batch of star-field frames (dense, full frame, all sensor effects).
+
+    Parameters
+    ----------
+    x, y : (B, S) float, star positions in continuous pixel coordinates (col, row) from the top-left
+        corner (the top-left pixel's centre is (0.5, 0.5)); stars may lie partly or fully off the image.
+    flux_e : (B, S) float, total electrons of each star during the exposure (see :func:`flux_from_magnitude`).
+    valid : (B, S) bool (or None = all); invalid, non-finite or non-positive-flux stars are skipped.
+    width, height : frame size (px).
+    cfg : :class:`SensorConfig`.
+    seeds : (B,) uint64 per-case seeds; required when any random effect is on (else ignored).
+    dtype : np.uint16 (default) or np.float32 output; both hold ADU (integers when cfg.quantize).
+    out : optional preallocated (B, H, W) C-contiguous array of ``dtype`` to write into.
+
+    Returns
+    -------
+    (B, H, W) images in ADU (see the module docstring for the pixel model).
+
+    Cost: one serial-per-case splat of each star's window plus one (frame, row) pass over every pixel;
+    for noise-free frames prefer ``dualsight.kernels.detect.render_and_detect_ideal``, which never
+    touches the empty sky.
+    """
+    x, y, f, ok, seeds, W, H = prepare_stars(x, y, flux_e, valid, width, height, cfg, seeds)
+    dt = np.dtype(dtype)
+    if dt not in (np.dtype(np.uint16), np.dtype(np.float32)):
+        raise ValueError(f"dtype must be uint16 or float32, got {dt}")
+    if dt == np.uint16 and cfg.bit_depth > 16:
+        raise ValueError(f"uint16 output needs bit_depth <= 16, got {cfg.bit_depth}")
+    B = x.shape[0]
+    if out is None:
+        out = np.empty((B, H, W), dtype=dt)
+    elif out.shape != (B, H, W) or out.dtype != dt or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous {dt} array of shape {(B, H, W)}, "
+                         f"got {out.dtype} {out.shape}")
+    if B == 0:
+        return out
+    splat = _get("splat")
+    fin = _get("finalize", dt)
+    hot_seed = cfg.hot_pixel_seed
+    with _scratch.lock:
+        buf = _scratch.get(B * H * W).reshape(B, H, W)
+        try:
+            splat(x, y, f, ok, buf, float(cfg.psf_sigma_px), float(cfg.psf_window_sigma))
+            fin(buf, out, seeds, np.uint64(hot_seed or 0), int(hot_seed is not None),
+                float(cfg.base_e), float(cfg.full_well_e), float(cfg.gain_e_per_adu), float(cfg.bias_adu),
+                float(cfg.max_adu), int(cfg.quantize), int(cfg.shot_noise), float(cfg.read_noise_e),
+                float(cfg.hot_pixel_fraction), float(cfg.hot_pixel_e))
+        except BaseException:
+            _scratch.drop()  # the zero invariant may be broken
+            raise
+    return out

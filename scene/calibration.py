@@ -1,0 +1,479 @@
+"""Camera calibration from chessboard photos, and camera files.
+
+Method: Zhang (2000) / Bouguet's Camera Calibration Toolbox (2013) as OpenCV implements it:
+``cv2.findChessboardCorners`` (inner corners), ``cv2.cornerSubPix`` (11x11 window, as OpenCV's
+``samples/cpp/calibration.cpp``), then ``cv2.calibrateCameraExtended`` (closed-form initialisation
+and Levenberg-Marquardt over intrinsics, distortion k1, k2, p1, p2, k3 and one board pose per image).
+The default flags, ``cv2.CALIB_FIX_ASPECT_RATIO`` (= 2, with aspect ratio fx/fy = 1), are the ones of
+OpenCV's reference calibration of its ``left*.jpg`` samples (``left_intrinsics.yml``: ``flags: 2``).
+
+Conventions
+    The resulting :class:`~dualsight.scene.camera.Camera` uses dualsight's pixel convention (pixel
+    coordinates from the image's top-left *corner*): ``cx = cx_opencv + 0.5``, ``cy = cy_opencv + 0.5``.
+    Board poses are OpenCV's: ``rvec`` (Rodrigues vector, rad) and ``tvec`` (m) map board coordinates
+    (origin at the first detected inner corner, x along the board's ``board[0]`` corners, z into the
+    board) into the camera frame (+x right, +y down, +z out through the lens) -- the same camera frame
+    as dualsight's.
+
+Camera files
+    :func:`write_camera_toml` writes the ``[camera]`` table the simulator reads
+    (:meth:`Camera.from_toml`) and, for a calibration, a ``[calibration]`` table with the fit quality
+    and the per-image board poses (``[[calibration.views]]``).  :func:`read_camera_toml` reads both.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+from dualsight.errors import ConfigError, ImageError, InputError
+from dualsight.scene.camera import Camera, read_toml
+from dualsight.scene.imageio import Image, list_images, read_image
+
+#: Corner detection flags of OpenCV's calibration sample.
+FIND_FLAGS_DEFAULT = 1 | 2 | 8  # CALIB_CB_ADAPTIVE_THRESH | CALIB_CB_NORMALIZE_IMAGE | CALIB_CB_FAST_CHECK
+#: cv2.CALIB_FIX_ASPECT_RATIO, as in OpenCV's reference left_intrinsics.yml ("flags: 2").
+CALIB_FLAGS_DEFAULT = 2
+#: Placeholder pixel pitch (m) when the caller does not know it; only fx, fy (pixels) are measured.
+PLACEHOLDER_PITCH_M = 1e-6
+
+_FLAG_NAMES = {  # cv2.CALIB_* bits, for the camera file
+    1: "CALIB_USE_INTRINSIC_GUESS", 2: "CALIB_FIX_ASPECT_RATIO", 4: "CALIB_FIX_PRINCIPAL_POINT",
+    8: "CALIB_ZERO_TANGENT_DIST", 16: "CALIB_FIX_FOCAL_LENGTH", 32: "CALIB_FIX_K1", 64: "CALIB_FIX_K2",
+    128: "CALIB_FIX_K3", 2048: "CALIB_FIX_K4", 4096: "CALIB_FIX_K5", 8192: "CALIB_FIX_K6",
+    16384: "CALIB_RATIONAL_MODEL",
+}
+
+
+@dataclass(frozen=True, eq=False)
+class BoardView:
+    """One photo in which the board was found.
+
+    Attributes
+    ----------
+    path : the image file.
+    rvec : (3,) Rodrigues rotation vector (rad), board -> camera.
+    tvec : (3,) translation (m): the board origin (first inner corner) in the camera frame.
+    distance_m : distance from the camera's optical centre to the centre of the inner-corner grid (m).
+    rms_px : RMS reprojection error of this view's corners (px, Euclidean per corner).
+    corners_px : (N, 2) detected corners (col, row), dualsight convention (from the top-left corner).
+    """
+
+    path: Path
+    rvec: np.ndarray
+    tvec: np.ndarray
+    distance_m: float
+    rms_px: float
+    corners_px: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """Outcome of :func:`calibrate_chessboard`.
+
+    Attributes
+    ----------
+    camera : the calibrated camera (fx, fy in px; cx, cy in dualsight convention; distortion
+        (k1, k2, p1, p2, k3); pixel pitch as given, else ``PLACEHOLDER_PITCH_M``).
+    rms_px : RMS reprojection error over all corners of all views (px), the value
+        ``cv2.calibrateCamera`` returns (sqrt of mean squared Euclidean corner error).
+    views : the views used, in input order.
+    not_found : images in which the board was not found.
+    unreadable : (path, reason) of images that could not be read or had another size.
+    board : inner corners (per row, per column), e.g. (9, 6).
+    square_m : side of one square (m).
+    flags : cv2.calibrateCamera flags used.
+    pixel_pitch_known : False when the pitch is the placeholder (then ``focal_length_mm`` is None).
+    std : one-sigma uncertainties of fx, fy, cx, cy, k1, k2, p1, p2, k3 from the fit's covariance
+        (``cv2.calibrateCameraExtended``'s ``stdDeviationsIntrinsics``), pixels / unitless.
+    """
+
+    camera: Camera
+    rms_px: float
+    views: tuple[BoardView, ...]
+    not_found: tuple[Path, ...]
+    unreadable: tuple[tuple[Path, str], ...]
+    board: tuple[int, int]
+    square_m: float
+    flags: int
+    pixel_pitch_known: bool
+    std: dict = field(default_factory=dict)
+
+    @property
+    def focal_length_mm(self) -> float | None:
+        """Mean focal length (mm) if the pixel pitch is known, else None."""
+        return self.camera.focal_length_m * 1e3 if self.pixel_pitch_known else None
+
+    @property
+    def distances_m(self) -> np.ndarray:
+        """(n_views,) distances to the board centre (m)."""
+        return np.array([v.distance_m for v in self.views])
+
+
+# ---------------------------------------------------------------------------------------------- calibration
+def board_points(board: tuple[int, int], square_m: float) -> np.ndarray:
+    """(N, 3) float32 inner-corner coordinates on the board plane (m), OpenCV's order:
+    x fastest along ``board[0]``, z = 0; N = board[0] * board[1]."""
+    nx, ny = board
+    g = np.zeros((nx * ny, 3), np.float32)
+    g[:, :2] = np.mgrid[0:nx, 0:ny].T.reshape(-1, 2) * square_m
+    return g
+
+
+def find_corners(gray8: np.ndarray, board: tuple[int, int], find_flags: int = FIND_FLAGS_DEFAULT,
+                 window: int = 11) -> np.ndarray | None:
+    """Sub-pixel inner corners of a chessboard in an 8-bit gray image.
+
+    Returns
+    -------
+    (N, 2) float32 corners (col, row) in OpenCV's convention (pixel centres at integers), or None
+    when the board is not found.
+    """
+    import cv2
+
+    ok, c = cv2.findChessboardCorners(gray8, tuple(board), flags=find_flags)
+    if not ok or c is None:
+        return None
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 1e-4)  # as OpenCV's calibration sample
+    c = cv2.cornerSubPix(gray8, c, (window, window), (-1, -1), crit)
+    return c.reshape(-1, 2)
+
+
+def calibrate_chessboard(paths: Iterable[str | Path], board: tuple[int, int] = (9, 6), square_m: float = 0.025,
+                         pixel_pitch_m: float | None = None, flags: int = CALIB_FLAGS_DEFAULT,
+                         aspect_ratio: float = 1.0, find_flags: int = FIND_FLAGS_DEFAULT,
+                         min_views: int = 3) -> CalibrationResult:
+    """Calibrate a camera from photos of a flat chessboard.
+
+    Parameters
+    ----------
+    paths : image files (any format :func:`read_image` reads; colour is converted to gray, 16-bit
+        data scaled to 8 bit for corner detection).
+    board : inner corners per row and per column (a 10x7-square board has 9x6 inner corners).
+    square_m : side of one square (m); sets the scale of ``tvec`` and distances only.
+    pixel_pitch_m : physical pixel size (m), for the focal length in mm; None if unknown.
+    flags : ``cv2.calibrateCamera`` flags (default ``CALIB_FIX_ASPECT_RATIO``).
+    aspect_ratio : fx / fy held fixed when ``CALIB_FIX_ASPECT_RATIO`` is set.
+    find_flags : ``cv2.findChessboardCorners`` flags.
+    min_views : fewest views with a detected board needed.
+
+    Returns
+    -------
+    :class:`CalibrationResult`.
+
+    Raises
+    ------
+    InputError if the board or square is invalid or the board is found in fewer than ``min_views``
+    images (the message lists the images where it was not found and the unreadable ones).
+    """
+    import cv2
+
+    board = _check_board(board)
+    if not (isinstance(square_m, (int, float)) and math.isfinite(square_m) and square_m > 0):
+        raise ConfigError(f"square size must be > 0 m, got {square_m!r}", field="--square")
+    if pixel_pitch_m is not None and not (math.isfinite(pixel_pitch_m) and pixel_pitch_m > 0):
+        raise ConfigError(f"pixel pitch must be > 0 m, got {pixel_pitch_m!r}", field="--pixel-pitch")
+
+    paths = [Path(p) for p in paths]
+    obj = board_points(board, square_m)
+    found, not_found, unreadable = [], [], []
+    size, bit_depth = None, 8
+    for p in paths:
+        try:
+            img = read_image(p, as_gray=True)
+        except ImageError as e:
+            unreadable.append((p, e.detail))
+            continue
+        if size is None:
+            size, bit_depth = (img.width, img.height), img.bit_depth or 8
+        elif (img.width, img.height) != size:
+            unreadable.append((p, f"size {img.width}x{img.height} differs from the first image's {size[0]}x{size[1]}"))
+            continue
+        corners = find_corners(_to_gray8(img), board, find_flags)
+        if corners is None:
+            not_found.append(p)
+        else:
+            found.append((p, corners))
+
+    if len(found) < min_views:
+        msg = f"chessboard {board[0]}x{board[1]} found in {len(found)} of {len(paths)} images; need >= {min_views}"
+        if not_found:
+            msg += "; not found in: " + ", ".join(p.name for p in not_found)
+        if unreadable:
+            msg += "; unreadable: " + "; ".join(f"{p.name} ({r})" for p, r in unreadable)
+        raise InputError(msg)
+
+    k0 = np.array([[aspect_ratio, 0, size[0] / 2 - 0.5], [0, 1.0, size[1] / 2 - 0.5], [0, 0, 1]])
+    objs = [obj] * len(found)
+    imgs = [c.reshape(-1, 1, 2).astype(np.float32) for _, c in found]
+    rms, K, dist, rvecs, tvecs, std_in, _std_ex, _per_view = cv2.calibrateCameraExtended(
+        objs, imgs, size, k0, None, flags=flags)
+
+    centre = np.array([(board[0] - 1) / 2 * square_m, (board[1] - 1) / 2 * square_m, 0.0])
+    views = []
+    for (p, c), rv, tv in zip(found, rvecs, tvecs):
+        rv, tv = rv.ravel().astype(float), tv.ravel().astype(float)
+        proj, _ = cv2.projectPoints(obj, rv, tv, K, dist)
+        err = proj.reshape(-1, 2) - c
+        R, _ = cv2.Rodrigues(rv)
+        views.append(BoardView(path=p, rvec=rv, tvec=tv, distance_m=float(np.linalg.norm(R @ centre + tv)),
+                               rms_px=float(np.sqrt(np.mean(np.sum(err ** 2, axis=1)))),
+                               corners_px=c.astype(np.float64) + 0.5))
+
+    pitch = pixel_pitch_m if pixel_pitch_m is not None else PLACEHOLDER_PITCH_M
+    camera = Camera.from_opencv(K, dist, size[0], size[1], pitch, bit_depth=int(bit_depth))
+    s = np.asarray(std_in, dtype=float).ravel()
+    std = dict(zip(("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"), (float(x) for x in s[:9])))
+    if flags & CALIB_FLAGS_DEFAULT:  # fx = aspect * fy is not a free parameter; OpenCV reports 0 for it
+        std["fx"] = aspect_ratio * std["fy"]
+    return CalibrationResult(camera=camera, rms_px=float(rms), views=tuple(views), not_found=tuple(not_found),
+                             unreadable=tuple(unreadable), board=board, square_m=float(square_m), flags=int(flags),
+                             pixel_pitch_known=pixel_pitch_m is not None, std=std)
+
+
+def calibrate_main(folder: str | Path, board="9x6", square: float = 0.025, output: str | Path | None = None,
+                   pixel_pitch_um: float | None = None, *, quiet: bool = False) -> CalibrationResult:
+    """The ``dualsight calibrate FOLDER --board 9x6 --square 0.025 [-o camera.toml]`` command.
+
+    Calibrates from every image in ``folder`` (natural order), prints :func:`format_summary` unless
+    ``quiet``, and writes the camera file to ``output`` if given.  ``board`` is "9x6" or (9, 6);
+    ``square`` in metres; ``pixel_pitch_um`` in micrometres (None: unknown).
+    """
+    paths = list_images(folder)
+    if not paths:
+        raise ImageError("no images (.png .jpg .jpeg .tif .tiff .fits .fit .fts) in this folder", source=str(folder))
+    result = calibrate_chessboard(paths, board=parse_board(board), square_m=float(square),
+                                  pixel_pitch_m=None if pixel_pitch_um is None else float(pixel_pitch_um) * 1e-6)
+    if output is not None:
+        write_camera_toml(result, output, name=Path(folder).name)
+    if not quiet:
+        print(format_summary(result) + (f"\nwrote {output}" if output is not None else ""))
+    return result
+
+
+def parse_board(board) -> tuple[int, int]:
+    """"9x6" (or (9, 6)) -> (9, 6): inner corners per row and per column."""
+    if isinstance(board, str):
+        m = re.fullmatch(r"\s*(\d+)\s*[xX*,]\s*(\d+)\s*", board)
+        if not m:
+            raise ConfigError(f"must look like 9x6 (inner corners), got {board!r}", field="--board")
+        board = (int(m.group(1)), int(m.group(2)))
+    return _check_board(board)
+
+
+def format_summary(result: CalibrationResult) -> str:
+    """Readable multi-line summary of a calibration."""
+    c = result.camera
+    fh, fv, fd = (math.degrees(a) for a in c.fov_rad)
+    sd = result.std
+    lines = [
+        f"chessboard {result.board[0]}x{result.board[1]} inner corners, square {result.square_m * 1e3:g} mm; "
+        f"board found in {len(result.views)} image(s)",
+        f"image         {c.width} x {c.height} px, {c.bit_depth} bit",
+        f"fx, fy        {c.fx:.3f} +- {sd.get('fx', float('nan')):.3f}, {c.fy:.3f} +- {sd.get('fy', float('nan')):.3f} px",
+        f"cx, cy        {c.cx:.3f}, {c.cy:.3f} px from the top-left corner "
+        f"(OpenCV: {c.cx - 0.5:.3f}, {c.cy - 0.5:.3f}; +- {sd.get('cx', float('nan')):.3f}, {sd.get('cy', float('nan')):.3f})",
+        "focal length  " + (f"{result.focal_length_mm:.4f} mm at {c.pixel_pitch_m * 1e6:g} um pixels"
+                            if result.pixel_pitch_known else "unknown in mm (pixel pitch not given)"),
+        "distortion    k1 k2 p1 p2 k3 = " + " ".join(f"{x:.6g}" for x in c.distortion),
+        f"field of view {fh:.2f} x {fv:.2f} deg (diagonal {fd:.2f})",
+        f"RMS reprojection error {result.rms_px:.4f} px",
+        f"{'image':<24} {'rms_px':>7} {'dist_m':>7}",
+    ]
+    lines += [f"{v.path.name:<24} {v.rms_px:7.3f} {v.distance_m:7.4f}" for v in result.views]
+    if result.not_found:
+        lines.append("board not found in: " + ", ".join(p.name for p in result.not_found))
+    for p, why in result.unreadable:
+        lines.append(f"unreadable: {p.name}: {why}")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------- camera files
+def write_camera_toml(result_or_camera: CalibrationResult | Camera, path: str | Path, extra: dict | None = None,
+                      *, name: str | None = None, notes: str | None = None, comment: str | None = None) -> Path:
+    """Write a camera file: ``[camera]`` (what :meth:`Camera.from_toml` reads) and, for a
+    calibration, ``[calibration]`` with ``[[calibration.views]]``.
+
+    Parameters
+    ----------
+    result_or_camera : a :class:`CalibrationResult` or a :class:`Camera`.
+    path : output file; written to a temporary name and renamed, so it is never half-written.
+    extra : further top-level keys/tables (e.g. ``{"source": {"images": "..."}}``); may not
+        redefine ``camera`` or ``calibration``.
+    name, notes : optional ``camera.name`` / ``camera.notes`` strings.
+    comment : text for the header comment (one or more lines).
+    """
+    path = Path(path)
+    result = result_or_camera if isinstance(result_or_camera, CalibrationResult) else None
+    camera = result.camera if result is not None else result_or_camera
+    if not isinstance(camera, Camera):
+        raise TypeError(f"expected a CalibrationResult or Camera, got {type(result_or_camera).__name__}")
+    cam = {}
+    if name is not None:
+        cam["name"] = str(name)
+    if result is not None and not result.pixel_pitch_known:
+        auto = ("pixel pitch unknown at calibration: pixel_pitch_um is a placeholder; "
+                "fx, fy (px) are the measured quantities")
+        notes = f"{notes}; {auto}" if notes else auto
+    if notes is not None:
+        cam["notes"] = str(notes)
+    cam.update(camera.to_dict())
+    doc = {"camera": cam}
+    if result is not None:
+        doc["calibration"] = calibration_table(result)
+    for k, v in (extra or {}).items():
+        if k in doc:
+            raise ConfigError(f"extra may not redefine [{k}]", source=str(path), field=k)
+        doc[k] = v
+
+    fh, fv, fd = (math.degrees(a) for a in camera.fov_rad)
+    head = []
+    if comment:
+        head += [f"# {line}".rstrip() for line in str(comment).splitlines()]
+    head += [f"# dualsight camera file. Pixel coordinates from the image's top-left corner "
+             f"(cx = cx_opencv + 0.5).",
+             f"# focal length {camera.focal_length_m * 1e3:.4f} mm"
+             + ("" if result is None or result.pixel_pitch_known else " (placeholder pitch: not meaningful)")
+             + f"; field of view {fh:.3f} x {fv:.3f} deg, diagonal {fd:.3f} deg"]
+    text = "\n".join(head) + "\n\n" + toml_dumps(doc)
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+    return path
+
+
+def calibration_table(result: CalibrationResult) -> dict:
+    """The ``[calibration]`` table of a camera file (plain TOML types)."""
+    import cv2
+
+    flags = [n for bit, n in _FLAG_NAMES.items() if result.flags & bit]
+    return {
+        "method": "chessboard (Zhang/Bouguet) via OpenCV findChessboardCorners + cornerSubPix + calibrateCamera",
+        "opencv_version": cv2.__version__,
+        "board_inner_corners": list(result.board),
+        "square_m": result.square_m,
+        "flags": result.flags,
+        "flag_names": flags,
+        "pixel_pitch_known": result.pixel_pitch_known,
+        "rms_px": result.rms_px,
+        "n_views": len(result.views),
+        "std": dict(result.std),
+        "not_found": [str(p.name) for p in result.not_found],
+        "unreadable": [f"{p.name}: {why}" for p, why in result.unreadable],
+        "views": [{"image": v.path.name, "rms_px": v.rms_px, "distance_m": v.distance_m,
+                   "rvec": [float(x) for x in v.rvec], "tvec_m": [float(x) for x in v.tvec]}
+                  for v in result.views],
+    }
+
+
+def read_camera_toml(path: str | Path) -> tuple[Camera, dict]:
+    """(Camera, the ``[calibration]`` table or {}) of a camera file."""
+    path = Path(path)
+    cam = Camera.from_toml(path)
+    cal = read_toml(path).get("calibration", {})
+    if not isinstance(cal, dict):
+        raise ConfigError("must be a table", source=str(path), field="calibration")
+    return cam, cal
+
+
+# ---------------------------------------------------------------------------------------------- TOML writer
+_BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+def toml_dumps(doc: dict) -> str:
+    """Serialise nested dicts/lists of str, int, float, bool to TOML 1.0 (enough for camera files).
+
+    Dicts become tables, lists of dicts arrays of tables, other lists inline arrays; floats use
+    ``repr`` (round-trip exact), NaN/inf as ``nan``/``inf``.
+    """
+    out: list[str] = []
+    _emit_table(doc, [], out)
+    return "\n".join(out).strip("\n") + "\n"
+
+
+def _emit_table(tbl: dict, prefix: list[str], out: list[str]):
+    scalars = {k: v for k, v in tbl.items() if not _is_table(v) and not _is_table_array(v)}
+    for k, v in scalars.items():
+        out.append(f"{_key(k)} = {_value(v)}")
+    for k, v in tbl.items():
+        if _is_table(v):
+            out += ["", "[" + ".".join(_key(x) for x in prefix + [k]) + "]"]
+            _emit_table(v, prefix + [k], out)
+        elif _is_table_array(v):
+            for item in v:
+                out += ["", "[[" + ".".join(_key(x) for x in prefix + [k]) + "]]"]
+                _emit_table(item, prefix + [k], out)
+
+
+def _is_table(v) -> bool:
+    return isinstance(v, dict)
+
+
+def _is_table_array(v) -> bool:
+    return isinstance(v, (list, tuple)) and len(v) > 0 and all(isinstance(x, dict) for x in v)
+
+
+def _key(k) -> str:
+    k = str(k)
+    return k if _BARE_KEY.match(k) else _string(k)
+
+
+def _string(s: str) -> str:
+    return json.dumps(s, ensure_ascii=False).replace("\x7f", "\\u007f")
+
+
+def _value(v) -> str:
+    if isinstance(v, (bool, np.bool_)):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        f = float(v)
+        if math.isnan(f):
+            return "nan"
+        if math.isinf(f):
+            return "inf" if f > 0 else "-inf"
+        r = repr(f)
+        return r if any(ch in r for ch in ".eE") else r + ".0"
+    if isinstance(v, str):
+        return _string(v)
+    if isinstance(v, Path):
+        return _string(str(v))
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{_key(k)} = {_value(x)}" for k, x in v.items()) + "}"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+def _check_board(board) -> tuple[int, int]:
+    try:
+        nx, ny = (int(x) for x in board)
+        ok = all(float(x).is_integer() for x in board)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or nx < 2 or ny < 2:
+        raise ConfigError(f"must be two integers >= 2 (inner corners per row x per column), got {board!r}",
+                          field="--board")
+    return nx, ny
+
+
+def _to_gray8(img: Image) -> np.ndarray:
+    """8-bit gray copy of an image for corner detection (16-bit/float scaled by their full scale)."""
+    a = img.pixels if img.pixels.ndim == 2 else img.pixels[..., 0]
+    if a.dtype == np.uint8:
+        return a
+    if img.bit_depth is None:  # float: assume [0, 1] unless larger values occur
+        scale = 255.0 / max(1.0, float(np.nanmax(a)))
+    else:
+        scale = 255.0 / img.full_scale
+    return np.clip(np.nan_to_num(a.astype(np.float64) * scale), 0, 255).astype(np.uint8)

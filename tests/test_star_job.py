@@ -1,0 +1,146 @@
+"""End-to-end star job: CLI, lake, resume after SIGKILL, bad input, reports from SQL, replay."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from dualsight.jobs.cli import main
+from dualsight.warehouse.lake import Lake
+from dualsight.warehouse.query import run_sql
+
+
+def _snapshot(root: Path) -> dict:
+    if not root.exists():
+        return {}
+    return {str(p.relative_to(root)): p.stat().st_mtime_ns for p in root.rglob("*") if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    lake = tmp_path_factory.mktemp("lake")
+    rc = main(["star", "run", "--preset", "paper", "--cases", "60", "--seed", "3", "--lake", str(lake),
+               "--run", "small", "--workers", "1", "--no-progress", "--shard-size", "25"])
+    assert rc == 0
+    return lake
+
+
+def test_run_writes_every_case_once(small_run):
+    cols, rows = run_sql(small_run, "SELECT count(*), count(DISTINCT case_id), min(case_id), max(case_id) "
+                                    "FROM star_cases WHERE run = 'small'")
+    assert rows[0] == (60, 60, 0, 59)
+    files = sorted((small_run / "star_cases" / "run=small").glob("part-*.parquet"))
+    assert [f.name for f in files] == ["part-000000.parquet", "part-000001.parquet", "part-000002.parquet"]
+    m = Lake(small_run).read_manifest("small")
+    assert m["status"] == "complete" and m["shards_done"] == [0, 1, 2] and m["n_cases"] == 60
+    assert m["versions"]["numpy"] == np.__version__
+
+
+def test_detections_consistent_with_cases(small_run):
+    _, rows = run_sql(small_run, """
+        SELECT c.case_id, c.n_observed, count(d.case_id)
+        FROM star_cases c LEFT JOIN star_detections d ON c.case_id = d.case_id AND c.run = d.run
+        WHERE c.run = 'small' GROUP BY ALL HAVING c.n_observed <> count(d.case_id)""")
+    assert rows == []
+
+
+def test_report_json_keys(small_run, capsys):
+    assert main(["star", "report", "--lake", str(small_run), "--run", "small", "--json"]) == 0
+    js = json.loads(capsys.readouterr().out)
+    for key in ("cases", "success_rate", "confident_wrong_rate", "mean_stars_generated", "mean_stars_observed",
+                "mean_T"):
+        assert key in js
+    assert set(js["mean_error_arcsec"]) == {"x", "y", "z"}
+    assert js["cases"] == 60
+    # the rates add up with the third outcome, straight from the rows
+    _, rows = run_sql(small_run, "SELECT avg((status='success')::DOUBLE) FROM star_cases WHERE run='small'")
+    assert js["success_rate"] == pytest.approx(rows[0][0])
+
+
+def test_cases_do_not_depend_on_shard_or_batch(small_run, tmp_path):
+    """Case i is the same whatever shard/batch computes it (default_rng([seed, i]))."""
+    rc = main(["star", "run", "--preset", "paper", "--cases", "60", "--seed", "3", "--lake", str(tmp_path),
+               "--run", "other", "--workers", "1", "--no-progress", "--shard-size", "60"])
+    assert rc == 0
+    sql = ("SELECT case_id, theta1_rad, n_generated, n_observed, T, err_x_rad, status FROM star_cases "
+           "WHERE run = '{}' ORDER BY case_id")
+    _, a = run_sql(small_run, sql.format("small"))
+    _, b = run_sql(tmp_path, sql.format("other"))
+    assert a == b
+
+
+def test_replay_reproduces_row(small_run, tmp_path):
+    out = tmp_path / "case7.rrd"
+    assert main(["star", "replay", "--lake", str(small_run), "--run", "small", "--case", "7", "-o", str(out)]) == 0
+    assert out.stat().st_size > 1000
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--preset", "nosuch"], "unknown preset"),
+    (["--cases", "0"], "--cases"),
+    (["--config", "{dir}/missing.toml"], "file not found"),
+    (["--config", "{dir}/bad.toml"], "not valid TOML"),
+    (["--config", "{dir}/negf.toml"], "camera.focal_length_mm"),
+    (["--config", "{dir}/dim.toml"], "catalog.mag_limit"),
+    (["--config", "{dir}/unknown.toml"], "unknown key"),
+])
+def test_bad_input_clear_error_and_lake_untouched(small_run, tmp_path, capsys, args, needle):
+    (tmp_path / "bad.toml").write_text("[camera\nwidth = 3")
+    (tmp_path / "negf.toml").write_text("[camera]\nwidth = 1024\nheight = 768\npixel_pitch_um = 4.65\n"
+                                        "focal_length_mm = -17\n")
+    (tmp_path / "dim.toml").write_text("[catalog]\nmag_limit = -1.0\n")
+    (tmp_path / "unknown.toml").write_text("[voting]\ntolerence_arcsec = 20\n")
+    before = _snapshot(small_run)
+    argv = ["star", "run", "--lake", str(small_run), "--run", "small", "--no-progress", "--workers", "1"]
+    argv += [a.format(dir=tmp_path) for a in args]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert needle in err and "error" in err
+    assert _snapshot(small_run) == before
+
+
+def test_existing_run_with_other_settings_is_refused(small_run, capsys):
+    before = _snapshot(small_run)
+    assert main(["star", "run", "--lake", str(small_run), "--run", "small", "--cases", "61", "--seed", "3",
+                 "--no-progress", "--workers", "1"]) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert _snapshot(small_run) == before
+
+
+def test_sigkill_then_resume_has_exactly_n_cases(tmp_path):
+    """A run killed with SIGKILL mid-way and resumed holds exactly N distinct cases."""
+    n = 400
+    cmd = [sys.executable, "-m", "dualsight", "star", "run", "--preset", "paper", "--cases", str(n), "--seed", "5",
+           "--lake", str(tmp_path), "--run", "killed", "--workers", "2", "--shard-size", "25", "--no-progress"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    shard_dir = tmp_path / "star_cases" / "run=killed"
+    deadline = time.time() + 240
+    while time.time() < deadline and proc.poll() is None:
+        if shard_dir.is_dir() and len(list(shard_dir.glob("part-*.parquet"))) >= 3:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run finished before it could be killed; make it longer"
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done_before = len(list(shard_dir.glob("part-*.parquet")))
+    assert 0 < done_before < n // 25
+    rc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert rc.returncode == 0, rc.stderr
+    _, rows = run_sql(tmp_path, "SELECT count(*), count(DISTINCT case_id) FROM star_cases WHERE run = 'killed'")
+    assert rows[0] == (n, n)
+    _, rows = run_sql(tmp_path, "SELECT count(*) FROM (SELECT case_id, det_index FROM star_detections "
+                                "WHERE run = 'killed' GROUP BY ALL HAVING count(*) > 1)")
+    assert rows[0][0] == 0
+    assert not list(shard_dir.glob(".part-*"))
+    assert Lake(tmp_path).read_manifest("killed")["status"] == "complete"
+    for f in shard_dir.glob("part-*.parquet"):
+        pq.read_metadata(f)  # every file is a complete Parquet file

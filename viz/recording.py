@@ -1,0 +1,80 @@
+"""rerun recordings (.rrd) of single cases: the image, detections, identities, predictions, numbers.
+
+Draws arrays and query results only; never calls back into ``jobs``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def _rr():
+    import rerun as rr
+
+    return rr
+
+
+def open_recording(path: Path | str, app_id: str = "dualsight"):
+    """A rerun recording stream that saves to ``path``."""
+    rr = _rr()
+    rec = rr.RecordingStream(app_id)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    rec.save(str(path))
+    return rec
+
+
+def _display(image: np.ndarray) -> np.ndarray:
+    """Stretch a raw frame to 8 bits for viewing (sqrt stretch of the 99.9th percentile)."""
+    img = np.asarray(image, dtype=np.float32)
+    hi = float(np.percentile(img, 99.9)) or float(img.max()) or 1.0
+    return (np.sqrt(np.clip(img / hi, 0, 1)) * 255).astype(np.uint8)
+
+
+def log_star_case(rec, *, image: np.ndarray, det_xy: np.ndarray, det_labels: list[str], det_ok: np.ndarray,
+                  pred_xy: np.ndarray, pred_labels: list[str], truth_xy: np.ndarray, info_md: str,
+                  frame: int = 0):
+    """Log one star-tracker case.
+
+    image : (H, W) raw frame.  det_xy : (K, 2) centroids (col, row; top-left corner convention).
+    det_ok : (K,) bool, identity accepted and right (green) / otherwise (red).
+    pred_xy : (M, 2) catalog stars projected with the *estimated* attitude (predicted positions).
+    truth_xy : (G, 2) catalog stars projected with the true attitude (generated stars).
+    """
+    rr = _rr()
+    rec.set_time("frame", sequence=frame)
+    rec.log("camera/image", rr.Image(_display(image)))
+    green, red, blue, yellow = [40, 220, 40], [240, 60, 60], [80, 140, 255], [250, 210, 40]
+    if len(truth_xy):
+        rec.log("camera/image/truth", rr.Points2D(truth_xy, radii=6.0, colors=[blue]))
+    if len(det_xy):
+        colors = np.where(np.asarray(det_ok)[:, None], green, red).astype(np.uint8)
+        rec.log("camera/image/detections", rr.Points2D(det_xy, radii=3.0, colors=colors, labels=det_labels))
+    if len(pred_xy):
+        rec.log("camera/image/predicted", rr.Points2D(pred_xy, radii=9.0, colors=[yellow], labels=pred_labels))
+    rec.log("case", rr.TextDocument(info_md, media_type=rr.MediaType.MARKDOWN))
+
+
+def log_prox_frame(rec, *, image: np.ndarray, cob_xy, axes: np.ndarray | None, blob_mask: np.ndarray | None,
+                   true_xy, info_md: str, scalars: dict[str, float], frame: int = 0):
+    """Log one proximity frame: image, blob, centre of brightness, principal axes, numbers.
+
+    axes : (2, 2, 2) line segments (major, minor) through the COB, in pixels, or None.
+    """
+    rr = _rr()
+    rec.set_time("frame", sequence=frame)
+    rec.log("camera/image", rr.Image(_display(image)))
+    if blob_mask is not None:
+        rec.log("camera/image/blob", rr.SegmentationImage(blob_mask.astype(np.uint8)))
+    if cob_xy is not None and np.all(np.isfinite(cob_xy)):
+        rec.log("camera/image/cob", rr.Points2D([cob_xy], radii=4.0, colors=[[250, 210, 40]], labels=["COB"]))
+    if true_xy is not None and np.all(np.isfinite(true_xy)):
+        rec.log("camera/image/true_centre", rr.Points2D([true_xy], radii=4.0, colors=[[80, 140, 255]],
+                                                        labels=["truth"]))
+    if axes is not None and np.all(np.isfinite(axes)):
+        rec.log("camera/image/axes", rr.LineStrips2D(axes, colors=[[240, 60, 60], [40, 220, 40]]))
+    for k, v in scalars.items():
+        if v is not None and np.isfinite(v):
+            rec.log(f"metrics/{k}", rr.Scalars(float(v)))
+    rec.log("case", rr.TextDocument(info_md, media_type=rr.MediaType.MARKDOWN))

@@ -1,0 +1,24 @@
+-- The reference's method beside dualsight's robust voting options, on the same detections.
+SELECT method, success_rate, confident_wrong_rate, no_solution_rate, identification_rate,
+       mean_err_x_arcsec, mean_err_y_arcsec, mean_err_z_arcsec FROM (
+    SELECT 1 AS k, 'reference (paper)' AS method,
+           avg((status = 'success')::DOUBLE) AS success_rate,
+           avg((status = 'confident_wrong')::DOUBLE) AS confident_wrong_rate,
+           avg((status = 'no_solution')::DOUBLE) AS no_solution_rate,
+           avg(id_correct::DOUBLE) AS identification_rate,
+           avg(abs(err_x_rad)) FILTER (WHERE status = 'success') * 206264.80624709636 AS mean_err_x_arcsec,
+           avg(abs(err_y_rad)) FILTER (WHERE status = 'success') * 206264.80624709636 AS mean_err_y_arcsec,
+           avg(abs(err_z_rad)) FILTER (WHERE status = 'success') * 206264.80624709636 AS mean_err_z_arcsec
+    FROM star_cases WHERE run = $run
+    UNION ALL
+    SELECT 2, 'robust (dualsight)',
+           avg((status_robust = 'success')::DOUBLE),
+           avg((status_robust = 'confident_wrong')::DOUBLE),
+           avg((status_robust = 'no_solution')::DOUBLE),
+           avg(id_correct_robust::DOUBLE),
+           avg(abs(err_x_robust_rad)) FILTER (WHERE status_robust = 'success') * 206264.80624709636,
+           avg(abs(err_y_robust_rad)) FILTER (WHERE status_robust = 'success') * 206264.80624709636,
+           avg(abs(err_z_robust_rad)) FILTER (WHERE status_robust = 'success') * 206264.80624709636
+    FROM star_cases WHERE run = $run AND status_robust IS NOT NULL
+)
+ORDER BY k;
