@@ -20,8 +20,7 @@ Conventions
 seed   : uint64, one per case (``seeds[b]``).
 stream : small uint32 naming *what* the number is for (see ``STREAM_*``), so that turning one
          sensor effect on or off never changes the numbers another effect draws.
-draw   : uint32, the n-th number a consumer needs for the same (stream, index) (e.g. the two
-         uniforms of a Box-Muller pair, or rejection-sampler retries).
+draw   : uint32, the n-th number a consumer needs for the same (stream, index) (e.g. rejection-sampler retries).
 index  : uint64 counter, usually the pixel index ``row * width + col`` inside the frame.
 
 All functions decorated with ``@ti.func`` are meant to be called from kernels; the numpy
@@ -50,7 +49,6 @@ STREAM_HOT = 3
 STREAM_FALSE_STAR = 4
 STREAM_TEST = 99
 
-_TWO_PI = 2.0 * math.pi
 _INV_2_53 = 1.0 / 9007199254740992.0  # 2^-53
 
 
@@ -90,17 +88,93 @@ def uniform(seed, stream, draw, index):
 
 
 @ti.func
-def normal_keys(key0, key1, index):
-    """Standard normal f64 by Box-Muller (Box & Muller 1958) from two keyed uniforms."""
-    u1 = u01_key(key0, index)
-    u2 = u01_key(key1, index)
-    return ti.sqrt(ti.f64(-2.0) * ti.log(u1)) * ti.cos(ti.f64(_TWO_PI) * u2)
+def normal_icdf(p):
+    """Standard normal quantile Phi^-1(p) for f64 p in (0, 1), relative accuracy ~1e-16.
+
+    Wichura (1988), "Algorithm AS241: The percentage points of the normal distribution",
+    Applied Statistics 37, 477-484 (PPND16; the coefficients CPython's statistics module uses).
+    Central 85 % of p: one rational function, no transcendental call.
+    """
+    q = p - ti.f64(0.5)
+    x = ti.f64(0.0)
+    if ti.abs(q) <= ti.f64(0.425):
+        r = ti.f64(0.180625) - q * q
+        num = ti.f64(2.5090809287301226727e3)
+        num = num * r + ti.f64(3.3430575583588128105e4)
+        num = num * r + ti.f64(6.7265770927008700853e4)
+        num = num * r + ti.f64(4.5921953931549871457e4)
+        num = num * r + ti.f64(1.3731693765509461125e4)
+        num = num * r + ti.f64(1.9715909503065514427e3)
+        num = num * r + ti.f64(1.3314166789178437745e2)
+        num = num * r + ti.f64(3.3871328727963666080e0)
+        den = ti.f64(5.2264952788528545610e3)
+        den = den * r + ti.f64(2.8729085735721942674e4)
+        den = den * r + ti.f64(3.9307895800092710610e4)
+        den = den * r + ti.f64(2.1213794301586595867e4)
+        den = den * r + ti.f64(5.3941960214247511077e3)
+        den = den * r + ti.f64(6.8718700749205790830e2)
+        den = den * r + ti.f64(4.2313330701600911252e1)
+        den = den * r + ti.f64(1.0)
+        x = q * num / den
+    else:
+        r = p
+        if q > ti.f64(0.0):
+            r = ti.f64(1.0) - p
+        r = ti.sqrt(-ti.log(r))
+        num = ti.f64(0.0)
+        den = ti.f64(1.0)
+        if r <= ti.f64(5.0):
+            r = r - ti.f64(1.6)
+            num = ti.f64(7.74545014278341407640e-4)
+            num = num * r + ti.f64(2.27238449892691845833e-2)
+            num = num * r + ti.f64(2.41780725177450611770e-1)
+            num = num * r + ti.f64(1.27045825245236838258e0)
+            num = num * r + ti.f64(3.64784832476320460504e0)
+            num = num * r + ti.f64(5.76949722146069140550e0)
+            num = num * r + ti.f64(4.63033784615654529590e0)
+            num = num * r + ti.f64(1.42343711074968357734e0)
+            den = ti.f64(1.05075007164441684324e-9)
+            den = den * r + ti.f64(5.47593808499534494600e-4)
+            den = den * r + ti.f64(1.51986665636164571966e-2)
+            den = den * r + ti.f64(1.48103976427480074590e-1)
+            den = den * r + ti.f64(6.89767334985100004550e-1)
+            den = den * r + ti.f64(1.67638483018380384940e0)
+            den = den * r + ti.f64(2.05319162663775882187e0)
+            den = den * r + ti.f64(1.0)
+        else:
+            r = r - ti.f64(5.0)
+            num = ti.f64(2.01033439929228813265e-7)
+            num = num * r + ti.f64(2.71155556874348757815e-5)
+            num = num * r + ti.f64(1.24266094738807843860e-3)
+            num = num * r + ti.f64(2.65321895265761230930e-2)
+            num = num * r + ti.f64(2.96560571828504891230e-1)
+            num = num * r + ti.f64(1.78482653991729133580e0)
+            num = num * r + ti.f64(5.46378491116411436990e0)
+            num = num * r + ti.f64(6.65790464350110377720e0)
+            den = ti.f64(2.04426310338993978564e-15)
+            den = den * r + ti.f64(1.42151175831644588870e-7)
+            den = den * r + ti.f64(1.84631831751005468180e-5)
+            den = den * r + ti.f64(7.86869131145613259100e-4)
+            den = den * r + ti.f64(1.48753612908506148525e-2)
+            den = den * r + ti.f64(1.36929880922735805310e-1)
+            den = den * r + ti.f64(5.99832206555887937690e-1)
+            den = den * r + ti.f64(1.0)
+        x = num / den
+        if q < ti.f64(0.0):
+            x = -x
+    return x
+
+
+@ti.func
+def normal_key(key, index):
+    """Standard normal f64 by inversion of one keyed uniform (:func:`normal_icdf`)."""
+    return normal_icdf(u01_key(key, index))
 
 
 @ti.func
 def normal(seed, stream, index):
-    """Standard normal f64 for (seed, stream, index) (uses draws 0 and 1 of the stream)."""
-    return normal_keys(stream_key(seed, stream, 0), stream_key(seed, stream, 1), index)
+    """Standard normal f64 for (seed, stream, index) (draw 0 of the stream)."""
+    return normal_key(stream_key(seed, stream, 0), index)
 
 
 @ti.func
@@ -137,18 +211,25 @@ def log_gamma(x):
 
 @ti.func
 def poisson(lam, seed, stream, index):
+    """Exact Poisson(lam) sample for (seed, stream, index); see :func:`poisson_keyed`."""
+    return poisson_keyed(lam, stream_key(seed, stream, 0), stream_key(seed, stream, 1), seed, stream, index)
+
+
+@ti.func
+def poisson_keyed(lam, key0, key1, seed, stream, index):
     """Exact Poisson(lam) sample (f64 holding an integer) for f64 lam >= 0.
 
     lam < 10: inversion by sequential search (one uniform, draw 0).
     lam >= 10: PTRS transformed rejection (Hörmann 1993, "The transformed rejection method for
     generating Poisson random variables", Insurance: Math. & Econ. 12, 39-45; the variant used by
     numpy), drawing uniform pairs (draws 2k, 2k+1) until acceptance (~1.1 pairs on average).
+    key0, key1 = stream_key(seed, stream, 0 / 1), hoisted out of pixel loops by the caller.
     """
     k = ti.f64(0.0)
     if lam <= ti.f64(0.0):
         k = ti.f64(0.0)
     elif lam < ti.f64(10.0):
-        u = uniform(seed, stream, 0, index)
+        u = u01_key(key0, index)
         p = ti.exp(-lam)
         cdf = p
         n = 0
@@ -167,8 +248,13 @@ def poisson(lam, seed, stream, index):
         draw = 0
         done = False
         while not done and draw < 2000:
-            U = uniform(seed, stream, draw, index) - ti.f64(0.5)
-            V = uniform(seed, stream, draw + 1, index)
+            ka = key0
+            kb = key1
+            if draw > 0:
+                ka = stream_key(seed, stream, draw)
+                kb = stream_key(seed, stream, draw + 1)
+            U = u01_key(ka, index) - ti.f64(0.5)
+            V = u01_key(kb, index)
             draw += 2
             us = ti.f64(0.5) - ti.abs(U)
             kk = ti.floor((ti.f64(2.0) * a / us + b) * U + lam + ti.f64(0.43))

@@ -144,8 +144,8 @@ class VotingConfig:
     def robust(cls, tolerance_rad: float = 1.5e-4, **kw) -> "VotingConfig":
         """dualsight's method: unique maxima, consistent-set acceptance, >= 3 stars, attitude check."""
         base = dict(tolerance_rad=tolerance_rad, require_unique_max=True, vote_once_per_pair=True,
-                    accept_rule="clique",
-                    min_accepted=3, verify_attitude=True, min_verified=4, reidentify=True)
+                    accept_rule="clique", min_accepted=2, verify_attitude=True, min_verified=4,
+                    reidentify=True)
         base.update(kw)
         return cls(**base)
 
@@ -261,8 +261,12 @@ def _vote_chunk(d: np.ndarray, slot_p: np.ndarray, slot_q: np.ndarray, n_slots: 
     for a, b in zip(edges[:-1], edges[1:]):                           # a handful of pieces
         owner, cand = _expand_ranges(lo[a:b], cnt[a:b])
         if once_per_pair:
-            # one vote per (observed pair, catalog row): np.unique over owner * N + row
-            u = np.unique(np.concatenate([owner * n_cat + pi[cand], owner * n_cat + pj[cand]]))
+            # one vote per (observed pair, catalog row): sort owner * N + row and drop repeats
+            # (an explicit sort: numpy 2.x's hash-based np.unique is several times slower here)
+            u = np.concatenate([owner * n_cat + pi[cand], owner * n_cat + pj[cand]])
+            u.sort()
+            if u.size:
+                u = u[np.concatenate([[True], u[1:] != u[:-1]])]
             own, row = u // n_cat, u % n_cat
             keys = np.concatenate([slot_p[a:b][own] * n_cat + row, slot_q[a:b][own] * n_cat + row])
         else:
@@ -349,39 +353,51 @@ def _accept_clique(cons: np.ndarray, votes: np.ndarray) -> np.ndarray:
     return member
 
 
-def _nearest_catalog(v_icrs: np.ndarray, cat_unit: np.ndarray, chunk_cells: int) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest catalog row and its cosine for (B, S, 3) ICRS vectors, chunked over cases.
+def _nearest_catalog(v_icrs: np.ndarray, cat_unit: np.ndarray, chunk_cells: int):
+    """Nearest catalog row, its cosine and the second-largest cosine for (B, S, 3) ICRS vectors.
 
-    Returns ``idx (B, S) int64`` and ``cos (B, S) float64``.
+    Chunked over cases (``chunk_cells`` float64 cells of the (cases, S, N) dot table at a time).
+    Returns ``idx (B, S) int64``, ``cos1 (B, S)`` and ``cos2 (B, S)`` float64.
     """
     B, S, _ = v_icrs.shape
     N = cat_unit.shape[0]
     step = max(1, chunk_cells // max(1, S * N))
-    idx = np.empty((B, S), np.int64)
-    cos = np.empty((B, S))
+    idx = np.zeros((B, S), np.int64)
+    cos1 = np.full((B, S), -np.inf)
+    cos2 = np.full((B, S), -np.inf)
     catT = np.ascontiguousarray(cat_unit.T)
     for b0 in range(0, B, step):                                       # a handful of chunks
         dots = v_icrs[b0:b0 + step] @ catT                              # (b, S, N)
         k = dots.argmax(axis=2)
+        c1 = np.take_along_axis(dots, k[..., None], axis=2)
+        np.put_along_axis(dots, k[..., None], -np.inf, axis=2)
         idx[b0:b0 + step] = k
-        cos[b0:b0 + step] = np.take_along_axis(dots, k[..., None], axis=2)[..., 0]
-    return idx, cos
+        cos1[b0:b0 + step] = c1[..., 0]
+        if N > 1:
+            cos2[b0:b0 + step] = dots.max(axis=2)
+    return idx, cos1, cos2
 
 
 def _attitude_check(obs, valid, ids, accepted, cat_unit, cfg: VotingConfig):
     """Optional final check (dualsight, not in the reference): SVD attitude from the accepted stars,
     then every valid observed star is matched to the nearest catalog star within ``attitude_tol``.
 
-    Returns ``match_ids (B, S)`` (-1 = no match; a catalog row matched twice is dropped) and
-    ``n_match (B,)``.
+    Returns ``match_ids (B, S)`` (-1 = no match, an ambiguous match (two catalog stars within the
+    radius) unless it confirms the star's accepted voting identity, or a catalog row matched by two
+    observed stars) and ``n_match (B,)``.
     """
     B, S, _ = obs.shape
     A, ok = solve_identified(obs, ids, accepted, cat_unit)
     A0 = np.where(ok[:, None, None], A, np.eye(3))
     v = np.einsum("bji,bsj->bsi", A0, np.where(valid[..., None], obs, 0.0))   # A^T b
-    idx, cos = _nearest_catalog(v, cat_unit, 4 * 1024 * 1024)
-    hit = valid & ok[:, None] & (cos > np.cos(cfg.attitude_tol))
-    m = np.where(hit, idx, -1)
+    idx, cos1, cos2 = _nearest_catalog(v, cat_unit, 4 * 1024 * 1024)
+    c_tol = np.cos(cfg.attitude_tol)
+    # an accepted voting identity that the attitude confirms is kept; any other star needs a single
+    # catalog star within the radius (two, e.g. a close double, make the match ambiguous: no id)
+    cos_own = np.sum(v * cat_unit[np.where(ids >= 0, ids, 0)], axis=-1)
+    own = accepted & (ids >= 0) & (cos_own > c_tol)
+    hit = valid & ok[:, None] & (own | ((cos1 > c_tol) & ~(cos2 > c_tol)))
+    m = np.where(hit, np.where(own, ids, idx), -1)
     m = _drop_duplicates(m, np.zeros_like(m))                          # equal "votes": both dropped
     return m, (m >= 0).sum(axis=1)
 

@@ -272,14 +272,14 @@ def format_summary(result: CalibrationResult) -> str:
     """Readable multi-line summary of a calibration."""
     c = result.camera
     fh, fv, fd = (math.degrees(a) for a in c.fov_rad)
-    sd = result.std
+    sd = {k: result.std.get(k, float("nan")) for k in ("fx", "fy", "cx", "cy")}
     lines = [
         f"chessboard {result.board[0]}x{result.board[1]} inner corners, square {result.square_m * 1e3:g} mm; "
         f"board found in {len(result.views)} image(s)",
         f"image         {c.width} x {c.height} px, {c.bit_depth} bit",
-        f"fx, fy        {c.fx:.3f} +- {sd.get('fx', float('nan')):.3f}, {c.fy:.3f} +- {sd.get('fy', float('nan')):.3f} px",
-        f"cx, cy        {c.cx:.3f}, {c.cy:.3f} px from the top-left corner "
-        f"(OpenCV: {c.cx - 0.5:.3f}, {c.cy - 0.5:.3f}; +- {sd.get('cx', float('nan')):.3f}, {sd.get('cy', float('nan')):.3f})",
+        f"fx, fy        {c.fx:.3f} +- {sd['fx']:.3f}, {c.fy:.3f} +- {sd['fy']:.3f} px",
+        f"cx, cy        {c.cx:.3f} +- {sd['cx']:.3f}, {c.cy:.3f} +- {sd['cy']:.3f} px from the top-left corner "
+        f"(OpenCV convention: {c.cx - 0.5:.3f}, {c.cy - 0.5:.3f})",
         "focal length  " + (f"{result.focal_length_mm:.4f} mm at {c.pixel_pitch_m * 1e6:g} um pixels"
                             if result.pixel_pitch_known else "unknown in mm (pixel pitch not given)"),
         "distortion    k1 k2 p1 p2 k3 = " + " ".join(f"{x:.6g}" for x in c.distortion),

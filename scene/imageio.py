@@ -52,7 +52,7 @@ _MAGIC = {
 }
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Image:
     """One decoded frame.
 
