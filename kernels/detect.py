@@ -27,7 +27,7 @@ dropped; at most cfg.max_blobs_per_frame (the brightest) are kept per frame.
 
 Background bg_b and noise sigma_b are given in the config or estimated per frame from a strided pixel
 sample (every ``background_step``-th row and column): bg = median, sigma = standard deviation of the
-sample within max(4 * 1.4826 * MAD, 1 ADU) of the median (robust to the few star pixels).
+sample within 4 * 1.4826 * MAD of the median (robust to the few star pixels; 0 when MAD = 0).
 """
 
 import math
@@ -431,9 +431,10 @@ def estimate_background(images: np.ndarray, step: int = 16) -> tuple[np.ndarray,
     Returns
     -------
     bg : (B,) float64 median of the sample.
-    sigma : (B,) float64 standard deviation of the sample values within max(4 * 1.4826 * MAD, 1) of the
-        median (MAD: median absolute deviation; 1.4826 * MAD estimates a Gaussian sigma, Rousseeuw &
-        Croux 1993); 0 for a constant (noise-free) sky.
+    sigma : (B,) float64 standard deviation of the sample values within 4 * 1.4826 * MAD of the median
+        (MAD: median absolute deviation; 1.4826 * MAD estimates a Gaussian sigma, Rousseeuw & Croux 1993;
+        the 4-sigma clip removes star pixels and keeps 99.99 % of Gaussian noise).  sigma = 0 when
+        MAD = 0: a noise-free sky, or noise well below one ADU step (then set ``threshold_adu``).
     """
     B = images.shape[0]
     o = step // 2
@@ -443,16 +444,19 @@ def estimate_background(images: np.ndarray, step: int = 16) -> tuple[np.ndarray,
     bg = np.median(s, axis=1)
     d = s - bg[:, None]
     mad = np.median(np.abs(d), axis=1)
-    lim = np.maximum(4.0 * 1.4826 * mad, 1.0)
+    lim = 4.0 * 1.4826 * mad
     m = np.abs(d) <= lim[:, None]
     n = np.maximum(m.sum(axis=1), 1)
     mean = np.where(m, d, 0.0).sum(axis=1) / n
     var = np.where(m, (d - mean[:, None]) ** 2, 0.0).sum(axis=1) / n
-    return bg, np.sqrt(var)
+    return bg, np.where(mad > 0, np.sqrt(var), 0.0)
 
 
 def _levels(cfg: DetectConfig, B: int, bg_est=None, sigma_est=None):
-    bg = np.full(B, cfg.background_adu, np.float64) if cfg.background_adu is not None else np.asarray(bg_est, np.float64)
+    if cfg.background_adu is not None:
+        bg = np.full(B, cfg.background_adu, np.float64)
+    else:
+        bg = np.asarray(bg_est, np.float64)
     sig = (np.full(B, cfg.noise_sigma_adu, np.float64) if cfg.noise_sigma_adu is not None
            else np.asarray(sigma_est, np.float64))
     thr = bg + np.maximum(cfg.threshold_adu, cfg.k_sigma * sig)
@@ -492,6 +496,17 @@ def _assemble(case, sw, sx, sy, npx, B, cfg: DetectConfig, bg, thr) -> Detection
                       background_adu=np.asarray(bg, np.float64), threshold_adu=np.asarray(thr, np.float64))
 
 
+def _concat(parts: list) -> Detections:
+    """Detections of consecutive frame chunks as one batch (cases renumbered)."""
+    first = np.cumsum([0] + [p.n_frames for p in parts])
+    offs = np.cumsum([0] + [len(p) for p in parts])
+    cat = lambda name: np.concatenate([getattr(p, name) for p in parts])
+    return Detections(case=np.concatenate([p.case + np.int32(f0) for p, f0 in zip(parts, first)]).astype(np.int32),
+                      x=cat("x"), y=cat("y"), flux=cat("flux"), npix=cat("npix"),
+                      offsets=np.concatenate([[0]] + [p.offsets[1:] + o for p, o in zip(parts, offs)]).astype(np.int64),
+                      background_adu=cat("background_adu"), threshold_adu=cat("threshold_adu"))
+
+
 def _empty(B, cfg, bg, thr) -> Detections:
     z = np.zeros(0)
     return _assemble(np.zeros(0, np.int32), z, z, z, np.zeros(0, np.int32), B, cfg, bg, thr)
@@ -519,8 +534,13 @@ def detect_stars(images: np.ndarray, cfg: DetectConfig = DetectConfig()) -> Dete
         raise ValueError(f"images must have shape (B, H, W), got {images.shape}")
     if np.dtype(images.dtype).str not in _TI_OF:
         raise ValueError(f"images must be uint8, uint16, float32 or float64, got {images.dtype}")
-    images = np.ascontiguousarray(images)
     B, H, W = images.shape
+    if H * W > 1 << 30:
+        raise ValueError(f"frames of {W} x {H} px are larger than 2^30 pixels")
+    chunk = max(1, sf.MAX_CHUNK_PIXELS // max(1, H * W))
+    if B > chunk:  # bounded run buffers and int32 indices: loop over chunks of frames
+        return _concat([detect_stars(images[b0:b0 + chunk], cfg) for b0 in range(0, B, chunk)])
+    images = np.ascontiguousarray(images)
     if cfg.background_adu is None or cfg.noise_sigma_adu is None:
         bg_e, sig_e = estimate_background(images, cfg.background_step) if B and H and W else (np.zeros(B),) * 2
     else:
@@ -565,7 +585,9 @@ def render_and_detect_ideal(x, y, flux_e, valid, width: int, height: int,
 
     Gives the same blobs as ``detect_stars(render_star_fields(x, y, flux_e, valid, width, height,
     sensor, seeds, dtype=dtype), detect)`` — merged blobs of touching stars included — at a cost
-    proportional to the stars' window areas instead of B * H * W.
+    proportional to the stars' window areas instead of B * H * W (about 0.1 ms per 1024 x 768 frame
+    with 13 stars on one core).  The equality holds whenever the dense path's background estimate
+    finds the sky level (fewer than half of the sampled pixels lit) or ``detect.background_adu`` is given.
 
     Parameters
     ----------

@@ -28,7 +28,6 @@ functions (``*_np``) compute the very same bits on arrays (used for the per-case
 lists and for tests).  Importing this module does not initialise Taichi.
 """
 
-from __future__ import annotations
 
 import math
 
@@ -210,27 +209,40 @@ def log_gamma(x):
 
 
 @ti.func
-def poisson(lam, seed, stream, index):
-    """Exact Poisson(lam) sample for (seed, stream, index); see :func:`poisson_keyed`."""
-    return poisson_keyed(lam, stream_key(seed, stream, 0), stream_key(seed, stream, 1), seed, stream, index)
+def poisson_consts(lam):
+    """Per-lambda constants of :func:`poisson_keyed` (f64 vector of 7); cache them for repeated lambdas."""
+    lam_c = ti.max(lam, ti.f64(10.0))  # the PTRS part is only used for lam >= 10
+    slam = ti.sqrt(lam_c)
+    b = ti.f64(0.931) + ti.f64(2.53) * slam
+    return ti.Vector([ti.exp(-lam), slam, ti.log(lam_c), b, ti.f64(-0.059) + ti.f64(0.02483) * b,
+                      ti.log(ti.f64(1.1239) + ti.f64(1.1328) / (b - ti.f64(3.4))),
+                      ti.f64(0.9277) - ti.f64(3.6224) / (b - ti.f64(2.0))], dt=ti.f64)
 
 
 @ti.func
-def poisson_keyed(lam, key0, key1, seed, stream, index):
+def poisson(lam, seed, stream, index):
+    """Exact Poisson(lam) sample for (seed, stream, index); see :func:`poisson_keyed`."""
+    return poisson_keyed(lam, poisson_consts(lam), stream_key(seed, stream, 0), stream_key(seed, stream, 1),
+                         seed, stream, index)
+
+
+@ti.func
+def poisson_keyed(lam, cst, key0, key1, seed, stream, index):
     """Exact Poisson(lam) sample (f64 holding an integer) for f64 lam >= 0.
 
     lam < 10: inversion by sequential search (one uniform, draw 0).
     lam >= 10: PTRS transformed rejection (Hörmann 1993, "The transformed rejection method for
     generating Poisson random variables", Insurance: Math. & Econ. 12, 39-45; the variant used by
     numpy), drawing uniform pairs (draws 2k, 2k+1) until acceptance (~1.1 pairs on average).
-    key0, key1 = stream_key(seed, stream, 0 / 1), hoisted out of pixel loops by the caller.
+    cst = poisson_consts(lam); key0, key1 = stream_key(seed, stream, 0 / 1): both can be hoisted out
+    of pixel loops by the caller (most pixels of a star field share the sky's lambda).
     """
     k = ti.f64(0.0)
     if lam <= ti.f64(0.0):
         k = ti.f64(0.0)
     elif lam < ti.f64(10.0):
         u = u01_key(key0, index)
-        p = ti.exp(-lam)
+        p = cst[0]
         cdf = p
         n = 0
         while u > cdf and n < 200:
@@ -239,12 +251,11 @@ def poisson_keyed(lam, key0, key1, seed, stream, index):
             cdf += p
         k = ti.cast(n, ti.f64)
     else:
-        slam = ti.sqrt(lam)
-        loglam = ti.log(lam)
-        b = ti.f64(0.931) + ti.f64(2.53) * slam
-        a = ti.f64(-0.059) + ti.f64(0.02483) * b
-        invalpha = ti.f64(1.1239) + ti.f64(1.1328) / (b - ti.f64(3.4))
-        vr = ti.f64(0.9277) - ti.f64(3.6224) / (b - ti.f64(2.0))
+        loglam = cst[2]
+        b = cst[3]
+        a = cst[4]
+        log_invalpha = cst[5]
+        vr = cst[6]
         draw = 0
         done = False
         while not done and draw < 2000:
@@ -263,13 +274,32 @@ def poisson_keyed(lam, key0, key1, seed, stream, index):
                 done = True
             elif kk < ti.f64(0.0) or (us < ti.f64(0.013) and V > us):
                 pass
-            elif (ti.log(V) + ti.log(invalpha) - ti.log(a / (us * us) + b)
+            elif (ti.log(V) + log_invalpha - ti.log(a / (us * us) + b)
                   <= -lam + kk * loglam - log_gamma(kk + ti.f64(1.0))):
                 k = kk
                 done = True
         if not done:  # practically unreachable (p < 1e-1000); keep the mean
             k = ti.floor(lam + ti.f64(0.5))
     return k
+
+
+@ti.func
+def poisson_table(u, cdf: ti.template(), guide: ti.template()):
+    """Poisson sample by inversion of a tabulated CDF (see :func:`poisson_table_np`): the smallest k
+    with cdf[k] >= u, found from a guide table in O(1) expected steps (Chen & Asau 1974).  Returns
+    -1.0 when u lies beyond the table's last entry (probability < 1e-15; the caller falls back).
+    Same result as the sequential-search inversion in :func:`poisson_keyed`, up to f64 rounding of the CDF.
+    """
+    K = cdf.shape[0]
+    M = guide.shape[0]
+    j = ti.min(ti.cast(u * ti.cast(M, ti.f64), ti.i32), M - 1)
+    k = guide[j]
+    while k < K and cdf[k] < u:
+        k += 1
+    res = ti.f64(-1.0)
+    if k < K:
+        res = ti.cast(k, ti.f64)
+    return res
 
 
 # ----------------------------------------------------------------------------- numpy twins
@@ -316,3 +346,21 @@ def as_seeds(seeds, n: int, name: str = "seeds") -> np.ndarray:
     if a.dtype.kind == "i" and a.size and a.min() < 0:
         raise ValueError(f"{name} must be >= 0, got min {a.min()}")
     return np.ascontiguousarray(a.astype(np.uint64))
+
+
+def poisson_table_np(lam: float) -> tuple[np.ndarray, np.ndarray]:
+    """CDF and guide table of Poisson(lam) for :func:`poisson_table`: (cdf (K,) float64, guide (K,) int32).
+
+    K = lam + 12 sqrt(lam) + 30 entries (the tail beyond holds < 1e-20 of the mass); pmf by the recurrence
+    p_k = p_(k-1) lam / k in log space; guide[j] = smallest k with cdf[k] >= j / K.
+    """
+    lam = float(lam)
+    K = int(lam + 12.0 * math.sqrt(lam) + 30.0)
+    k = np.arange(K, dtype=np.float64)
+    if lam > 0:
+        logp = -lam + np.concatenate([[0.0], np.cumsum(math.log(lam) - np.log(k[1:]))])
+    else:
+        logp = np.where(k == 0, 0.0, -np.inf)
+    cdf = np.cumsum(np.exp(logp))
+    guide = np.searchsorted(cdf, np.arange(K, dtype=np.float64) / K, side="left").astype(np.int32)
+    return np.ascontiguousarray(cdf), np.ascontiguousarray(np.minimum(guide, K - 1))

@@ -40,12 +40,14 @@ def svd_attitude(obs: np.ndarray, ref: np.ndarray, weights: np.ndarray, *,
     -------
     A : (B, 3, 3) float64 rotation matrices with ``b ~ A r`` (NaN where not ok).
     ok : (B,) bool, at least two non-parallel observations with positive weight.
-    cov : (B, 3, 3) float64, only if ``return_cov``: covariance of the small rotation error vector
-        ``dtheta`` (camera frame, ``A_true = (I - [dtheta x]) A``, to first order) from Markley 1988 (covariance
-        of the SVD estimate; also Markley & Crassidis 2014, Sec. 5.5):
-        ``P = U diag(1/(s2+s3), 1/(s3+s1), 1/(s1+s2)) U^T`` with ``s3 = det(U) det(V) S33``,
-        valid for the QUEST measurement model (isotropic noise perpendicular to b_k,
-        variance sigma_k^2 per axis) and ``w_k = 1/sigma_k^2``.  NaN where not ok.
+    cov : (B, 3, 3) float64, only if ``return_cov``: covariance (rad^2) of the small error rotation
+        vector ``dtheta`` in the camera frame, ``A_true ~ (I + [dtheta x]) A`` to first order, from
+        Markley 1988 (covariance of the SVD estimate; also Markley & Crassidis 2014, Sec. 5.5):
+        ``P = U diag(1/(s2+s3), 1/(s3+s1), 1/(s1+s2)) U^T`` with ``s3 = det(U) det(V) S33``.
+        Valid for the QUEST measurement model (noise perpendicular to b_k, variance sigma_k^2 per
+        axis) with ``w_k = 1/sigma_k^2``; checked by Monte Carlo in tests/test_nav_star.py.
+        ``sqrt(P[2, 2])`` is the roll (about the boresight) uncertainty, the weak axis of a narrow
+        field.  NaN where not ok.
     """
     obs = np.asarray(obs, dtype=np.float64)
     ref = np.asarray(ref, dtype=np.float64)
