@@ -525,7 +525,13 @@ def _attitude_check(obs, valid, ids, accepted, cat_unit, cfg: VotingConfig):
     A, ok = solve_identified(obs, ids, accepted, cat_unit)
     A0 = np.where(ok[:, None, None], A, np.eye(3))
     v = np.einsum("bji,bsj->bsi", A0, np.where(valid[..., None], obs, 0.0))   # A^T b
-    idx, cos1, cos2 = _nearest_catalog(v, valid, cat_unit, cfg.attitude_tol)
+    idx = np.full((B, S), -1, np.int64)
+    cos1 = np.full((B, S), -np.inf)
+    cos2 = np.full((B, S), -np.inf)
+    blk = max(1, int(cfg.max_vote_cells) // max(1, cat_unit.shape[0]))   # bounded (cases, N) arrays
+    for b0 in range(0, B, blk):                                        # a handful of blocks
+        sl = slice(b0, b0 + blk)
+        idx[sl], cos1[sl], cos2[sl] = _nearest_catalog(v[sl], valid[sl], cat_unit, cfg.attitude_tol)
     c_tol = np.cos(cfg.attitude_tol)
     # an accepted voting identity that the attitude confirms is kept; any other star needs a single
     # catalog star within the radius (two, e.g. a close double, make the match ambiguous: no id)
@@ -622,7 +628,12 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
         # tie-aware assignment: stars in the consistent candidate set take those identities,
         # the others keep the plain (unique, if required) maximum
         cand = np.where(use[..., None], cand, -1)
-        sel_ids, sel_votes = _select_candidates(obs_k, cand, cand_votes, cat_unit, cfg.verify_tol)
+        sel_ids = np.full((B, K), -1, np.int64)
+        sel_votes = np.zeros((B, K), np.int64)
+        blk = max(1, int(cfg.max_vote_cells) // max(1, (K * m) ** 2))   # bounded (cases, Km, Km) arrays
+        for b0 in range(0, B, blk):                                    # a handful of blocks
+            sel_ids[b0:b0 + blk], sel_votes[b0:b0 + blk] = _select_candidates(
+                obs_k[b0:b0 + blk], cand[b0:b0 + blk], cand_votes[b0:b0 + blk], cat_unit, cfg.verify_tol)
         chosen = sel_ids >= 0
         vote_ids = np.where(chosen, sel_ids, vote_ids)
         top = np.where(chosen, sel_votes, top)

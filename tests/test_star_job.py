@@ -75,7 +75,8 @@ def test_cases_do_not_depend_on_shard_or_batch(small_run, tmp_path):
            "WHERE run = '{}' ORDER BY case_id")
     _, a = run_sql(small_run, sql.format("small"))
     _, b = run_sql(tmp_path, sql.format("other"))
-    assert a == b
+    nan_safe = lambda rows: [tuple("nan" if isinstance(v, float) and v != v else v for v in r) for r in rows]  # noqa
+    assert len(a) == 60 and nan_safe(a) == nan_safe(b)
 
 
 def test_replay_reproduces_row(small_run, tmp_path):
