@@ -281,15 +281,16 @@ def _scanline_samples(spec: list[dict], views: np.ndarray, rows: int = 256, chun
     return np.concatenate(ratios), np.concatenate(areas)
 
 
-def projected_area_samples(shape, n: int = 20000, seed: int = 0, method: str = "auto", rows: int = 256):
-    """(axis ratio (n,), projected area (n,) m^2) for n orientations uniform on SO(3).
+def silhouette_stats(shape, rotations, method: str = "auto", rows: int = 256):
+    """(axis ratio (n,), orthographic projected area (n,) m^2) for given orientations.
 
-    ``method``: "exact" (one convex component), "scanline" (any) or "auto" (exact when possible).
+    ``rotations`` : (n, 3, 3) body -> camera rotations (rows: image x axis, image y axis, viewing
+    direction, in the body frame).  ``method`` as :func:`projected_area_samples`.
     """
     spec = shape_spec(shape)
+    views = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
     if method == "auto":
         method = "exact" if len(spec) == 1 else "scanline"
-    views = _view_frames(int(n), int(seed))
     if method == "exact":
         if len(spec) != 1:
             raise ValueError("method 'exact' needs a single convex component; use 'scanline'")
@@ -297,6 +298,14 @@ def projected_area_samples(shape, n: int = 20000, seed: int = 0, method: str = "
     if method == "scanline":
         return _scanline_samples(spec, views, rows=rows)
     raise ValueError(f"unknown method {method!r}; allowed: auto, exact, scanline")
+
+
+def projected_area_samples(shape, n: int = 20000, seed: int = 0, method: str = "auto", rows: int = 256):
+    """(axis ratio (n,), projected area (n,) m^2) for n orientations uniform on SO(3).
+
+    ``method``: "exact" (one convex component), "scanline" (any) or "auto" (exact when possible).
+    """
+    return silhouette_stats(shape, _view_frames(int(n), int(seed)), method=method, rows=rows)
 
 
 def _smallest_face(spec: list[dict]) -> float | None:

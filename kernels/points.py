@@ -193,10 +193,13 @@ def _kernels() -> dict:
                         zbuf[b, y, x] = ti.u64(_MAXU64)
 
     # ------------------------------------------------------------------ accurate: triangles
+    G = ti.f64  # geometry precision: edge functions and clipping in double, so that the coverages of
+    #             two triangles sharing an edge add up to 1 to ~1e-12 (storage stays float32)
+
     @ti.func
     def band_span(xs, ys, y0, y1):
         """x-extent of the triangle (xs, ys) inside the horizontal band y0 <= y <= y1."""
-        lo, hi = 1e30, -1e30
+        lo, hi = G(1e30), G(-1e30)
         for k in ti.static(range(3)):
             if ys[k] >= y0 and ys[k] <= y1:
                 lo = ti.min(lo, xs[k])
@@ -214,10 +217,10 @@ def _kernels() -> dict:
     @ti.func
     def clip_pixel(ea, eb, ec):
         """Area and centroid (pixel-local coords) of the unit square clipped by a.x + b.y + c >= 0 (x3)."""
-        px = ti.Vector([0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-        py = ti.Vector([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-        qx = ti.Vector.zero(f32, 10)
-        qy = ti.Vector.zero(f32, 10)
+        px = ti.Vector([0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dt=G)
+        py = ti.Vector([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dt=G)
+        qx = ti.Vector.zero(G, 10)
+        qy = ti.Vector.zero(G, 10)
         n = 4
         for k in ti.static(range(3)):
             m = 0
@@ -238,37 +241,37 @@ def _kernels() -> dict:
             for j in range(n):
                 px[j] = qx[j]
                 py[j] = qy[j]
-        a2 = 0.0
-        gx = 0.0
-        gy = 0.0
+        a2 = G(0.0)
+        gx = G(0.0)
+        gy = G(0.0)
         for j in range(n):
             j1 = (j + 1) % n
             cr = px[j] * py[j1] - px[j1] * py[j]
             a2 += cr
             gx += (px[j] + px[j1]) * cr
             gy += (py[j] + py[j1]) * cr
-        area = 0.5 * a2
-        cx, cy = 0.5, 0.5
+        cx, cy = G(0.5), G(0.5)
         if a2 > 1e-12:
             cx = gx / (3.0 * a2)
             cy = gy / (3.0 * a2)
-        return ti.max(area, 0.0), cx, cy
+        return ti.max(0.5 * a2, G(0.0)), cx, cy
 
     @ti.func
     def tri_setup(px: ti.template(), k):
-        xs = ti.Vector([px[k, 0], px[k, 2], px[k, 4]])
-        ys = ti.Vector([px[k, 1], px[k, 3], px[k, 5]])
+        """Edge functions e_i(x, y) = a_i x + b_i y + c_i (unit normals, >= 0 inside), edge lengths, |2 area|."""
+        xs = ti.Vector([px[k, 0], px[k, 2], px[k, 4]], dt=G)
+        ys = ti.Vector([px[k, 1], px[k, 3], px[k, 5]], dt=G)
         area2 = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (xs[2] - xs[0]) * (ys[1] - ys[0])
-        s = 1.0 if area2 > 0 else -1.0
-        ea = ti.Vector.zero(f32, 3)
-        eb = ti.Vector.zero(f32, 3)
-        ec = ti.Vector.zero(f32, 3)
-        ln = ti.Vector.zero(f32, 3)
+        s = G(1.0) if area2 > 0 else G(-1.0)
+        ea = ti.Vector.zero(G, 3)
+        eb = ti.Vector.zero(G, 3)
+        ec = ti.Vector.zero(G, 3)
+        ln = ti.Vector.zero(G, 3)
         for e in ti.static(range(3)):
             e1 = (e + 1) % 3
             dx = xs[e1] - xs[e]
             dy = ys[e1] - ys[e]
-            l = ti.sqrt(dx * dx + dy * dy) + 1e-30
+            l = ti.sqrt(dx * dx + dy * dy) + 1e-300
             ea[e] = -s * dy / l
             eb[e] = s * dx / l
             ec[e] = -(ea[e] * xs[e] + eb[e] * ys[e])
@@ -278,35 +281,33 @@ def _kernels() -> dict:
     @ti.func
     def fragment(ea, eb, ec, x, y):
         """Coverage of pixel (x, y) by the triangle and the point (absolute coords) to shade at."""
-        cxp = ti.cast(x, f32) + 0.5
-        cyp = ti.cast(y, f32) + 0.5
-        e = ea * cxp + eb * cyp + ec
+        fx = ti.cast(x, G)
+        fy = ti.cast(y, G)
+        e = ea * (fx + 0.5) + eb * (fy + 0.5) + ec
         r = 0.5 * (ti.abs(ea) + ti.abs(eb))
-        cov, gx, gy = 0.0, cxp, cyp
+        cov, gx, gy = G(0.0), fx + 0.5, fy + 0.5
         if e[0] >= r[0] and e[1] >= r[1] and e[2] >= r[2]:
-            cov = 1.0
+            cov = G(1.0)
         elif e[0] > -r[0] and e[1] > -r[1] and e[2] > -r[2]:
-            ecl = ea * ti.cast(x, f32) + eb * ti.cast(y, f32) + ec      # shift to pixel-local coordinates
-            a, lx, ly = clip_pixel(ea, eb, ecl)
+            a, lx, ly = clip_pixel(ea, eb, ea * fx + eb * fy + ec)     # pixel-local coordinates
             cov = a
-            gx = ti.cast(x, f32) + lx
-            gy = ti.cast(y, f32) + ly
+            gx = fx + lx
+            gy = fy + ly
         return cov, gx, gy
 
     @ti.func
     def interp(pc: ti.template(), k, ea, eb, ec, ln, area2, gx, gy):
-        """Perspective-correct depth (m), camera-frame point and weights at pixel point (gx, gy)."""
+        """Perspective-correct depth (m) and vertex weights at pixel point (gx, gy)."""
         # screen-space barycentric of vertex v is the edge function of the opposite edge (v+1 -> v+2)
         lam = ti.Vector([(ea[1] * gx + eb[1] * gy + ec[1]) * ln[1],
                          (ea[2] * gx + eb[2] * gy + ec[2]) * ln[2],
                          (ea[0] * gx + eb[0] * gy + ec[0]) * ln[0]]) / area2
         w = ti.Vector([lam[0] / pc[k, 2], lam[1] / pc[k, 5], lam[2] / pc[k, 8]])
         zi = 1.0 / (w[0] + w[1] + w[2])
-        mu = w * zi
-        return zi, mu
+        return ti.cast(zi, f32), ti.cast(w * zi, f32)
 
     @ti.kernel
-    def tri_raster(px: nd(dtype=f32, ndim=2), pc: nd(dtype=f32, ndim=2), pn: nd(dtype=f32, ndim=2),
+    def tri_raster(px: nd(dtype=ti.f64, ndim=2), pc: nd(dtype=f32, ndim=2), pn: nd(dtype=f32, ndim=2),
                    tcomp: nd(dtype=ti.i32, ndim=1), mat: nd(dtype=f32, ndim=2), off: nd(dtype=ti.i32, ndim=1),
                    box: nd(dtype=ti.i32, ndim=2), light: nd(dtype=f32, ndim=2), Ia: nd(dtype=f32, ndim=1),
                    Il: nd(dtype=f32, ndim=1), depth_test: ti.i32, zfull: nd(dtype=f32, ndim=3),
@@ -315,7 +316,7 @@ def _kernels() -> dict:
         ti.loop_config(block_dim=2)
         for b, y in ti.ndrange(B, H):
             if y >= box[b, 1] and y <= box[b, 3]:
-                fy0 = ti.cast(y, f32)
+                fy0 = ti.cast(y, G)
                 fy1 = fy0 + 1.0
                 L = ti.Vector([light[b, 0], light[b, 1], light[b, 2]])
                 if depth_test != 0:
@@ -328,7 +329,7 @@ def _kernels() -> dict:
                             x0 = ti.max(ti.cast(ti.floor(lo), ti.i32), 0)
                             x1 = ti.min(ti.cast(ti.ceil(hi), ti.i32), W)
                             for x in range(x0, x1):
-                                cxp = ti.cast(x, f32) + 0.5
+                                cxp = ti.cast(x, G) + 0.5
                                 e = ea * cxp + eb * (fy0 + 0.5) + ec
                                 r = 0.5 * (ti.abs(ea) + ti.abs(eb))
                                 if e[0] >= r[0] and e[1] >= r[1] and e[2] >= r[2]:
@@ -347,11 +348,12 @@ def _kernels() -> dict:
                                 room = 1.0 - cov[b, y, x]
                                 if room > 0:
                                     zi, mu = interp(pc, k, ea, eb, ec, ln, area2, gx, gy)
-                                    ok = True
+                                    ok = 1
                                     if depth_test != 0:
-                                        ok = zi <= zfull[b, y, x] * (1.0 + 1e-5)
-                                    if ok:
-                                        vis = ti.min(cv, room)
+                                        if zi > zfull[b, y, x] * (1.0 + 1e-5):
+                                            ok = 0
+                                    if ok != 0:
+                                        vis = ti.min(ti.cast(cv, f32), room)
                                         p = ti.Vector([mu[0] * pc[k, 0] + mu[1] * pc[k, 3] + mu[2] * pc[k, 6],
                                                        mu[0] * pc[k, 1] + mu[1] * pc[k, 4] + mu[2] * pc[k, 7],
                                                        zi])
@@ -559,7 +561,7 @@ def prepare_triangles(mesh, R, t, camera):
         box[has, 1] = np.clip(np.floor(lo_v[has]), 0, H - 1)
         box[has, 2] = np.clip(np.ceil(hi_u[has]) - 1, 0, W - 1)
         box[has, 3] = np.clip(np.ceil(hi_v[has]) - 1, 0, H - 1)
-    return dict(px=_f32(px), pc=_f32(Vc[bi, ti_].reshape(-1, 9)), pn=_f32(Nc[bi, ti_].reshape(-1, 9)),
+    return dict(px=np.ascontiguousarray(px, dtype=np.float64), pc=_f32(Vc[bi, ti_].reshape(-1, 9)), pn=_f32(Nc[bi, ti_].reshape(-1, 9)),
                 comp=np.ascontiguousarray(comp[ti_], dtype=np.int32), off=off, box=box)
 
 

@@ -213,7 +213,7 @@ BAD = {
     "frames not integer": (dict(top="frames = 1.5"), "frames", "integer"),
     "component count mismatch": (dict(body="[body]\nposition = [0.0, 0.0, 1.0]\ncomponents = 2"),
                                  "body.components", "1 [[component]]"),
-    "component not a table": (dict(component="component = 3"), "component", "array of tables"),
+    "component not a table": (dict(top="component = 3", component=""), "component", "array of tables"),
 }
 
 
