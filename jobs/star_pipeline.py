@@ -66,21 +66,46 @@ def pack_rows(mask: np.ndarray, *arrays, fill=0):
     return valid, out, cols
 
 
+def field_half_angle(camera, margin_px: float = 0.0) -> float:
+    """Half-angle (rad) of a cone about +z that holds the whole image grown by ``margin_px`` (distortion
+    included: the corners and edge midpoints are back-projected), with 2 % to spare."""
+    w, h, m = camera.width, camera.height, margin_px
+    xs, ys = np.array([-m, w / 2, w + m]), np.array([-m, h / 2, h + m])
+    pts = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    z = camera.backproject(pts)[:, 2]
+    return float(min(np.arccos(np.clip(z.min(), -1, 1)) * 1.02 + 1e-4, np.pi / 2))
+
+
 def stars_in_field(A: np.ndarray, catalog, camera, sensor) -> FieldStars:
     """Project the catalog through each case's attitude and keep the stars that light the image.
 
     A : (B, 3, 3) inertial -> camera.  Stars up to ``sensor.psf_margin_px`` outside the frame are kept
     for rendering (their light spills in) but do not count as generated.
     """
-    v = np.einsum("bij,nj->bni", A, catalog.unit)                       # (B, N, 3)
-    px, front = camera.project(v)
     margin = float(sensor.psf_window_sigma * sensor.psf_sigma_px + 1.0)
-    x, y = px[..., 0], px[..., 1]
+    # cheap cone test first (one BLAS product), then project only the candidates
+    half = field_half_angle(camera, margin)
+    z = A[:, 2, :] @ catalog.unit.T                                     # (B, N) cos(angle to boresight)
+    b, n = np.nonzero(z > np.cos(min(half, np.pi / 2)))
+    v = np.einsum("kij,kj->ki", A[b], catalog.unit[n])                  # (K, 3) camera frame
+    px, front = camera.project(v)
+    x, y = px[:, 0], px[:, 1]
     with np.errstate(invalid="ignore"):
-        near = front & (x > -margin) & (x < camera.width + margin) & (y > -margin) & (y < camera.height + margin)
-        inside = front & (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
+        near_k = front & (x > -margin) & (x < camera.width + margin) & (y > -margin) & (y < camera.height + margin)
+        inside_k = front & (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
+    B, N = z.shape
+    near = np.zeros((B, N), dtype=bool)
+    near[b[near_k], n[near_k]] = True
+    dense = {}
+    for name, vals in (("x", x), ("y", y)):
+        a = np.zeros((B, N))
+        a[b[near_k], n[near_k]] = vals[near_k]
+        dense[name] = a
+    ins = np.zeros((B, N), dtype=bool)
+    ins[b[inside_k], n[inside_k]] = True
     flux = kstar.flux_from_magnitude(catalog.vmag.astype(np.float64), sensor)
-    valid, (xp, yp, fp, ip), cols = pack_rows(near, x, y, np.broadcast_to(flux, x.shape), inside, fill=0)
+    valid, (xp, yp, fp, ip), cols = pack_rows(near, dense["x"], dense["y"], flux, ins, fill=0)
+    inside = ins
     return FieldStars(xp, yp, fp.astype(np.float32), valid, cols, ip & valid, inside.sum(axis=1))
 
 

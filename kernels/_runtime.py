@@ -12,7 +12,9 @@ Environment:
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 import threading
 from pathlib import Path
 
@@ -38,7 +40,6 @@ def ensure_init(threads: int | None = None):
     """
     global _initialised
     os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
-    os.environ.setdefault("TI_LOG_LEVEL", "warn")
     import taichi as ti
 
     if _initialised:
@@ -55,7 +56,8 @@ def ensure_init(threads: int | None = None):
             threads = int(env_threads)
         if threads:
             kwargs["cpu_max_num_threads"] = int(threads)
-        ti.init(**kwargs)
+        with contextlib.redirect_stdout(sys.stderr):   # ti.init prints "[Taichi] Starting on arch=..."
+            ti.init(**kwargs)
         _initialised = True
     return ti
 
