@@ -99,7 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _optional_registrations():
     """Command groups of the other jobs (each module adds its own sub-commands)."""
-    return []
+    from dualsight.jobs import cli_hil
+
+    return [cli_hil.register]
 
 
 def _help(p):

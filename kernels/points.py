@@ -17,26 +17,36 @@ from the surface point to the camera.  Clamping choices (the paper's Eq. 3 has n
 ``paper`` -- the reference's point-cloud splatter.  Every point is moved into the camera frame,
 back-facing points (N.V < 0, non-zero N) are dropped (exact self-occlusion for the convex
 primitives), the rest are projected (pinhole + the camera's distortion) and the *nearest* point per
-pixel wins: pass 1 ``atomic_min`` of a 64-bit key (depth bits << 32 | point index) into a z-buffer,
-pass 2 shades the winner of every pixel.  A point lights the whole pixel it falls in, so the image
-keeps the reference's artifacts: holes when the point spacing projects to more than a pixel (up
-close) and whole-pixel blobs far away.  Zero-normal edge points are never culled.
+pixel wins: pass 1 keeps, per pixel, the minimum of a 64-bit key (depth bits << 32 | point index)
+in a z-buffer (one frame per task, so no atomics), pass 2 shades the winner of every pixel of the
+frame's bounding box and resets the z-buffer.  A point lights the whole pixel it falls in, so the
+image keeps the reference's artifacts: holes when the point spacing projects to more than a pixel
+(up close) and whole-pixel blobs far away.  Zero-normal edge points are never culled.
 
 ``accurate`` -- rasterises the surfaces instead: every component is a closed convex triangle mesh
 (scene/primitives.py), back faces are culled in 3-D, and each front triangle's exact coverage of
 every pixel it touches is computed analytically (fully inside / outside by the edge functions at
 the pixel centre +- half the pixel's extent along the edge normal; otherwise the pixel square is
 clipped by the triangle's three half-planes, Sutherland & Hodgman 1974, and the clipped polygon's
-area and centroid taken by the shoelace formula).  The fragment is shaded at the clipped polygon's
-centroid with perspective-correct interpolation of position and normal.  The coverage image then
-sums to the exact projected area in pixels (the front faces of a convex body tile its silhouette
-without overlap), with no holes up close and exact partial pixels far away.  Occlusion between
-components: triangles are processed front to back (by centroid depth) and a fragment may only add
-``min(coverage, 1 - coverage already in the pixel)`` ("coverage-min" compositing); with more than one
-component a first pass also records, per pixel, the nearest depth of any triangle covering the
-whole pixel, and fragments behind it are dropped.  This is exact wherever an occluder covers the
-pixel entirely or the fragments are disjoint; only pixels where two components' edges overlap each
-other partially are approximate.  The rendering work is limited to the target's bounding box.
+area and centroid taken by the shoelace formula), in float64.  The fragment is shaded at the
+clipped polygon's centroid with perspective-correct interpolation of position and normal.  For one
+component the coverage image sums to the exact projected area in pixels (the front faces of a
+convex body tile its silhouette without overlap): no holes up close, exact partial pixels far away.
+
+Several components (occlusion, ``depth_test``): the triangles of a frame are ordered component by
+component, front to back (each component by its nearest front triangle).  Pass 1 records per pixel
+the nearest depth of any triangle covering the *whole* pixel; fragments behind it are dropped (a
+true per-pixel z-buffer for fully covered pixels, whatever the order).  Pass 2 gathers, per pixel,
+one component's fragments (summed coverage and coverage x intensity, and the union of their 8 x 8
+sub-pixel sample masks) and composites them when the next component reaches the pixel or the row
+ends: the component keeps the share of its samples not already taken by the components composited
+before it, ``vis = min(coverage x free/own samples, 1 - coverage so far)``.  So partly covered
+pixels where components overlap are resolved to 1/64 of a pixel; a component whose fragments in a
+pixel hit no sample (slivers) is given the average free share.
+
+The rendering work is limited to each frame's bounding box; scratch buffers cover the batch's
+largest bounding box only.  Triangles with a vertex within 0.1 mm of the camera plane are dropped
+(no near-plane clipping; the camera is never inside the target at resolvable ranges).
 
 Inputs are plain arrays (kernels are leaves): geometry in component-local frames plus per-frame
 component -> camera transforms ``x_cam = R[b, c] @ x + t[b, c]``.  ``camera`` is any object with
@@ -46,8 +56,6 @@ follow DESIGN.md: (col, row) from the top-left corner, pixel (i, j) spans [i, i+
 Outputs are float32 ``image`` (B, H, W) -- sum of coverage x Eq. 3 intensity -- and ``coverage``
 (B, H, W) in [0, 1] (``paper``: 1 where a point landed).
 """
-
-
 
 import math
 
@@ -306,11 +314,51 @@ def _kernels() -> dict:
         zi = 1.0 / (w[0] + w[1] + w[2])
         return ti.cast(zi, f32), ti.cast(w * zi, f32)
 
+    @ti.func
+    def sample_mask(ea, eb, ec, x, y):
+        """64-bit mask of the 8 x 8 sub-pixel samples of pixel (x, y) inside the triangle."""
+        el = ea * ti.cast(x, G) + eb * ti.cast(y, G) + ec
+        m = ti.u64(0)
+        for j in range(8):
+            sy = (ti.cast(j, G) + 0.5) * 0.125
+            for i in range(8):
+                sx = (ti.cast(i, G) + 0.5) * 0.125
+                e = ea * sx + eb * sy + el
+                if e[0] >= 0 and e[1] >= 0 and e[2] >= 0:
+                    m |= ti.u64(1) << ti.cast(j * 8 + i, ti.u64)
+        return m
+
+    @ti.func
+    def resolve(b, ys0, xl, y, x, smask: ti.template(), sid: ti.template(), pend: ti.template(),
+                img: ti.template(), cov: ti.template()):
+        """Composite the pending fragments of one component into pixel (x, y): the share of its sample
+        mask not taken by the components composited before it (front to back) scales its coverage."""
+        cc = pend[b, ys0, xl, 0]
+        if cc > 0:
+            cm = smask[b, ys0, xl, 1]
+            pm = smask[b, ys0, xl, 0]
+            nm = ti.math.popcnt(cm)
+            frac = ti.cast(1.0, f32)
+            if nm > 0:
+                frac = ti.cast(ti.math.popcnt(cm & ~pm), f32) / ti.cast(nm, f32)
+            else:                      # slivers between the samples: assume the average free share
+                frac = 1.0 - ti.cast(ti.math.popcnt(pm), f32) / 64.0
+            vis = ti.min(cc * frac, 1.0 - cov[b, y, x])
+            if vis > 0:
+                img[b, y, x] += pend[b, ys0, xl, 1] / cc * vis
+                cov[b, y, x] += vis
+            smask[b, ys0, xl, 0] = pm | cm
+        smask[b, ys0, xl, 1] = ti.u64(0)
+        pend[b, ys0, xl, 0] = 0.0
+        pend[b, ys0, xl, 1] = 0.0
+        sid[b, ys0, xl] = 0
+
     @ti.kernel
     def tri_raster(px: nd(dtype=ti.f64, ndim=2), pc: nd(dtype=f32, ndim=2), pn: nd(dtype=f32, ndim=2),
                    tcomp: nd(dtype=ti.i32, ndim=1), mat: nd(dtype=f32, ndim=2), off: nd(dtype=ti.i32, ndim=1),
                    box: nd(dtype=ti.i32, ndim=2), light: nd(dtype=f32, ndim=2), Ia: nd(dtype=f32, ndim=1),
                    Il: nd(dtype=f32, ndim=1), depth_test: ti.i32, zfull: nd(dtype=f32, ndim=3),
+                   smask: nd(dtype=ti.u64, ndim=4), sid: nd(dtype=ti.i32, ndim=3), pend: nd(dtype=f32, ndim=4),
                    img: nd(dtype=f32, ndim=3), cov: nd(dtype=f32, ndim=3)):
         B, H, W = img.shape[0], img.shape[1], img.shape[2]
         ti.loop_config(block_dim=2)
@@ -319,12 +367,22 @@ def _kernels() -> dict:
                 fy0 = ti.cast(y, G)
                 fy1 = fy0 + 1.0
                 L = ti.Vector([light[b, 0], light[b, 1], light[b, 2]])
+                ys0 = y - box[b, 1]          # scratch arrays cover the frame's bounding box only
+                xs0 = box[b, 0]
                 if depth_test != 0:
                     for x in range(box[b, 0], box[b, 2] + 1):
-                        zfull[b, y, x] = 3.0e38
+                        zfull[b, ys0, x - xs0] = 3.0e38
+                        smask[b, ys0, x - xs0, 0] = ti.u64(0)
+                        smask[b, ys0, x - xs0, 1] = ti.u64(0)
+                        sid[b, ys0, x - xs0] = 0
+                        pend[b, ys0, x - xs0, 0] = 0.0
+                        pend[b, ys0, x - xs0, 1] = 0.0
+                    # pass 1: nearest depth of any triangle covering the whole pixel
                     for k in range(off[b], off[b + 1]):
+                        if ti.max(px[k, 1], px[k, 3], px[k, 5]) <= fy0 or ti.min(px[k, 1], px[k, 3], px[k, 5]) >= fy1:
+                            continue
                         xs, ys, area2, ea, eb, ec, ln = tri_setup(px, k)
-                        if area2 > 1e-9 and ys.max() > fy0 and ys.min() < fy1:
+                        if area2 > 1e-9:
                             lo, hi = band_span(xs, ys, fy0, fy1)
                             x0 = ti.max(ti.cast(ti.floor(lo), ti.i32), 0)
                             x1 = ti.min(ti.cast(ti.ceil(hi), ti.i32), W)
@@ -334,10 +392,12 @@ def _kernels() -> dict:
                                 r = 0.5 * (ti.abs(ea) + ti.abs(eb))
                                 if e[0] >= r[0] and e[1] >= r[1] and e[2] >= r[2]:
                                     zi, mu = interp(pc, k, ea, eb, ec, ln, area2, cxp, fy0 + 0.5)
-                                    zfull[b, y, x] = ti.min(zfull[b, y, x], zi)
+                                    zfull[b, ys0, x - xs0] = ti.min(zfull[b, ys0, x - xs0], zi)
                 for k in range(off[b], off[b + 1]):
+                    if ti.max(px[k, 1], px[k, 3], px[k, 5]) <= fy0 or ti.min(px[k, 1], px[k, 3], px[k, 5]) >= fy1:
+                        continue
                     xs, ys, area2, ea, eb, ec, ln = tri_setup(px, k)
-                    if area2 > 1e-9 and ys.max() > fy0 and ys.min() < fy1:
+                    if area2 > 1e-9:
                         lo, hi = band_span(xs, ys, fy0, fy1)
                         x0 = ti.max(ti.cast(ti.floor(lo), ti.i32), 0)
                         x1 = ti.min(ti.cast(ti.ceil(hi), ti.i32), W)
@@ -345,24 +405,85 @@ def _kernels() -> dict:
                         for x in range(x0, x1):
                             cv, gx, gy = fragment(ea, eb, ec, x, y)
                             if cv > 0:
-                                room = 1.0 - cov[b, y, x]
-                                if room > 0:
-                                    zi, mu = interp(pc, k, ea, eb, ec, ln, area2, gx, gy)
-                                    ok = 1
-                                    if depth_test != 0:
-                                        if zi > zfull[b, y, x] * (1.0 + 1e-5):
-                                            ok = 0
-                                    if ok != 0:
-                                        vis = ti.min(ti.cast(cv, f32), room)
-                                        p = ti.Vector([mu[0] * pc[k, 0] + mu[1] * pc[k, 3] + mu[2] * pc[k, 6],
-                                                       mu[0] * pc[k, 1] + mu[1] * pc[k, 4] + mu[2] * pc[k, 7],
-                                                       zi])
-                                        n = ti.Vector([mu[0] * pn[k, 0] + mu[1] * pn[k, 3] + mu[2] * pn[k, 6],
-                                                       mu[0] * pn[k, 1] + mu[1] * pn[k, 4] + mu[2] * pn[k, 7],
-                                                       mu[0] * pn[k, 2] + mu[1] * pn[k, 5] + mu[2] * pn[k, 8]])
-                                        I = shade(p, n, L, mat[c, 0], mat[c, 1], mat[c, 2], mat[c, 3], Ia[b], Il[b])
+                                zi, mu = interp(pc, k, ea, eb, ec, ln, area2, gx, gy)
+                                xl = x - xs0
+                                if depth_test == 0 or zi <= zfull[b, ys0, xl] * (1.0 + 1e-5):
+                                    p = ti.Vector([mu[0] * pc[k, 0] + mu[1] * pc[k, 3] + mu[2] * pc[k, 6],
+                                                   mu[0] * pc[k, 1] + mu[1] * pc[k, 4] + mu[2] * pc[k, 7],
+                                                   zi])
+                                    n = ti.Vector([mu[0] * pn[k, 0] + mu[1] * pn[k, 3] + mu[2] * pn[k, 6],
+                                                   mu[0] * pn[k, 1] + mu[1] * pn[k, 4] + mu[2] * pn[k, 7],
+                                                   mu[0] * pn[k, 2] + mu[1] * pn[k, 5] + mu[2] * pn[k, 8]])
+                                    I = shade(p, n, L, mat[c, 0], mat[c, 1], mat[c, 2], mat[c, 3], Ia[b], Il[b])
+                                    cvf = ti.cast(cv, f32)
+                                    if depth_test == 0:
+                                        # one convex component: its front triangles tile the silhouette
+                                        vis = ti.min(cvf, 1.0 - cov[b, y, x])
                                         img[b, y, x] += vis * I
                                         cov[b, y, x] += vis
+                                    else:
+                                        # several components: a component's fragments in this pixel are
+                                        # gathered (coverage, intensity, 8x8 sample mask) and composited
+                                        # when the next component arrives or the row ends
+                                        if sid[b, ys0, xl] != c + 1:
+                                            resolve(b, ys0, xl, y, x, smask, sid, pend, img, cov)
+                                            sid[b, ys0, xl] = c + 1
+                                        fm = ti.u64(_MAXU64)
+                                        if cv < 1.0:
+                                            fm = sample_mask(ea, eb, ec, x, y)
+                                        smask[b, ys0, xl, 1] |= fm
+                                        pend[b, ys0, xl, 0] += cvf
+                                        pend[b, ys0, xl, 1] += cvf * I
+                if depth_test != 0:
+                    for x in range(box[b, 0], box[b, 2] + 1):
+                        resolve(b, ys0, x - xs0, y, x, smask, sid, pend, img, cov)
+
+    @ti.kernel
+    def tri_transform(V: nd(dtype=ti.f64, ndim=2), Nv: nd(dtype=ti.f64, ndim=2), comp: nd(dtype=ti.i32, ndim=1),
+                      R: nd(dtype=ti.f64, ndim=4), t: nd(dtype=ti.f64, ndim=3), cam: nd(dtype=ti.f64, ndim=1),
+                      W: ti.i32, H: ti.i32, pc: nd(dtype=ti.f64, ndim=3), pn: nd(dtype=f32, ndim=3),
+                      px: nd(dtype=ti.f64, ndim=3), flag: nd(dtype=ti.i32, ndim=2), ext: nd(dtype=ti.f64, ndim=3)):
+        """Per (frame, triangle): camera-frame vertices and normals, pixel coords, front/in-image flag,
+        [umin, umax, vmin, vmax, centroid depth]."""
+        B, T = flag.shape[0], flag.shape[1]
+        for b, k in ti.ndrange(B, T):
+            c = comp[k]
+            M = ti.Matrix([[R[b, c, i, j] for j in ti.static(range(3))] for i in ti.static(range(3))], dt=ti.f64)
+            tv = ti.Vector([t[b, c, 0], t[b, c, 1], t[b, c, 2]], dt=ti.f64)
+            camv = ti.Vector([cam[i] for i in ti.static(range(9))], dt=ti.f64)
+            P = ti.Matrix.zero(ti.f64, 3, 3)
+            zmin = ti.f64(1e300)
+            for v in ti.static(range(3)):
+                q = M @ ti.Vector([V[k, 3 * v], V[k, 3 * v + 1], V[k, 3 * v + 2]], dt=ti.f64) + tv
+                nn = M @ ti.Vector([Nv[k, 3 * v], Nv[k, 3 * v + 1], Nv[k, 3 * v + 2]], dt=ti.f64)
+                for i in ti.static(range(3)):
+                    P[v, i] = q[i]
+                    pc[b, k, 3 * v + i] = q[i]
+                    pn[b, k, 3 * v + i] = ti.cast(nn[i], f32)
+                zmin = ti.min(zmin, q[2])
+            gg = (ti.Vector([P[1, 0] - P[0, 0], P[1, 1] - P[0, 1], P[1, 2] - P[0, 2]])).cross(
+                ti.Vector([P[2, 0] - P[0, 0], P[2, 1] - P[0, 1], P[2, 2] - P[0, 2]]))
+            cen = ti.Vector([P[0, 0] + P[1, 0] + P[2, 0], P[0, 1] + P[1, 1] + P[2, 1],
+                             P[0, 2] + P[1, 2] + P[2, 2]]) / 3.0
+            f = 0
+            umin, umax, vmin, vmax = ti.f64(1e300), ti.f64(-1e300), ti.f64(1e300), ti.f64(-1e300)
+            if gg.dot(cen) < 0 and zmin > _ZNEAR:
+                for v in ti.static(range(3)):
+                    uv = project(ti.Vector([P[v, 0], P[v, 1], P[v, 2]]), camv)
+                    px[b, k, 2 * v] = uv[0]
+                    px[b, k, 2 * v + 1] = uv[1]
+                    umin = ti.min(umin, uv[0])
+                    umax = ti.max(umax, uv[0])
+                    vmin = ti.min(vmin, uv[1])
+                    vmax = ti.max(vmax, uv[1])
+                if umax > 0 and umin < W and vmax > 0 and vmin < H:
+                    f = 1
+            flag[b, k] = f
+            ext[b, k, 0] = umin
+            ext[b, k, 1] = umax
+            ext[b, k, 2] = vmin
+            ext[b, k, 3] = vmax
+            ext[b, k, 4] = cen[2]
 
     # ------------------------------------------------------------------ sensor effects
     @ti.func
@@ -409,8 +530,8 @@ def _kernels() -> dict:
                     v = ti.min(ti.max(ti.round(v), 0.0), maxdn)
                 img[b, y, x] = v
 
-    _K.update(pts_zpass=pts_zpass, pts_shade=pts_shade, tri_raster=tri_raster, blur_rows=blur_rows,
-              noise_quant=noise_quant)
+    _K.update(pts_zpass=pts_zpass, pts_shade=pts_shade, tri_raster=tri_raster, tri_transform=tri_transform,
+              blur_rows=blur_rows, noise_quant=noise_quant)
     return _K
 
 
@@ -510,59 +631,57 @@ def render_points(cloud, materials, R, t, light, camera, I_a=0.3, I_l=1.0, *, ch
 def prepare_triangles(mesh, R, t, camera):
     """Move a mesh into the camera frame per frame, cull back faces, project, sort front to back.
 
-    Returns a dict of flat float32/int32 arrays (front triangles of all frames, frame-major) for
-    :func:`render_mesh`: ``px`` (N, 6) pixel coords of the 3 vertices, ``pc`` (N, 9) camera-frame
-    vertices, ``pn`` (N, 9) camera-frame vertex normals, ``comp`` (N,), ``off`` (B+1,), ``box`` (B, 4)
-    pixel bounding box [x0, y0, x1, y1] (inclusive; empty = x1 < x0).
+    Returns a dict of flat arrays (front triangles of all frames, frame-major) for :func:`render_mesh`:
+    ``px`` (N, 6) float64 pixel coords of the 3 vertices, ``pc`` (N, 9) float32 camera-frame vertices,
+    ``pn`` (N, 9) float32 camera-frame vertex normals, ``comp`` (N,) int32, ``off`` (B+1,) int32 and
+    ``box`` (B, 4) int32 pixel bounding box [x0, y0, x1, y1] (inclusive; empty = x1 < x0).
+    Within a frame the components come front to back (by their nearest front triangle) and each
+    component's triangles front to back (by centroid depth).  Triangles with a vertex closer than
+    0.1 mm to the camera plane are dropped (no near-plane clipping).
     """
+    K = _kernels()
     R = np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64)
     if R.ndim == 3:
         R, t = R[:, None], t[:, None]
     B = R.shape[0]
     W, H = int(camera.width), int(camera.height)
-    V = np.asarray(mesh.vertices, dtype=np.float64)
-    Nv = np.asarray(mesh.normals, dtype=np.float64)
-    comp = np.asarray(mesh.component, dtype=np.int64)
-    Rt = R[:, comp]                                               # (B, T, 3, 3)
-    Vc = np.einsum("btij,tvj->btvi", Rt, V) + t[:, comp][:, :, None, :]
-    Nc = np.einsum("btij,tvj->btvi", Rt, Nv)
-    g = np.cross(Vc[:, :, 1] - Vc[:, :, 0], Vc[:, :, 2] - Vc[:, :, 0])
-    cen = Vc.mean(axis=2)
-    front = (np.einsum("bti,bti->bt", g, cen) < 0) & np.all(Vc[..., 2] > _ZNEAR, axis=2)
-    # project (pinhole + distortion), as scene.camera.Camera.project
-    z = np.where(Vc[..., 2] > _ZNEAR, Vc[..., 2], 1.0)
-    x, y = Vc[..., 0] / z, Vc[..., 1] / z
-    d = tuple(getattr(camera, "distortion", (0.0,) * 5)) + (0.0,) * 5
-    k1, k2, p1, p2, k3 = d[:5]
-    if any(abs(v) > 0 for v in (k1, k2, p1, p2, k3)):
-        r2 = x * x + y * y
-        rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        x, y = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x), y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    u = camera.fx * x + camera.cx
-    v = camera.fy * y + camera.cy
-    # keep triangles that touch the image
-    front &= (u.max(axis=2) > 0) & (u.min(axis=2) < W) & (v.max(axis=2) > 0) & (v.min(axis=2) < H)
-    bi, ti_ = np.nonzero(front)
-    order = np.lexsort((cen[bi, ti_, 2], bi))                   # frame-major, then front to back
+    V = np.ascontiguousarray(np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 9))
+    Nv = np.ascontiguousarray(np.asarray(mesh.normals, dtype=np.float64).reshape(-1, 9))
+    comp = np.ascontiguousarray(mesh.component, dtype=np.int32)
+    T = V.shape[0]
+    pc = np.empty((B, T, 9))
+    pn = np.empty((B, T, 9), np.float32)
+    px = np.empty((B, T, 6))
+    flag = np.empty((B, T), np.int32)
+    ext = np.empty((B, T, 5))
+    K["tri_transform"](V, Nv, comp, np.ascontiguousarray(R), np.ascontiguousarray(t), _cam_vec(camera), W, H,
+                       pc, pn, px, flag, ext)
+    bi, ti_ = np.nonzero(flag)
+    zc = ext[bi, ti_, 4]
+    cc = comp[ti_].astype(np.int64)
+    C = int(comp.max()) + 1 if comp.size else 1
+    near = np.full((B, C), np.inf)
+    np.minimum.at(near, (bi, cc), zc)
+    rank = np.argsort(np.argsort(near, axis=1, kind="stable"), axis=1)
+    order = np.lexsort((zc, rank[bi, cc], bi))           # frame, component rank, depth
     bi, ti_ = bi[order], ti_[order]
-    px = np.stack([u[bi, ti_], v[bi, ti_]], axis=-1).reshape(-1, 6)
     off = np.zeros(B + 1, np.int32)
     np.cumsum(np.bincount(bi, minlength=B), out=off[1:])
     box = np.tile(np.array([0, 0, -1, -1], np.int32), (B, 1))
     if bi.size:
-        uu, vv = u[bi, ti_], v[bi, ti_]
+        e = ext[bi, ti_]
         lo_u = np.full(B, np.inf); hi_u = np.full(B, -np.inf)
         lo_v = np.full(B, np.inf); hi_v = np.full(B, -np.inf)
-        np.minimum.at(lo_u, bi, uu.min(axis=1)); np.maximum.at(hi_u, bi, uu.max(axis=1))
-        np.minimum.at(lo_v, bi, vv.min(axis=1)); np.maximum.at(hi_v, bi, vv.max(axis=1))
+        np.minimum.at(lo_u, bi, e[:, 0]); np.maximum.at(hi_u, bi, e[:, 1])
+        np.minimum.at(lo_v, bi, e[:, 2]); np.maximum.at(hi_v, bi, e[:, 3])
         has = np.isfinite(lo_u)
         box[has, 0] = np.clip(np.floor(lo_u[has]), 0, W - 1)
         box[has, 1] = np.clip(np.floor(lo_v[has]), 0, H - 1)
         box[has, 2] = np.clip(np.ceil(hi_u[has]) - 1, 0, W - 1)
         box[has, 3] = np.clip(np.ceil(hi_v[has]) - 1, 0, H - 1)
-    return dict(px=np.ascontiguousarray(px, dtype=np.float64), pc=_f32(Vc[bi, ti_].reshape(-1, 9)), pn=_f32(Nc[bi, ti_].reshape(-1, 9)),
-                comp=np.ascontiguousarray(comp[ti_], dtype=np.int32), off=off, box=box)
+    return dict(px=np.ascontiguousarray(px[bi, ti_]), pc=_f32(pc[bi, ti_]), pn=np.ascontiguousarray(pn[bi, ti_]),
+                comp=np.ascontiguousarray(comp[ti_]), off=off, box=box)
 
 
 def render_mesh(mesh, materials, R, t, light, camera, I_a=0.3, I_l=1.0, *, depth_test: bool | None = None):
@@ -590,9 +709,16 @@ def render_mesh(mesh, materials, R, t, light, camera, I_a=0.3, I_l=1.0, *, depth
     Ia, Il = _per_frame(I_a, B), _per_frame(I_l, B)
     img = np.zeros((B, H, W), np.float32)
     cov = np.zeros((B, H, W), np.float32)
-    zfull = np.empty((B, H, W), np.float32) if depth_test else np.empty((1, 1, 1), np.float32)
+    # per-pixel scratch for the depth test, over the largest bounding box of the batch
+    bw = max(int((tri["box"][:, 2] - tri["box"][:, 0]).max()) + 1, 1) if depth_test else 1
+    bh = max(int((tri["box"][:, 3] - tri["box"][:, 1]).max()) + 1, 1) if depth_test else 1
+    nb = B if depth_test else 1
+    zfull = np.empty((nb, bh, bw), np.float32)
+    smask = np.empty((nb, bh, bw, 2), np.uint64)
+    sid = np.empty((nb, bh, bw), np.int32)
+    pend = np.empty((nb, bh, bw, 2), np.float32)
     K["tri_raster"](tri["px"], tri["pc"], tri["pn"], tri["comp"], mat, tri["off"], tri["box"], _f32(L), Ia, Il,
-                    int(bool(depth_test)), zfull, img, cov)
+                    int(bool(depth_test)), zfull, smask, sid, pend, img, cov)
     return img, cov
 
 

@@ -97,7 +97,7 @@ class BlobResult:
     area_rel_min, area_rel_est, area_rel_max : (B,) A/A0 from the table.
     range_min, range_est, range_max : (B,) m.
     position : (B, 3) range_est x unit (m, camera frame).
-    box : (B, 4) [x0, y0, x1, y1] inclusive bounding box of the target blob.
+    box : (B, 4) [x0, y0, x1, y1] inclusive bounding box of the largest blob.
     """
 
     found: np.ndarray
@@ -129,7 +129,9 @@ class BlobResult:
             if v.ndim == 1:
                 out[prefix + k] = v
             elif k == "cov_px":
-                out[prefix + "cov_xx"], out[prefix + "cov_xy"], out[prefix + "cov_yy"] = v[:, 0, 0], v[:, 0, 1], v[:, 1, 1]
+                out[prefix + "cov_xx"] = v[:, 0, 0]
+                out[prefix + "cov_xy"] = v[:, 0, 1]
+                out[prefix + "cov_yy"] = v[:, 1, 1]
             elif k == "box":
                 for i, s in enumerate(("x0", "y0", "x1", "y1")):
                     out[f"{prefix}box_{s}"] = v[:, i]
@@ -205,4 +207,4 @@ def run_blobber(images, camera, table, config: BlobberConfig = BlobberConfig(), 
         major_px=4.0 * np.sqrt(l1) * nan, minor_px=4.0 * np.sqrt(l2) * nan, axis_ratio=r,
         angle_rad=angle * nan, area_rel_min=a_min, area_rel_est=a_est, area_rel_max=a_max,
         range_min=rng[0] * nan, range_est=rng[1] * nan, range_max=rng[2] * nan,
-        position=rng[1][:, None] * unit * nan[:, None], box=lab["box"] if cfg.target == "largest" else lab["box"])
+        position=rng[1][:, None] * unit * nan[:, None], box=lab["box"])

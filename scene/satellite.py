@@ -55,6 +55,7 @@ import numpy as np
 from dualsight.errors import ConfigError
 from dualsight.scene import primitives as prim
 from dualsight.scene.camera import Camera, read_toml
+from dualsight.scene.motion import frame_poses
 
 CAMERA_INTRINSIC_KEYS = ("width", "height", "pixel_pitch_um", "focal_length_mm", "fx", "fy", "cx", "cy",
                          "distortion", "bit_depth", "name", "notes")
@@ -208,7 +209,7 @@ class _Reader:
     def err(self, key: str, msg: str):
         return ConfigError(msg, source=self.source, field=key)
 
-    def table(self, data: dict, key: str, allowed) -> dict:
+    def table(self, data: dict, key: str) -> dict:
         t = data.get(key)
         if t is None:
             raise self.err(key, f"missing table [{key}]; a satellite file needs [camera], [body] and at least "
@@ -298,7 +299,8 @@ def _component(rd: _Reader, t, i: int, body_res: float) -> ComponentConfig:
         src_key = "surface_resolution" if "surface_resolution" in t else None
         raise rd.err(f"{where}.{src_key or 'size'}",
                      f"the {shape} of size {list(comp.size)} m has no surface points at surface_resolution = "
-                     f"{comp.surface_resolution:g} points/m^2 (point spacing {prim.spacing(comp.surface_resolution):g} m);"
+                     f"{comp.surface_resolution:g} points/m^2 "
+                     f"(point spacing {prim.spacing(comp.surface_resolution):g} m);"
                      f" use at least ~{need:.3g} points/m^2 or a larger size")
     return comp
 
@@ -340,7 +342,7 @@ def satellite_from_dict(data: dict, source: str = "<dict>") -> SatelliteConfig:
         raise rd.err("frames", f"must be an integer >= 1, got {frames!r}")
     name = rd.string(data, "name", "(top level)", "")
 
-    cam_t = rd.table(data, "camera", None)
+    cam_t = rd.table(data, "camera")
     rd.unknown(cam_t, CAMERA_INTRINSIC_KEYS + CAMERA_SCENE_KEYS, "camera")
     camera = Camera.from_dict({k: v for k, v in cam_t.items() if k in CAMERA_INTRINSIC_KEYS}, source=source)
     if "light_direction" not in cam_t:
@@ -355,7 +357,7 @@ def satellite_from_dict(data: dict, source: str = "<dict>") -> SatelliteConfig:
         velocity=rd.vec3(cam_t, "velocity", "camera", _ZERO3),
         rotation_deg=rd.vec3(cam_t, "rotation_deg", "camera", _ZERO3))
 
-    body_t = rd.table(data, "body", None)
+    body_t = rd.table(data, "body")
     rd.unknown(body_t, BODY_KEYS, "body")
     body = BodyConfig(
         position=rd.vec3(body_t, "position", "body"),
@@ -383,8 +385,6 @@ def satellite_from_dict(data: dict, source: str = "<dict>") -> SatelliteConfig:
 
 
 def _check_camera_outside(cfg: SatelliteConfig, rd: _Reader):
-    from dualsight.scene.motion import frame_poses
-
     fp = frame_poses(cfg, [0])
     for i, c in enumerate(cfg.components):  # handful of components
         R, t = fp.R[0, i], fp.t[0, i]

@@ -291,3 +291,30 @@ def test_sensor_effects():
     again = KP.apply_sensor(np.zeros((1, 256, 256), np.float32), read_noise=2.0, seeds=[8])
     assert np.array_equal(again[0], noisy[1])                                   # same seed, same noise
     assert not np.array_equal(noisy[0], noisy[1])
+
+
+def test_occlusion_partial_pixels_far_composite():
+    # far away, components overlap inside partly covered pixels: the coverage must be the union of
+    # the components' silhouettes.  Truth: each component rendered alone on a 32x finer camera,
+    # the silhouettes OR-ed and averaged back to the coarse pixels.
+    cam = Camera.pinhole(64, 48, 4.65e-6, 6e-3)
+    S = 32
+    fine = Camera(64 * S, 48 * S, 4.65e-6 / S, cam.fx * S, cam.fy * S, cam.cx * S, cam.cy * S)
+    parts = [prim.cuboid_mesh((0.5, 0.5, 0.7)), prim.cylinder_mesh(0.2, 0.3, 64, position=(0, 0, 0.5)),
+             prim.sphere_mesh(0.3, 32, position=(0, 0, -0.5)),
+             prim.cuboid_mesh((1.0, 0.5, 0.02), position=(0.76, 0, 0))]
+    mesh = prim.concat_meshes([prim.Mesh(m.vertices, m.normals, np.full(len(m), i, np.int32))
+                               for i, m in enumerate(parts)])
+    mat = np.array([[1.0, 0.5, 0.2, 5.0]] * 4)
+    Rb = _random_R(6, 21)
+    for b in range(6):
+        R = np.repeat(Rb[b][None, None], 4, axis=1)
+        t = np.repeat(np.array([[[0.1, -0.05, 400.0]]]), 4, axis=1)
+        _, cov = KP.render("accurate", mesh, mat, R, t, (0.3, -0.2, -1.0), cam)
+        union = np.zeros((48 * S, 64 * S), bool)
+        for i, m in enumerate(parts):
+            _, c = KP.render("accurate", m, mat[:1], R[:, :1], t[:, :1], (0.3, -0.2, -1.0), fine)
+            union |= c[0] > 0.5
+        truth = union.reshape(48, S, 64, S).mean(axis=(1, 3))
+        assert cov.sum() == pytest.approx(truth.sum(), rel=0.02)
+        assert np.abs(cov[0] - truth).max() < 0.1
