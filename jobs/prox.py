@@ -1,0 +1,343 @@
+"""Proximity-operations software-in-the-loop jobs: the range sweep and the trajectory (reference Sec. 2.3).
+
+    case -> pose of the target (sweep: range x random orientation; trajectory: frame k of Table 2's motion)
+         -> render (Taichi; ``paper`` point splatting or ``accurate`` analytic-coverage triangles)
+         -> optional sensor effects -> blobber (COB, axes, axis ratio) -> range by Eq. 1 ("paper")
+         and by dualsight's "subpixel" estimator, side by side -> one row per case in ``prox_cases``.
+
+Case ``i`` draws its orientation (sweep) and its noise seed from ``default_rng([seed, i])`` only.
+
+Spec (TOML; what is not given comes from the preset)::
+
+    job = "sweep"                 # or "trajectory"
+    seed = 1
+    mode = "paper"                # renderer: "paper" (fixed surface resolution) | "accurate"
+    satellite = "examples/satellites/cubesat_3u.toml"   # read when the spec is made; stored inline
+    ranges_m = [1.0, ...]         # sweep: true ranges along the boresight
+    orientations = 9              # sweep: random orientations per range (uniform on SO(3))
+    frames = 50                   # trajectory: number of frames
+    batch_size = 16
+    [blobber]  threshold = 0.0, target = "largest", connectivity = 8
+    [sensor]   psf_sigma_px = 0.0, read_noise = 0.0, gain = 1.0, bits = 0 (0 = no quantisation)
+    [areas]    samples = 20000, bin_width = 0.05
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from dualsight.catalogs.areas import area_table
+from dualsight.errors import ConfigError, InputError
+from dualsight.jobs.config import check_range
+from dualsight.kernels.points import apply_sensor, render
+from dualsight.nav.blobber import BlobberConfig, run_blobber
+from dualsight.scene.attitude import angle_between, quat_to_dcm, random_quaternions
+from dualsight.scene.camera import read_toml
+from dualsight.scene.motion import frame_poses, place_body
+from dualsight.scene.satellite import satellite_from_dict
+
+NAME = "prox"
+DATASETS = ["prox_cases"]
+PRIMARY = "prox_cases"
+ESTIMATORS = ("paper", "subpixel")
+
+REFERENCE_RANGES = [float(x) for x in np.logspace(0, 2, 11)]
+
+
+def _example(name: str) -> Path:
+    """An example file shipped in the repository's ``examples/`` folder."""
+    here = Path(__file__).resolve().parents[1] / "examples" / name
+    return here
+
+
+PRESETS = {
+    # Reference Sec. 2.3: Table 1 camera, 3U CubeSat, 11 ranges log-spaced 1-100 m x 9 random orientations.
+    "paper": {"job": "sweep", "seed": 1, "mode": "paper", "satellite": "satellites/cubesat_3u.toml",
+              "ranges_m": REFERENCE_RANGES, "orientations": 9, "frames": 50, "batch_size": 16,
+              "blobber": {"threshold": 0.0, "target": "largest", "connectivity": 8},
+              "sensor": {"psf_sigma_px": 0.0, "read_noise": 0.0, "gain": 1.0, "bits": 0},
+              "areas": {"samples": 20000, "bin_width": 0.05}},
+}
+# dualsight's best method on the same scenario: exact coverage rendering, hundreds of orientations.
+PRESETS["accurate"] = {**PRESETS["paper"], "mode": "accurate", "orientations": 300}
+
+
+@dataclass(frozen=True)
+class SensorEffects:
+    psf_sigma_px: float = 0.0
+    read_noise: float = 0.0
+    gain: float = 1.0
+    bits: int = 0
+
+    @property
+    def any(self) -> bool:
+        return self.psf_sigma_px > 0 or self.read_noise > 0 or self.bits > 0 or self.gain != 1.0
+
+
+@dataclass(frozen=True)
+class ProxSpec:
+    job: str
+    seed: int
+    mode: str
+    satellite_table: dict          # the satellite file's content (inline, so a run is replayable anywhere)
+    satellite_source: str
+    ranges_m: tuple
+    orientations: int
+    frames: int
+    batch_size: int
+    blobber: dict
+    sensor: SensorEffects
+    areas: dict
+    satellite: object = field(default=None, compare=False)
+
+    def to_dict(self) -> dict:
+        return {"job": self.job, "seed": self.seed, "mode": self.mode, "satellite": self.satellite_table,
+                "satellite_source": self.satellite_source, "ranges_m": list(self.ranges_m),
+                "orientations": self.orientations, "frames": self.frames, "batch_size": self.batch_size,
+                "blobber": dict(self.blobber), "sensor": self.sensor.__dict__.copy(), "areas": dict(self.areas)}
+
+    @property
+    def n_cases(self) -> int:
+        return len(self.ranges_m) * self.orientations if self.job == "sweep" else self.frames
+
+    def blobber_config(self, estimator: str) -> BlobberConfig:
+        return BlobberConfig(estimator=estimator, threshold=float(self.blobber.get("threshold", 0.0)),
+                             connectivity=int(self.blobber.get("connectivity", 8)),
+                             target=self.blobber.get("target", "largest"))
+
+
+_TOP = {"job", "seed", "mode", "satellite", "satellite_source", "ranges_m", "orientations", "frames", "batch_size",
+        "blobber", "sensor", "areas", "preset", "cases"}
+
+
+def spec_from_dict(d: dict, source: str = "spec") -> ProxSpec:
+    """Validate a prox spec; errors name ``source`` and the key."""
+    unknown = sorted(set(d) - _TOP)
+    if unknown:
+        raise ConfigError(f"unknown key(s) {unknown}; allowed: {sorted(_TOP)}", source=source)
+    job = d.get("job", "sweep")
+    if job not in ("sweep", "trajectory"):
+        raise ConfigError(f"must be 'sweep' or 'trajectory', got {job!r}", source=source, field="job")
+    mode = d.get("mode", "paper")
+    if mode not in ("paper", "accurate"):
+        raise ConfigError(f"must be 'paper' or 'accurate', got {mode!r}", source=source, field="mode")
+    seed = d.get("seed", 1)
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**63:
+        raise ConfigError(f"must be an integer in [0, 2^63), got {seed!r}", source=source, field="seed")
+    sat = d.get("satellite")
+    if isinstance(sat, str):
+        sat_source = sat
+        p = Path(sat)
+        if not p.is_absolute() and not p.exists():
+            p = _example(sat)
+        sat = read_toml(p)
+        sat_source = str(p)
+    elif isinstance(sat, dict):
+        sat_source = d.get("satellite_source", source)
+    else:
+        raise ConfigError("must be a satellite file path or an inline table", source=source, field="satellite")
+    satellite = satellite_from_dict(sat, source=sat_source)
+    ranges = d.get("ranges_m", REFERENCE_RANGES)
+    if (not isinstance(ranges, (list, tuple)) or not ranges
+            or not all(isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) and r > 0
+                       for r in ranges)):
+        raise ConfigError(f"must be a non-empty list of ranges > 0 m, got {ranges!r}", source=source,
+                          field="ranges_m")
+    radius = satellite.bounding_radius
+    for r in ranges:
+        if r <= radius:
+            raise ConfigError(f"range {r} m puts the camera inside the body (bounding radius {radius:.3f} m); "
+                              f"ranges must exceed it", source=source, field="ranges_m")
+    k = d.get("orientations", 9)
+    if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 10**7:
+        raise ConfigError(f"must be an integer in [1, 1e7], got {k!r}", source=source, field="orientations")
+    frames = d.get("frames", satellite.frames)
+    if isinstance(frames, bool) or not isinstance(frames, int) or not 1 <= frames <= 10**7:
+        raise ConfigError(f"must be an integer in [1, 1e7], got {frames!r}", source=source, field="frames")
+    bs = d.get("batch_size", 16)
+    if isinstance(bs, bool) or not isinstance(bs, int) or not 1 <= bs <= 1024:
+        raise ConfigError(f"must be an integer in [1, 1024], got {bs!r}", source=source, field="batch_size")
+    bl = dict(d.get("blobber") or {})
+    unknown = sorted(set(bl) - {"threshold", "target", "connectivity"})
+    if unknown:
+        raise ConfigError(f"unknown key(s) {unknown}; allowed: threshold, target, connectivity", source=source,
+                          field="blobber")
+    try:
+        BlobberConfig(threshold=float(bl.get("threshold", 0.0)), target=bl.get("target", "largest"),
+                      connectivity=int(bl.get("connectivity", 8)))
+    except (ValueError, TypeError) as e:
+        raise ConfigError(str(e), source=source, field="blobber") from None
+    se = dict(d.get("sensor") or {})
+    unknown = sorted(set(se) - {"psf_sigma_px", "read_noise", "gain", "bits"})
+    if unknown:
+        raise ConfigError(f"unknown key(s) {unknown}; allowed: psf_sigma_px, read_noise, gain, bits", source=source,
+                          field="sensor")
+    sensor = SensorEffects(float(se.get("psf_sigma_px", 0.0)), float(se.get("read_noise", 0.0)),
+                           float(se.get("gain", 1.0)), int(se.get("bits", 0)))
+    check_range(sensor.psf_sigma_px, 0, 50, "sensor.psf_sigma_px", source=source)
+    check_range(sensor.read_noise, 0, 1e6, "sensor.read_noise", source=source)
+    check_range(sensor.gain, 0, 1e9, "sensor.gain", lo_open=True, source=source)
+    check_range(sensor.bits, 0, 32, "sensor.bits", source=source)
+    ar = dict(d.get("areas") or {"samples": 20000, "bin_width": 0.05})
+    check_range(int(ar.get("samples", 20000)), 100, 10**7, "areas.samples", source=source)
+    check_range(float(ar.get("bin_width", 0.05)), 1e-3, 1.0, "areas.bin_width", source=source)
+    return ProxSpec(job, int(seed), mode, sat, sat_source, tuple(float(r) for r in ranges), int(k), int(frames),
+                    int(bs), bl, sensor, {"samples": int(ar.get("samples", 20000)),
+                                          "bin_width": float(ar.get("bin_width", 0.05))}, satellite)
+
+
+def resolve_spec(preset: str | None, config: Path | None, **overrides) -> dict:
+    """Merge preset, config file and flags (None = not given); validate; return the canonical spec dict."""
+    name = preset or "paper"
+    if name not in PRESETS:
+        raise InputError(f"unknown preset {name!r}; known presets: {', '.join(sorted(PRESETS))}", source="--preset")
+    d = {k: (dict(v) if isinstance(v, dict) else v) for k, v in PRESETS[name].items()}
+    source = f"preset {name!r}"
+    if config is not None:
+        user = read_toml(Path(config))
+        source = str(config)
+        if "preset" in user:
+            if user["preset"] not in PRESETS:
+                raise ConfigError(f"unknown preset {user['preset']!r}; known: {sorted(PRESETS)}", source=source,
+                                  field="preset")
+            d = {k: (dict(v) if isinstance(v, dict) else v) for k, v in PRESETS[user["preset"]].items()}
+        if isinstance(user.get("satellite"), str) and not Path(user["satellite"]).is_absolute():
+            cand = Path(config).parent / user["satellite"]
+            if cand.exists():
+                user["satellite"] = str(cand)
+        for k, v in user.items():
+            d[k] = {**d[k], **v} if isinstance(v, dict) and isinstance(d.get(k), dict) else v
+    for k, v in overrides.items():
+        if v is not None:
+            d[k] = v
+    return spec_from_dict(d, source=source).to_dict()
+
+
+# ------------------------------------------------------------------------------------------ context
+@dataclass
+class ProxContext:
+    satellite: object
+    geometry: object
+    materials: np.ndarray
+    table: object
+
+
+def make_context(spec: ProxSpec) -> ProxContext:
+    sat = spec.satellite
+    geometry = sat.mesh() if spec.mode == "accurate" else sat.point_cloud()
+    table = area_table(sat, n=spec.areas["samples"], bin_width=spec.areas["bin_width"])
+    return ProxContext(sat, geometry, sat.materials(), table)
+
+
+# ------------------------------------------------------------------------------------------ cases
+def draw_cases(spec: ProxSpec, case_ids: np.ndarray) -> dict:
+    """Pose inputs of each case.  Sweep: range index ``i // orientations``, orientation uniform on SO(3)
+    from ``default_rng([seed, i])``, body origin on the boresight.  Trajectory: frame ``i`` of the file's motion."""
+    B = len(case_ids)
+    noise = np.empty(B, dtype=np.uint64)
+    quat = np.full((B, 4), np.nan)
+    for k, i in enumerate(case_ids):  # one generator per case: a case never depends on its batch
+        rng = np.random.default_rng([spec.seed, int(i)])
+        if spec.job == "sweep":
+            quat[k] = random_quaternions(rng, 1)[0]
+        noise[k] = rng.integers(0, 2**63, dtype=np.uint64)
+    sat = spec.satellite
+    if spec.job == "sweep":
+        ridx = (np.asarray(case_ids) // spec.orientations).astype(np.int64)
+        r = np.asarray(spec.ranges_m)[ridx]
+        t = np.stack([np.zeros(B), np.zeros(B), r], -1)
+        light = np.asarray(sat.camera.light_direction, dtype=np.float64)
+        poses = place_body(sat, quat_to_dcm(quat), t, light, frames=0)
+    else:
+        ridx = np.full(B, -1, dtype=np.int64)
+        poses = frame_poses(sat, np.asarray(case_ids, dtype=np.float64))
+    return {"quat": quat, "noise_seed": noise, "range_index": ridx, "poses": poses}
+
+
+def compute_batch(spec: ProxSpec, ctx: ProxContext, case_ids: np.ndarray, keep_images: bool = False) -> dict:
+    """Render + blobber for a batch; every intermediate result and the Arrow table."""
+    B = len(case_ids)
+    t0 = time.perf_counter_ns()
+    draw = draw_cases(spec, case_ids)
+    P = draw["poses"]
+    cam = ctx.satellite.camera
+    t1 = time.perf_counter_ns()
+    img, cov = render(spec.mode, ctx.geometry, ctx.materials, P.R, P.t, P.light, cam.camera, cam.I_a, cam.I_l)
+    if spec.sensor.any:
+        img = apply_sensor(img, psf_sigma_px=spec.sensor.psf_sigma_px, read_noise=spec.sensor.read_noise,
+                           gain=spec.sensor.gain, bits=spec.sensor.bits or None, seeds=draw["noise_seed"])
+    t2 = time.perf_counter_ns()
+    results, t_blob = {}, {}
+    for est in ESTIMATORS:
+        tb = time.perf_counter_ns()
+        results[est] = run_blobber(img, cam.camera, ctx.table, spec.blobber_config(est),
+                                   coverage=cov if not spec.sensor.any else None)
+        t_blob[est] = time.perf_counter_ns() - tb
+    t_total = time.perf_counter_ns() - t0
+    timing = {"t_sample_ns": t1 - t0, "t_render_ns": t2 - t1, "t_blob_paper_ns": t_blob["paper"],
+              "t_blob_subpixel_ns": t_blob["subpixel"], "t_total_ns": t_total}
+    table = cases_table(spec, case_ids, draw, results, {k: v // max(B, 1) for k, v in timing.items()})
+    out = {"draw": draw, "results": results, "tables": {"prox_cases": table}}
+    if keep_images:
+        out["images"], out["coverage"] = img, cov
+    return out
+
+
+def run_cases(spec: ProxSpec, ctx: ProxContext, case_ids: np.ndarray) -> dict[str, pa.Table]:
+    parts = [compute_batch(spec, ctx, case_ids[s: s + spec.batch_size])["tables"]["prox_cases"]
+             for s in range(0, len(case_ids), spec.batch_size)]
+    return {"prox_cases": pa.concat_tables(parts)}
+
+
+def cases_table(spec: ProxSpec, case_ids, draw, results, timing) -> pa.Table:
+    P = draw["poses"]
+    B = len(case_ids)
+    t = P.t_body
+    true_r = np.linalg.norm(t, axis=-1)
+    true_dir = t / true_r[:, None]
+    cols = {
+        "case_id": np.asarray(case_ids, dtype=np.int64), "job": np.full(B, spec.job, dtype=object),
+        "mode": np.full(B, spec.mode, dtype=object), "seed": np.full(B, spec.seed, dtype=np.int64),
+        "frame": np.asarray(case_ids, dtype=np.int64) if spec.job == "trajectory" else np.zeros(B, np.int64),
+        "range_index": draw["range_index"], "true_range_m": true_r,
+        "true_x_m": t[:, 0], "true_y_m": t[:, 1], "true_z_m": t[:, 2],
+        "R_body": pa.FixedSizeListArray.from_arrays(pa.array(P.R_body.reshape(-1).astype(np.float64)), 9),
+        "noise_seed": draw["noise_seed"],
+    }
+    base = results["paper"]
+    cols.update({"found": base.found, "n_blobs": base.n_blobs, "n_pixels": base.n_pixels,
+                 "n_coverage": base.n_coverage, "cob_x_px": base.cob_px[:, 0], "cob_y_px": base.cob_px[:, 1],
+                 "axis_ratio": base.axis_ratio, "major_px": base.major_px, "minor_px": base.minor_px,
+                 "dir_err_rad": np.where(base.found, angle_between(base.unit, true_dir), np.nan)})
+    for est, res in results.items():
+        pos = res.position
+        cols.update({f"{est}_axis_ratio": res.axis_ratio, f"{est}_n_blob": res.n_blob,
+                     f"{est}_range_min_m": res.range_min, f"{est}_range_est_m": res.range_est,
+                     f"{est}_range_max_m": res.range_max,
+                     f"{est}_x_m": pos[:, 0], f"{est}_y_m": pos[:, 1], f"{est}_z_m": pos[:, 2],
+                     f"{est}_pos_err_m": np.linalg.norm(pos - t, axis=-1)})
+    for k, v in timing.items():
+        cols[k] = np.full(B, v, dtype=np.int64)
+    return pa.table({k: (v if isinstance(v, pa.Array) else pa.array(v)) for k, v in cols.items()})
+
+
+def shard_summary(tables: dict[str, pa.Table]) -> dict:
+    t = tables["prox_cases"]
+    found = t.column("found").to_numpy(zero_copy_only=False)
+    r = t.column("true_range_m").to_numpy()
+    e = np.abs(t.column("subpixel_range_est_m").to_numpy() - r) / r
+    return {"cases": int(len(found)), "found": int(found.sum()), "sum_rel_err_subpixel": float(np.nansum(e))}
+
+
+def progress_postfix(stats: dict) -> str:
+    n = stats.get("found", 0)
+    if not n:
+        return ""
+    return f"found {100 * n / max(stats.get('cases', 1), 1):.0f}%, subpixel rel err {100 * stats['sum_rel_err_subpixel'] / n:.1f}%"
