@@ -61,7 +61,7 @@ PRESETS = {
     # Reference Sec. 2.3: Table 1 camera, 3U CubeSat, 11 ranges log-spaced 1-100 m x 9 random orientations.
     "paper": {"job": "sweep", "seed": 1, "mode": "paper", "satellite": "satellites/cubesat_3u.toml",
               "ranges_m": REFERENCE_RANGES, "orientations": 9, "frames": 50, "batch_size": 16,
-              "blobber": {"threshold": 0.0, "target": "largest", "connectivity": 8},
+              "blobber": {"threshold": 0.0, "target": "all", "connectivity": 8},
               "sensor": {"psf_sigma_px": 0.0, "read_noise": 0.0, "gain": 1.0, "bits": 0},
               "areas": {"samples": 20000, "bin_width": 0.05}},
 }

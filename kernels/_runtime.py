@@ -13,6 +13,7 @@ Environment:
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import sys
 import threading
@@ -56,7 +57,7 @@ def ensure_init(threads: int | None = None):
             threads = int(env_threads)
         if threads:
             kwargs["cpu_max_num_threads"] = int(threads)
-        with contextlib.redirect_stdout(sys.stderr):   # ti.init prints "[Taichi] Starting on arch=..."
+        with contextlib.redirect_stdout(io.StringIO()):   # ti.init prints "[Taichi] Starting on arch=..."
             ti.init(**kwargs)
         _initialised = True
     return ti
