@@ -136,9 +136,13 @@ def cmd_star_run(args) -> int:
     spec_dict, n_cases = star.resolve_spec(args.preset, args.config, seed=args.seed, cases=args.cases)
     run_id = args.run or f"star-{spec_dict['seed']}-{n_cases}"
     lake = _lake(args)
+    info = star.catalog_info(spec_dict)
+    print(f"catalog: {info['stars']} stars to V {info['mag_limit']}, {info['pairs']:,} pairs closer than "
+          f"{info['pair_max_angle_deg']:.2f} deg ({info['pair_catalog_bytes'] / 2**20:.2f} MiB in memory)",
+          file=sys.stderr)
     manifest = run_job("star", spec_dict, n_cases=n_cases, lake=lake, run_id=run_id, workers=args.workers,
                        scheduler=args.scheduler, shard_size=args.shard_size, progress=not args.no_progress,
-                       label=f"star {run_id}")
+                       label=f"star {run_id}", extra={"catalog": info})
     ex = manifest["executions"][-1]
     el = ex.get("elapsed_s")
     rate = f", {ex.get('cases_run', n_cases) / el:.0f} cases/s" if el else ""

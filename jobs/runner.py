@@ -127,7 +127,7 @@ def versions() -> dict:
 
 def run_job(kind: str, spec_dict: dict, *, n_cases: int, lake: Lake, run_id: str, workers: int | None = None,
             threads_per_worker: int | None = None, shard_size: int | None = None, scheduler: str | None = None,
-            progress: bool = True, label: str | None = None) -> dict:
+            progress: bool = True, label: str | None = None, extra: dict | None = None) -> dict:
     """Run (or resume) ``n_cases`` cases of a job into ``lake`` as run ``run_id``; returns the manifest.
 
     Everything is validated before the lake is touched.  An existing run with the same kind, spec and
@@ -160,7 +160,7 @@ def run_job(kind: str, spec_dict: dict, *, n_cases: int, lake: Lake, run_id: str
                     "seed": spec_dict.get("seed"), "n_cases": n_cases, "shard_size": plan.shard_size,
                     "n_shards": plan.n_shards, "datasets": mod.DATASETS, "primary": mod.PRIMARY,
                     "versions": versions(), "host": socket.gethostname(), "created_unix": time.time(),
-                    "shards_done": [], "status": "running", "stats": {}}
+                    "shards_done": [], "status": "running", "stats": {}, **(extra or {})}
     lake.remove_stale_temps(run_id, mod.DATASETS)
     done = lake.complete_shards(run_id, mod.DATASETS)
     done = {s for s in done if s < plan.n_shards}

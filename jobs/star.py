@@ -162,9 +162,19 @@ def resolve_spec(preset: str | None, config: Path | None, *, seed: int | None = 
                          source="--cases" if cases is not None else source)
     spec = spec_from_dict(d, source=source)
     # the catalog must leave enough stars: checked now, before anything touches the lake
-    ctx_check = load_star_catalog(spec.catalog)
-    del ctx_check
+    load_star_catalog(spec.catalog)
     return spec.to_dict(), int(n)
+
+
+def catalog_info(spec_dict: dict) -> dict:
+    """Size of the run's star and pair catalogs (built or read from the cache)."""
+    spec = spec_from_dict(spec_dict)
+    cat = load_star_catalog(spec.catalog)
+    diag = spec.camera.fov_rad[2]
+    pairs = load_pair_catalog(cat, diag)
+    return {"stars": len(cat.hip), "mag_limit": spec.catalog.mag_limit, "pairs": len(pairs.angle),
+            "pair_max_angle_deg": math.degrees(diag), "pair_catalog_bytes": int(pairs.nbytes),
+            "star_catalog_bytes": int(cat.nbytes)}
 
 
 def _deep_copy(d):
