@@ -124,6 +124,41 @@ def check_range(value, lo, hi, field: str, *, lo_open=False, hi_open=False, sour
     return value
 
 
+def preset_and_config(presets: dict, preset: str | None, config: Path | str | None,
+                      default: str = "paper") -> tuple[dict, str]:
+    """The spec layers below the command-line flags: a preset, then a TOML file over it.
+
+    A config file may name its own base with a top-level ``preset = "..."``.  Tables merge key by key
+    (recursively); everything else replaces.  Returns (merged dict, source name for error messages).
+    """
+    from dualsight.scene.camera import read_toml
+
+    name = preset or default
+    if name not in presets:
+        raise InputError(f"unknown preset {name!r}; known presets: {', '.join(sorted(presets))}", source="--preset")
+    d = deep_merge(presets[name], {})
+    source = f"preset {name!r}"
+    if config is not None:
+        user = read_toml(Path(config))
+        source = str(config)
+        if "preset" in user:
+            if user["preset"] not in presets:
+                raise ConfigError(f"unknown preset {user['preset']!r}; known: {sorted(presets)}", source=source,
+                                  field="preset")
+            d = deep_merge(presets[user["preset"]], {})
+        d = deep_merge(d, {k: v for k, v in user.items() if k != "preset"})
+    return d, source
+
+
+def deep_merge(base: dict, over: dict) -> dict:
+    """A new dict: ``base`` with ``over`` laid on top, tables merged recursively (inputs untouched)."""
+    out = {k: (deep_merge(v, {}) if isinstance(v, dict) else v) for k, v in base.items()}
+    for k, v in over.items():
+        out[k] = deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else (
+            deep_merge(v, {}) if isinstance(v, dict) else v)
+    return out
+
+
 def source_name(path: Path | str | None, preset: str | None) -> str:
     if path:
         return str(path)

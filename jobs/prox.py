@@ -27,15 +27,14 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
 
 from dualsight.catalogs.areas import area_table
-from dualsight.errors import ConfigError, InputError
-from dualsight.jobs.config import check_range
+from dualsight.errors import ConfigError
+from dualsight.jobs.config import check_range, preset_and_config
 from dualsight.kernels.points import apply_sensor, render
 from dualsight.nav.blobber import BlobberConfig, run_blobber
 from dualsight.scene.attitude import angle_between, quat_to_dcm, random_quaternions
@@ -195,25 +194,12 @@ def spec_from_dict(d: dict, source: str = "spec") -> ProxSpec:
 
 def resolve_spec(preset: str | None, config: Path | None, **overrides) -> dict:
     """Merge preset, config file and flags (None = not given); validate; return the canonical spec dict."""
-    name = preset or "paper"
-    if name not in PRESETS:
-        raise InputError(f"unknown preset {name!r}; known presets: {', '.join(sorted(PRESETS))}", source="--preset")
-    d = {k: (dict(v) if isinstance(v, dict) else v) for k, v in PRESETS[name].items()}
-    source = f"preset {name!r}"
-    if config is not None:
-        user = read_toml(Path(config))
-        source = str(config)
-        if "preset" in user:
-            if user["preset"] not in PRESETS:
-                raise ConfigError(f"unknown preset {user['preset']!r}; known: {sorted(PRESETS)}", source=source,
-                                  field="preset")
-            d = {k: (dict(v) if isinstance(v, dict) else v) for k, v in PRESETS[user["preset"]].items()}
-        if isinstance(user.get("satellite"), str) and not Path(user["satellite"]).is_absolute():
-            cand = Path(config).parent / user["satellite"]
-            if cand.exists():
-                user["satellite"] = str(cand)
-        for k, v in user.items():
-            d[k] = {**d[k], **v} if isinstance(v, dict) and isinstance(d.get(k), dict) else v
+    d, source = preset_and_config(PRESETS, preset, config)
+    sat = d.get("satellite")
+    if config is not None and isinstance(sat, str) and not Path(sat).is_absolute():
+        cand = Path(config).parent / sat       # a satellite path in a config file is relative to that file
+        if cand.exists():
+            d["satellite"] = str(cand)
     for k, v in overrides.items():
         if v is not None:
             d[k] = v

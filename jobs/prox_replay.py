@@ -75,7 +75,7 @@ def write_trajectory_video(spec, path: Path, fps: float = 10.0, batch: int = 16)
     fourcc = cv2.VideoWriter_fourcc(*("mp4v" if path.suffix.lower() == ".mp4" else "MJPG"))
     writer = cv2.VideoWriter(str(path), fourcc, float(fps), (cam.width, cam.height), isColor=False)
     if not writer.isOpened():
-        raise InputError(f"cannot write a video here (supported: .mp4, .avi)", source=str(path))
+        raise InputError("cannot write a video here (supported: .mp4, .avi)", source=str(path))
     try:
         for s in range(0, spec.frames, batch):
             ids = np.arange(s, min(s + batch, spec.frames), dtype=np.int64)

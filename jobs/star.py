@@ -22,7 +22,6 @@ Spec (TOML; every table optional, defaults = preset ``paper``)::
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -35,14 +34,14 @@ import pyarrow as pa
 from dualsight.catalogs.pairs import load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 from dualsight.errors import ConfigError, InputError
-from dualsight.jobs.config import dataclass_from_table, dataclass_to_table
+from dualsight.jobs.config import dataclass_from_table, dataclass_to_table, preset_and_config
 from dualsight.kernels.detect import DetectConfig
 from dualsight.kernels.starfield import SensorConfig
 from dualsight.jobs import star_pipeline as pipe
 from dualsight.nav.errors import STATUS_NAMES
 from dualsight.nav.starid import VotingConfig
 from dualsight.scene.attitude import boresight_radec, euler123_to_dcm, quat_to_dcm, random_quaternions
-from dualsight.scene.camera import Camera, read_toml
+from dualsight.scene.camera import Camera
 
 NAME = "star"
 DATASETS = ["star_cases", "star_detections"]
@@ -140,20 +139,7 @@ def spec_from_dict(d: dict, source: str = "spec") -> StarSpec:
 def resolve_spec(preset: str | None, config: Path | None, *, seed: int | None = None,
                  cases: int | None = None) -> tuple[dict, int]:
     """Merge preset, config file and flags; validate; return (canonical spec dict, number of cases)."""
-    name = preset or "paper"
-    if name not in PRESETS:
-        raise InputError(f"unknown preset {name!r}; known presets: {', '.join(sorted(PRESETS))}", source="--preset")
-    d = _deep_copy(PRESETS[name])
-    source = f"preset {name!r}"
-    if config is not None:
-        user = read_toml(Path(config))
-        source = str(config)
-        if "preset" in user:
-            if user["preset"] not in PRESETS:
-                raise ConfigError(f"unknown preset {user['preset']!r}; known: {sorted(PRESETS)}", source=source,
-                                  field="preset")
-            d = _deep_copy(PRESETS[user["preset"]])
-        d = _merge(d, user)
+    d, source = preset_and_config(PRESETS, preset, config)
     if seed is not None:
         d["seed"] = seed
     n = cases if cases is not None else d.get("cases", 200)
@@ -175,20 +161,6 @@ def catalog_info(spec_dict: dict) -> dict:
     return {"stars": len(cat.hip), "mag_limit": spec.catalog.mag_limit, "pairs": len(pairs.angle),
             "pair_max_angle_deg": math.degrees(diag), "pair_catalog_bytes": int(pairs.nbytes),
             "star_catalog_bytes": int(cat.nbytes)}
-
-
-def _deep_copy(d):
-    return {k: (_deep_copy(v) if isinstance(v, dict) else v) for k, v in d.items()}
-
-
-def _merge(base: dict, over: dict) -> dict:
-    out = dict(base)
-    for k, v in over.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _merge(out[k], v)
-        else:
-            out[k] = v
-    return out
 
 
 # ------------------------------------------------------------------------------------------ context

@@ -15,7 +15,6 @@ from __future__ import annotations
 import contextlib
 import io
 import os
-import sys
 import threading
 from pathlib import Path
 
