@@ -99,9 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _optional_registrations():
     """Command groups of the other jobs (each module adds its own sub-commands)."""
-    from dualsight.jobs import cli_hil, cli_prox
+    from dualsight.jobs import calibrate_cli, cli_hil, cli_prox
 
-    return [cli_prox.register, cli_hil.register]
+    return [cli_prox.register, cli_hil.register, calibrate_cli.register_calibrate]
 
 
 def _help(p):

@@ -46,6 +46,9 @@ def register(subparsers) -> None:
     hsub = hil.add_subparsers(dest="hil_action", metavar="ACTION")
     add_star_parser(hsub)
     # `hil prox` is registered here by jobs/hil_prox.py: hil_prox.add_parser(hsub)
+    from dualsight.jobs import hil_prox
+
+    hil_prox.add_parser(hsub)
     hil.set_defaults(func=lambda a: (hil.print_help(), 0)[1])
 
 
