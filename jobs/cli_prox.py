@@ -45,6 +45,12 @@ def register(sub):
     p.add_argument("--plot", type=Path, default=None, help="figure (Fig. 7 style for sweeps, Fig. 6 for trajectories)")
     p.set_defaults(func=cmd_report)
 
+    p = psub.add_parser("resolvable", help="nearest and farthest resolvable range of a camera and object size")
+    p.add_argument("--camera", type=Path, default=None, help="camera TOML (default: the reference's Table 1 camera)")
+    p.add_argument("--size", type=float, default=0.1, help="characteristic object size h (m), default 0.1")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_resolvable)
+
     p = psub.add_parser("replay", help="re-render one case bit-identically and record it for rerun (.rrd)")
     _lake_arg(p)
     p.add_argument("--run", required=True)
@@ -182,4 +188,25 @@ def cmd_replay(args) -> int:
 
     out = replay_prox_case(_lake(args), args.run, args.case, args.output)
     print(f"recording: {out}  (open with: rerun {out})")
+    return 0
+
+
+def cmd_resolvable(args) -> int:
+    from dualsight.nav.range import resolvable_range
+    from dualsight.scene.camera import Camera
+
+    if not (args.size > 0):
+        raise InputError(f"must be > 0 m, got {args.size}", source="--size")
+    cam = Camera.from_toml(args.camera) if args.camera else Camera.pinhole(1024, 768, 4.65e-6, 6e-3)
+    r = resolvable_range(cam, args.size)
+    out = {"size_m": args.size, "nearest_fits_frame_m": r.near_fit_m, "nearest_fills_frame_m": r.near_fill_m,
+           "farthest_2x2_px_m": r.far_m, "reference_convention_nearest_m": r.reference_near_m}
+    if args.json:
+        print(json.dumps(out, indent=1))
+    else:
+        print(f"object {args.size} m, camera {cam.width}x{cam.height} px, f = {cam.fx:.1f} px:\n"
+              f"  nearest (object fits the frame's short side): {r.near_fit_m:.4f} m\n"
+              f"  object fills the whole frame (long side):      {r.near_fill_m:.4f} m\n"
+              f"  farthest (object covers 2 x 2 pixels):         {r.far_m:.2f} m\n"
+              f"  the reference's 8.4 cm convention (h/2 over the full sensor height): {r.reference_near_m:.4f} m")
     return 0
