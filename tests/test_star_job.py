@@ -145,3 +145,19 @@ def test_sigkill_then_resume_has_exactly_n_cases(tmp_path):
     assert Lake(tmp_path).read_manifest("killed")["status"] == "complete"
     for f in shard_dir.glob("part-*.parquet"):
         pq.read_metadata(f)  # every file is a complete Parquet file
+
+
+def test_voting_returns_the_right_hipparcos_ids_on_rendered_cases(small_run):
+    """Identities of accepted detections against the Hipparcos id of the star rendered there (the truth
+    comes from projecting the catalog with the true attitude, not from the voting)."""
+    _, rows = run_sql(small_run, """
+        SELECT count(*) FILTER (WHERE accepted),
+               count(*) FILTER (WHERE accepted AND hip_assigned = hip_true),
+               count(DISTINCT case_id) FILTER (WHERE accepted)
+        FROM star_detections WHERE run = 'small'""")
+    n_acc, n_right, n_cases = rows[0]
+    assert n_cases >= 55 and n_acc >= 8 * n_cases
+    assert n_right / n_acc >= 0.99
+    # and the attitude of those cases meets the reference's 100 arcsec criterion on every axis
+    _, rows = run_sql(small_run, "SELECT avg((status = 'success')::DOUBLE) FROM star_cases WHERE run = 'small'")
+    assert rows[0][0] >= 0.95
