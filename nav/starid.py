@@ -35,18 +35,25 @@ choices are options of :class:`VotingConfig`, grouped in two presets:
 An accepted set that fails ``min_accepted`` or the attitude check is *rejected*: the case reports
 ``T = 0`` (no confident solution) and no accepted star, and ``rejected`` records why T was zeroed.
 
-Implementation: all cases at once; observed pairs come from a fixed upper-triangle table, candidate
-catalog pairs from ``np.searchsorted`` on the sorted catalog angles, expanded to flat lists with the
-``np.repeat`` + ``arange`` trick, and votes accumulate with ``np.bincount`` into a dense
-(case, star, catalog row) table, processed in chunks of cases so memory stays bounded
-(``max_vote_cells`` int64 cells, 2 MB by default, plus the candidate lists of one chunk; the later
-steps work on blocks of cases of the same size).  One vote per pair needs no sort: a catalog star
-occurs for the first time in a window of pairs when its previous pair lies before the window.
+Implementation: all cases at once, no Python loop over cases, stars or pairs.  Everything that
+depends on the pair catalog alone (interleaved star lists, the previous-occurrence table of the
+one-vote-per-pair rule, range checks) is a :class:`VotingIndex`, built once per catalog and cached
+(:func:`voting_index`).  Candidate catalog pairs come from ``np.searchsorted`` (sorted keys) on the
+sorted catalog angles; each observed star's row of votes is counted from its pairs' windows of
+catalog stars, read as fixed-length tiles (2-D gathers from a strided view) and counted with
+``np.bincount`` into dense (stars, catalog row) tables of a few rows at a time (row-major keys,
+tables that stay in cache), bounded by ``max_vote_cells``.  One vote per pair needs no sort: a
+catalog star occurs for the first time in a window of pairs when its previous pair lies before the
+window.  The later steps work on the observed pairs that exist (bit-packed consistency rows for the
+greedy set search).  See ``benchmarks/bench_voting.py``.
 
-Measured (2-core Xeon, numpy 2.4, 256 cases of ~13 stars, 125k-pair catalog, tolerance 31 arcsec):
-paper 0.31 ms and robust 0.7 ms per case.  Simulated fields of the reference's camera (star
-vectors projected, 0.1 px Gaussian centroid noise, no image rendering) with the 2617 Hipparcos
-stars of Hp <= 5.5, 4096 random 1-2-3 attitudes:
+Measured (2-core Xeon VM, numpy 2.4, one process; ``benchmarks/bench_voting.py``): 256 simulated
+cases of the star preset (~11 stars, 2867-star / 138k-pair catalog, 10 arcsec): paper 0.12 ms and
+robust 0.25 ms per case; 32 frames on the V 7.0 catalog (15.6k stars / 2.0M pairs, 25 stars,
+20 arcsec): paper 6 ms and robust 8.5 ms per frame, plus ~0.4 s once per catalog for the index.
+
+Simulated fields of the reference's camera (star vectors projected, 0.1 px Gaussian centroid noise,
+no image rendering) with the 2617 Hipparcos stars of Hp <= 5.5, 4096 random 1-2-3 attitudes:
 
 =========================================  ===================  ==================
 fields                                      paper: success / CW  robust
@@ -61,6 +68,7 @@ leave the roll about the boresight above the 100 arcsec limit.)
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,7 +77,8 @@ from dualsight.errors import ConfigError
 
 from .attitude import solve_identified
 
-__all__ = ["VotingConfig", "Identification", "identify", "pair_arrays", "ACCEPT_RULES"]
+__all__ = ["VotingConfig", "Identification", "VotingIndex", "identify", "pair_arrays", "voting_index",
+           "ACCEPT_RULES"]
 
 ACCEPT_RULES = ("fraction", "clique")
 
@@ -119,8 +128,10 @@ class VotingConfig:
         more three- and four-star fields at a small risk of a wrong triple.
     reidentify : with ``verify_attitude``, replace the final ids by the attitude matches (this also
         identifies stars beyond ``max_stars`` or missed by voting) and accept exactly the matched stars.
-    max_vote_cells : memory bound: the dense vote table of one chunk of cases holds at most this many
-        int64 cells (chunk = max(1, max_vote_cells // (max_stars * N)) cases).
+    max_vote_cells : memory bound: a dense vote table holds at most this many int64 cells (tables
+        are of max(1, min(max_vote_cells, 262144) // W) observed stars, W = N + 1 rounded up to 64),
+        at most this many catalog stars are expanded at once (with 262144, or one tile), and the
+        later steps work on blocks of cases of about this size.
     """
 
     tolerance_rad: float = 1.5e-4
@@ -258,7 +269,10 @@ def _angles(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     atan2(|u x v|, u . v); loses precision only near pi, far outside any field of view.
     """
     w = u - v
-    return 2.0 * np.arcsin(np.minimum(0.5 * np.sqrt(np.sum(w * w, axis=-1)), 1.0))
+    s = w[..., 0] * w[..., 0]                   # np.sum(w * w, axis=-1) bit for bit (same order), 3x
+    s += w[..., 1] * w[..., 1]                  # faster than numpy's reduction over a 3-long axis
+    s += w[..., 2] * w[..., 2]
+    return 2.0 * np.arcsin(np.minimum(0.5 * np.sqrt(s), 1.0))
 
 
 def _select_brightest(valid: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -271,110 +285,272 @@ def _select_brightest(valid: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray
     return order, np.take_along_axis(valid, order, axis=1)
 
 
-def _expand_ranges(lo: np.ndarray, cnt: np.ndarray, dtype=np.int64) -> tuple[np.ndarray, np.ndarray]:
-    """Flatten ranges [lo_k, lo_k + cnt_k): returns (owner k, value) for every element (repeat+arange)."""
-    total = int(cnt.sum())
-    owner = np.repeat(np.arange(cnt.size, dtype=dtype), cnt)
-    start = (np.cumsum(cnt) - cnt).astype(dtype, copy=False)
-    val = lo.astype(dtype, copy=False)[owner] + (np.arange(total, dtype=dtype) - start[owner])
-    return owner, val
+# ------------------------------------------------------------------------------ pair-catalog index
+
+_BLOCK = 64              # vote-table widths are multiples of this
+_TILES = (16, 32, 64, 128, 256)   # tile lengths (stars gathered per row of a 2-D gather)
+_PAD = max(_TILES)       # padding after the pair catalog's stars, so that every tile is in bounds
+_PIECE = 1 << 18         # stars expanded at once, so that the temporaries stay in cache
+_TABLE = 1 << 18         # cells of one vote table (2 MB of int64, in cache), unless max_vote_cells is smaller
 
 
-def _key_dtype(n_max: int):
-    """Smallest of int32/int64 that holds integers up to ``n_max``."""
-    return np.int32 if n_max < np.iinfo(np.int32).max else np.int64
+def _previous_occurrence(pi: np.ndarray, pj: np.ndarray) -> np.ndarray:
+    """For each endpoint of each catalog pair, the index of the previous pair (in the catalog's
+    angle order) that holds the same star, -1 if none; interleaved like :attr:`VotingIndex.stars`
+    (entry 2m = star ``pi[m]``, entry 2m + 1 = star ``pj[m]``).
 
-
-def _previous_occurrence(pi: np.ndarray, pj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each catalog pair m and each of its stars, the index of the previous pair (in the
-    catalog's angle order) that holds the same star, -1 if none.
-
-    In a window [lo, hi) of pairs, star ``pi[m]`` occurs for the first time at m exactly when
-    ``prev_i[m] < lo``: this de-duplicates votes without sorting the candidates.  O(M log M) once
-    per call (one sort of the 2M endpoints by star; ~4 ms for 126k pairs).
-    Returns ``prev_i, prev_j`` (M,) int64.
+    In a window [lo, hi) of pairs, the star of entry e occurs for the first time at e's pair exactly
+    when ``prev[e] < lo``: this de-duplicates votes without sorting the candidates.  O(M log M), once
+    per pair catalog (one sort of the 2M endpoints by star; ~0.2 s for 2M pairs).
     """
     star = np.stack([pi, pj], axis=1).ravel().astype(np.int64)         # entry 2m, 2m + 1
     E = star.size
-    # by star, then by entry: a value sort of star * E + entry (~3x faster than a stable argsort)
-    s, order = np.divmod(np.sort(star * E + np.arange(E)), E)
-    prev_sorted = np.full(star.size, -1, np.int64)
-    if star.size > 1:
+    # by star, then by entry: a stable sort by star (a radix sort when the rows fit 16 bits), else a
+    # value sort of star * E + entry (~3x faster than a stable argsort of 32-bit keys)
+    if E and 0 <= star.min() and star.max() < 1 << 16:
+        order = np.argsort(star.astype(np.uint16), kind="stable")
+        s = star[order]
+    else:
+        s, order = np.divmod(np.sort(star * E + np.arange(E)), E)
+    dt = np.int32 if pi.size < np.iinfo(np.int32).max else np.int64
+    prev_sorted = np.full(E, -1, dt)
+    if E > 1:
         prev_sorted[1:] = np.where(s[1:] == s[:-1], order[:-1] // 2, -1)
-    prev = np.empty(star.size, np.int64)
+    prev = np.empty(E, dt)
     prev[order] = prev_sorted
-    return prev[0::2], prev[1::2]
+    return prev
 
 
-def _vote_chunk(d: np.ndarray, slot_p: np.ndarray, slot_q: np.ndarray, n_slots: int,
-                pi: np.ndarray, pj: np.ndarray, pang: np.ndarray, n_cat: int, tol: float,
-                max_candidates: int, prev: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-    """Voting round (Kolomenkin 2008, step 1) for one chunk of cases.
+class VotingIndex:
+    """What :func:`identify` derives from the pair catalog alone, built once per catalog.
+
+    Pass it to :func:`identify` in place of the pair arrays (``identify(obs, valid, cat_unit, index,
+    cfg=cfg)``) to skip the per-call checks and derivations.  Given pair arrays (or an object with
+    ``i, j, angle``), :func:`identify` gets the index from :func:`voting_index`, which keeps the
+    last few, so a job that passes the same arrays batch after batch builds it once.
+
+    Attributes
+    ----------
+    i, j, angle : the pair catalog (:func:`pair_arrays`): (M,) int32 rows and float64 angles, ascending.
+    star_range : (lowest, highest) catalog row in the pairs ((0, -1) when there is no pair).
+    stars_plus_one : (2M + pad,) both stars of every pair, interleaved, plus one (``[2m] = i[m] + 1``,
+        ``[2m + 1] = j[m] + 1``), then zeros: the stars of the pairs [lo, hi) are the contiguous
+        ``[2 lo: 2 hi]``, and 0 is the vote tables' column of ignored stars.
+    prev : (2M,) for each of those entries, the previous pair holding the same star (-1 = none);
+        built on first use (by ``VotingConfig.vote_once_per_pair``; ~0.2 s for 2M pairs).
+    tile_dtype : integer type of both (int32 unless the catalog has ~500M pairs).
+
+    The pair arrays must not be modified while the index is in use.
+    """
+
+    def __init__(self, pair_i, pair_j=None, pair_angle=None):
+        i, j, ang = pair_arrays(pair_i, pair_j, pair_angle)
+        self.i, self.j, self.angle = i, j, ang
+        self.star_range = (int(min(i.min(), j.min())), int(max(i.max(), j.max()))) if i.size else (0, -1)
+        M2 = 2 * ang.size
+        self.tile_dtype = np.int32 if M2 + _PAD < np.iinfo(np.int32).max // 2 else np.int64
+        s = np.zeros(M2 + _PAD, self.tile_dtype)
+        s[0:M2:2] = i
+        s[1:M2:2] = j
+        s[:M2] += 1
+        self.stars_plus_one = s
+        self._prev_padded = None
+
+    def __len__(self) -> int:
+        return int(self.angle.size)
+
+    @property
+    def prev_padded(self) -> np.ndarray:
+        """(2M + pad,) :attr:`prev`, then zeros."""
+        if self._prev_padded is None:
+            p = np.zeros(2 * self.angle.size + _PAD, self.tile_dtype)
+            p[:2 * self.angle.size] = _previous_occurrence(self.i, self.j)
+            self._prev_padded = p
+        return self._prev_padded
+
+    @property
+    def prev(self) -> np.ndarray:
+        return self.prev_padded[:2 * self.angle.size]
+
+
+_INDEX_CACHE: list = []          # [(input arrays, fingerprint, VotingIndex)], most recently used first
+_INDEX_CACHE_SIZE = 4
+_INDEX_LOCK = threading.Lock()
+
+
+def _fingerprint(arrays) -> tuple:
+    """Shape, dtype and 64 evenly spaced values of each array (O(1)): a cached index is reused only
+    for the very same array objects that still hold the same catalog."""
+    out = []
+    for a in arrays:
+        a = np.asarray(a)
+        k = np.unique(np.linspace(0, a.size - 1, min(a.size, 64)).astype(np.int64))
+        out.append((a.shape, a.dtype.str, a.ravel()[k].tobytes()))
+    return tuple(out)
+
+
+def voting_index(pair_i, pair_j=None, pair_angle=None) -> VotingIndex:
+    """The :class:`VotingIndex` of a pair catalog given as :func:`identify` takes it (three arrays, an
+    object with ``i, j, angle``, or an index, returned as is).
+
+    The last ``_INDEX_CACHE_SIZE`` (4) indexes are kept, keyed by the identity of the three arrays
+    (which the cache holds, so an identity is never reused while cached) and checked against a
+    fingerprint of their shapes and of 64 sampled values each.  Arrays edited in place after a call
+    are not detected beyond that fingerprint: build a new :class:`VotingIndex` (or pass new arrays).
+    Thread-safe (a lock; the first call on a catalog builds its index under it).
+    """
+    if isinstance(pair_i, VotingIndex):
+        return pair_i
+    arrays = (pair_i.i, pair_i.j, pair_i.angle) if pair_j is None and pair_angle is None else \
+        (pair_i, pair_j, pair_angle)
+    fp = _fingerprint(arrays)
+    with _INDEX_LOCK:
+        for k, (inputs, fp_k, index) in enumerate(_INDEX_CACHE):
+            if all(a is b for a, b in zip(inputs, arrays)) and fp == fp_k:
+                _INDEX_CACHE.insert(0, _INDEX_CACHE.pop(k))            # most recently used first
+                return index
+        index = VotingIndex(*arrays)
+        _INDEX_CACHE.insert(0, (arrays, fp, index))
+        del _INDEX_CACHE[_INDEX_CACHE_SIZE:]
+    return index
+
+
+# ---------------------------------------------------------------------------------- voting round
+
+
+def _tile_length(n_el: np.ndarray) -> int:
+    """Tile length for windows of ``n_el`` stars: the least cost of gathered stars (padding included),
+    tiles and partial (masked) tiles (rough ns, measured: 2.5 per star, 20 per tile, 2 per masked star)."""
+    n_el = n_el[::max(1, n_el.size // 2048)]                          # a sample is enough
+    Ls = np.array(_TILES, np.int64)
+    tiles = (-(-n_el[None, :] // Ls[:, None])).sum(axis=1)
+    partial = np.count_nonzero(n_el[None, :] % Ls[:, None], axis=1)
+    cost = tiles * (Ls * 2.5 + 20.0) + partial * Ls * 2.0
+    return int(Ls[np.argmin(cost)])
+
+
+def _top_k(table: np.ndarray, k: int, bound: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` columns with the most votes in each row of ``table (R, W)`` (counts >= 0, column 0 never
+    wins), best first, ties to the lower column: ``k`` passes of argmax, each masking its winner.
+
+    bound : an upper bound of the counts (k > 1 copies the table to int16 when it fits).
+    Returns ``ids (R, k) int64`` (-1 where the count is 0) and ``counts (R, k) int64`` (0 there).
+    """
+    R, W = table.shape
+    r = np.arange(R)
+    if k == 1:
+        sub = table
+    else:                                                              # a masked copy; narrow = faster
+        sub = table.astype(np.int16 if bound < np.iinfo(np.int16).max else np.int64)
+    ids = np.full((R, k), -1, np.int64)
+    cnt = np.zeros((R, k), np.int64)
+    for t in range(min(k, W)):                                         # k passes (k is small)
+        best = sub.argmax(axis=1)
+        c = sub[r, best].astype(np.int64)
+        ids[:, t] = np.where(c > 0, best, -1)
+        cnt[:, t] = np.where(c > 0, c, 0)
+        if t + 1 < k:
+            sub[r, best] = -1                                          # mask the winner
+    return ids, cnt
+
+
+def _vote_rows(e_row: np.ndarray, e_lo: np.ndarray, e_cnt: np.ndarray, n_rows: int, index: VotingIndex,
+               n_cat: int, once: bool, k: int, max_cells: int) -> tuple[np.ndarray, np.ndarray]:
+    """Voting round (Kolomenkin 2008, step 1) and the k best identities of every observed star.
+
+    Rows are observed stars; an *entry* is one of a row's observed pairs with its window [lo, lo + cnt)
+    of candidate catalog pairs: it votes for the stars ``index.stars_plus_one[2 lo: 2 (lo + cnt)] - 1``.
 
     Parameters
     ----------
-    d : (P,) observed pair angles (rad); slot_p, slot_q : (P,) row of each pair's stars in the table.
-    n_slots : rows of the vote table (cases x stars of the chunk).
-    pi, pj, pang : catalog pairs (M,), angles sorted ascending.
-    n_cat : catalog size N.  tol : window half-width (rad).
-    max_candidates : candidate pairs expanded at once (bounds the temporary lists).
-    prev : None = every candidate pair votes for both its stars (Kolomenkin 2008); or the output of
-        :func:`_previous_occurrence`, to count a catalog row at most once per observed pair
-        (``VotingConfig.vote_once_per_pair``).
+    e_row, e_lo, e_cnt : (E,) entries (int64), sorted by row, ``cnt > 0``.
+    n_rows : number of rows.  index : the pair catalog.  n_cat : catalog size N.
+    once : count a catalog star at most once per entry (``VotingConfig.vote_once_per_pair``): a star
+        counts where its previous pair (``index.prev``) lies before the window.
+    k : identities kept per row (:func:`_top_k`).
+    max_cells : memory bound: vote tables of at most this many int64 cells (or one row), and at most
+        this many stars expanded at once (or one tile).
 
-    Returns
-    -------
-    (n_slots, N) int64 vote table.
+    Returns ``ids (n_rows, k)`` and ``counts (n_rows, k)`` int64 (-1 / 0 = none).
+
+    Method: rows go in groups whose dense (rows, W) int64 vote table (W >= N + 1, a multiple of 64)
+    stays in cache (``_TABLE`` cells) and within ``max_cells``.  A window's stars are read as tiles
+    of L consecutive stars, one 2-D gather from a strided view of the padded ``stars + 1``
+    (~memcpy speed, no per-star index arithmetic); a star votes in column ``star + 1`` of its row,
+    and the stars to ignore (a partial tile's tail, a star already counted in the window) are sent
+    to column 0 with sign-bit masks (no boolean indexing).  A group's tiles are counted in pieces
+    of ~``_PIECE`` stars, each with one ``np.bincount`` whose keys are row-major, so the counting
+    touches one table row at a time.
     """
-    lo = np.searchsorted(pang, d - tol, side="right")                 # angle > d - tol
-    hi = np.searchsorted(pang, d + tol, side="left")                  # angle < d + tol
-    cnt = np.maximum(hi - lo, 0)
-    n_cells = n_slots * n_cat
-    kt = _key_dtype(max(n_cells, pang.size))
-    slot_p = (slot_p * n_cat).astype(kt)
-    slot_q = (slot_q * n_cat).astype(kt)
-    # split the observed pairs into pieces of <= max_candidates candidates (usually one piece)
-    csum = np.cumsum(cnt)
-    n_pieces = int(csum[-1] // max_candidates) + 1 if csum.size else 0
-    cuts = np.searchsorted(csum, np.arange(1, n_pieces) * max_candidates, side="right")
-    edges = np.unique(np.concatenate([[0], cuts, [cnt.size]]))
-    votes = None
-    for a, b in zip(edges[:-1], edges[1:]):                           # a handful of pieces
-        owner, cand = _expand_ranges(lo[a:b], cnt[a:b], kt)
-        ca, cb = pi[cand], pj[cand]
-        sp = slot_p[a:b][owner]
-        sq = slot_q[a:b][owner]
-        if prev is not None:
-            # one vote per (observed pair, catalog row): keep an endpoint only at its first
-            # occurrence in the window, i.e. when its previous pair lies before the window start
-            start = lo[a:b].astype(kt, copy=False)[owner]
-            ka = prev[0][cand] < start
-            kb = prev[1][cand] < start
-            keys = np.concatenate([(sp + ca)[ka], (sq + ca)[ka], (sp + cb)[kb], (sq + cb)[kb]])
-        else:
-            keys = np.concatenate([sp + ca, sp + cb, sq + ca, sq + cb])
-        v = np.bincount(keys, minlength=n_cells)
-        votes = v if votes is None else votes + v
-    if votes is None:
-        votes = np.zeros(n_cells, np.int64)
-    return votes.reshape(n_slots, n_cat)
+    ids = np.full((n_rows, k), -1, np.int64)
+    cnt = np.zeros((n_rows, k), np.int64)
+    n_e = e_row.size
+    if n_e == 0:
+        return ids, cnt
+    W = -(-(n_cat + 1) // _BLOCK) * _BLOCK
+    dt = index.tile_dtype
+    n_el = 2 * e_cnt
+    L = _tile_length(n_el)
+    swin = np.lib.stride_tricks.sliding_window_view(index.stars_plus_one, L)   # row s: stars s .. s + L - 1
+    pwin = np.lib.stride_tricks.sliding_window_view(index.prev_padded, L) if once else None
+    pos = np.arange(L, dtype=dt)
+    sign = np.iinfo(dt).bits - 1
+    # vote counts <= the row's stars (<= its entries with ``once``): top-k on an int16 copy when it fits
+    per_row = np.bincount(e_row, weights=None if once else n_el, minlength=n_rows)
+    bound = int(per_row.max())
+    rows_max = max(1, min(int(max_cells), _TABLE) // W)
+    per_piece = max(1, min(int(max_cells), _PIECE) // L)
+    g_cut = np.flatnonzero(np.diff(e_row // rows_max)) + 1
+    g_edges = np.concatenate([[0], g_cut, [n_e]]).tolist()
+    for e0, e1 in zip(g_edges[:-1], g_edges[1:]):                      # groups of rows
+        # tiles of the group's entries: entry e has ceil(n_el / L) of them, of L stars but the last
+        nt = -(-n_el[e0:e1] // L)
+        t_e = np.repeat(np.arange(e0, e1), nt)
+        t_j = np.arange(t_e.size) - np.repeat(np.cumsum(nt) - nt, nt)  # tile number in its entry
+        t_start = 2 * e_lo[t_e] + t_j * L
+        t_len = np.minimum(n_el[t_e] - t_j * L, L).astype(dt)
+        t_row = e_row[t_e]
+        t_lo = e_lo[t_e].astype(dt) if once else None
+        ra, rb = int(t_row[0]), int(t_row[-1])
+        n_t = t_e.size
+        table = None
+        for a in range(0, n_t, per_piece):                            # pieces of tiles
+            b = min(n_t, a + per_piece)
+            pa, pb = int(t_row[a]), int(t_row[b - 1])
+            ts = t_start[a:b]
+            tl = t_len[a:b]
+            G = swin[ts]                                               # (n, L) stars + 1 (a copy)
+            part = np.flatnonzero(tl < L)                              # partial tiles (tails masked)
+            every = part.size * 4 > b - a                              # mask all tiles at once
+            if once:
+                D = pwin[ts]                                           # previous pair of each star
+                D -= t_lo[a:b, None]                                   # < 0: first in the window
+                if every:
+                    np.maximum(D, pos - tl[:, None], out=D)
+                elif part.size:
+                    D[part] = np.maximum(D[part], pos - tl[part, None])
+                D >>= sign                                             # -1 = keep, 0 = drop
+                G &= D
+            elif every:
+                G &= (pos - tl[:, None]) >> sign
+            elif part.size:
+                G[part] &= (pos - tl[part, None]) >> sign
+            G += ((t_row[a:b] - pa) * W).astype(dt)[:, None]
+            votes = np.bincount(G.ravel(), minlength=(pb - pa + 1) * W).reshape(pb - pa + 1, W)
+            if a == 0 and b == n_t:
+                table = votes
+            else:
+                if table is None:
+                    table = np.zeros((rb - ra + 1, W), np.int64)
+                table[pa - ra:pb - ra + 1] += votes
+        table[:, 0] = 0                                                # ignored stars
+        i_, c_ = _top_k(table, k, bound)
+        ids[ra:rb + 1] = np.where(i_ > 0, i_ - 1, -1)                  # column = star + 1
+        cnt[ra:rb + 1] = c_
+    return ids, cnt
 
 
-def _assign(votes: np.ndarray, unique: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Step 2: identity with the most votes per row of ``votes (R, N)`` (modified in place).
-
-    Returns ``ids (R,) int64`` (-1 if no vote, or a tie when ``unique``) and ``top (R,)`` vote counts.
-    """
-    r = np.arange(votes.shape[0])
-    best = votes.argmax(axis=1)                                       # ties -> lowest catalog row
-    top = votes[r, best]
-    ids = np.where(top > 0, best, -1)
-    if unique:
-        votes[r, best] = -1
-        second = votes.max(axis=1)
-        votes[r, best] = top
-        ids = np.where(top > second, ids, -1)
-    return ids, np.where(ids >= 0, top, 0)
+# ----------------------------------------------------------------------------------- later steps
 
 
 def _drop_duplicates(ids: np.ndarray, top: np.ndarray) -> np.ndarray:
@@ -382,28 +558,58 @@ def _drop_duplicates(ids: np.ndarray, top: np.ndarray) -> np.ndarray:
 
     ids, top : (B, K).  Returns the new ids (B, K).
     """
-    same = (ids[:, :, None] == ids[:, None, :]) & (ids[:, :, None] >= 0)
-    K = ids.shape[1]
-    same &= ~np.eye(K, dtype=bool)
-    loses = np.any(same & (top[:, None, :] >= top[:, :, None]), axis=2)
-    return np.where(loses, -1, ids)
+    out = ids.copy()
+    b, k = np.nonzero(ids >= 0)
+    if b.size < 2:
+        return out
+    g = b * (int(ids.max()) + 1) + ids[b, k]                            # (case, identity) groups
+    t = np.asarray(top)[b, k]
+    o = np.lexsort((-t, g))                                            # by group, most votes first
+    gs, ts = g[o], t[o]
+    first = np.ones(gs.size, bool)
+    first[1:] = gs[1:] != gs[:-1]
+    alone = np.ones(gs.size, bool)                                     # next entry: other group or fewer
+    alone[:-1] = (gs[1:] != gs[:-1]) | (ts[1:] < ts[:-1])
+    lose = o[~(first & alone)]
+    out[b[lose], k[lose]] = -1
+    return out
 
 
-def _consistency(obs_k: np.ndarray, ids: np.ndarray, cat_unit: np.ndarray, tol: float) -> np.ndarray:
-    """Step 3: (B, K, K) bool, identified stars p != q with |angle(id_p, id_q) - d_pq| < tol."""
+def _consistency(d_obs: np.ndarray, ids: np.ndarray, cat_unit: np.ndarray, tol: float) -> np.ndarray:
+    """Step 3: (B, K, K) bool, identified stars p != q with |angle(id_p, id_q) - d_pq| < tol.
+
+    d_obs : (B, P) observed angle of the pairs p < q (``np.triu_indices(K, 1)`` order).
+    Only the pairs p < q of identified stars are computed (the angles are exactly symmetric: the
+    chord of ``u - v`` and of ``v - u`` is the same) and mirrored.
+    """
+    B, K = ids.shape
+    tp, tq = np.triu_indices(K, 1)
     has = ids >= 0
-    ref = cat_unit[np.where(has, ids, 0)]
-    d_obs = _angles(obs_k[:, :, None, :], obs_k[:, None, :, :])
-    d_cat = _angles(ref[:, :, None, :], ref[:, None, :, :])
-    K = ids.shape[1]
+    b, k = np.nonzero(has[:, tp] & has[:, tq])
+    p, q = tp[k], tq[k]
+    d_obs = d_obs[b, k]
+    d_cat = _angles(cat_unit[ids[b, p]], cat_unit[ids[b, q]])
     with np.errstate(invalid="ignore"):
         c = np.abs(d_cat - d_obs) < tol
-    return c & has[:, :, None] & has[:, None, :] & ~np.eye(K, dtype=bool)
+    out = np.zeros((B, K, K), bool)
+    out[b[c], p[c], q[c]] = True
+    out[b[c], q[c], p[c]] = True
+    return out
 
 
 def _accept_fraction(vv: np.ndarray, T: np.ndarray, frac: float) -> np.ndarray:
     """Stars with verification votes >= frac * T and > 0.  vv (B, K), T (B,)."""
     return (vv > 0) & (vv >= frac * T[:, None])
+
+
+def _pack_bits(x: np.ndarray) -> np.ndarray:
+    """Pack the last axis (length K) of a bool array into ceil(K / 64) uint64 words (bit j = entry j)."""
+    K = x.shape[-1]
+    nw = -(-K // 64)
+    packed = np.packbits(x, axis=-1, bitorder="little")
+    out = np.zeros(x.shape[:-1] + (nw * 8,), np.uint8)
+    out[..., :packed.shape[-1]] = packed
+    return out.view(np.uint64)
 
 
 def _greedy_clique(cons: np.ndarray, score: np.ndarray) -> np.ndarray:
@@ -412,60 +618,46 @@ def _greedy_clique(cons: np.ndarray, score: np.ndarray) -> np.ndarray:
     Start from the nodes with at least one consistent partner.  While some member is inconsistent
     with another member: drop every member consistent with no other member (it cannot be in a set
     of two or more), or, if there is none, the single member consistent with the fewest members
-    (ties: the lowest ``score``, then the highest index).  Each pass is vectorised over cases;
-    there are at most as many passes as nodes, usually a few.
+    (ties: the lowest ``score``, then the highest index).  Each pass is vectorised over the cases
+    not yet done (a case that is done stays done); there are at most as many passes as nodes,
+    usually a few.  The consistent members of a node are counted as the popcount of its
+    consistency row, bit-packed once, AND the members' bits: O(K^2 / 64) per case and pass.
 
     cons : (B, K, K) bool symmetric consistency (False on the diagonal).
     score : (B, K) int >= 0 tie-break (higher = keep longer), e.g. voting-round votes.
     Returns (B, K) bool members (a clique; empty or >= 2 members).
     """
     B, K, _ = cons.shape
-    member = cons.any(axis=2)
+    if K == 0:
+        return np.zeros((B, 0), bool)
     score = np.asarray(score, dtype=np.int64)
     smax = int(score.max()) + 1 if score.size else 1
     later = np.arange(K)[None, :]                                      # higher index = fainter
+    bits = _pack_bits(cons)                                            # (B, K, words)
+    member = (bits != 0).any(axis=2)                                   # = cons.any(axis=2)
+    act = np.arange(B)                                                 # cases not done yet
     for _ in range(K):
-        deg = np.sum(cons & member[:, None, :], axis=2)                # consistent members
-        size = member.sum(axis=1)
-        todo = np.any(member & (deg < size[:, None] - 1), axis=1)
+        mem = member[act]
+        both = bits[act] & _pack_bits(mem)[:, None, :]
+        deg = np.bitwise_count(both).sum(axis=2, dtype=np.int64)       # consistent members
+        size = mem.sum(axis=1)
+        todo = np.any(mem & (deg < size[:, None] - 1), axis=1)
         if not todo.any():
             break
-        lonely = member & (deg == 0) & todo[:, None]
-        member &= ~lonely
-        one = todo & ~lonely.any(axis=1)                               # cases with no lonely member
+        act, mem, deg = act[todo], mem[todo], deg[todo]
+        lonely = mem & (deg == 0)
+        mem &= ~lonely
+        one = ~lonely.any(axis=1)                                      # cases with no lonely member
         if one.any():
-            key = (deg * smax + score) * K + (K - 1 - later)           # smallest = drop first
-            key = np.where(member, key, np.iinfo(np.int64).max)
-            rows = np.nonzero(one)[0]
-            member[rows, key[rows].argmin(axis=1)] = False
+            key = (deg[one] * smax + score[act[one]]) * K + (K - 1 - later)   # smallest = drop first
+            key = np.where(mem[one], key, np.iinfo(np.int64).max)
+            mem[np.nonzero(one)[0], key.argmin(axis=1)] = False
+        member[act] = mem
     return member
 
 
-def _top_candidates(votes: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """The ``m`` catalog rows with the most votes per row of ``votes (R, N)`` (restored on return).
-
-    ``m`` passes of argmax, masking each winner (ties go to the lower catalog row, as ``argmax``).
-    Returns ``ids (R, m) int64`` (-1 where the vote count is 0) and ``counts (R, m) int64``, best first.
-    """
-    R, N = votes.shape
-    r = np.arange(R)
-    ids = np.full((R, m), -1, np.int64)
-    cnt = np.zeros((R, m), np.int64)
-    taken = []
-    for k in range(min(m, N)):                                         # m passes (m is small)
-        best = votes.argmax(axis=1)
-        c = votes[r, best]
-        ids[:, k] = np.where(c > 0, best, -1)
-        cnt[:, k] = c
-        votes[r, best] = -1                                            # mask the winner
-        taken.append(best)
-    for k, best in enumerate(taken):                                   # restore
-        votes[r, best] = cnt[:, k]
-    return ids, np.where(ids >= 0, cnt, 0)
-
-
-def _select_candidates(obs_k: np.ndarray, cand: np.ndarray, cand_votes: np.ndarray,
-                       cat_unit: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+def _select_candidates(cand: np.ndarray, cand_votes: np.ndarray, c_lo: np.ndarray, c_hi: np.ndarray,
+                       cat_unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Tie-aware step 2 (dualsight): choose one of each star's candidates by geometric consistency.
 
     Nodes are (star, candidate identity); two nodes of different stars are consistent when the
@@ -473,22 +665,20 @@ def _select_candidates(obs_k: np.ndarray, cand: np.ndarray, cand_votes: np.ndarr
     mutually consistent node set (:func:`_greedy_clique`, tie-break by votes) holds at most one node
     per star; its stars take those identities.
 
-    obs_k : (B, K, 3); cand, cand_votes : (B, K, m) from :func:`_top_candidates`.
+    cand, cand_votes : (B, K, m) candidate rows (-1 = none) and their votes (:func:`_top_k`).
+    c_lo, c_hi : (B, K, K) bounds per pair of stars: |d_cat - d_obs| < tol  <=>
+        cos(d_obs + tol) < cos_cat < cos(d_obs - tol); ``c_lo`` = inf where the pair does not count
+        (same star, unused star).
     Returns ``ids (B, K)`` (-1 = no node chosen) and ``votes (B, K)`` of the chosen candidates.
     """
     B, K, m = cand.shape
     ids_n = cand.reshape(B, K * m)
     has = ids_n >= 0
-    star = np.repeat(np.arange(K), m)
-    ref = cat_unit[np.where(has, ids_n, 0)]
-    # |d_cat - d_obs| < tol  <=>  cos(d_obs + tol) < cos_cat < cos(d_obs - tol): bounds per star pair
-    d_obs = _angles(obs_k[:, :, None, :], obs_k[:, None, :, :])
-    c_lo = np.cos(np.minimum(d_obs + tol, np.pi))[:, star][:, :, star]
-    c_hi = np.where(d_obs > tol, np.cos(d_obs - tol), 2.0)[:, star][:, :, star]
-    cos_cat = ref @ np.swapaxes(ref, 1, 2)
-    cons = (cos_cat > c_lo) & (cos_cat < c_hi) & has[:, :, None] & has[:, None, :]
-    cons &= star[:, None] != star[None, :]
-    member = _greedy_clique(cons, cand_votes.reshape(B, K * m)).reshape(B, K, m)
+    ref = np.where(has[..., None], cat_unit[np.where(has, ids_n, 0)], np.nan)   # NaN: never consistent
+    cos_cat = (ref @ np.swapaxes(ref, 1, 2)).reshape(B, K, m, K * m)
+    cons = cos_cat > np.repeat(c_lo, m, axis=2)[:, :, None, :]         # bounds of (star, node) pairs
+    cons &= cos_cat < np.repeat(c_hi, m, axis=2)[:, :, None, :]
+    member = _greedy_clique(cons.reshape(B, K * m, K * m), cand_votes.reshape(B, K * m)).reshape(B, K, m)
     k = member.argmax(axis=2)
     chosen = member.any(axis=2)
     ids = np.where(chosen, np.take_along_axis(cand, k[..., None], axis=2)[..., 0], -1)
@@ -514,7 +704,7 @@ def _nearest_catalog(v_icrs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray
     cos_in = np.where(valid, (v @ c[:, :, None])[..., 0], 1.0).min(axis=1, initial=1.0)  # widest
     radius = np.minimum(np.arccos(np.clip(cos_in, -1.0, 1.0)) + pad, np.pi)
     near = (c @ cat_unit.T) >= np.cos(radius)[:, None]                             # (B, N)
-    bi, ni = np.nonzero(near)
+    bi, ni = np.divmod(np.flatnonzero(near), near.shape[1])
     counts = near.sum(axis=1)
     kc = max(2, int(counts.max()) if B else 2)
     pos = np.arange(bi.size) - (np.cumsum(counts) - counts)[bi]
@@ -573,7 +763,9 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
     valid : (B, S) bool, real entries of ``obs``.
     cat_unit : (N, 3) ICRS unit vectors of the star catalog (row = catalog index).
     pair_i, pair_j, pair_angle : the pair catalog, (M,) int rows i < j and (M,) float64 angles (rad)
-        sorted ascending; or pass one object with attributes ``i, j, angle`` as ``pair_i``.
+        sorted ascending; or pass one object with attributes ``i, j, angle`` as ``pair_i``, or its
+        :class:`VotingIndex` (what is derived from the catalog once; for arrays or an object,
+        :func:`voting_index` keeps the last few, keyed by the arrays' identity).
     cfg : :class:`VotingConfig`.
 
     Returns
@@ -585,9 +777,10 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
     Each case is computed independently: a batch gives the same result as each case alone.
     Invalid or non-finite entries of ``obs`` are ignored (they may hold NaN).
     Cost: O(observed pairs x candidates per pair) for the voting round plus O(B x max_stars x N)
-    for the dense vote tables (one chunk of ``cfg.max_vote_cells`` cells at a time); the later steps
+    for the dense vote tables (at most ``cfg.max_vote_cells`` cells at a time); the later steps
     are O(B x max_stars^2) (x ``candidates_per_star``^2), the attitude check O(B x (N + S x 40)).
-    Measured on 2 cores, 256 cases of ~13 stars, ~126k pairs: see the module docstring.
+    The first call on a pair catalog also builds its :class:`VotingIndex` (O(M log M), once).
+    Measured: see the module docstring.
     """
     obs = np.asarray(obs, dtype=np.float64)
     valid = np.asarray(valid, dtype=bool)
@@ -596,10 +789,11 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
         raise ValueError(f"expected obs (B,S,3) and valid (B,S), got {obs.shape} and {valid.shape}")
     if cat_unit.ndim != 2 or cat_unit.shape[1] != 3:
         raise ValueError(f"expected cat_unit (N,3), got {cat_unit.shape}")
-    pi, pj, pang = pair_arrays(pair_i, pair_j, pair_angle)
+    index = voting_index(pair_i, pair_j, pair_angle)
+    pang = index.angle
     B, S, _ = obs.shape
     N = cat_unit.shape[0]
-    if pi.size and (min(pi.min(), pj.min()) < 0 or max(pi.max(), pj.max()) >= N):
+    if len(index) and (index.star_range[0] < 0 or index.star_range[1] >= N):
         raise ValueError(f"pair catalog rows must be in [0, {N}) (the star catalog's rows)")
     valid = valid & np.all(np.isfinite(obs), axis=-1)
     K = min(int(cfg.max_stars), int(valid.sum(axis=1).max(initial=0)))   # padding beyond is never used
@@ -609,48 +803,56 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
     obs_k = np.take_along_axis(obs, cols[..., None], axis=1)
     obs_k = np.where(use[..., None], obs_k, 0.0)
 
-    # --- observed pairs (p < q) of every case
+    # --- observed pairs (p < q) of every case and their windows [lo, lo + cnt) of catalog pairs
     tp, tq = np.triu_indices(K, 1)
-    pmask = use[:, tp] & use[:, tq]                                    # (B, P)
-    d_all = _angles(obs_k[:, tp], obs_k[:, tq])                        # (B, P)
+    P = tp.size
+    bl, pk = np.nonzero(use[:, tp] & use[:, tq])
+    d = _angles(obs_k[bl, tp[pk]], obs_k[bl, tq[pk]])
+    o = np.argsort(d)                                                  # sorted keys: faster searches
+    lo = np.empty(d.size, np.int64)
+    hi = np.empty(d.size, np.int64)
+    lo[o] = np.searchsorted(pang, d[o] - cfg.tolerance_rad, side="right")   # angle > d - tol
+    hi[o] = np.searchsorted(pang, d[o] + cfg.tolerance_rad, side="left")    # angle < d + tol
+    lo_bp = np.zeros((B, P + 1), np.int64)                             # column P: "no pair" (p = q)
+    cnt_bp = np.zeros((B, P + 1), np.int64)
+    lo_bp[bl, pk] = lo
+    cnt_bp[bl, pk] = np.maximum(hi - lo, 0)
 
-    # --- steps 1-2 in chunks of cases
+    # --- steps 1-2: each observed star (row) votes with the windows of its pairs, in row order
+    pid = np.full((K, K), P, np.int64)
+    pid[tp, tq] = pid[tq, tp] = np.arange(P)
+    eb, ep, eq = np.nonzero(cnt_bp[:, pid])                            # (case, star, partner), sorted
+    e_pair = pid[ep, eq]
+    row_of = np.cumsum(use.ravel()).reshape(B, K) - 1                  # rows = used (case, star) slots
     m = int(cfg.candidates_per_star)
-    vote_ids = np.full((B, K), -1, np.int64)
+    k = m + 1 if m > 1 else (2 if cfg.require_unique_max else 1)       # one more to detect ties
+    r_ids, r_cnt = _vote_rows(row_of[eb, ep], lo_bp[eb, e_pair], cnt_bp[eb, e_pair], int(use.sum()), index,
+                              N, cfg.vote_once_per_pair, k, cfg.max_vote_cells)
+    ok1 = r_cnt[:, 0] > r_cnt[:, 1] if cfg.require_unique_max else r_ids[:, 0] >= 0
+    vote_ids = np.full((B, K), -1, np.int64)                           # -1 / 0 outside the used slots
     top = np.zeros((B, K), np.int64)
-    cand = np.full((B, K, m), -1, np.int64)
-    cand_votes = np.zeros((B, K, m), np.int64)
-    step = max(1, int(cfg.max_vote_cells) // max(1, K * N))
-    max_cand = max(1, int(cfg.max_vote_cells) // 4)
-    prev = _previous_occurrence(pi, pj) if cfg.vote_once_per_pair else None
-    for b0 in range(0, B, step):                                       # a handful of chunks
-        b1 = min(B, b0 + step)
-        bl, pk = np.nonzero(pmask[b0:b1])
-        table = _vote_chunk(d_all[b0:b1][bl, pk], bl * K + tp[pk], bl * K + tq[pk], (b1 - b0) * K,
-                            pi, pj, pang, N, cfg.tolerance_rad, max_cand, prev)
-        if m > 1:
-            c_ids, c_cnt = _top_candidates(table, m + 1)                # one more to detect ties
-            cand[b0:b1] = c_ids[:, :m].reshape(b1 - b0, K, m)
-            cand_votes[b0:b1] = c_cnt[:, :m].reshape(b1 - b0, K, m)
-            unique = c_cnt[:, 0] > c_cnt[:, 1]
-            ok1 = unique if cfg.require_unique_max else c_ids[:, 0] >= 0
-            ids_c = np.where(ok1, c_ids[:, 0], -1)
-            top_c = np.where(ok1, c_cnt[:, 0], 0)
-        else:
-            ids_c, top_c = _assign(table, cfg.require_unique_max)
-        vote_ids[b0:b1] = ids_c.reshape(b1 - b0, K)
-        top[b0:b1] = top_c.reshape(b1 - b0, K)
-    vote_ids = np.where(use, vote_ids, -1)
+    vote_ids[use] = np.where(ok1, r_ids[:, 0], -1)
+    top[use] = np.where(ok1, r_cnt[:, 0], 0)
     if m > 1:
         # tie-aware assignment: stars in the consistent candidate set take those identities,
         # the others keep the plain (unique, if required) maximum
-        cand = np.where(use[..., None], cand, -1)
+        cand = np.full((B, K, m), -1, np.int64)
+        cand_votes = np.zeros((B, K, m), np.int64)
+        cand[use] = r_ids[:, :m]
+        cand_votes[use] = r_cnt[:, :m]
         sel_ids = np.full((B, K), -1, np.int64)
         sel_votes = np.zeros((B, K), np.int64)
+        # cosine bounds of the observed pairs (p < q); column P (p = q, or a missing star): inf = never
+        tol_v = cfg.verify_tol
+        c_lo = np.full((B, P + 1), np.inf)
+        c_hi = np.full((B, P + 1), 2.0)
+        c_lo[bl, pk] = np.cos(np.minimum(d + tol_v, np.pi))
+        c_hi[bl, pk] = np.where(d > tol_v, np.cos(d - tol_v), 2.0)
         blk = max(1, int(cfg.max_vote_cells) // max(1, (K * m) ** 2))   # bounded (cases, Km, Km) arrays
         for b0 in range(0, B, blk):                                    # a handful of blocks
-            sel_ids[b0:b0 + blk], sel_votes[b0:b0 + blk] = _select_candidates(
-                obs_k[b0:b0 + blk], cand[b0:b0 + blk], cand_votes[b0:b0 + blk], cat_unit, cfg.verify_tol)
+            sl = slice(b0, b0 + blk)
+            sel_ids[sl], sel_votes[sl] = _select_candidates(cand[sl], cand_votes[sl], c_lo[sl][:, pid],
+                                                            c_hi[sl][:, pid], cat_unit)
         chosen = sel_ids >= 0
         vote_ids = np.where(chosen, sel_ids, vote_ids)
         top = np.where(chosen, sel_votes, top)
@@ -663,7 +865,9 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
     top = np.where(vote_ids >= 0, top, 0)
 
     # --- step 3: verification; step 4: match threshold
-    cons = _consistency(obs_k, vote_ids, cat_unit, cfg.verify_tol)
+    d_bp = np.zeros((B, P))                                            # used where both stars are
+    d_bp[bl, pk] = d
+    cons = _consistency(d_bp, vote_ids, cat_unit, cfg.verify_tol)
     vv = cons.sum(axis=2)
     T = vv.max(axis=1) if K else np.zeros(B, np.int64)
 
