@@ -231,6 +231,24 @@ def _execute(plan: RunPlan, kind: str, spec_dict: dict, lake: Lake, todo: list[i
         return
     threads = threads_per_worker or max(1, (os.cpu_count() or 1) // workers)
     ctx = mp.get_context("spawn")
+    # spawned workers inherit the environment at start: cap their BLAS/OpenMP pools too, or W workers each
+    # running a pool of all cores oversubscribe the machine (measured: 2 workers slower than 1 without it)
+    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+    os.environ.update({k: str(threads) for k in _THREAD_VARS})
+    try:
+        yield from _pool(plan, kind, spec_dict, root, todo, workers, threads, ctx)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "DUALSIGHT_TI_THREADS")
+
+
+def _pool(plan, kind, spec_dict, root, todo, workers, threads, ctx):
     with ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=ctx, initializer=_init_worker,
                              initargs=(threads,)) as pool:
         futures = [pool.submit(execute_shard, kind, spec_dict, root, plan.run_id, s, *plan.bounds(s))
