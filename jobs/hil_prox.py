@@ -561,25 +561,13 @@ def best_threshold(sweep: list[dict]) -> dict | None:
 
 # ============================================================================================ lake
 def default_run_id(lake) -> str:
-    base = "hil-prox-" + time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    rid, n = base, 1
-    while lake.read_manifest(rid) is not None:
-        n += 1
-        rid = f"{base}-{n}"
-    return rid
+    """``hil-prox-<UTC timestamp>`` (see :meth:`Lake.new_run_id`)."""
+    return lake.new_run_id("hil-prox")
 
 
 def check_run(lake, run_id: str, spec: dict):
     """Refuse to overwrite a run of another kind or with other settings/images (before any work)."""
-    from dualsight.warehouse.lake import check_run_id
-
-    check_run_id(run_id)
-    m = lake.read_manifest(run_id)
-    if m is None:
-        return
-    if m.get("kind") != NAME or m.get("spec") != json.loads(json.dumps(spec, default=str)):
-        raise InputError(f"run {run_id!r} already exists in {lake.root} as a {m.get('kind')} run with other "
-                         "settings or images; choose another --run", source="--run")
+    lake.refuse_other_run(run_id, NAME, spec)
 
 
 def write_run(lake, run_id: str, results: list[ImageResult], spec: dict, elapsed_s: float,

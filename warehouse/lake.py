@@ -134,6 +134,25 @@ class Lake:
         os.replace(tmp, p)
         return p
 
+    def new_run_id(self, prefix: str) -> str:
+        """``<prefix>-<UTC timestamp>``, with a numeric suffix if that id exists already."""
+        base = f"{prefix}-" + time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        rid, n = base, 1
+        while self.read_manifest(rid) is not None:
+            n += 1
+            rid = f"{base}-{n}"
+        return rid
+
+    def refuse_other_run(self, run_id: str, kind: str, spec: dict):
+        """Raise unless ``run_id`` is new or holds a run of the same kind and spec (checked before any work)."""
+        check_run_id(run_id)
+        m = self.read_manifest(run_id)
+        if m is None:
+            return
+        if m.get("kind") != kind or m.get("spec") != json.loads(json.dumps(spec, default=str)):
+            raise InputError(f"run {run_id!r} already exists in {self.root} as a {m.get('kind')} run with other "
+                             "settings or inputs; choose another --run", source="--run")
+
     def list_manifests(self) -> list[dict]:
         d = self.root / "_manifests"
         out = []
