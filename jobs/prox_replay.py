@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from dualsight.errors import InputError
-from dualsight.jobs.replay import _stored_row, compare_rows
+from dualsight.jobs.replay import recompute_case
 from dualsight.warehouse.lake import Lake
 
 
@@ -16,20 +16,8 @@ def replay_prox_case(lake: Lake, run_id: str, case_id: int, output: Path | None 
     from dualsight.jobs import prox
     from dualsight.viz.recording import log_prox_frame, open_recording
 
-    m = lake.read_manifest(run_id)
-    if m is None or not str(m.get("kind", "")).startswith("prox"):
-        raise InputError(f"no prox run {run_id!r} in {lake.root}", source="--run")
-    if not 0 <= case_id < m["n_cases"]:
-        raise InputError(f"case must be in [0, {m['n_cases'] - 1}], got {case_id}", source="--case")
-    stored = _stored_row(lake, "prox_cases", run_id, case_id)
-    spec = prox.spec_from_dict(m["spec"], source=f"manifest of run {run_id}")
-    ctx = prox.make_context(spec)
-    out = prox.compute_batch(spec, ctx, np.array([case_id], dtype=np.int64), keep_images=True)
-    fresh = out["tables"]["prox_cases"].to_pylist()[0]
-    diff = compare_rows(stored, fresh)
-    if diff:
-        raise InputError(f"replay of case {case_id} does not reproduce the lake (columns differ: {diff})",
-                         source=f"run {run_id}")
+    _, spec, ctx, out, fresh = recompute_case(lake, run_id, case_id, prox, "prox_cases",
+                                              ("prox_sweep", "prox_trajectory"))
     res = out["results"]["paper"]
     img = out["images"][0]
     cam = spec.satellite.camera.camera

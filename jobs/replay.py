@@ -51,25 +51,32 @@ def compare_rows(stored: dict, fresh: dict) -> list[str]:
     return bad
 
 
-def replay_star_case(lake: Lake, run_id: str, case_id: int, output: Path | None = None) -> Path:
-    from dualsight.jobs import star
-    from dualsight.viz.recording import log_star_case, open_recording
-
+def recompute_case(lake: Lake, run_id: str, case_id: int, job, dataset: str, kinds: tuple[str, ...]):
+    """Rebuild a run's spec from its manifest, recompute one case with its images, and check that the
+    fresh row equals the stored one.  Returns (manifest, spec, context, compute_batch output, fresh row)."""
     manifest = lake.read_manifest(run_id)
-    if manifest is None or manifest.get("kind") != "star":
-        raise InputError(f"no star run {run_id!r} in {lake.root}", source="--run")
+    if manifest is None or manifest.get("kind") not in kinds:
+        raise InputError(f"no {'/'.join(kinds)} run {run_id!r} in {lake.root}", source="--run")
     if not 0 <= case_id < manifest["n_cases"]:
         raise InputError(f"case must be in [0, {manifest['n_cases'] - 1}], got {case_id}", source="--case")
-    stored = _stored_row(lake, "star_cases", run_id, case_id)
-    spec = star.spec_from_dict(manifest["spec"], source=f"manifest of run {run_id}")
-    ctx = star.make_context(spec)
-    out = star.compute_batch(spec, ctx, np.array([case_id], dtype=np.int64), keep_images=True)
-    fresh = out["tables"]["star_cases"].to_pylist()[0]
+    stored = _stored_row(lake, dataset, run_id, case_id)
+    spec = job.spec_from_dict(manifest["spec"], source=f"manifest of run {run_id}")
+    ctx = job.make_context(spec)
+    out = job.compute_batch(spec, ctx, np.array([case_id], dtype=np.int64), keep_images=True)
+    fresh = out["tables"][dataset].to_pylist()[0]
     diff = compare_rows(stored, fresh)
     if diff:
         raise InputError(f"replay of case {case_id} does not reproduce the lake (columns differ: {diff}); "
                          f"was the run made with another dualsight version? ({manifest.get('versions')})",
                          source=f"run {run_id}")
+    return manifest, spec, ctx, out, fresh
+
+
+def replay_star_case(lake: Lake, run_id: str, case_id: int, output: Path | None = None) -> Path:
+    from dualsight.jobs import star
+    from dualsight.viz.recording import log_star_case, open_recording
+
+    manifest, spec, ctx, out, fresh = recompute_case(lake, run_id, case_id, star, "star_cases", ("star",))
     det = out["rendered"].detections
     obs, ident, sol, field_ = out["obs"], out["ident"], out["sol"], out["field"]
     S = obs.valid.shape[1]

@@ -64,3 +64,30 @@ def ensure_init(threads: int | None = None):
 
 def is_initialised() -> bool:
     return _initialised
+
+
+class KernelCache:
+    """Kernels built lazily, once per (name, dtype) per process, from a table of builder functions.
+
+    ``builders`` maps a name to ``builder(dtype) -> kernel``; it may be filled after the cache is made
+    (builders are usually defined below it in their module).  :meth:`get` starts Taichi on first use.
+    """
+
+    def __init__(self, builders: dict | None = None):
+        self.builders = builders if builders is not None else {}
+        self._built: dict = {}
+        self._lock = threading.Lock()
+
+    def get(self, name: str, dtype=None):
+        import numpy as np
+
+        key = (name, None if dtype is None else np.dtype(dtype).str)
+        k = self._built.get(key)
+        if k is None:
+            with self._lock:
+                k = self._built.get(key)
+                if k is None:
+                    ensure_init()
+                    k = self.builders[name](dtype)
+                    self._built[key] = k
+        return k

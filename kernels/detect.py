@@ -31,14 +31,13 @@ sample within 4 * 1.4826 * MAD of the median (robust to the few star pixels; 0 w
 """
 
 import math
-import threading
 from dataclasses import dataclass
 
 import numpy as np
 import taichi as ti
 
 from dualsight.kernels import starfield as sf
-from dualsight.kernels._runtime import ensure_init
+from dualsight.kernels._runtime import KernelCache
 
 __all__ = ["DetectConfig", "Detections", "detect_stars", "render_and_detect_ideal", "estimate_background"]
 
@@ -159,23 +158,13 @@ def _union(parent: ti.template(), base, a, b):
 
 
 # ============================================================================ kernels (built lazily)
-_kernels: dict = {}
-_klock = threading.Lock()
+_KERNELS = KernelCache()      # builders registered at the end of the module
 _TI_OF = {np.dtype(np.uint8).str: "u8", np.dtype(np.uint16).str: "u16",
           np.dtype(np.float32).str: "f32", np.dtype(np.float64).str: "f64"}
 
 
 def _get(name: str, dtype=None):
-    key = (name, None if dtype is None else np.dtype(dtype).str)
-    k = _kernels.get(key)
-    if k is None:
-        with _klock:
-            k = _kernels.get(key)
-            if k is None:
-                ensure_init()
-                k = _BUILDERS[name](dtype)
-                _kernels[key] = k
-    return k
+    return _KERNELS.get(name, dtype)
 
 
 def _tdt(dtype):
@@ -415,8 +404,8 @@ def _build_patches(dtype):
     return patches
 
 
-_BUILDERS = {"count_runs": _build_count_runs, "fill_runs": _build_fill_runs, "union_runs": _build_union_runs,
-             "group": _build_group, "patches": _build_patches}
+_KERNELS.builders.update({"count_runs": _build_count_runs, "fill_runs": _build_fill_runs,
+                         "union_runs": _build_union_runs, "group": _build_group, "patches": _build_patches})
 
 
 # ============================================================================ helpers

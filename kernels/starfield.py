@@ -46,7 +46,7 @@ import numpy as np
 import taichi as ti
 
 from dualsight.kernels import rng
-from dualsight.kernels._runtime import ensure_init
+from dualsight.kernels._runtime import KernelCache
 
 __all__ = ["SensorConfig", "flux_from_magnitude", "render_star_fields", "false_star_lists",
            "append_false_stars", "release_scratch"]
@@ -287,21 +287,11 @@ def ideal_adu(s, base_e, full_well, gain, bias, max_adu, quantize):
 
 
 # ============================================================================ kernels (built lazily)
-_kernels: dict = {}
-_klock = threading.Lock()
+_KERNELS = KernelCache()      # builders registered at the end of the module
 
 
 def _get(name: str, dtype=None):
-    key = (name, None if dtype is None else np.dtype(dtype).str)
-    k = _kernels.get(key)
-    if k is None:
-        with _klock:
-            k = _kernels.get(key)
-            if k is None:
-                ensure_init()
-                k = _BUILDERS[name](dtype)
-                _kernels[key] = k
-    return k
+    return _KERNELS.get(name, dtype)
 
 
 def _build_splat(_dtype=None):
@@ -388,7 +378,7 @@ def _build_finalize(dtype):
     return finalize
 
 
-_BUILDERS = {"splat": _build_splat, "finalize": _build_finalize}
+_KERNELS.builders.update({"splat": _build_splat, "finalize": _build_finalize})
 
 
 # ============================================================================ scratch buffer
