@@ -6,8 +6,9 @@
     dualsight prox ...     (see ``dualsight prox --help``)
     dualsight hil ...      (see ``dualsight hil --help``)
     dualsight calibrate FOLDER --board 9x6 --square 0.025 [-o camera.toml]
-    dualsight sql "SELECT ..." [--lake DIR] [--json | --csv]
-    dualsight runs [--lake DIR]
+    dualsight sql "SELECT ..." [--lake DIR] [--json | --csv]       read-only: SELECT / EXPLAIN only
+    dualsight runs [--lake DIR] [--json]
+    dualsight lake check [--lake DIR] [--repair] [--json]
 
 Bad input prints one line naming the file, field and allowed range, exits with status 2 and leaves the
 lake untouched.  The lake defaults to ``$DUALSIGHT_LAKE`` or ``./lake``.
@@ -17,10 +18,54 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import signal
 import sys
 from pathlib import Path
 
 from dualsight.errors import InputError
+
+# The one table from commands to job kinds (jobs/runner.py JOB_KINDS maps kinds to modules).
+COMMAND_KINDS = {
+    ("star", "run"): "star",
+    ("prox", "sweep"): "prox_sweep",
+    ("prox", "trajectory"): "prox_trajectory",
+    ("hil", "star"): "hil_star",
+    ("hil", "prox"): "hil_prox",
+    ("calibrate",): "calibrate",
+    ("selftest", "run"): "selftest",
+}
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (the usage is one ``--help`` away)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def run_id_arg(text: str) -> str:
+    """argparse type for --run: the full-match run id check (an empty or multi-line id is refused)."""
+    from dualsight.warehouse.lake import RUN_ID_PATTERN, check_run_id
+
+    try:
+        return check_run_id(text)
+    except InputError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a run id: it must match {RUN_ID_PATTERN} in full") \
+            from None
+
+
+def positive_int(lo: int, hi: int):
+    """argparse type: an integer in [lo, hi] (also written as 1e6 or 1_000_000)."""
+    def parse(text: str) -> int:
+        try:
+            v = float(text.replace("_", "")) if any(c in text for c in "eE.") else int(text.replace("_", ""))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if v != int(v) or not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"must be an integer in [{lo}, {hi:,}], got {text}")
+        return int(v)
+    return parse
 
 
 def _lake_arg(p: argparse.ArgumentParser):
@@ -41,21 +86,27 @@ def add_run_args(p: argparse.ArgumentParser, *, cases: bool = True):
     p.add_argument("--preset", default=None, help="named preset (default: paper)")
     p.add_argument("--config", type=Path, default=None, help="TOML file overriding the preset")
     if cases:
-        p.add_argument("--cases", type=int, default=None, help="number of cases (default: the preset's)")
-    p.add_argument("--seed", type=int, default=None, help="run seed: case i draws from default_rng([seed, i])")
+        p.add_argument("--cases", type=positive_int(1, 10**9), default=None,
+                       help="number of cases, 1 to 1e9 (default: the preset's)")
+    p.add_argument("--seed", type=positive_int(0, 2**63 - 1), default=None,
+                   help="run seed: case i draws from default_rng([seed, i])")
     _lake_arg(p)
-    p.add_argument("--run", default=None, help="run id (default: <job>-<seed>-<cases>); an existing id resumes")
-    p.add_argument("--workers", type=int, default=None, help="local worker processes (default: one per core)")
+    p.add_argument("--run", type=run_id_arg, default=None,
+                   help="run id, [A-Za-z0-9._-]{1,64} (default: <job>-<seed>-<cases>-<spec hash>); the same id "
+                        "with the same settings resumes, with other settings is refused")
+    p.add_argument("--workers", type=positive_int(1, 512), default=None,
+                   help="local worker processes (default: one per core)")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786) to run shards on "
                    "a cluster; the lake must be on storage every worker can write")
-    p.add_argument("--shard-size", type=int, default=None, help="cases per shard file (default: automatic)")
+    p.add_argument("--shard-size", type=positive_int(1, 10**6), default=None,
+                   help="cases per shard file (default: from the case count, 25 to 1000)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def build_parser() -> argparse.ArgumentParser:
     from dualsight import __version__
 
-    parser = argparse.ArgumentParser(prog="dualsight", description="End-to-end test bench for a dual-use "
+    parser = Parser(prog="dualsight", description="End-to-end test bench for a dual-use "
                                      "(star tracker + proximity navigation) small-satellite camera.")
     parser.add_argument("--version", action="version", version=f"dualsight {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -67,14 +118,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_star_run)
     p = ssub.add_parser("report", help="reliability summary, Table 5, error vs stars observed")
     _lake_arg(p)
-    p.add_argument("--run", default=None, help="run id (default: the latest star run)")
+    p.add_argument("--run", type=run_id_arg, default=None, help="run id (default: the latest star run)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", type=Path, default=None, help="write Figures 9-10 (error vs stars observed) as PNG")
     p.set_defaults(func=cmd_star_report)
     p = ssub.add_parser("replay", help="re-render one case bit-identically and record it for rerun (.rrd)")
     _lake_arg(p)
-    p.add_argument("--run", required=True)
-    p.add_argument("--case", type=int, required=True)
+    p.add_argument("--run", type=run_id_arg, required=True)
+    p.add_argument("--case", type=positive_int(0, 10**9), required=True)
     p.add_argument("-o", "--output", type=Path, default=None, help="recording file (default: <run>-case<I>.rrd)")
     p.set_defaults(func=cmd_star_replay)
     star.set_defaults(func=lambda a: _help(star))
@@ -90,10 +141,30 @@ def build_parser() -> argparse.ArgumentParser:
     fmt.add_argument("--csv", action="store_true", help="CSV")
     p.set_defaults(func=cmd_sql)
 
-    p = sub.add_parser("runs", help="list the runs in the lake")
+    p = sub.add_parser("runs", help="list the runs in the lake (damaged ones are named)")
     _lake_arg(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_runs)
+
+    p = sub.add_parser("selftest", help="engine self-test job (tiny, deterministic; for fault drills and "
+                                        "benchmarks)")
+    tsub = p.add_subparsers(dest="action", metavar="ACTION")
+    p = tsub.add_parser("run", help="run the self-test job into the lake")
+    add_run_args(p)
+    p.add_argument("--sleep-ms", type=float, default=None, help="busy time per case, ms (default 0)")
+    p.set_defaults(func=cmd_selftest_run)
+
+    lake_p = sub.add_parser("lake", help="lake maintenance")
+    lsub = lake_p.add_subparsers(dest="lake_action", metavar="ACTION")
+    p = lsub.add_parser("check", help="verify every run (manifest, shard metadata, row counts, duplicate cases); "
+                                      "with --repair recompute damaged or missing shards")
+    _lake_arg(p)
+    p.add_argument("--repair", action="store_true", help="recompute damaged or missing shards, rebuild damaged "
+                                                         "manifests from their spec copy")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--workers", type=positive_int(1, 512), default=None, help="workers for --repair")
+    p.set_defaults(func=cmd_lake_check)
+    lake_p.set_defaults(func=lambda a: _help(lake_p))
     return parser
 
 
@@ -109,23 +180,52 @@ def _help(p):
     return 0
 
 
+def _on_sigterm(signum, frame):
+    from dualsight.jobs.runner import Interrupted
+
+    raise Interrupted(f"signal {signum}")
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return int(args.func(args) or 0)
     except InputError as e:
-        print(f"dualsight: error: {e}", file=sys.stderr)
+        print(f"dualsight: error: {_one_line(e)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("dualsight: interrupted; completed shards are kept, run the same command again to resume",
+    except KeyboardInterrupt as e:
+        sig = "SIGTERM" if str(e).startswith("signal") else "Ctrl-C"
+        print(f"dualsight: interrupted ({sig}); completed shards are kept, run the same command again to resume",
               file=sys.stderr)
         return 130
     except BrokenPipeError:
         return 0
+    except OSError as e:
+        from dualsight.warehouse.lake import os_error_text
+
+        print(f"dualsight: error: {os_error_text(e)}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("dualsight: error: out of memory; lower the batch size, the case count per shard or the catalog "
+              "depth", file=sys.stderr)
+        return 2
+    except Exception as e:                                    # a bug: one line, the traceback on request
+        if os.environ.get("DUALSIGHT_DEBUG"):
+            raise
+        print(f"dualsight: internal error: {type(e).__name__}: {_one_line(e)} (set DUALSIGHT_DEBUG=1 for the "
+              "traceback)", file=sys.stderr)
+        return 3
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _one_line(e: Exception) -> str:
+    return " ".join(str(e).split())
 
 
 # ---------------------------------------------------------------------------------------------- star
@@ -133,14 +233,17 @@ def cmd_star_run(args) -> int:
     from dualsight.jobs import star
     from dualsight.jobs.runner import run_job
 
+    from dualsight.jobs.runner import prepare
+
     spec_dict, n_cases = star.resolve_spec(args.preset, args.config, seed=args.seed, cases=args.cases)
-    run_id = args.run or f"star-{spec_dict['seed']}-{n_cases}"
+    _, _, _, h = prepare(COMMAND_KINDS[("star", "run")], spec_dict, n_cases)
+    run_id = args.run or f"star-{spec_dict['seed']}-{n_cases}-{h[:8]}"
     lake = _lake(args)
     info = star.catalog_info(spec_dict)
     print(f"catalog: {info['stars']} stars to V {info['mag_limit']}, {info['pairs']:,} pairs closer than "
           f"{info['pair_max_angle_deg']:.2f} deg ({info['pair_catalog_bytes'] / 2**20:.2f} MiB in memory)",
           file=sys.stderr)
-    manifest = run_job("star", spec_dict, n_cases=n_cases, lake=lake, run_id=run_id, workers=args.workers,
+    manifest = run_job(COMMAND_KINDS[("star", "run")], spec_dict, n_cases=n_cases, lake=lake, run_id=run_id, workers=args.workers,
                        scheduler=args.scheduler, shard_size=args.shard_size, progress=not args.no_progress,
                        label=f"star {run_id}", extra={"catalog": info})
     ex = manifest["executions"][-1]
@@ -148,6 +251,22 @@ def cmd_star_run(args) -> int:
     rate = f", {ex.get('cases_run', n_cases) / el:.0f} cases/s" if el else ""
     print(f"run {run_id}: {manifest['status']}, {n_cases} cases in {lake.root}{rate}", file=sys.stderr)
     print(f"report: dualsight star report --lake {lake.root} --run {run_id}", file=sys.stderr)
+    return 0
+
+
+def cmd_selftest_run(args) -> int:
+    from dualsight.jobs.config import preset_and_config
+    from dualsight.jobs.runner import run_job
+
+    d, source = preset_and_config({"default": {"seed": 1}}, args.preset, args.config, default="default")
+    if args.seed is not None:
+        d["seed"] = args.seed
+    if args.sleep_ms is not None:
+        d["sleep_ms"] = args.sleep_ms
+    m = run_job(COMMAND_KINDS[("selftest", "run")], d, n_cases=args.cases or 1000, lake=_lake(args),
+                run_id=args.run, workers=args.workers, scheduler=args.scheduler, shard_size=args.shard_size,
+                progress=not args.no_progress, source=source)
+    print(f"run {m['run_id']}: {m['status']}, {m['n_cases']} cases", file=sys.stderr)
     return 0
 
 
@@ -202,16 +321,40 @@ def cmd_sql(args) -> int:
 
 
 def cmd_runs(args) -> int:
+    from dualsight.warehouse.lake import LakeError
     from dualsight.warehouse.query import format_table
 
-    ms = _lake(args).list_manifests()
+    lake = _lake(args)
+    rows, docs = [], []
+    for rid in lake.run_ids():
+        try:
+            m = lake.read_manifest(rid)
+        except LakeError as e:
+            rows.append((rid, "?", None, "?", "DAMAGED", None, str(e.detail)[:60]))
+            docs.append({"run_id": rid, "status": "damaged", "problem": e.detail})
+            continue
+        h = lake.scan(rid)
+        status = m.get("status") + (" (damaged files)" if h.problems else "")
+        rows.append((rid, m.get("kind"), m.get("n_cases"), f"{m.get('shards_done', '?')}/{m.get('n_shards')}",
+                     status, m.get("seed"), m.get("spec_hash")))
+        docs.append(dict(m, problems=h.problems))
     if args.json:
-        print(json.dumps(ms, indent=1))
+        print(json.dumps(docs, indent=1))
         return 0
-    rows = [(m["run_id"], m.get("kind"), m.get("n_cases"), f"{len(m.get('shards_done', []))}/{m.get('n_shards')}",
-             m.get("status"), m.get("seed")) for m in ms]
-    print(format_table(["run", "kind", "cases", "shards", "status", "seed"], rows) if rows else "no runs")
+    print(format_table(["run", "kind", "cases", "shards", "status", "seed", "spec hash"], rows) if rows
+          else f"no runs in {lake.root}")
     return 0
+
+
+def cmd_lake_check(args) -> int:
+    from dualsight.jobs.lakecheck import check_lake, report_text
+
+    rows = check_lake(_lake(args), repair=args.repair, workers=args.workers)
+    if args.json:
+        print(json.dumps(rows, indent=1))
+    else:
+        print(report_text(rows))
+    return 0 if all(r["verdict"] in ("ok", "repaired") for r in rows) else 1
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""Reading frozen dataclass configs from TOML tables, with errors that name file, key and allowed values.
+"""The one configuration layer: TOML tables validated by pydantic into typed specs, errors that name file,
+key and allowed values.
 
 A table's keys are the dataclass's field names.  Angles may be given at the edge in friendlier units:
 a key ``<name>_arcsec`` or ``<name>_deg`` fills the field ``<name>_rad`` (converted), so configs read
@@ -8,9 +9,13 @@ a key ``<name>_arcsec`` or ``<name>_deg`` fills the field ``<name>_rad`` (conver
 from __future__ import annotations
 
 import dataclasses
+import functools
+import json
 import math
 import typing
 from pathlib import Path
+
+import pydantic
 
 from dualsight.errors import ConfigError, InputError
 
@@ -18,19 +23,108 @@ _ARCSEC = math.pi / (180 * 3600)
 _UNIT_SUFFIX = {"_arcsec": _ARCSEC, "_deg": math.pi / 180}
 
 
+MAX_DEPTH = 12
+"""Deepest nesting a configuration may have (tables and arrays); deeper input is refused, not recursed into."""
+
+
+def plain_tree(value, *, source: str, field: str = "", depth: int = 0):
+    """Check that a TOML/JSON value holds only tables, arrays, strings, booleans and finite numbers,
+    nested at most :data:`MAX_DEPTH` deep (iteratively bounded), and return it unchanged."""
+    if depth > MAX_DEPTH:
+        raise ConfigError(f"is nested more than {MAX_DEPTH} levels deep", source=source, field=field or None)
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if not isinstance(k, str):
+                raise ConfigError(f"key {k!r} is not a string", source=source, field=field or None)
+            plain_tree(v, source=source, field=f"{field}.{k}" if field else k, depth=depth + 1)
+    elif isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            plain_tree(v, source=source, field=f"{field}[{i}]", depth=depth + 1)
+    elif isinstance(value, float):
+        if not math.isfinite(value):
+            raise ConfigError(f"must be a finite number, got {value!r}", source=source, field=field or None)
+    elif not (value is None or isinstance(value, (str, bool, int))):
+        raise ConfigError(f"must be a table, array, string, boolean or number, got {type(value).__name__} "
+                          f"{value!r}", source=source, field=field or None)
+    return value
+
+
+@functools.lru_cache(maxsize=None)
+def _adapter(tp) -> pydantic.TypeAdapter:
+    return pydantic.TypeAdapter(tp)
+
+
+def validate(tp, raw, *, source: str, section: str | None = None):
+    """Validate ``raw`` (TOML/JSON layout) into ``tp`` (a pydantic model or a dataclass) with pydantic in
+    strict JSON mode: nested tables become the nested types, arrays become tuples, but "3" is not a number
+    and 1.5 is not an integer.  The first problem becomes one ConfigError naming ``source``, the dotted field
+    (prefixed by ``section``) and the allowed range or values."""
+    plain_tree(raw, source=source, field=section or "")
+    try:
+        return _adapter(tp).validate_json(json.dumps(raw), strict=True)
+    except pydantic.ValidationError as e:
+        err = e.errors(include_url=False)[0]
+        loc = ".".join(str(x) for x in err["loc"] if x != "__root__")
+        fld = ".".join(x for x in (section, loc) if x) or None
+        msg = err["msg"].removeprefix("Value error, ")
+        if err["type"] == "unexpected_keyword_argument" or err["type"] == "extra_forbidden":
+            allowed = _field_names(tp, err["loc"][:-1])
+            msg = "unknown key" + (f"; allowed keys: {', '.join(allowed)}" if allowed else "")
+            raise ConfigError(msg, source=source, field=fld) from None
+        inp = err.get("input")
+        got = "" if err["type"] in ("missing", "missing_argument") or isinstance(inp, (dict, list)) \
+            else f", got {inp!r}"
+        raise ConfigError(f"{msg}{got}", source=source, field=fld) from None
+
+
+def _field_names(tp, loc) -> list[str]:
+    """Friendly key names allowed at ``loc`` inside ``tp`` (for "unknown key" messages)."""
+    for part in loc:
+        hints = _hints(tp)
+        if part not in hints:
+            return []
+        tp = hints[part]
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if args and (dataclasses.is_dataclass(args[0]) or isinstance(args[0], type)):
+            tp = args[0]
+    return sorted(_friendly(n) for n in _hints(tp))
+
+
+def _hints(tp) -> dict:
+    if isinstance(tp, type) and issubclass(tp, pydantic.BaseModel):
+        return dict(tp.model_fields)
+    if dataclasses.is_dataclass(tp):
+        return {f.name: f.type for f in dataclasses.fields(tp) if f.init}
+    return {}
+
+
+def check_memory(nbytes: int, *, source: str, what: str = "this spec"):
+    """Refuse a spec whose estimated peak memory per worker exceeds half the machine's RAM (or
+    ``$DUALSIGHT_MAX_MEMORY_GB``), before anything is allocated."""
+    import os
+
+    limit_gb = os.environ.get("DUALSIGHT_MAX_MEMORY_GB")
+    try:
+        limit = float(limit_gb) * 2**30 if limit_gb else 0.5 * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError):
+        limit = 8 * 2**30
+    if nbytes > limit:
+        raise ConfigError(f"{what} needs about {nbytes / 2**30:.1f} GiB per worker (frames x batch, star and pair "
+                          f"catalogs), over the {limit / 2**30:.1f} GiB allowed; lower batch_size, the magnitude "
+                          "limit or the field of view (or set DUALSIGHT_MAX_MEMORY_GB)", source=source)
+
+
 def dataclass_from_table(cls, table: dict | None, *, source: str, section: str, base=None):
-    """Build frozen dataclass ``cls`` from a TOML table, validating key names and value types.
+    """Build frozen dataclass ``cls`` from a TOML table through :func:`validate` (pydantic, strict).
 
     ``base``: an instance whose values replace the class defaults (e.g. a named method's settings).
-
-    Unknown keys, wrong types and values the dataclass rejects (its ``__post_init__`` raising
-    ValueError) become :class:`ConfigError` naming ``source`` and ``section.key``.
+    Keys ``<name>_arcsec`` / ``<name>_deg`` fill the field ``<name>_rad`` (converted to radians).
     """
-    table = dict(table or {})
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
-    hints = typing.get_type_hints(cls)
-    kwargs = {}
-    for key, value in table.items():
+    if table is not None and not isinstance(table, dict):
+        raise ConfigError("must be a table", source=source, field=section)
+    fields = {f.name for f in dataclasses.fields(cls) if f.init}
+    merged = dataclass_to_table(base) if base is not None else {}
+    for key, value in (table or {}).items():
         name, scale = key, 1.0
         if key not in fields:
             for suffix, factor in _UNIT_SUFFIX.items():
@@ -38,20 +132,14 @@ def dataclass_from_table(cls, table: dict | None, *, source: str, section: str, 
                     name, scale = key[: -len(suffix)] + "_rad", factor
                     break
         if name not in fields:
-            allowed = sorted(_friendly(n) for n in fields)
-            raise ConfigError(f"unknown key {key!r}; allowed keys: {', '.join(allowed)}", source=source,
-                              field=f"{section}.{key}")
-        kwargs[name] = _coerce(value * scale if scale != 1.0 and _is_number(value) else value,
-                               hints.get(name), source, f"{section}.{key}")
-    try:
-        return dataclasses.replace(base, **kwargs) if base is not None else cls(**kwargs)
-    except ConfigError as e:
-        fld = e.field or ""
-        if not fld.startswith(section + ".") and fld != section:
-            fld = f"{section}.{fld}".rstrip(".")
-        raise ConfigError(e.detail, source=source, field=fld) from None
-    except (ValueError, TypeError) as e:
-        raise ConfigError(str(e), source=source, field=section) from None
+            raise ConfigError(f"unknown key; allowed keys: {', '.join(sorted(_friendly(n) for n in fields))}",
+                              source=source, field=f"{section}.{key}")
+        if scale != 1.0:
+            if not _is_number(value):
+                raise ConfigError(f"must be a number, got {value!r}", source=source, field=f"{section}.{key}")
+            value = value * scale
+        merged[name] = value
+    return validate(cls, merged, source=source, section=section)
 
 
 def dataclass_to_table(obj) -> dict:
@@ -73,45 +161,6 @@ def _friendly(name: str) -> str:
 
 def _is_number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def _coerce(value, hint, source, field):
-    origin = typing.get_origin(hint)
-    args = typing.get_args(hint)
-    if hint is None:
-        return value
-    if origin is typing.Union or (origin is not None and str(origin) == "<class 'types.UnionType'>"):
-        if value is None and type(None) in args:
-            return None
-        hint = next((a for a in args if a is not type(None)), hint)
-        origin = typing.get_origin(hint)
-    if hint is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"must be true or false, got {value!r}", source=source, field=field)
-        return value
-    if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            if isinstance(value, float) and value.is_integer():
-                return int(value)
-            raise ConfigError(f"must be an integer, got {value!r}", source=source, field=field)
-        return value
-    if hint is float:
-        if not _is_number(value) or not math.isfinite(float(value)):
-            raise ConfigError(f"must be a finite number, got {value!r}", source=source, field=field)
-        return float(value)
-    if hint is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"must be a string, got {value!r}", source=source, field=field)
-        return value
-    if origin is tuple:
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"must be a list, got {value!r}", source=source, field=field)
-        return tuple(value)
-    if origin is typing.Literal:
-        if value not in args:
-            raise ConfigError(f"must be one of {list(args)}, got {value!r}", source=source, field=field)
-        return value
-    return value
 
 
 def check_range(value, lo, hi, field: str, *, lo_open=False, hi_open=False, source: str | None = None):
@@ -157,12 +206,6 @@ def deep_merge(base: dict, over: dict) -> dict:
         out[k] = deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else (
             deep_merge(v, {}) if isinstance(v, dict) else v)
     return out
-
-
-def source_name(path: Path | str | None, preset: str | None) -> str:
-    if path:
-        return str(path)
-    return f"preset {preset!r}" if preset else "defaults"
 
 
 __all__ = ["dataclass_from_table", "dataclass_to_table", "check_range", "ConfigError", "InputError"]

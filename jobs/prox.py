@@ -43,7 +43,6 @@ from dualsight.scene.motion import frame_poses, place_body
 from dualsight.scene.satellite import satellite_from_dict
 
 NAME = "prox"
-DATASETS = ["prox_cases"]
 PRIMARY = "prox_cases"
 ESTIMATORS = ("paper", "subpixel")
 
@@ -276,10 +275,38 @@ def compute_batch(spec: ProxSpec, ctx: ProxContext, case_ids: np.ndarray, keep_i
     return out
 
 
-def run_cases(spec: ProxSpec, ctx: ProxContext, case_ids: np.ndarray) -> dict[str, pa.Table]:
+def compute_shard(spec: ProxSpec, case_ids: np.ndarray, ctx: ProxContext) -> dict[str, pa.Table]:
+    """The engine's contract: rows of ``case_ids`` (int64, ascending) in batches of ``spec.batch_size``."""
     parts = [compute_batch(spec, ctx, case_ids[s: s + spec.batch_size])["tables"]["prox_cases"]
              for s in range(0, len(case_ids), spec.batch_size)]
-    return {"prox_cases": pa.concat_tables(parts)}
+    return {"prox_cases": pa.concat_tables(parts) if parts else CASES_SCHEMA.empty_table()}
+
+
+def memory_estimate(spec: ProxSpec) -> int:
+    """Peak bytes of one worker: ``batch_size`` frames of the satellite file's camera, about six float32
+    or int32 planes each (image, depth, coverage, labels, masks), plus the area table's samples."""
+    cam = spec.satellite.camera.camera
+    return int(6 * 4 * cam.width * cam.height * spec.batch_size + 64 * spec.areas["samples"])
+
+
+def _est_fields(est: str) -> list:
+    return [(f"{est}_{k}", pa.float64()) for k in ("axis_ratio", "n_blob", "range_min_m", "range_est_m",
+                                                   "range_max_m", "x_m", "y_m", "z_m", "pos_err_m")]
+
+
+CASES_SCHEMA = pa.schema([
+    ("case_id", pa.int64()), ("job", pa.string()), ("mode", pa.string()), ("seed", pa.int64()),
+    ("frame", pa.int64()), ("range_index", pa.int64()), ("true_range_m", pa.float64()),
+    ("true_x_m", pa.float64()), ("true_y_m", pa.float64()), ("true_z_m", pa.float64()),
+    ("R_body", pa.list_(pa.float64(), 9)), ("noise_seed", pa.uint64()), ("found", pa.bool_()),
+    ("n_blobs", pa.int64()), ("n_pixels", pa.int64()), ("n_coverage", pa.float64()),
+    ("cob_x_px", pa.float64()), ("cob_y_px", pa.float64()), ("axis_ratio", pa.float64()),
+    ("major_px", pa.float64()), ("minor_px", pa.float64()), ("dir_err_rad", pa.float64()),
+    *_est_fields("paper"), *_est_fields("subpixel"),
+    ("t_sample_ns", pa.int64()), ("t_render_ns", pa.int64()), ("t_blob_paper_ns", pa.int64()),
+    ("t_blob_subpixel_ns", pa.int64()), ("t_total_ns", pa.int64()),
+])
+SCHEMAS = {"prox_cases": CASES_SCHEMA}
 
 
 def cases_table(spec: ProxSpec, case_ids, draw, results, timing) -> pa.Table:
@@ -311,7 +338,8 @@ def cases_table(spec: ProxSpec, case_ids, draw, results, timing) -> pa.Table:
                      f"{est}_pos_err_m": np.linalg.norm(pos - t, axis=-1)})
     for k, v in timing.items():
         cols[k] = np.full(B, v, dtype=np.int64)
-    return pa.table({k: (v if isinstance(v, pa.Array) else pa.array(v)) for k, v in cols.items()})
+    return pa.table({f.name: (cols[f.name] if isinstance(cols[f.name], pa.Array)
+                              else pa.array(cols[f.name], type=f.type)) for f in CASES_SCHEMA}, schema=CASES_SCHEMA)
 
 
 def shard_summary(tables: dict[str, pa.Table]) -> dict:

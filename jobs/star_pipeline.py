@@ -115,7 +115,7 @@ class Rendered:
     detections: object          # kernels.detect.Detections
     images: np.ndarray | None   # (B, H, W) when kept (replay), else None
     t_render_ns: int
-    t_detect_ns: int
+    t_detect_ns: int | None     # None: detection did not run as its own stage (fused into the sparse render)
 
 
 def render_and_detect(field_: FieldStars, noise_seeds: np.ndarray, camera, sensor, detect_cfg, buffers: dict,
@@ -127,7 +127,7 @@ def render_and_detect(field_: FieldStars, noise_seeds: np.ndarray, camera, senso
         det = kdetect.render_and_detect_ideal(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
                                               camera.height, sensor, detect_cfg, noise_seeds)
         t1 = time.perf_counter_ns()
-        return Rendered(det, None, t1 - t0, 0)
+        return Rendered(det, None, t1 - t0, None)
     images = kstar.render_star_fields(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
                                       camera.height, sensor, noise_seeds)
     t1 = time.perf_counter_ns()

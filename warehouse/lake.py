@@ -1,35 +1,56 @@
-"""The Parquet data lake: layout, atomic shard writes, run manifests, resume bookkeeping.
+"""The Parquet data lake: layout, atomic self-describing shards, manifests, shard journals, locks, checks.
 
 Layout (DESIGN.md)::
 
-    <lake>/<dataset>/run=<run_id>/part-<shard:06d>.parquet     one file per (dataset, run, shard)
-    <lake>/_manifests/<run_id>.json                             one manifest per run
+    <lake>/<dataset>/run=<run_id>/part-<shard:06d>.parquet   one file per (dataset, run, shard)
+    <lake>/_manifests/<run_id>.json                           the run: kind, canonical spec, spec hash, plan, status
+    <lake>/_manifests/<run_id>.shards.jsonl                   journal: one line per completed shard (files, sizes, rows)
+    <lake>/_specs/<run_id>.json                               immutable copy of the run's identity (for repair)
+    <lake>/_locks/<run_id>.lock                               held (flock) by the one process writing the run
 
-A shard is written to a hidden temporary name in the same folder, flushed to disk and then renamed
-(atomic on POSIX), so a reader or a resumed run never sees half a file.  A shard of a run is *complete*
-when the files of all the run's datasets exist; the primary dataset is renamed last.  A resumed run
-recomputes only incomplete shards; since case i always draws from ``default_rng([seed, i])`` the
-recomputed rows are identical, and shard file names are fixed, so nothing is lost or duplicated.
+Trust rules
+    * A shard file is written to a hidden temporary name in its folder, fsynced and renamed (atomic on
+      POSIX); the primary dataset is renamed last.  Nobody ever sees half a file under a final name.
+    * Every shard file carries, in its Parquet key-value metadata (key ``dualsight``), the run id, the
+      spec hash, the shard number and its case range ``[case_start, case_stop)`` and its row count, so a
+      file is checked against what the run expects (:func:`verify_shard`), never trusted by its name.
+    * A completed shard is appended to the run's journal with every file's size.  Queries read exactly
+      the journalled files whose size still matches (:meth:`Lake.readable_files`); files that are not in a
+      journal (copied in, written by a crashed writer) are never counted, and a damaged file or manifest
+      is reported by name and left out while every other run stays readable.
+    * One writer per run (``flock`` on ``_locks/<run>.lock``, released by the OS when its process dies);
+      any number of runs may be written into one lake at once.
 
 This module knows no algorithm: it moves Arrow tables and JSON.
 """
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import json
 import os
 import re
 import time
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
 from dualsight.errors import InputError
 
-MANIFEST_VERSION = 1
-_RUN_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,127}$")
+MANIFEST_VERSION = 2
+META_KEY = b"dualsight"
+RUN_ID_PATTERN = r"[A-Za-z0-9._-]{1,64}"
+_RUN_ID = re.compile(RUN_ID_PATTERN)
+MAX_MANIFEST_BYTES = 64 * 2**20
+
+
+class LakeError(InputError):
+    """The lake cannot be written or read as asked (read-only, full, locked, damaged)."""
 
 
 def default_lake() -> Path:
@@ -37,16 +58,142 @@ def default_lake() -> Path:
     return Path(os.environ.get("DUALSIGHT_LAKE", "lake"))
 
 
-def check_run_id(run_id: str) -> str:
-    if not isinstance(run_id, str) or not _RUN_ID.match(run_id):
-        raise InputError(f"run id {run_id!r} must match {_RUN_ID.pattern} (letters, digits, '_', '-', '.')",
-                         source="--run")
+def check_run_id(run_id) -> str:
+    """``run_id`` if it matches ``[A-Za-z0-9._-]{1,64}`` in full (no newline, no path), else InputError."""
+    if not isinstance(run_id, str) or not _RUN_ID.fullmatch(run_id) or run_id in (".", ".."):
+        raise InputError(f"run id {run_id!r} must match {RUN_ID_PATTERN} in full (letters, digits, '.', '_', '-'; "
+                         "1 to 64 characters)", source="--run")
     return run_id
+
+
+def os_error_text(e: OSError) -> str:
+    """``No space left on device`` etc. for an OSError, naming the path when known."""
+    what = e.strerror or type(e).__name__
+    return f"{e.filename}: {what}" if getattr(e, "filename", None) else what
+
+
+@dataclass(frozen=True)
+class ShardInfo:
+    """What one shard of a run must be: identity and case range ``[case_start, case_stop)``."""
+
+    run_id: str
+    spec_hash: str
+    shard: int
+    case_start: int
+    case_stop: int
+
+    def meta(self, dataset: str, rows: int) -> dict:
+        return {"run_id": self.run_id, "spec_hash": self.spec_hash, "shard": self.shard, "dataset": dataset,
+                "case_start": self.case_start, "case_stop": self.case_stop, "rows": rows}
+
+
+def read_shard_meta(path: Path) -> tuple[dict | None, pq.FileMetaData | None, str | None]:
+    """(dualsight metadata, Parquet footer, problem) of a shard file; problem is None when readable."""
+    try:
+        md = pq.read_metadata(path)
+    except (OSError, pa.ArrowException) as e:
+        return None, None, f"unreadable Parquet ({str(e).splitlines()[0][:120]})"
+    kv = md.metadata or {}
+    if META_KEY not in kv:
+        return None, md, "no dualsight metadata (not written by dualsight)"
+    try:
+        meta = json.loads(kv[META_KEY])
+    except (ValueError, UnicodeDecodeError):
+        return None, md, "damaged dualsight metadata"
+    return meta, md, None
+
+
+def verify_shard(path: Path, expect: ShardInfo, dataset: str, *, primary: bool) -> str | None:
+    """None when ``path`` is exactly shard ``expect`` of ``dataset``; otherwise what is wrong (one line).
+
+    Checks: the footer reads; run id, spec hash, shard number and case range in the metadata; the row
+    count in the footer equals the recorded one; ``case_id`` lies in the case range (footer statistics);
+    for the primary dataset (one row per case) the case ids are exactly ``case_start .. case_stop-1``.
+    """
+    meta, md, problem = read_shard_meta(path)
+    if problem:
+        return problem
+    for key in ("run_id", "spec_hash", "shard", "case_start", "case_stop", "dataset"):
+        want = getattr(expect, key) if key != "dataset" else dataset
+        if meta.get(key) != want:
+            return f"belongs to another run or plan ({key} {meta.get(key)!r}, expected {want!r})"
+    if md.num_rows != meta.get("rows"):
+        return f"has {md.num_rows} rows, its metadata says {meta.get('rows')}"
+    try:
+        if primary:
+            ids = pq.read_table(path, columns=["case_id"]).column("case_id").to_numpy()
+            if not np.array_equal(ids, np.arange(expect.case_start, expect.case_stop)):
+                return f"case ids are not exactly {expect.case_start}..{expect.case_stop - 1}"
+        elif md.num_rows:
+            col = md.schema.to_arrow_schema().get_field_index("case_id")
+            for g in range(md.num_row_groups):
+                st = md.row_group(g).column(col).statistics if col >= 0 else None
+                if st is not None and st.has_min_max and not (expect.case_start <= st.min and
+                                                              st.max < expect.case_stop):
+                    return f"case ids {st.min}..{st.max} outside {expect.case_start}..{expect.case_stop - 1}"
+    except (OSError, pa.ArrowException) as e:
+        return f"unreadable Parquet ({str(e).splitlines()[0][:120]})"
+    return None
+
+
+class RunLock:
+    """Exclusive, non-blocking ``flock`` on ``<lake>/_locks/<run>.lock``; the OS drops it when the process dies."""
+
+    def __init__(self, lake: "Lake", run_id: str):
+        self.path = lake.root / "_locks" / f"{run_id}.lock"
+        self.run_id = run_id
+        self.fh = None
+
+    def __enter__(self):
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fh = open(self.path, "a+")
+        except OSError as e:
+            raise LakeError(f"cannot write to the lake ({os_error_text(e)})", source=str(self.path.parent.parent)) \
+                from None
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            fh.seek(0)
+            holder = fh.read().strip() or "another process"
+            fh.close()
+            if e.errno in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                raise LakeError(f"run {self.run_id!r} is being written by {holder}; wait for it to finish or "
+                                "choose another --run", source=str(self.path)) from None
+            raise LakeError(f"cannot lock the run ({os_error_text(e)})", source=str(self.path)) from None
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
+        fh.flush()
+        self.fh = fh
+        return self
+
+    def __exit__(self, *exc):
+        if self.fh is not None:
+            try:
+                self.fh.seek(0)
+                self.fh.truncate()
+            except OSError:
+                pass
+            fcntl.flock(self.fh.fileno(), fcntl.LOCK_UN)
+            self.fh.close()
+            self.fh = None
+        return False
+
+
+@dataclass(frozen=True)
+class RunHealth:
+    """What :meth:`Lake.scan` found for one run: readable files per dataset and the problems."""
+
+    run_id: str
+    manifest: dict | None
+    files: dict            # dataset -> [Path, ...] journalled, present, size as journalled
+    problems: list         # one line each: damaged manifest, missing or changed files
 
 
 @dataclass(frozen=True)
 class Lake:
-    """A lake rooted at ``root`` (created on first write)."""
+    """A lake rooted at ``root``.  Nothing is created until a run is written."""
 
     root: Path
 
@@ -63,121 +210,307 @@ class Lake:
     def manifest_path(self, run_id: str) -> Path:
         return self.root / "_manifests" / f"{run_id}.json"
 
-    # ----------------------------------------------------------------- shards
-    def write_shard(self, run_id: str, shard: int, tables: dict[str, pa.Table], primary: str) -> dict[str, int]:
-        """Write one shard of every dataset atomically; the primary dataset's file is renamed last.
+    def journal_path(self, run_id: str) -> Path:
+        return self.root / "_manifests" / f"{run_id}.shards.jsonl"
 
-        Returns rows written per dataset.
+    def lock(self, run_id: str) -> RunLock:
+        return RunLock(self, check_run_id(run_id))
+
+    # ----------------------------------------------------------------- shards
+    def write_shard(self, info: ShardInfo, tables: dict[str, pa.Table], primary: str,
+                    schemas: dict[str, pa.Schema] | None = None) -> dict:
+        """Write one shard of every dataset atomically (the primary's file renamed last).
+
+        Each table must match ``schemas[dataset]`` exactly when schemas are given.  Returns the journal
+        entry ``{"shard", "case_start", "case_stop", "rows": {dataset: n}, "bytes": {dataset: n}}``.
         """
         tmp_paths = []
+        out = {"shard": info.shard, "case_start": info.case_start, "case_stop": info.case_stop, "rows": {},
+               "bytes": {}}
         try:
             order = [d for d in tables if d != primary] + [primary]
             for dataset in order:
-                final = self.shard_path(dataset, run_id, shard)
+                t = tables[dataset]
+                if schemas is not None and not t.schema.equals(schemas[dataset]):
+                    raise TypeError(f"dataset {dataset}: table schema differs from the declared schema")
+                meta = dict(t.schema.metadata or {})
+                meta[META_KEY] = json.dumps(info.meta(dataset, t.num_rows)).encode()
+                t = t.replace_schema_metadata(meta)
+                final = self.shard_path(dataset, info.run_id, info.shard)
                 final.parent.mkdir(parents=True, exist_ok=True)
-                tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
-                pq.write_table(tables[dataset], tmp, compression="zstd")
+                tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+                tmp_paths.append((tmp, final))
+                pq.write_table(t, tmp, compression="zstd")
                 with open(tmp, "rb") as fh:
                     os.fsync(fh.fileno())
-                tmp_paths.append((tmp, final))
+                out["rows"][dataset] = t.num_rows
+                out["bytes"][dataset] = tmp.stat().st_size
             for tmp, final in tmp_paths:
                 os.replace(tmp, final)
         finally:
             for tmp, _ in tmp_paths:
-                if tmp.exists():
+                try:
                     tmp.unlink()
-        return {d: t.num_rows for d, t in tables.items()}
+                except FileNotFoundError:
+                    pass
+        return out
 
-    def complete_shards(self, run_id: str, datasets: list[str]) -> set[int]:
-        """Shards whose files exist for every dataset of the run."""
-        done = None
-        for dataset in datasets:
-            d = self.run_dir(dataset, run_id)
-            found = set()
-            if d.is_dir():
-                for p in d.glob("part-*.parquet"):
-                    try:
-                        found.add(int(p.stem.split("-")[1]))
-                    except (IndexError, ValueError):
-                        continue
-            done = found if done is None else done & found
-        return done or set()
+    def verify_shard(self, info: ShardInfo, datasets: list[str], primary: str) -> str | None:
+        """None when every dataset's file of shard ``info`` is present and exactly right, else the problem."""
+        for d in datasets:
+            p = self.shard_path(d, info.run_id, info.shard)
+            if not p.exists():
+                return f"{p.name} of {d} is missing"
+            problem = verify_shard(p, info, d, primary=(d == primary))
+            if problem:
+                return f"{d}/{p.name} {problem}"
+        return None
+
+    def shard_entry(self, info: ShardInfo, datasets: list[str]) -> dict:
+        """Journal entry of an existing, verified shard (sizes and rows read from the files)."""
+        out = {"shard": info.shard, "case_start": info.case_start, "case_stop": info.case_stop, "rows": {},
+               "bytes": {}}
+        for d in datasets:
+            p = self.shard_path(d, info.run_id, info.shard)
+            out["rows"][d] = pq.read_metadata(p).num_rows
+            out["bytes"][d] = p.stat().st_size
+        return out
+
+    def shard_indices_on_disk(self, run_id: str, datasets: list[str]) -> set[int]:
+        """Shard numbers that have a final-named file in any dataset of the run."""
+        found = set()
+        for d in datasets:
+            folder = self.run_dir(d, run_id)
+            if folder.is_dir():
+                for p in folder.glob("part-*.parquet"):
+                    m = re.fullmatch(r"part-(\d{6,})\.parquet", p.name)
+                    if m:
+                        found.add(int(m.group(1)))
+        return found
+
+    def foreign_spec_hashes(self, run_id: str, datasets: list[str], spec_hash: str, limit: int = 50) -> set[str]:
+        """Spec hashes other than ``spec_hash`` recorded in this run's shard files (a sample of ``limit`` files)."""
+        out = set()
+        n = 0
+        for d in datasets:
+            folder = self.run_dir(d, run_id)
+            if not folder.is_dir():
+                continue
+            for p in sorted(folder.glob("part-*.parquet")):
+                meta, _, problem = read_shard_meta(p)
+                if meta is not None and meta.get("spec_hash") != spec_hash:
+                    out.add(str(meta.get("spec_hash")))
+                n += 1
+                if n >= limit:
+                    return out
+        return out
+
+    def remove_shard(self, run_id: str, shard: int, datasets: list[str]):
+        for d in datasets:
+            self.shard_path(d, run_id, shard).unlink(missing_ok=True)
 
     def remove_stale_temps(self, run_id: str, datasets: list[str]) -> int:
-        """Delete temporary files an interrupted writer left behind (never complete shards)."""
+        """Delete temporary files an interrupted writer left behind (never final-named files)."""
         n = 0
-        for dataset in datasets:
-            d = self.run_dir(dataset, run_id)
-            if d.is_dir():
-                for p in d.glob(".part-*.tmp-*"):
+        for d in datasets:
+            folder = self.run_dir(d, run_id)
+            if folder.is_dir():
+                for p in folder.glob(".part-*.tmp-*"):
                     p.unlink(missing_ok=True)
                     n += 1
         return n
 
+    # ----------------------------------------------------------------- journal
+    def reset_journal(self, run_id: str, entries: list[dict]):
+        """Replace the run's journal with ``entries`` (atomic)."""
+        p = self.journal_path(run_id)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
+        with open(tmp, "w") as fh:
+            for e in entries:
+                fh.write(json.dumps(e, sort_keys=True) + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, p)
+
+    def append_journal(self, run_id: str, entry: dict):
+        """Append one completed shard to the run's journal (one line, flushed)."""
+        with open(self.journal_path(run_id), "a") as fh:
+            fh.write(json.dumps(entry, sort_keys=True) + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+
+    def read_journal(self, run_id: str) -> list[dict]:
+        """Journal entries, last entry per shard; a torn or damaged line is skipped."""
+        p = self.journal_path(run_id)
+        out = {}
+        try:
+            with open(p) as fh:
+                for line in fh:
+                    try:
+                        e = json.loads(line)
+                        out[int(e["shard"])] = e
+                    except (ValueError, KeyError, TypeError):
+                        continue
+        except (FileNotFoundError, UnicodeDecodeError, IsADirectoryError):
+            return []
+        return [out[k] for k in sorted(out)]
+
     # ----------------------------------------------------------------- manifests
     def read_manifest(self, run_id: str) -> dict | None:
+        """The run's manifest, None when there is none; LakeError when it is damaged."""
         p = self.manifest_path(run_id)
-        if not p.exists():
-            return None
         try:
-            return json.loads(p.read_text())
-        except json.JSONDecodeError as e:
-            raise InputError(f"manifest is corrupt ({e}); the shards are intact, move the manifest away to rebuild",
-                             source=str(p)) from None
+            if p.stat().st_size > MAX_MANIFEST_BYTES:
+                raise LakeError(f"manifest is damaged (over {MAX_MANIFEST_BYTES >> 20} MiB)", source=str(p))
+            m = json.loads(p.read_text())
+        except FileNotFoundError:
+            return None
+        except (ValueError, UnicodeDecodeError, IsADirectoryError, PermissionError) as e:
+            raise LakeError(f"manifest is damaged ({type(e).__name__}); `dualsight lake check --repair` rebuilds "
+                            "it from the shards", source=str(p)) from None
+        problem = _manifest_problem(m, run_id)
+        if problem:
+            raise LakeError(f"manifest is damaged ({problem}); `dualsight lake check --repair` rebuilds it from "
+                            "the shards", source=str(p))
+        return m
 
     def write_manifest(self, manifest: dict) -> Path:
+        """Write the manifest atomically (temporary file, fsync, rename)."""
         p = self.manifest_path(manifest["run_id"])
         p.parent.mkdir(parents=True, exist_ok=True)
         manifest = dict(manifest, updated_unix=time.time(), manifest_version=MANIFEST_VERSION)
         tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
-        tmp.write_text(json.dumps(manifest, indent=1, sort_keys=True, default=_json_default))
-        os.replace(tmp, p)
+        try:
+            with open(tmp, "w") as fh:
+                fh.write(json.dumps(manifest, indent=1, sort_keys=True, default=_json_default))
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, p)
+        finally:
+            tmp.unlink(missing_ok=True)
         return p
+
+    def spec_copy_path(self, run_id: str) -> Path:
+        return self.root / "_specs" / f"{run_id}.json"
+
+    def write_spec_copy(self, manifest: dict):
+        """Keep an immutable copy of the run's identity (kind, spec, hash, plan) beside the manifest, written
+        once, so a damaged manifest can be rebuilt (``lake check --repair``)."""
+        p = self.spec_copy_path(manifest["run_id"])
+        if p.exists():
+            return
+        keep = {k: manifest[k] for k in ("run_id", "kind", "job", "spec", "spec_hash", "code_version", "seed",
+                                         "n_cases", "shard_size", "n_shards", "datasets", "primary", "label",
+                                         "created_unix") if k in manifest}
+        p.parent.mkdir(parents=True, exist_ok=True)
+        tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
+        tmp.write_text(json.dumps(keep, indent=1, sort_keys=True, default=_json_default))
+        os.replace(tmp, p)
+
+    def read_spec_copy(self, run_id: str) -> dict | None:
+        """The run's identity copy, or None when absent or damaged."""
+        try:
+            m = json.loads(self.spec_copy_path(run_id).read_text())
+        except (OSError, ValueError, UnicodeDecodeError):
+            return None
+        m = dict(m, status="incomplete", stats={})
+        return m if _manifest_problem(m, run_id) is None else None
+
+    def run_ids(self) -> list[str]:
+        """Run ids that have a manifest file (valid or not), sorted."""
+        d = self.root / "_manifests"
+        if not d.is_dir():
+            return []
+        return sorted(p.name[:-5] for p in d.glob("*.json") if not p.name.startswith(".")
+                      and _RUN_ID.fullmatch(p.name[:-5]))
+
+    def list_manifests(self) -> list[dict]:
+        """Valid manifests, sorted by run id (damaged ones are reported by :meth:`scan`)."""
+        out = []
+        for rid in self.run_ids():
+            try:
+                m = self.read_manifest(rid)
+            except LakeError:
+                continue
+            if m is not None:
+                out.append(m)
+        return out
+
+    # ----------------------------------------------------------------- reading
+    def scan(self, run_id: str) -> RunHealth:
+        """Readable files of one run and its problems, without opening any Parquet file (stat only)."""
+        try:
+            m = self.read_manifest(run_id)
+        except LakeError as e:
+            return RunHealth(run_id, None, {}, [f"run {run_id}: {e}"])
+        if m is None:
+            return RunHealth(run_id, None, {}, [f"run {run_id}: no manifest"])
+        files, problems = {}, []
+        for e in self.read_journal(run_id):
+            for d, size in (e.get("bytes") or {}).items():
+                if d not in m["datasets"]:
+                    continue
+                p = self.shard_path(d, run_id, int(e["shard"]))
+                try:
+                    ok = p.stat().st_size == size
+                except OSError:
+                    ok = False
+                if ok:
+                    files.setdefault(d, []).append(p)
+                else:
+                    problems.append(f"run {run_id}: {d}/{p.name} is damaged or missing (size differs from the "
+                                    "journal); left out")
+        return RunHealth(run_id, m, files, problems)
+
+    def readable_files(self) -> tuple[dict[str, list[Path]], list[str]]:
+        """Every run's readable files per dataset, and the problems found (one line each)."""
+        files: dict[str, list[Path]] = {}
+        problems: list[str] = []
+        for rid in self.run_ids():
+            h = self.scan(rid)
+            problems.extend(h.problems)
+            for d, ps in h.files.items():
+                files.setdefault(d, []).extend(ps)
+        return files, problems
+
+    def datasets(self) -> list[str]:
+        """Datasets with at least one readable shard."""
+        return sorted(self.readable_files()[0])
 
     def new_run_id(self, prefix: str) -> str:
         """``<prefix>-<UTC timestamp>``, with a numeric suffix if that id exists already."""
         base = f"{prefix}-" + time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
         rid, n = base, 1
-        while self.read_manifest(rid) is not None:
+        while self.manifest_path(rid).exists():
             n += 1
             rid = f"{base}-{n}"
         return rid
 
-    def refuse_other_run(self, run_id: str, kind: str, spec: dict):
-        """Raise unless ``run_id`` is new or holds a run of the same kind and spec (checked before any work)."""
-        check_run_id(run_id)
-        m = self.read_manifest(run_id)
-        if m is None:
-            return
-        if m.get("kind") != kind or m.get("spec") != json.loads(json.dumps(spec, default=str)):
-            raise InputError(f"run {run_id!r} already exists in {self.root} as a {m.get('kind')} run with other "
-                             "settings or inputs; choose another --run", source="--run")
 
-    def list_manifests(self) -> list[dict]:
-        d = self.root / "_manifests"
-        out = []
-        if d.is_dir():
-            for p in sorted(d.glob("*.json")):
-                try:
-                    out.append(json.loads(p.read_text()))
-                except json.JSONDecodeError:
-                    continue
-        return out
-
-    def datasets(self) -> list[str]:
-        """Dataset folders that hold at least one shard."""
-        if not self.root.is_dir():
-            return []
-        return sorted(p.name for p in self.root.iterdir()
-                      if p.is_dir() and not p.name.startswith(("_", ".")) and any(p.glob("run=*/part-*.parquet")))
+def _manifest_problem(m, run_id: str) -> str | None:
+    if not isinstance(m, dict):
+        return "not a JSON object"
+    need = {"run_id": str, "kind": str, "spec_hash": str, "n_cases": int, "shard_size": int, "n_shards": int,
+            "datasets": list, "primary": str, "status": str}
+    for k, t in need.items():
+        if not isinstance(m.get(k), t) or isinstance(m.get(k), bool):
+            return f"key {k!r} missing or not a {t.__name__}"
+    if m["run_id"] != run_id:
+        return f"run_id {m['run_id']!r} differs from its file name"
+    if not all(isinstance(d, str) and re.fullmatch(r"[a-z][a-z0-9_]{0,63}", d) for d in m["datasets"]):
+        return "bad dataset names"
+    if m["primary"] not in m["datasets"]:
+        return "primary dataset not among the datasets"
+    if not (0 < m["shard_size"] and 0 < m["n_cases"] and m["n_shards"] == -(-m["n_cases"] // m["shard_size"])):
+        return "inconsistent plan (n_cases, shard_size, n_shards)"
+    return None
 
 
 def _json_default(o):
-    import numpy as np
-
-    if isinstance(o, (np.integer,)):
+    if isinstance(o, np.integer):
         return int(o)
-    if isinstance(o, (np.floating,)):
+    if isinstance(o, np.floating):
         return float(o)
     if isinstance(o, np.ndarray):
         return o.tolist()

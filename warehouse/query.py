@@ -7,6 +7,8 @@ and take named parameters (``$run``).
 
 from __future__ import annotations
 
+import re
+import sys
 from importlib import resources
 from pathlib import Path
 
@@ -16,17 +18,45 @@ from dualsight.errors import InputError
 from dualsight.warehouse.lake import Lake
 
 
-def connect(lake: Lake | Path | str, threads: int | None = None) -> duckdb.DuckDBPyConnection:
-    """In-memory DuckDB connection with a view per dataset of the lake."""
+def connect(lake: Lake | Path | str, threads: int | None = None, *, warn=None,
+            locked: bool = True) -> duckdb.DuckDBPyConnection:
+    """In-memory DuckDB connection with one view per dataset over the lake's *readable* shards.
+
+    Only shard files recorded in a run's journal, with the recorded size, are read (:meth:`Lake.readable_files`):
+    a damaged file or manifest is named through ``warn`` (default: one line each on stderr) and left out,
+    every other run stays readable.  With ``locked`` (default) the connection is then made read-only in
+    effect: external access (files, network, extensions) is switched off and the configuration locked, so
+    no query can read or write anything but the views (see :func:`run_sql` for the statement check).
+    """
     lake = lake if isinstance(lake, Lake) else Lake(Path(lake))
+    files, problems = lake.readable_files()
+    report = warn if warn is not None else (lambda m: print(f"dualsight: warning: {m}", file=sys.stderr))
+    for m in problems:
+        report(m)
     con = duckdb.connect(":memory:")
     if threads:
         con.execute(f"SET threads = {int(threads)}")
-    for ds in lake.datasets():
-        glob = (lake.root / ds / "run=*" / "part-*.parquet").as_posix().replace("'", "''")
-        con.execute(f"CREATE VIEW \"{ds}\" AS SELECT * FROM read_parquet('{glob}', hive_partitioning = true, "
+    allowed = []
+    for ds, paths in sorted(files.items()):
+        if not _DATASET.fullmatch(ds):
+            continue
+        lst = ", ".join("'" + p.as_posix().replace("'", "''") + "'" for p in paths)
+        con.execute(f"CREATE VIEW \"{ds}\" AS SELECT * FROM read_parquet([{lst}], hive_partitioning = true, "
                     f"union_by_name = true)")
+        allowed.append((lake.root / ds).resolve().as_posix() + "/")
+    if locked:
+        if allowed:
+            con.execute("SET allowed_directories = " + "[" + ", ".join("'" + a.replace("'", "''") + "'"
+                                                                     for a in allowed) + "]")
+        con.execute("SET enable_external_access = false")
+        con.execute("SET autoinstall_known_extensions = false")
+        con.execute("SET autoload_known_extensions = false")
+        con.execute("SET lock_configuration = true")
     return con
+
+
+_DATASET = re.compile(r"[a-z][a-z0-9_]{0,63}")
+READ_ONLY_STATEMENTS = {"SELECT", "EXPLAIN"}
 
 
 def sql_text(name: str) -> str:
@@ -46,16 +76,43 @@ def run_report(con: duckdb.DuckDBPyConnection, name: str, **params):
     return cols, cur.fetchall()
 
 
-def run_sql(lake: Lake | Path | str, sql: str):
-    """Ad-hoc SQL over the lake's views; errors are reported as InputError with DuckDB's message."""
-    con = connect(lake)
+def run_sql(lake: Lake | Path | str, sql: str, *, warn=None):
+    """Ad-hoc read-only SQL over the lake's views: (column names, rows).
+
+    Only SELECT (and EXPLAIN) statements run; the connection has no file, network or extension access
+    (:func:`connect`), so ``read_csv('/etc/passwd')``, ``COPY ... TO``, ``ATTACH``, ``INSTALL`` and writes
+    into the lake are refused with one line (InputError).
+    """
+    if not isinstance(sql, str) or not sql.strip():
+        raise InputError("the query is empty", source="sql")
+    if len(sql) > 1_000_000:
+        raise InputError("the query is longer than 1 MB", source="sql")
+    con = connect(lake, warn=warn)
     try:
-        cur = con.execute(sql)
+        statements = con.extract_statements(sql)
     except duckdb.Error as e:
-        raise InputError(f"{type(e).__name__}: {e}", source="sql") from None
-    if cur.description is None:
+        raise InputError(f"{type(e).__name__}: {_first_line(e)}", source="sql") from None
+    if not statements:
+        raise InputError("the query is empty", source="sql")
+    for st in statements:
+        kind = st.type.name
+        if kind not in READ_ONLY_STATEMENTS:
+            raise InputError(f"only read-only queries (SELECT, EXPLAIN) run here; refused a {kind} statement",
+                             source="sql")
+    try:
+        cur = None
+        for st in statements:
+            cur = con.execute(st)
+    except duckdb.Error as e:
+        raise InputError(f"{type(e).__name__}: {_first_line(e)}", source="sql") from None
+    if cur is None or cur.description is None:
         return [], []
     return [d[0] for d in cur.description], cur.fetchall()
+
+
+def _first_line(e: Exception) -> str:
+    text = str(e).strip().splitlines()
+    return text[0] if text else type(e).__name__
 
 
 def format_table(cols, rows, floatfmt: str = "{:.4g}") -> str:
