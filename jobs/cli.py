@@ -236,7 +236,8 @@ def cmd_star_run(args) -> int:
     from dualsight.jobs.runner import prepare
 
     spec_dict, n_cases = star.resolve_spec(args.preset, args.config, seed=args.seed, cases=args.cases)
-    _, _, _, h = prepare(COMMAND_KINDS[("star", "run")], spec_dict, n_cases)
+    _, _, _, h = prepare(COMMAND_KINDS[("star", "run")], spec_dict, n_cases,
+                         source=str(args.config) if args.config else f"preset {args.preset or 'paper'}")
     run_id = args.run or f"star-{spec_dict['seed']}-{n_cases}-{h[:8]}"
     lake = _lake(args)
     info = star.catalog_info(spec_dict)

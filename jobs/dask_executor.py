@@ -41,22 +41,25 @@ def run_on_dask(tasks, plan, lake, scheduler: str):
     token = task_token(str(lake.root.resolve()), plan.run_id, plan.spec_hash)
     try:
         window = max(4, 2 * sum(client.nthreads().values()))
-        ac = as_completed()
         exhausted = False
         inflight = 0
 
-        def top_up():
+        def top_up(sink):
             nonlocal exhausted, inflight
             while not exhausted and inflight < window:
                 t = next(tasks, None)
                 if t is None:
                     exhausted = True
                     return
-                ac.add(client.submit(execute_shard, t, key=f"dualsight-{token}-{t.info.shard}", pure=False,
-                                     retries=RETRIES))
+                sink(client.submit(execute_shard, t, key=f"dualsight-{token}-{t.info.shard}", pure=False,
+                                   retries=RETRIES))
                 inflight += 1
 
-        top_up()
+        first: list = []
+        top_up(first.append)
+        if not first:
+            return
+        ac = as_completed(first, loop=client.loop)
         for fut in ac:
             inflight -= 1
             try:
@@ -72,7 +75,7 @@ def run_on_dask(tasks, plan, lake, scheduler: str):
                                   source=scheduler) from None
             fut.release()
             yield entry
-            top_up()
+            top_up(ac.add)
     finally:
         try:
             client.close(timeout=5)

@@ -28,13 +28,15 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
 import pyarrow as pa
+from pydantic import BaseModel, ConfigDict, Field
 
 from dualsight.catalogs.areas import area_table
 from dualsight.errors import ConfigError
-from dualsight.jobs.config import check_range, preset_and_config
+from dualsight.jobs.config import preset_and_config, validate
 from dualsight.kernels.points import apply_sensor, render
 from dualsight.nav.blobber import BlobberConfig, run_blobber
 from dualsight.scene.attitude import angle_between, quat_to_dcm, random_quaternions
@@ -111,84 +113,74 @@ class ProxSpec:
                              target=self.blobber.get("target", "largest"))
 
 
-_TOP = {"job", "seed", "mode", "satellite", "satellite_source", "ranges_m", "orientations", "frames", "batch_size",
-        "blobber", "sensor", "areas", "preset", "cases"}
+class _Blobber(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    threshold: float = Field(0.0, ge=0, le=1e12)
+    target: Literal["largest", "all"] = "largest"
+    connectivity: Literal[4, 8] = 8
+
+
+class _Sensor(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    psf_sigma_px: float = Field(0.0, ge=0, le=50)
+    read_noise: float = Field(0.0, ge=0, le=1e6)
+    gain: float = Field(1.0, gt=0, le=1e9)
+    bits: int = Field(0, ge=0, le=32)
+
+
+class _Areas(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    samples: int = Field(20000, ge=100, le=10**7)
+    bin_width: float = Field(0.05, ge=1e-3, le=1.0)
+
+
+class ProxTable(BaseModel):
+    """The prox spec's TOML layout, validated by pydantic (ranges in m, counts, the sub-tables)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    job: Literal["sweep", "trajectory"] = "sweep"
+    seed: int = Field(1, ge=0, le=2**63 - 1)
+    mode: Literal["paper", "accurate"] = "paper"
+    satellite: str | dict
+    satellite_source: str | None = None
+    ranges_m: tuple[Annotated[float, Field(gt=0, le=1e6)], ...] = Field(tuple(REFERENCE_RANGES), min_length=1,
+                                                                         max_length=10_000)
+    orientations: int = Field(9, ge=1, le=10**7)
+    frames: int | None = Field(None, ge=1, le=10**7)
+    batch_size: int = Field(16, ge=1, le=1024)
+    blobber: _Blobber = _Blobber()
+    sensor: _Sensor = _Sensor()
+    areas: _Areas = _Areas()
+    preset: str | None = None
+    cases: int | None = Field(None, ge=1, le=10**9)
 
 
 def spec_from_dict(d: dict, source: str = "spec") -> ProxSpec:
-    """Validate a prox spec; errors name ``source`` and the key."""
-    unknown = sorted(set(d) - _TOP)
-    if unknown:
-        raise ConfigError(f"unknown key(s) {unknown}; allowed: {sorted(_TOP)}", source=source)
-    job = d.get("job", "sweep")
-    if job not in ("sweep", "trajectory"):
-        raise ConfigError(f"must be 'sweep' or 'trajectory', got {job!r}", source=source, field="job")
-    mode = d.get("mode", "paper")
-    if mode not in ("paper", "accurate"):
-        raise ConfigError(f"must be 'paper' or 'accurate', got {mode!r}", source=source, field="mode")
-    seed = d.get("seed", 1)
-    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**63:
-        raise ConfigError(f"must be an integer in [0, 2^63), got {seed!r}", source=source, field="seed")
-    sat = d.get("satellite")
+    """Validate a prox spec (pydantic, :func:`dualsight.jobs.config.validate`); errors name ``source`` and the key."""
+    t = validate(ProxTable, d, source=source)
+    sat = t.satellite
     if isinstance(sat, str):
-        sat_source = sat
         p = Path(sat)
         if not p.is_absolute() and not p.exists():
             p = _example(sat)
         sat = read_toml(p)
         sat_source = str(p)
-    elif isinstance(sat, dict):
-        sat_source = d.get("satellite_source", source)
     else:
-        raise ConfigError("must be a satellite file path or an inline table", source=source, field="satellite")
+        sat_source = t.satellite_source or source
     satellite = satellite_from_dict(sat, source=sat_source)
-    ranges = d.get("ranges_m", REFERENCE_RANGES)
-    if (not isinstance(ranges, (list, tuple)) or not ranges
-            or not all(isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) and r > 0
-                       for r in ranges)):
-        raise ConfigError(f"must be a non-empty list of ranges > 0 m, got {ranges!r}", source=source,
-                          field="ranges_m")
     radius = satellite.bounding_radius
-    for r in ranges:
+    for r in t.ranges_m:
         if r <= radius:
             raise ConfigError(f"range {r} m puts the camera inside the body (bounding radius {radius:.3f} m); "
                               f"ranges must exceed it", source=source, field="ranges_m")
-    k = d.get("orientations", 9)
-    if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 10**7:
-        raise ConfigError(f"must be an integer in [1, 1e7], got {k!r}", source=source, field="orientations")
-    frames = d.get("frames", satellite.frames)
-    if isinstance(frames, bool) or not isinstance(frames, int) or not 1 <= frames <= 10**7:
-        raise ConfigError(f"must be an integer in [1, 1e7], got {frames!r}", source=source, field="frames")
-    bs = d.get("batch_size", 16)
-    if isinstance(bs, bool) or not isinstance(bs, int) or not 1 <= bs <= 1024:
-        raise ConfigError(f"must be an integer in [1, 1024], got {bs!r}", source=source, field="batch_size")
-    bl = dict(d.get("blobber") or {})
-    unknown = sorted(set(bl) - {"threshold", "target", "connectivity"})
-    if unknown:
-        raise ConfigError(f"unknown key(s) {unknown}; allowed: threshold, target, connectivity", source=source,
-                          field="blobber")
+    frames = t.frames if t.frames is not None else satellite.frames
     try:
-        BlobberConfig(threshold=float(bl.get("threshold", 0.0)), target=bl.get("target", "largest"),
-                      connectivity=int(bl.get("connectivity", 8)))
+        BlobberConfig(threshold=t.blobber.threshold, target=t.blobber.target, connectivity=t.blobber.connectivity)
     except (ValueError, TypeError) as e:
         raise ConfigError(str(e), source=source, field="blobber") from None
-    se = dict(d.get("sensor") or {})
-    unknown = sorted(set(se) - {"psf_sigma_px", "read_noise", "gain", "bits"})
-    if unknown:
-        raise ConfigError(f"unknown key(s) {unknown}; allowed: psf_sigma_px, read_noise, gain, bits", source=source,
-                          field="sensor")
-    sensor = SensorEffects(float(se.get("psf_sigma_px", 0.0)), float(se.get("read_noise", 0.0)),
-                           float(se.get("gain", 1.0)), int(se.get("bits", 0)))
-    check_range(sensor.psf_sigma_px, 0, 50, "sensor.psf_sigma_px", source=source)
-    check_range(sensor.read_noise, 0, 1e6, "sensor.read_noise", source=source)
-    check_range(sensor.gain, 0, 1e9, "sensor.gain", lo_open=True, source=source)
-    check_range(sensor.bits, 0, 32, "sensor.bits", source=source)
-    ar = dict(d.get("areas") or {"samples": 20000, "bin_width": 0.05})
-    check_range(int(ar.get("samples", 20000)), 100, 10**7, "areas.samples", source=source)
-    check_range(float(ar.get("bin_width", 0.05)), 1e-3, 1.0, "areas.bin_width", source=source)
-    return ProxSpec(job, int(seed), mode, sat, sat_source, tuple(float(r) for r in ranges), int(k), int(frames),
-                    int(bs), bl, sensor, {"samples": int(ar.get("samples", 20000)),
-                                          "bin_width": float(ar.get("bin_width", 0.05))}, satellite)
+    sensor = SensorEffects(**t.sensor.model_dump())
+    return ProxSpec(t.job, t.seed, t.mode, sat, sat_source, tuple(t.ranges_m), t.orientations, int(frames),
+                    t.batch_size, t.blobber.model_dump(), sensor, t.areas.model_dump(), satellite)
 
 
 def resolve_spec(preset: str | None, config: Path | None, **overrides) -> dict:

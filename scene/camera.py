@@ -35,6 +35,8 @@ import numpy as np
 from dualsight.errors import ConfigError
 
 _DIST_LEN = 5
+MAX_SIDE_PX = 65536
+"""Largest image side the kernels address (pixel indices are 32-bit per row and column)."""
 
 
 @dataclass(frozen=True)
@@ -293,8 +295,8 @@ def read_toml(path: Path) -> dict:
 
 def _check_camera(cam: Camera, source: str):
     checks = [
-        ("width", cam.width, isinstance(cam.width, int) and cam.width > 0, "an integer > 0"),
-        ("height", cam.height, isinstance(cam.height, int) and cam.height > 0, "an integer > 0"),
+        ("width", cam.width, isinstance(cam.width, int) and 0 < cam.width <= MAX_SIDE_PX, f"an integer in [1, {MAX_SIDE_PX}]"),
+        ("height", cam.height, isinstance(cam.height, int) and 0 < cam.height <= MAX_SIDE_PX, f"an integer in [1, {MAX_SIDE_PX}]"),
         ("pixel_pitch_um", cam.pixel_pitch_m * 1e6, math.isfinite(cam.pixel_pitch_m) and cam.pixel_pitch_m > 0,
          "> 0 um"),
         ("fx", cam.fx, math.isfinite(cam.fx) and cam.fx > 0, "> 0 px (focal length must be positive)"),
