@@ -188,7 +188,10 @@ def _on_sigterm(signum, frame):
 
 def main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:                  # --help, --version, or a one-line usage error (status 2)
+        return int(e.code or 0)
     if not getattr(args, "func", None):
         parser.print_help()
         return 0

@@ -206,6 +206,9 @@ def run_job(kind: str, spec_dict: dict, *, n_cases: int, lake: Lake, run_id: str
         raise InputError(f"must be a Dask scheduler address such as tcp://host:8786, got {scheduler!r}",
                          source="--scheduler")
     datasets = list(mod.SCHEMAS)
+    existing = lake.read_manifest(run_id)          # refuse a conflicting id before touching anything
+    if existing is not None:
+        _refuse_other(existing, kind, canonical, n_cases, h, lake, run_id)
     with lake.lock(run_id):
         existing = lake.read_manifest(run_id)
         if existing is not None:

@@ -41,7 +41,7 @@ def test_run_writes_every_case_once(small_run):
     files = sorted((small_run / "star_cases" / "run=small").glob("part-*.parquet"))
     assert [f.name for f in files] == ["part-000000.parquet", "part-000001.parquet", "part-000002.parquet"]
     m = Lake(small_run).read_manifest("small")
-    assert m["status"] == "complete" and m["shards_done"] == [0, 1, 2] and m["n_cases"] == 60
+    assert m["status"] == "complete" and m["shards_done"] == 3 and m["n_cases"] == 60
     assert m["versions"]["numpy"] == np.__version__
 
 
@@ -113,7 +113,7 @@ def test_existing_run_with_other_settings_is_refused(small_run, capsys):
     before = _snapshot(small_run)
     assert main(["star", "run", "--lake", str(small_run), "--run", "small", "--cases", "61", "--seed", "3",
                  "--no-progress", "--workers", "1"]) == 2
-    assert "already exists" in capsys.readouterr().err
+    assert "other settings (cases 60 -> 61)" in capsys.readouterr().err
     assert _snapshot(small_run) == before
 
 

@@ -364,7 +364,7 @@ class Lake:
             if p.stat().st_size > MAX_MANIFEST_BYTES:
                 raise LakeError(f"manifest is damaged (over {MAX_MANIFEST_BYTES >> 20} MiB)", source=str(p))
             m = json.loads(p.read_text())
-        except FileNotFoundError:
+        except (FileNotFoundError, NotADirectoryError):
             return None
         except (ValueError, UnicodeDecodeError, IsADirectoryError, PermissionError) as e:
             raise LakeError(f"manifest is damaged ({type(e).__name__}); `dualsight lake check --repair` rebuilds "
