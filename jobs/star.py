@@ -30,11 +30,12 @@ from typing import Literal
 
 import numpy as np
 import pyarrow as pa
+from pydantic import BaseModel, ConfigDict, Field
 
 from dualsight.catalogs.pairs import load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 from dualsight.errors import ConfigError, InputError
-from dualsight.jobs.config import dataclass_from_table, dataclass_to_table, preset_and_config
+from dualsight.jobs.config import dataclass_from_table, dataclass_to_table, preset_and_config, validate
 from dualsight.kernels.detect import DetectConfig
 from dualsight.kernels.starfield import SensorConfig
 from dualsight.jobs import star_pipeline as pipe
@@ -91,42 +92,36 @@ class StarSpec:
                 "robust": dataclass_to_table(self.robust) if self.robust is not None else {}}
 
 
-_TOP_KEYS = {"seed", "cases", "batch_size", "attitudes", "error_frame", "camera", "catalog", "sensor",
-             "detect", "voting", "compare_robust", "robust", "preset"}
+class StarTable(BaseModel):
+    """The top level of a star spec's TOML layout (pydantic); the sections are validated into their
+    dataclasses by :func:`dualsight.jobs.config.dataclass_from_table`."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    seed: int = Field(1, ge=0, le=2**63 - 1)
+    cases: int | None = Field(None, ge=1, le=10**9)
+    batch_size: int = Field(64, ge=1, le=4096)
+    attitudes: Literal["euler123", "uniform"] = "euler123"
+    error_frame: Literal["camera", "inertial"] = "camera"
+    compare_robust: bool = True
+    preset: str | None = None
+    camera: dict
+    catalog: dict = {}
+    sensor: dict = {}
+    detect: dict = {}
+    voting: dict = {}
+    robust: dict = {}
 
 
 def spec_from_dict(d: dict, source: str = "spec") -> StarSpec:
     """Validate a spec dict (TOML layout); every error names ``source`` and the key."""
-    unknown = sorted(set(d) - _TOP_KEYS)
-    if unknown:
-        raise ConfigError(f"unknown key(s) {unknown}; allowed: {sorted(_TOP_KEYS)}", source=source)
-    cam_t = d.get("camera")
-    if not isinstance(cam_t, dict):
-        raise ConfigError("missing table [camera]", source=source, field="camera")
-    camera = Camera.from_dict(cam_t, source=source)
-    seed = d.get("seed", 1)
-    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**63:
-        raise ConfigError(f"must be an integer in [0, 2^63), got {seed!r}", source=source, field="seed")
-    bs = d.get("batch_size", 64)
-    if isinstance(bs, bool) or not isinstance(bs, int) or not 1 <= bs <= 4096:
-        raise ConfigError(f"must be an integer in [1, 4096], got {bs!r}", source=source, field="batch_size")
-    att = d.get("attitudes", "euler123")
-    if att not in ("euler123", "uniform"):
-        raise ConfigError(f"must be 'euler123' or 'uniform', got {att!r}", source=source, field="attitudes")
-    frame = d.get("error_frame", "camera")
-    if frame not in ("camera", "inertial"):
-        raise ConfigError(f"must be 'camera' or 'inertial', got {frame!r}", source=source, field="error_frame")
-    for sec in ("catalog", "sensor", "detect", "voting", "robust"):
-        if sec in d and not isinstance(d[sec], dict):
-            raise ConfigError("must be a table", source=source, field=sec)
+    top = validate(StarTable, d, source=source)
+    camera = Camera.from_dict(top.camera, source=source)
+    seed, bs, att, frame, cmp_ = top.seed, top.batch_size, top.attitudes, top.error_frame, top.compare_robust
     catalog = dataclass_from_table(StarCatalogConfig, d.get("catalog"), source=source, section="catalog")
     sensor = dataclass_from_table(SensorConfig, d.get("sensor"), source=source, section="sensor")
     detect = dataclass_from_table(DetectConfig, d.get("detect"), source=source, section="detect")
     voting = dataclass_from_table(VotingConfig, d.get("voting"), source=source, section="voting",
                                   base=VotingConfig.paper())
-    cmp_ = d.get("compare_robust", True)
-    if not isinstance(cmp_, bool):
-        raise ConfigError(f"must be true or false, got {cmp_!r}", source=source, field="compare_robust")
     robust = (dataclass_from_table(VotingConfig, d.get("robust"), source=source, section="robust",
                                    base=VotingConfig.robust(tolerance_rad=voting.tolerance_rad))
               if cmp_ else None)
