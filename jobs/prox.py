@@ -24,7 +24,6 @@ Spec (TOML; what is not given comes from the preset)::
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path

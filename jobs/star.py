@@ -34,7 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from dualsight.catalogs.pairs import load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
-from dualsight.errors import ConfigError, InputError
+from dualsight.errors import InputError
 from dualsight.jobs.config import dataclass_from_table, dataclass_to_table, preset_and_config, validate
 from dualsight.kernels.detect import DetectConfig
 from dualsight.kernels.starfield import SensorConfig

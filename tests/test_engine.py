@@ -23,7 +23,7 @@ import pytest
 
 from dualsight.errors import InputError
 from dualsight.jobs import selftest
-from dualsight.jobs.runner import EngineError, default_shard_size, run_job
+from dualsight.jobs.runner import default_shard_size, run_job
 from dualsight.warehouse.lake import Lake, LakeError, ShardInfo, check_run_id, verify_shard
 from dualsight.warehouse.query import run_sql
 
