@@ -6,6 +6,9 @@ Method: Zhang (2000) / Bouguet's Camera Calibration Toolbox (2013) as OpenCV imp
 and Levenberg-Marquardt over intrinsics, distortion k1, k2, p1, p2, k3 and one board pose per image).
 The default flags, ``cv2.CALIB_FIX_ASPECT_RATIO`` (= 2, with aspect ratio fx/fy = 1), are the ones of
 OpenCV's reference calibration of its ``left*.jpg`` samples (``left_intrinsics.yml``: ``flags: 2``).
+The two steps are separate functions: :func:`find_view` (one photo -> its corners; the per-case work of the
+``calibrate`` job kind, jobs/calibrate.py) and :func:`solve_calibration` (all views -> the camera);
+:func:`calibrate_chessboard` does both in-process.
 
 Conventions
     The resulting :class:`~dualsight.scene.camera.Camera` uses dualsight's pixel convention (pixel
@@ -18,12 +21,12 @@ Conventions
 Camera files
     :func:`write_camera_toml` writes the ``[camera]`` table the simulator reads
     (:meth:`Camera.from_toml`) and, for a calibration, a ``[calibration]`` table with the fit quality
-    and the per-image board poses (``[[calibration.views]]``).  :func:`read_camera_toml` reads both.
+    and the per-image board poses (``[[calibration.views]]``), serialised by tomli-w, into an existing
+    folder (none is created).  :func:`read_camera_toml` reads both.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import re
@@ -146,11 +149,55 @@ def find_corners(gray8: np.ndarray, board: tuple[int, int], find_flags: int = FI
     return c.reshape(-1, 2)
 
 
+@dataclass(frozen=True, eq=False)
+class ViewCorners:
+    """What one photo gave: its size, and the board's inner corners or why there are none.
+
+    Attributes
+    ----------
+    path : the image file.
+    width, height, bit_depth : the image (None when it could not be read).
+    corners : (N, 2) float32 corners (col, row) in OpenCV's convention (pixel centres at integers), or
+        None when the board was not found or the image could not be read.
+    error : why the image could not be read (None if it was).
+    """
+
+    path: Path
+    width: int | None = None
+    height: int | None = None
+    bit_depth: int | None = None
+    corners: np.ndarray | None = None
+    error: str | None = None
+
+
+def find_view(path: str | Path, board: tuple[int, int] = (9, 6), find_flags: int = FIND_FLAGS_DEFAULT) -> ViewCorners:
+    """Read one photo (gray; 16-bit / float scaled to 8 bit) and find the board's sub-pixel inner corners."""
+    path = Path(path)
+    try:
+        img = read_image(path, as_gray=True)
+    except ImageError as e:
+        return ViewCorners(path, error=e.detail)
+    return ViewCorners(path, img.width, img.height, img.bit_depth or 8,
+                       find_corners(_to_gray8(img), board, find_flags))
+
+
+def check_settings(board, square_m, pixel_pitch_m=None) -> tuple[int, int]:
+    """Validated board (two integers >= 2); ConfigError for a bad board, square or pixel pitch."""
+    board = _check_board(board)
+    if isinstance(square_m, bool) or not (isinstance(square_m, (int, float)) and math.isfinite(square_m)
+                                          and square_m > 0):
+        raise ConfigError(f"square size must be > 0 m, got {square_m!r}", field="--square")
+    if pixel_pitch_m is not None and not (math.isfinite(pixel_pitch_m) and pixel_pitch_m > 0):
+        raise ConfigError(f"pixel pitch must be > 0 m, got {pixel_pitch_m!r}", field="--pixel-pitch")
+    return board
+
+
 def calibrate_chessboard(paths: Iterable[str | Path], board: tuple[int, int] = (9, 6), square_m: float = 0.025,
                          pixel_pitch_m: float | None = None, flags: int = CALIB_FLAGS_DEFAULT,
                          aspect_ratio: float = 1.0, find_flags: int = FIND_FLAGS_DEFAULT,
                          min_views: int = 3) -> CalibrationResult:
-    """Calibrate a camera from photos of a flat chessboard.
+    """Calibrate a camera from photos of a flat chessboard: :func:`find_view` per photo, then
+    :func:`solve_calibration`.
 
     Parameters
     ----------
@@ -164,46 +211,47 @@ def calibrate_chessboard(paths: Iterable[str | Path], board: tuple[int, int] = (
     find_flags : ``cv2.findChessboardCorners`` flags.
     min_views : fewest views with a detected board needed.
 
-    Returns
-    -------
-    :class:`CalibrationResult`.
-
     Raises
     ------
     InputError if the board or square is invalid or the board is found in fewer than ``min_views``
     images (the message lists the images where it was not found and the unreadable ones).
     """
+    board = check_settings(board, square_m, pixel_pitch_m)
+    views = [find_view(p, board, find_flags) for p in paths]
+    return solve_calibration(views, board=board, square_m=square_m, pixel_pitch_m=pixel_pitch_m, flags=flags,
+                             aspect_ratio=aspect_ratio, min_views=min_views)
+
+
+def solve_calibration(views: Iterable[ViewCorners], board: tuple[int, int] = (9, 6), square_m: float = 0.025,
+                      pixel_pitch_m: float | None = None, flags: int = CALIB_FLAGS_DEFAULT, aspect_ratio: float = 1.0,
+                      min_views: int = 3) -> CalibrationResult:
+    """The calibration from the corners of every photo (in input order): the first readable photo sets the
+    image size (others of another size count as unreadable), then ``cv2.calibrateCameraExtended`` (module
+    docstring) and each board's pose, distance and reprojection error.  Parameters and errors as
+    :func:`calibrate_chessboard`."""
     import cv2
 
-    board = _check_board(board)
-    if not (isinstance(square_m, (int, float)) and math.isfinite(square_m) and square_m > 0):
-        raise ConfigError(f"square size must be > 0 m, got {square_m!r}", field="--square")
-    if pixel_pitch_m is not None and not (math.isfinite(pixel_pitch_m) and pixel_pitch_m > 0):
-        raise ConfigError(f"pixel pitch must be > 0 m, got {pixel_pitch_m!r}", field="--pixel-pitch")
-
-    paths = [Path(p) for p in paths]
+    board = check_settings(board, square_m, pixel_pitch_m)
+    views = list(views)
     obj = board_points(board, square_m)
     found, not_found, unreadable = [], [], []
     size, bit_depth = None, 8
-    for p in paths:
-        try:
-            img = read_image(p, as_gray=True)
-        except ImageError as e:
-            unreadable.append((p, e.detail))
+    for v in views:
+        if v.error is not None:
+            unreadable.append((v.path, v.error))
             continue
         if size is None:
-            size, bit_depth = (img.width, img.height), img.bit_depth or 8
-        elif (img.width, img.height) != size:
-            unreadable.append((p, f"size {img.width}x{img.height} differs from the first image's {size[0]}x{size[1]}"))
+            size, bit_depth = (v.width, v.height), v.bit_depth or 8
+        elif (v.width, v.height) != size:
+            unreadable.append((v.path, f"size {v.width}x{v.height} differs from the first image's {size[0]}x{size[1]}"))
             continue
-        corners = find_corners(_to_gray8(img), board, find_flags)
-        if corners is None:
-            not_found.append(p)
+        if v.corners is None:
+            not_found.append(v.path)
         else:
-            found.append((p, corners))
+            found.append((v.path, np.asarray(v.corners, np.float32).reshape(-1, 2)))
 
     if len(found) < min_views:
-        msg = f"chessboard {board[0]}x{board[1]} found in {len(found)} of {len(paths)} images; need >= {min_views}"
+        msg = f"chessboard {board[0]}x{board[1]} found in {len(found)} of {len(views)} images; need >= {min_views}"
         if not_found:
             msg += "; not found in: " + ", ".join(p.name for p in not_found)
         if unreadable:
@@ -217,15 +265,15 @@ def calibrate_chessboard(paths: Iterable[str | Path], board: tuple[int, int] = (
         objs, imgs, size, k0, None, flags=flags)
 
     centre = np.array([(board[0] - 1) / 2 * square_m, (board[1] - 1) / 2 * square_m, 0.0])
-    views = []
+    out = []
     for (p, c), rv, tv in zip(found, rvecs, tvecs):
         rv, tv = rv.ravel().astype(float), tv.ravel().astype(float)
         proj, _ = cv2.projectPoints(obj, rv, tv, K, dist)
         err = proj.reshape(-1, 2) - c
         R, _ = cv2.Rodrigues(rv)
-        views.append(BoardView(path=p, rvec=rv, tvec=tv, distance_m=float(np.linalg.norm(R @ centre + tv)),
-                               rms_px=float(np.sqrt(np.mean(np.sum(err ** 2, axis=1)))),
-                               corners_px=c.astype(np.float64) + 0.5))
+        out.append(BoardView(path=p, rvec=rv, tvec=tv, distance_m=float(np.linalg.norm(R @ centre + tv)),
+                             rms_px=float(np.sqrt(np.mean(np.sum(err ** 2, axis=1)))),
+                             corners_px=c.astype(np.float64) + 0.5))
 
     pitch = pixel_pitch_m if pixel_pitch_m is not None else PLACEHOLDER_PITCH_M
     camera = Camera.from_opencv(K, dist, size[0], size[1], pitch, bit_depth=int(bit_depth))
@@ -233,14 +281,15 @@ def calibrate_chessboard(paths: Iterable[str | Path], board: tuple[int, int] = (
     std = dict(zip(("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"), (float(x) for x in s[:9])))
     if flags & CALIB_FLAGS_DEFAULT:  # fx = aspect * fy is not a free parameter; OpenCV reports 0 for it
         std["fx"] = aspect_ratio * std["fy"]
-    return CalibrationResult(camera=camera, rms_px=float(rms), views=tuple(views), not_found=tuple(not_found),
+    return CalibrationResult(camera=camera, rms_px=float(rms), views=tuple(out), not_found=tuple(not_found),
                              unreadable=tuple(unreadable), board=board, square_m=float(square_m), flags=int(flags),
                              pixel_pitch_known=pixel_pitch_m is not None, std=std)
 
 
 def calibrate_main(folder: str | Path, board="9x6", square: float = 0.025, output: str | Path | None = None,
                    pixel_pitch_um: float | None = None, *, quiet: bool = False) -> CalibrationResult:
-    """The ``dualsight calibrate FOLDER --board 9x6 --square 0.025 [-o camera.toml]`` command.
+    """In-process calibration of a folder (the ``dualsight calibrate`` command runs the same steps as a job of
+    the engine, jobs/calibrate_cli.py).
 
     Calibrates from every image in ``folder`` (natural order), prints :func:`format_summary` unless
     ``quiet``, and writes the camera file to ``output`` if given.  ``board`` is "9x6" or (9, 6);
@@ -304,7 +353,8 @@ def write_camera_toml(result_or_camera: CalibrationResult | Camera, path: str | 
     Parameters
     ----------
     result_or_camera : a :class:`CalibrationResult` or a :class:`Camera`.
-    path : output file; written to a temporary name and renamed, so it is never half-written.
+    path : output file, in an existing folder (none is created: InputError otherwise); written to a
+        temporary name and renamed, so it is never half-written.
     extra : further top-level keys/tables (e.g. ``{"source": {"images": "..."}}``); may not
         redefine ``camera`` or ``calibration``.
     name, notes : optional ``camera.name`` / ``camera.notes`` strings.
@@ -343,8 +393,10 @@ def write_camera_toml(result_or_camera: CalibrationResult | Camera, path: str | 
              + ("" if result is None or result.pixel_pitch_known else " (placeholder pitch: not meaningful)")
              + f"; field of view {fh:.3f} x {fv:.3f} deg, diagonal {fd:.3f} deg"]
     text = "\n".join(head) + "\n\n" + toml_dumps(doc)
+    if not path.parent.is_dir():
+        raise InputError(f"folder {path.parent} does not exist (camera files are written only into existing "
+                         "folders)", source=str(path))
     tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, path)
     return path
@@ -385,72 +437,30 @@ def read_camera_toml(path: str | Path) -> tuple[Camera, dict]:
 
 
 # ---------------------------------------------------------------------------------------------- TOML writer
-_BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
-
-
 def toml_dumps(doc: dict) -> str:
-    """Serialise nested dicts/lists of str, int, float, bool to TOML 1.0 (enough for camera files).
+    """TOML text of nested dicts/lists of str, int, float, bool (tomli-w; numpy scalars and arrays, tuples and
+    paths converted to plain values first).  Dicts become tables, lists of dicts arrays of tables; floats
+    round-trip exactly, NaN/inf as ``nan``/``inf``."""
+    import tomli_w
 
-    Dicts become tables, lists of dicts arrays of tables, other lists inline arrays; floats use
-    ``repr`` (round-trip exact), NaN/inf as ``nan``/``inf``.
-    """
-    out: list[str] = []
-    _emit_table(doc, [], out)
-    return "\n".join(out).strip("\n") + "\n"
+    return tomli_w.dumps(_plain(doc))
 
 
-def _emit_table(tbl: dict, prefix: list[str], out: list[str]):
-    scalars = {k: v for k, v in tbl.items() if not _is_table(v) and not _is_table_array(v)}
-    for k, v in scalars.items():
-        out.append(f"{_key(k)} = {_value(v)}")
-    for k, v in tbl.items():
-        if _is_table(v):
-            out += ["", "[" + ".".join(_key(x) for x in prefix + [k]) + "]"]
-            _emit_table(v, prefix + [k], out)
-        elif _is_table_array(v):
-            for item in v:
-                out += ["", "[[" + ".".join(_key(x) for x in prefix + [k]) + "]]"]
-                _emit_table(item, prefix + [k], out)
-
-
-def _is_table(v) -> bool:
-    return isinstance(v, dict)
-
-
-def _is_table_array(v) -> bool:
-    return isinstance(v, (list, tuple)) and len(v) > 0 and all(isinstance(x, dict) for x in v)
-
-
-def _key(k) -> str:
-    k = str(k)
-    return k if _BARE_KEY.match(k) else _string(k)
-
-
-def _string(s: str) -> str:
-    return json.dumps(s, ensure_ascii=False).replace("\x7f", "\\u007f")
-
-
-def _value(v) -> str:
-    if isinstance(v, (bool, np.bool_)):
-        return "true" if v else "false"
-    if isinstance(v, (int, np.integer)):
-        return str(int(v))
-    if isinstance(v, (float, np.floating)):
-        f = float(v)
-        if math.isnan(f):
-            return "nan"
-        if math.isinf(f):
-            return "inf" if f > 0 else "-inf"
-        r = repr(f)
-        return r if any(ch in r for ch in ".eE") else r + ".0"
-    if isinstance(v, str):
-        return _string(v)
-    if isinstance(v, Path):
-        return _string(str(v))
-    if isinstance(v, (list, tuple, np.ndarray)):
-        return "[" + ", ".join(_value(x) for x in v) + "]"
+def _plain(v):
     if isinstance(v, dict):
-        return "{" + ", ".join(f"{_key(k)} = {_value(x)}" for k, x in v.items()) + "}"
+        return {str(k): _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return [_plain(x) for x in v]
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return float(v)
+    if isinstance(v, Path):
+        return str(v)
+    if isinstance(v, str):
+        return v
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import tomllib
 from pathlib import Path
 
@@ -104,6 +105,35 @@ def test_real_board_distances_match_reference_poses(real_result, reference):
     assert np.all(np.delete(per_view, 1) < 0.5)
 
 
+@needs_chess
+def test_calibration_job_gives_the_in_process_numbers(tmp_path, real_result):
+    """The calibrate job kind (corners per photo in shards of 5, written to the lake, read back with SQL, then
+    one calibrateCamera) gives the numbers of the in-process calibration: the very same corners, and the same
+    fit to 1e-9 (OpenCV's multi-threaded calibrateCamera itself differs from call to call by ~1e-13)."""
+    from dualsight.jobs import calibrate as job
+    from dualsight.jobs.runner import run_job
+    from dualsight.warehouse.lake import Lake
+    from dualsight.warehouse.query import connect, run_report
+
+    spec = job.build_spec(_photos(), board=(9, 6), square_m=0.025)
+    lake = Lake(tmp_path / "lake")
+    m = run_job("calibrate", spec, n_cases=13, lake=lake, run_id="cal", workers=1, shard_size=5, progress=False)
+    assert m["status"] == "complete" and m["n_shards"] == 3 and m["stats"]["found"] == 13
+    cols, rows = run_report(connect(lake), "hil_calib_views", run="cal")
+    assert [r[cols.index("case_id")] for r in rows] == list(range(13))
+    assert all(r[cols.index("n_corners")] == 54 for r in rows)
+    res = job.solve(job.spec_from_dict(spec), [dict(zip(cols, r)) for r in rows])
+    for a, b in zip(res.views, real_result.views):
+        assert a.path == b.path
+        np.testing.assert_array_equal(a.corners_px, b.corners_px)
+    c, r = res.camera, real_result.camera
+    assert (c.width, c.height, c.bit_depth, c.pixel_pitch_m) == (r.width, r.height, r.bit_depth, r.pixel_pitch_m)
+    np.testing.assert_allclose([c.fx, c.fy, c.cx, c.cy, *c.distortion], [r.fx, r.fy, r.cx, r.cy, *r.distortion],
+                               rtol=1e-9, atol=1e-12)
+    assert res.rms_px == pytest.approx(real_result.rms_px, rel=1e-9)
+    np.testing.assert_allclose(res.distances_m, real_result.distances_m, rtol=1e-9)
+
+
 def test_bad_images_are_reported_and_the_rest_calibrate(tmp_path, real_result):
     blank = tmp_path / "blank.png"
     cv2.imwrite(str(blank), np.full((480, 640), 128, np.uint8))
@@ -153,6 +183,45 @@ def test_unknown_pitch_is_flagged_in_the_file(tmp_path, real_result):
     assert raw["calibration"]["pixel_pitch_known"] is False and "placeholder" in raw["camera"]["notes"]
     assert real_result.focal_length_mm is None
     assert Camera.from_toml(out) == real_result.camera
+
+
+def run_cli(argv) -> tuple[int, str, str]:
+    """``dualsight <argv>``; (exit status, stdout, stderr)."""
+    import contextlib
+    import io
+
+    from dualsight.jobs import cli
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            rc = cli.main([str(a) for a in argv])
+        except SystemExit as e:             # argparse errors
+            rc = int(e.code)
+    return rc, out.getvalue(), err.getvalue()
+
+
+@needs_chess
+def test_calibrate_cli_exit_2_with_a_clear_message(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    rc, out, err = run_cli(["calibrate", empty, "-o", tmp_path / "a.toml", "--no-lake"])
+    assert rc == 2 and "no images" in err and str(empty) in err
+    two = tmp_path / "two"
+    two.mkdir()
+    for name in ("left01.jpg", "left02.jpg"):
+        shutil.copy(CHESS / name, two / name)
+    rc, out, err = run_cli(["calibrate", two, "-o", tmp_path / "b.toml", "--no-lake"])
+    assert rc == 2 and "found in 2 of 2 images; need >= 3" in err
+    rc, out, err = run_cli(["calibrate", tmp_path / "missing", "-o", tmp_path / "c.toml", "--no-lake"])
+    assert rc == 2 and "folder not found" in err
+    rc, out, err = run_cli(["calibrate", two, "--board", "nine", "--no-lake"])
+    assert rc == 2 and "--board" in err
+    # -o never creates folders: a missing one is refused before any work, and nothing is written
+    rc, out, err = run_cli(["calibrate", CHESS, "-o", tmp_path / "new" / "d.toml", "--lake", tmp_path / "lake"])
+    assert rc == 2 and "does not exist" in err and str(tmp_path / "new") in err
+    assert not (tmp_path / "new").exists() and not (tmp_path / "lake").exists()
+    assert not any((tmp_path / n).exists() for n in ("a.toml", "b.toml", "c.toml"))
 
 
 # ---------------------------------------------------------------------------------------------- synthetic
@@ -215,6 +284,10 @@ def test_synthetic_boards_recover_the_true_camera(tmp_path):
 # ---------------------------------------------------------------------------------------------- files
 def test_write_plain_camera_roundtrip(tmp_path):
     cam = Camera.pinhole(1024, 768, 4.65e-6, 17e-3)
+    with pytest.raises(InputError, match="does not exist"):          # no folder is created
+        write_camera_toml(cam, tmp_path / "sub" / "star.toml")
+    assert not (tmp_path / "sub").exists()
+    (tmp_path / "sub").mkdir()
     out = write_camera_toml(cam, tmp_path / "sub" / "star.toml", name="star", comment="from a test\nline two",
                             extra={"source": {"paper": "Table 1", "n": 3}})
     text = out.read_text()

@@ -16,4 +16,4 @@ SELECT
     touches_edge
 FROM hil_prox
 WHERE run = $run
-ORDER BY image_index, threshold;
+ORDER BY case_id, threshold;

@@ -22,4 +22,4 @@ SELECT
     t_total_ns / 1e6                                         AS ms
 FROM hil_star
 WHERE run = $run
-ORDER BY image_index;
+ORDER BY case_id;

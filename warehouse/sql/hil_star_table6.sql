@@ -1,7 +1,8 @@
 -- The reference's Table 6 for every image of a star hardware-in-the-loop run: each identified star's
 -- catalog id (HIP), magnitude and observed-versus-predicted error (arcsec; predicted with the solved
--- attitude), and the same against the truth attitude when there is one.
+-- attitude), and the same against the truth attitude when there is one.  Brightest first per image.
 SELECT
+    case_id,
     image,
     hip,
     vmag,
@@ -14,4 +15,4 @@ SELECT
     truth_id_agrees
 FROM hil_star_stars
 WHERE run = $run
-ORDER BY image_index, vmag, hip;
+ORDER BY case_id, vmag, hip;

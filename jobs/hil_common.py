@@ -1,0 +1,154 @@
+"""What the hardware-in-the-loop job kinds (``hil_star``, ``hil_prox``, ``calibrate``) share.
+
+* Image lists in specs.  A HIL run is its images: each is an entry ``{path (absolute), bytes, mtime_ns}``
+  (:class:`ImageEntry`, :func:`image_entries`), so a changed image file makes a different run (another spec
+  hash), and case i is image i of the list.  A file that is missing when the run is planned keeps its
+  entry with ``bytes = mtime_ns = None``: it becomes an error row.  A worker that finds a file different
+  from its entry (:func:`check_unchanged`) writes an error row instead of results of another image, so a
+  run's rows are a function of its spec alone.
+* The engine options of the HIL commands (:func:`add_engine_args`) and the call of the engine with a
+  temporary lake for ``--no-lake`` (:func:`engine_lake`, :func:`run_engine`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from dualsight.errors import ImageError
+from dualsight.scene.imageio import list_images
+
+__all__ = ["Frozen", "ImageEntry", "image_entries", "check_unchanged", "expand_inputs", "add_engine_args",
+           "engine_lake", "run_engine", "fixed_point"]
+
+
+class Frozen(BaseModel):
+    """Base of the HIL specs: immutable, unknown keys refused."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    def to_dict(self) -> dict:
+        """Canonical JSON-serialisable dict (``spec_from_dict(spec.to_dict()) == spec``)."""
+        return self.model_dump(mode="json")
+
+
+class ImageEntry(Frozen):
+    """One image of a run: absolute path, size and modification time when the run was planned
+    (None, None: the file did not exist then)."""
+
+    path: str = Field(min_length=1, max_length=4096)
+    bytes: int | None = Field(default=None, ge=0)
+    mtime_ns: int | None = Field(default=None, ge=0)
+
+    @field_validator("path")
+    @classmethod
+    def _absolute(cls, v: str) -> str:
+        if not os.path.isabs(v):
+            raise ValueError("must be an absolute path")
+        return v
+
+    @property
+    def name(self) -> str:
+        return Path(self.path).name
+
+
+def image_entries(paths) -> list[dict]:
+    """Spec entries of image files (absolute paths, sizes and modification times; missing: None)."""
+    out = []
+    for p in paths:
+        a = os.path.abspath(os.fspath(p))
+        try:
+            st = os.stat(a)
+            out.append({"path": a, "bytes": int(st.st_size), "mtime_ns": int(st.st_mtime_ns)})
+        except OSError:
+            out.append({"path": a, "bytes": None, "mtime_ns": None})
+    return out
+
+
+def check_unchanged(entry: ImageEntry):
+    """Raise ImageError (naming the file) unless the file is as it was when the run was planned."""
+    if entry.bytes is None:
+        raise ImageError("file not found (when the run was planned)", source=entry.path)
+    try:
+        st = os.stat(entry.path)
+    except OSError:
+        raise ImageError("file not found (it existed when the run was planned)", source=entry.path) from None
+    if st.st_size != entry.bytes or st.st_mtime_ns != entry.mtime_ns:
+        raise ImageError(f"changed since the run was planned ({entry.bytes} -> {st.st_size} bytes, modified "
+                         "again); start a new run for the new file", source=entry.path)
+
+
+def expand_inputs(items) -> list[Path]:
+    """Image paths; a folder argument expands to its images (natural order).  Missing files are kept
+    (they become error rows)."""
+    out = []
+    for it in items:
+        p = Path(it)
+        out.extend(list_images(p) if p.is_dir() else [p])
+    return out
+
+
+def fixed_point(normalise, value, rounds: int = 4):
+    """``normalise`` applied until the value stops changing (at most ``rounds`` times): canonical forms
+    whose float conversions (um <-> m) could otherwise move the last digit on every round trip."""
+    for _ in range(rounds):
+        nxt = normalise(value)
+        if nxt == value:
+            return nxt
+        value = nxt
+    return value
+
+
+# ============================================================================================ CLI and engine
+def add_engine_args(p: argparse.ArgumentParser, *, prefix: str):
+    """``--lake``, ``--run``, ``--no-lake``, ``--workers``, ``--scheduler``, ``--shard-size``, ``--no-progress``."""
+    from dualsight.jobs.cli import _lake_arg
+
+    g = p.add_argument_group("engine and lake")
+    _lake_arg(g)
+    g.add_argument("--run", default=None,
+                   help=f"run id (default {prefix}-<hash of the spec and code version>: the same images, settings "
+                        "and code resume the same run)")
+    g.add_argument("--no-lake", action="store_true",
+                   help="run into a temporary lake that is deleted afterwards (nothing kept)")
+    g.add_argument("--workers", type=int, default=None, help="local worker processes (default: one per core)")
+    g.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786) to run the shards "
+                   "on a cluster; the lake and the images must be on storage every worker can read and write")
+    g.add_argument("--shard-size", type=int, default=None, help="images per shard file (default: automatic)")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+@contextlib.contextmanager
+def engine_lake(args):
+    """The lake of a HIL command: ``--lake`` / $DUALSIGHT_LAKE / ./lake, or with ``--no-lake`` a temporary
+    folder deleted on exit.  Yields (Lake, kept: bool)."""
+    from dualsight.warehouse.lake import Lake
+
+    if not getattr(args, "no_lake", False):
+        from dualsight.jobs.cli import _lake
+
+        yield _lake(args), True
+        return
+    tmp = tempfile.mkdtemp(prefix="dualsight-nolake-")
+    try:
+        yield Lake(Path(tmp)), False
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def run_engine(kind: str, spec: dict, n_cases: int, lake, args, *, label: str, progress_default: bool = True) -> dict:
+    """``run_job`` with the command's engine options; returns the manifest."""
+    from dualsight.jobs.runner import run_job
+
+    progress = progress_default and not getattr(args, "no_progress", False) and sys.stderr.isatty()
+    return run_job(kind, spec, n_cases=n_cases, lake=lake, run_id=getattr(args, "run", None),
+                   workers=getattr(args, "workers", None), scheduler=getattr(args, "scheduler", None),
+                   shard_size=getattr(args, "shard_size", None), progress=progress, label=label,
+                   source=label)
