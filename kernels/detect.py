@@ -2,20 +2,19 @@
 
 Two paths with one output contract (:class:`Detections`):
 
-* :func:`detect_stars` — dense frames (B, H, W) of any sensor model.  One (frame, row)-parallel pass
-  counts the runs of above-threshold pixels in every row; a second pass visits only rows that have
-  runs and records each run with its intensity moments; one thread per frame then joins runs of
-  consecutive rows (union-find, 8- or 4-connectivity) and sums the moments per component.  Only
-  above-threshold pixels are ever labelled, unlike a full-frame labeller such as OpenCV's
-  ``connectedComponentsWithStats``.
+* :func:`detect_stars` — dense frames (B, H, W) of any sensor model, labelled by the one connected-component
+  labeller, :mod:`dualsight.kernels.labelling` (runs of above-threshold pixels, union-find, 8- or
+  4-connectivity, moment sums per component).  Only above-threshold pixels are ever labelled, unlike a
+  full-frame labeller such as OpenCV's ``connectedComponentsWithStats``.
 * :func:`render_and_detect_ideal` — noise-free star fields, never materialising the frame.  Star
   windows (the same windows :func:`dualsight.kernels.starfield.render_star_fields` draws) that overlap
   or touch (8-adjacency) are grouped per case (union-find); each group's bounding box becomes a small
-  patch in which the group's stars are rendered with the very same arithmetic, in the same star order,
-  and labelled.  Pixels outside every window hold the constant empty-sky value, which is below the
-  threshold, and no blob can cross between groups, so the detections equal those of the dense path
-  on the rendered frame, blob for blob — close stars whose PSFs touch merge into ONE blob exactly as
-  in the full frame.
+  patch in which the group's stars are rendered with the very same arithmetic, in the same star order;
+  the patches are labelled by the same labeller, each patch a segment at its place in its frame.
+  Pixels outside every window hold the constant empty-sky value, which is below the threshold, and no
+  blob can cross between groups, so the detections equal those of the dense path on the rendered frame,
+  blob for blob and bit for bit (same runs, same sums in the same order) — close stars whose PSFs touch
+  merge into ONE blob exactly as in the full frame.
 
 Per blob (pixels p with value v_p > T_b, the frame's threshold, connected):
     flux = sum_p (v_p - bg_b)                      [ADU]
@@ -30,14 +29,17 @@ sample (every ``background_step``-th row and column): bg = median, sigma = stand
 sample within 4 * 1.4826 * MAD of the median (robust to the few star pixels; 0 when MAD = 0).
 """
 
-import math
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 import taichi as ti
 
+from dualsight.kernels import star_psf
 from dualsight.kernels import starfield as sf
+from dualsight.kernels._config import is_finite_number, is_int, reject
 from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.labelling import Components, find, label_frames, label_segments, union
 
 __all__ = ["DetectConfig", "Detections", "detect_stars", "render_and_detect_ideal", "estimate_background"]
 
@@ -71,23 +73,19 @@ class DetectConfig:
     background_step: int = 16
 
     def __post_init__(self):
-        def bad(name, allowed):
-            raise ValueError(f"DetectConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
-
-        def num(v):
-            return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-        if not num(self.threshold_adu) or self.threshold_adu < 0:
+        bad = functools.partial(reject, self)
+        if not is_finite_number(self.threshold_adu) or self.threshold_adu < 0:
             bad("threshold_adu", "a finite number >= 0")
-        if not num(self.k_sigma) or self.k_sigma < 0:
+        if not is_finite_number(self.k_sigma) or self.k_sigma < 0:
             bad("k_sigma", "a finite number >= 0")
-        if self.background_adu is not None and not num(self.background_adu):
+        if self.background_adu is not None and not is_finite_number(self.background_adu):
             bad("background_adu", "None or a finite number")
-        if self.noise_sigma_adu is not None and (not num(self.noise_sigma_adu) or self.noise_sigma_adu < 0):
+        sig = self.noise_sigma_adu
+        if sig is not None and (not is_finite_number(sig) or sig < 0):
             bad("noise_sigma_adu", "None or a finite number >= 0")
         for name, lo in (("min_pixels", 1), ("max_blobs_per_frame", 1), ("background_step", 1)):
             v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < lo:
+            if not is_int(v) or v < lo:
                 bad(name, f"an integer >= {lo}")
         if self.connectivity not in (4, 8) or isinstance(self.connectivity, bool):
             bad("connectivity", "4 or 8")
@@ -136,157 +134,13 @@ class Detections:
         return {"x": self.x[s], "y": self.y[s], "flux": self.flux[s], "npix": self.npix[s]}
 
 
-# ============================================================================ Taichi funcs
-@ti.func
-def _find(parent: ti.template(), base, i):
-    """Root of local index i in the forest parent[base + .] (path halving)."""
-    while parent[base + i] != i:
-        parent[base + i] = parent[base + parent[base + i]]
-        i = parent[base + i]
-    return i
-
-
-@ti.func
-def _union(parent: ti.template(), base, a, b):
-    """Join the sets of local indices a and b; the smaller root wins (roots = first in raster order)."""
-    ra = _find(parent, base, a)
-    rb = _find(parent, base, b)
-    if ra < rb:
-        parent[base + rb] = ra
-    elif rb < ra:
-        parent[base + ra] = rb
-
-
 # ============================================================================ kernels (built lazily)
-_KERNELS = KernelCache()      # builders registered at the end of the module
-_TI_OF = {np.dtype(np.uint8).str: "u8", np.dtype(np.uint16).str: "u16",
-          np.dtype(np.float32).str: "f32", np.dtype(np.float64).str: "f64"}
+_KERNELS = KernelCache()      # builders registered below
+_PIXEL_TYPES = {np.dtype(np.uint16).str: ti.u16, np.dtype(np.float32).str: ti.f32}  # dense renderer outputs
 
 
 def _get(name: str, dtype=None):
     return _KERNELS.get(name, dtype)
-
-
-def _tdt(dtype):
-    return {"u8": ti.u8, "u16": ti.u16, "f32": ti.f32, "f64": ti.f64}[_TI_OF[np.dtype(dtype).str]]
-
-
-def _thr_dtype(dtype):
-    """Dtype of the native threshold compared with pixels of ``dtype``."""
-    return np.int32 if np.dtype(dtype).kind == "u" else np.dtype(dtype)
-
-
-def _build_count_runs(dtype):
-    pdt = _tdt(dtype)
-    tdt = _tdt(np.float64) if np.dtype(dtype) == np.float64 else (ti.f32 if np.dtype(dtype) == np.float32 else ti.i32)
-
-    @ti.kernel
-    def count_runs(img: ti.types.ndarray(dtype=pdt, ndim=3), thr: ti.types.ndarray(dtype=tdt, ndim=1),
-                   counts: ti.types.ndarray(dtype=ti.i32, ndim=2)):
-        for b, r in ti.ndrange(img.shape[0], img.shape[1]):
-            t = thr[b]
-            n = 0
-            prev = 0
-            for c in range(img.shape[2]):
-                on = 0
-                if ti.cast(img[b, r, c], tdt) > t:
-                    on = 1
-                n += on & (1 - prev)
-                prev = on
-            counts[b, r] = n
-    return count_runs
-
-
-def _build_fill_runs(dtype):
-    pdt = _tdt(dtype)
-    tdt = _tdt(np.float64) if np.dtype(dtype) == np.float64 else (ti.f32 if np.dtype(dtype) == np.float32 else ti.i32)
-
-    @ti.kernel
-    def fill_runs(img: ti.types.ndarray(dtype=pdt, ndim=3), thr: ti.types.ndarray(dtype=tdt, ndim=1),
-                  bg: ti.types.ndarray(dtype=ti.f64, ndim=1), counts: ti.types.ndarray(dtype=ti.i32, ndim=2),
-                  row_off: ti.types.ndarray(dtype=ti.i32, ndim=2),
-                  rs: ti.types.ndarray(dtype=ti.i32, ndim=1), re: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                  sw: ti.types.ndarray(dtype=ti.f64, ndim=1), sx: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                  sy: ti.types.ndarray(dtype=ti.f64, ndim=1), npx: ti.types.ndarray(dtype=ti.i32, ndim=1)):
-        W = img.shape[2]
-        for b, r in ti.ndrange(img.shape[0], img.shape[1]):
-            if counts[b, r] > 0:  # only rows that have runs are read again
-                t = thr[b]
-                bgb = bg[b]
-                yc = ti.cast(r, ti.f64) + ti.f64(0.5)
-                k = row_off[b, r]
-                is_open = 0
-                start = 0
-                aw = ti.f64(0.0)
-                ax = ti.f64(0.0)
-                for c in range(W + 1):
-                    on = 0
-                    v = ti.f64(0.0)
-                    if c < W:
-                        pv = img[b, r, c]
-                        if ti.cast(pv, tdt) > t:
-                            on = 1
-                            v = ti.cast(pv, ti.f64) - bgb
-                    if on == 1:
-                        if is_open == 0:
-                            is_open = 1
-                            start = c
-                            aw = ti.f64(0.0)
-                            ax = ti.f64(0.0)
-                        aw += v
-                        ax += v * (ti.cast(c, ti.f64) + ti.f64(0.5))
-                    elif is_open == 1:
-                        is_open = 0
-                        rs[k] = start
-                        re[k] = c
-                        sw[k] = aw
-                        sx[k] = ax
-                        sy[k] = aw * yc
-                        npx[k] = c - start
-                        k += 1
-    return fill_runs
-
-
-def _build_union_runs(_dtype=None):
-    @ti.kernel
-    def union_runs(counts: ti.types.ndarray(dtype=ti.i32, ndim=2), row_off: ti.types.ndarray(dtype=ti.i32, ndim=2),
-                   rs: ti.types.ndarray(dtype=ti.i32, ndim=1), re: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                   parent: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                   sw: ti.types.ndarray(dtype=ti.f64, ndim=1), sx: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                   sy: ti.types.ndarray(dtype=ti.f64, ndim=1), npx: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                   flag: ti.types.ndarray(dtype=ti.u8, ndim=1), conn8: ti.i32, min_pix: ti.i32):
-        H = counts.shape[1]
-        for b in range(counts.shape[0]):  # one thread per frame
-            base = row_off[b, 0]
-            end = row_off[b, H - 1] + counts[b, H - 1]
-            for k in range(base, end):
-                parent[k] = k - base
-            d = 1 - conn8  # 8-connectivity: runs touching diagonally join
-            for r in range(1, H):
-                i = row_off[b, r - 1]
-                iend = i + counts[b, r - 1]
-                j = row_off[b, r]
-                jend = j + counts[b, r]
-                while i < iend and j < jend:
-                    if rs[i] + d <= re[j] and rs[j] + d <= re[i]:
-                        _union(parent, base, i - base, j - base)
-                    if re[i] <= re[j]:
-                        i += 1
-                    else:
-                        j += 1
-            for k in range(base, end):  # increasing k: a root precedes its members
-                rt = _find(parent, base, k - base) + base
-                parent[k] = rt - base
-                if rt != k:
-                    sw[rt] += sw[k]
-                    sx[rt] += sx[k]
-                    sy[rt] += sy[k]
-                    npx[rt] += npx[k]
-            for k in range(base, end):
-                flag[k] = ti.u8(0)
-                if parent[k] == k - base and npx[k] >= min_pix:
-                    flag[k] = ti.u8(1)
-    return union_runs
 
 
 def _build_group(_dtype=None):
@@ -299,8 +153,8 @@ def _build_group(_dtype=None):
         for b in range(x.shape[0]):  # one thread per case; O(S^2) window tests
             base = b * S  # root is flat (B * S,): star s of case b at b * S + s, holding a local index
             for s in range(S):
-                c0, c1, r0, r1 = sf.star_window(x[b, s], y[b, s], flux[b, s], ti.cast(ok[b, s], ti.i32),
-                                                sigma, wsig, width, height)
+                c0, c1, r0, r1 = star_psf.star_window(x[b, s], y[b, s], flux[b, s], ti.cast(ok[b, s], ti.i32),
+                                                      sigma, wsig, width, height)
                 win[b, s, 0] = c0
                 win[b, s, 1] = c1
                 win[b, s, 2] = r0
@@ -314,10 +168,10 @@ def _build_group(_dtype=None):
                         # windows overlap or touch (some pixel pair 8-adjacent): same group
                         if (root[base + t] >= 0 and win[b, s, 0] <= win[b, t, 1] and win[b, t, 0] <= win[b, s, 1]
                                 and win[b, s, 2] <= win[b, t, 3] and win[b, t, 2] <= win[b, s, 3]):
-                            _union(root, base, s, t)
+                            union(root, base, s, t)
             for s in range(S):  # resolve; the group's bounding box is grown at its root
                 if root[base + s] >= 0:
-                    rt = _find(root, base, s)
+                    rt = find(root, base, s)
                     root[base + s] = rt
                     if rt != s:
                         win[b, rt, 0] = ti.min(win[b, rt, 0], win[b, s, 0])
@@ -328,7 +182,7 @@ def _build_group(_dtype=None):
 
 
 def _build_patches(dtype):
-    odt = _tdt(dtype)  # the dense renderer's output dtype whose rounding the patches reproduce
+    odt = _PIXEL_TYPES[np.dtype(dtype).str]  # the dense renderer's output dtype whose rounding the patches reproduce
 
     @ti.kernel
     def patches(x: ti.types.ndarray(dtype=ti.f64, ndim=2), y: ti.types.ndarray(dtype=ti.f64, ndim=2),
@@ -336,13 +190,8 @@ def _build_patches(dtype):
                 members: ti.types.ndarray(dtype=ti.i32, ndim=1), mem_off: ti.types.ndarray(dtype=ti.i32, ndim=1),
                 gcase: ti.types.ndarray(dtype=ti.i32, ndim=1), gbox: ti.types.ndarray(dtype=ti.i32, ndim=2),
                 poff: ti.types.ndarray(dtype=ti.i64, ndim=1), val: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                lab: ti.types.ndarray(dtype=ti.i32, ndim=1), sw: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                sx: ti.types.ndarray(dtype=ti.f64, ndim=1), sy: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                npx: ti.types.ndarray(dtype=ti.i32, ndim=1), flag: ti.types.ndarray(dtype=ti.u8, ndim=1),
-                thr: ti.types.ndarray(dtype=ti.f64, ndim=1), bg: ti.types.ndarray(dtype=ti.f64, ndim=1),
                 sigma: ti.f64, wsig: ti.f64, width: ti.i32, height: ti.i32,
-                base_e: ti.f64, full_well: ti.f64, gain: ti.f64, bias: ti.f64, max_adu: ti.f64,
-                quantize: ti.i32, conn8: ti.i32, min_pix: ti.i32):
+                base_e: ti.f64, full_well: ti.f64, gain: ti.f64, bias: ti.f64, max_adu: ti.f64, quantize: ti.i32):
         S = x.shape[1]
         for g in range(gcase.shape[0]):  # one thread per patch (group of touching star windows)
             b = gcase[g]
@@ -355,57 +204,17 @@ def _build_patches(dtype):
                 val[off + i] = ti.f32(0.0)
             for m in range(mem_off[g], mem_off[g + 1]):  # stars in increasing index, as the dense splat
                 s = members[m] - b * S
-                c0, c1, r0, r1 = sf.star_window(x[b, s], y[b, s], flux[b, s], ti.cast(ok[b, s], ti.i32),
-                                                sigma, wsig, width, height)
-                sf.splat_star(val, 0, off, pw, pr0, pc0, True, x[b, s], y[b, s], flux[b, s], sigma,
-                              c0, c1, r0, r1)
-            t = thr[b]
-            bgb = bg[b]
-            for i in range(n):
-                v = ti.cast(ti.cast(sf.ideal_adu(val[off + i], base_e, full_well, gain, bias, max_adu, quantize),
-                                    odt), ti.f64)
-                val[off + i] = ti.cast(v, ti.f32)
-                lab[off + i] = -1
-                sw[off + i] = ti.f64(0.0)
-                sx[off + i] = ti.f64(0.0)
-                sy[off + i] = ti.f64(0.0)
-                npx[off + i] = 0
-                flag[off + i] = ti.u8(0)
-                if v > t:
-                    lab[off + i] = i
-            for i in range(n):  # raster-order union with the already-visited neighbours
-                if lab[off + i] >= 0:
-                    r = i // pw
-                    c = i - r * pw
-                    if c > 0 and lab[off + i - 1] >= 0:
-                        _union(lab, off, i, i - 1)
-                    if r > 0:
-                        if lab[off + i - pw] >= 0:
-                            _union(lab, off, i, i - pw)
-                        if conn8 != 0:
-                            if c > 0 and lab[off + i - pw - 1] >= 0:
-                                _union(lab, off, i, i - pw - 1)
-                            if c < pw - 1 and lab[off + i - pw + 1] >= 0:
-                                _union(lab, off, i, i - pw + 1)
-            for i in range(n):
-                if lab[off + i] >= 0:
-                    rt = _find(lab, off, i)
-                    lab[off + i] = rt
-                    r = i // pw
-                    c = i - r * pw
-                    w = ti.cast(val[off + i], ti.f64) - bgb
-                    sw[off + rt] += w
-                    sx[off + rt] += w * (ti.cast(pc0 + c, ti.f64) + ti.f64(0.5))
-                    sy[off + rt] += w * (ti.cast(pr0 + r, ti.f64) + ti.f64(0.5))
-                    npx[off + rt] += 1
-            for i in range(n):
-                if lab[off + i] == i and npx[off + i] >= min_pix:
-                    flag[off + i] = ti.u8(1)
+                c0, c1, r0, r1 = star_psf.star_window(x[b, s], y[b, s], flux[b, s], ti.cast(ok[b, s], ti.i32),
+                                                      sigma, wsig, width, height)
+                star_psf.splat_star(val, 0, off, pw, pr0, pc0, True, x[b, s], y[b, s], flux[b, s], sigma,
+                                    c0, c1, r0, r1)
+            for i in range(n):  # the dense path's pixel values (its output dtype's rounding), held in f32
+                val[off + i] = ti.cast(ti.cast(sf.ideal_adu(val[off + i], base_e, full_well, gain, bias, max_adu,
+                                                            quantize), odt), ti.f32)
     return patches
 
 
-_KERNELS.builders.update({"count_runs": _build_count_runs, "fill_runs": _build_fill_runs,
-                         "union_runs": _build_union_runs, "group": _build_group, "patches": _build_patches})
+_KERNELS.builders.update({"group": _build_group, "patches": _build_patches})
 
 
 # ============================================================================ helpers
@@ -452,19 +261,6 @@ def _levels(cfg: DetectConfig, B: int, bg_est=None, sigma_est=None):
     return bg, thr
 
 
-def _native_threshold(thr: np.ndarray, dtype) -> np.ndarray:
-    """Thresholds t' of the images' own type with (v > t') == (v > t) for every pixel value v."""
-    dt = np.dtype(dtype)
-    if dt.kind == "u":
-        return np.clip(np.floor(thr), -1, np.iinfo(dt).max).astype(np.int32)
-    if dt == np.float32:
-        t32 = thr.astype(np.float32)
-        down = t32.astype(np.float64) > thr
-        t32[down] = np.nextafter(t32[down], np.float32(-np.inf))
-        return t32
-    return thr.astype(np.float64)
-
-
 def _assemble(case, sw, sx, sy, npx, B, cfg: DetectConfig, bg, thr) -> Detections:
     """Sort blobs by (case, flux desc, y, x), cap per frame, build :class:`Detections`."""
     x = sx / sw
@@ -483,6 +279,14 @@ def _assemble(case, sw, sx, sy, npx, B, cfg: DetectConfig, bg, thr) -> Detection
     return Detections(case=case.astype(np.int32), x=x.astype(np.float64), y=y.astype(np.float64),
                       flux=sw.astype(np.float64), npix=npx.astype(np.int32), offsets=offsets,
                       background_adu=np.asarray(bg, np.float64), threshold_adu=np.asarray(thr, np.float64))
+
+
+def _from_components(comp: Components, case_of_seg, B, cfg: DetectConfig, bg, thr) -> Detections:
+    """Detections from labelled components: one blob per component of at least ``cfg.min_pixels`` pixels."""
+    k = np.flatnonzero(comp.npix >= cfg.min_pixels)
+    st = comp.moments(k)
+    case = np.asarray(case_of_seg)[comp.seg[k]].astype(np.int32)
+    return _assemble(case, st[:, 6], st[:, 7], st[:, 8], comp.npix[k], B, cfg, bg, thr)
 
 
 def _concat(parts: list) -> Detections:
@@ -521,7 +325,7 @@ def detect_stars(images: np.ndarray, cfg: DetectConfig = DetectConfig()) -> Dete
     images = np.asarray(images)
     if images.ndim != 3:
         raise ValueError(f"images must have shape (B, H, W), got {images.shape}")
-    if np.dtype(images.dtype).str not in _TI_OF:
+    if images.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
         raise ValueError(f"images must be uint8, uint16, float32 or float64, got {images.dtype}")
     B, H, W = images.shape
     if H * W > 1 << 30:
@@ -537,34 +341,8 @@ def detect_stars(images: np.ndarray, cfg: DetectConfig = DetectConfig()) -> Dete
     bg, thr = _levels(cfg, B, bg_e, sig_e)
     if B == 0 or H == 0 or W == 0:
         return _empty(B, cfg, bg, thr)
-    tn = _native_threshold(thr, images.dtype)
-    counts = np.empty((B, H), np.int32)
-    _get("count_runs", images.dtype)(images, tn, counts)
-    total = int(counts.sum(dtype=np.int64))
-    if total == 0:
-        return _empty(B, cfg, bg, thr)
-    if total >= 2 ** 31 - 1:
-        raise ValueError(f"too many above-threshold runs ({total}); raise the threshold")
-    row_off = np.empty((B, H), np.int32)
-    flat = counts.ravel()
-    np.cumsum(flat[:-1], out=row_off.ravel()[1:])
-    row_off.ravel()[0] = 0
-    rs = np.empty(total, np.int32)
-    re = np.empty(total, np.int32)
-    sw = np.empty(total, np.float64)
-    sx = np.empty(total, np.float64)
-    sy = np.empty(total, np.float64)
-    npx = np.empty(total, np.int32)
-    _get("fill_runs", images.dtype)(images, tn, bg, counts, row_off, rs, re, sw, sx, sy, npx)
-    parent = np.empty(total, np.int32)
-    flag = np.empty(total, np.uint8)
-    _get("union_runs")(counts, row_off, rs, re, parent, sw, sx, sy, npx, flag,
-                       int(cfg.connectivity == 8), int(cfg.min_pixels))
-    k = np.flatnonzero(flag)
-    # frame of run k: last frame whose first run index is <= k (frames without runs share it)
-    fstart = row_off[:, 0].astype(np.int64)
-    case = np.searchsorted(fstart, k, side="right") - 1
-    return _assemble(case.astype(np.int32), sw[k], sx[k], sy[k], npx[k], B, cfg, bg, thr)
+    comp = label_frames(images, thr, offset=bg, connectivity=cfg.connectivity)
+    return _from_components(comp, np.arange(B), B, cfg, bg, thr)
 
 
 def render_and_detect_ideal(x, y, flux_e, valid, width: int, height: int,
@@ -633,17 +411,11 @@ def render_and_detect_ideal(x, y, flux_e, valid, width: int, height: int,
     mem_off = np.zeros(G + 1, np.int32)
     np.cumsum(np.bincount(mg, minlength=G), out=mem_off[1:])
     val = np.empty(total, np.float32)
-    lab = np.empty(total, np.int32)
-    sw = np.empty(total, np.float64)
-    sx = np.empty(total, np.float64)
-    sy = np.empty(total, np.float64)
-    npx = np.empty(total, np.int32)
-    flag = np.empty(total, np.uint8)
-    _get("patches", dt)(x, y, f, ok, members, mem_off, gb.astype(np.int32), gbox, poff, val, lab, sw, sx, sy,
-                        npx, flag, thr, bg, float(sensor.psf_sigma_px), float(sensor.psf_window_sigma), W, H,
+    _get("patches", dt)(x, y, f, ok, members, mem_off, gb.astype(np.int32), gbox, poff, val,
+                        float(sensor.psf_sigma_px), float(sensor.psf_window_sigma), W, H,
                         float(sensor.base_e), float(sensor.full_well_e), float(sensor.gain_e_per_adu),
-                        float(sensor.bias_adu), float(sensor.max_adu), int(sensor.quantize),
-                        int(detect.connectivity == 8), int(detect.min_pixels))
-    k = np.flatnonzero(flag)
-    case = gb[np.searchsorted(poff, k, side="right") - 1]
-    return _assemble(case.astype(np.int32), sw[k], sx[k], sy[k], npx[k], B, detect, bg, thr)
+                        float(sensor.bias_adu), float(sensor.max_adu), int(sensor.quantize))
+    # each patch is one segment of the labeller, at its place in its frame
+    comp = label_segments(val, poff[:-1], gbox[:, 1] - gbox[:, 0], gbox[:, 3] - gbox[:, 2], gbox[:, 0], gbox[:, 2],
+                          gb, thr, offset=bg, connectivity=detect.connectivity)
+    return _from_components(comp, gb, B, detect, bg, thr)

@@ -46,9 +46,43 @@ STREAM_SHOT = 1
 STREAM_READ = 2
 STREAM_HOT = 3
 STREAM_FALSE_STAR = 4
+STREAM_PROX_READ = 0   # proximity renderer's read noise (Box-Muller pairs; kept at 0 for bit-identical replays)
 STREAM_TEST = 99
 
 _INV_2_53 = 1.0 / 9007199254740992.0  # 2^-53
+_TWO_PI_F32 = float(np.float32(2.0 * math.pi))  # 6.2831854820251465
+
+
+# Polynomial coefficients, highest power first (evaluated by :func:`_horner`, unrolled at compile time).
+_AS241_A = (  # normal_icdf, central region, numerator
+    2.5090809287301226727e3, 3.3430575583588128105e4, 6.7265770927008700853e4,
+    4.5921953931549871457e4, 1.3731693765509461125e4, 1.9715909503065514427e3,
+    1.3314166789178437745e2, 3.3871328727963666080e0)
+_AS241_B = (  # normal_icdf, central region, denominator
+    5.2264952788528545610e3, 2.8729085735721942674e4, 3.9307895800092710610e4,
+    2.1213794301586595867e4, 5.3941960214247511077e3, 6.8718700749205790830e2,
+    4.2313330701600911252e1, 1.0)
+_AS241_C = (  # normal_icdf, tails r <= 5, numerator
+    7.74545014278341407640e-4, 2.27238449892691845833e-2, 2.41780725177450611770e-1,
+    1.27045825245236838258e0, 3.64784832476320460504e0, 5.76949722146069140550e0,
+    4.63033784615654529590e0, 1.42343711074968357734e0)
+_AS241_D = (  # normal_icdf, tails r <= 5, denominator
+    1.05075007164441684324e-9, 5.47593808499534494600e-4, 1.51986665636164571966e-2,
+    1.48103976427480074590e-1, 6.89767334985100004550e-1, 1.67638483018380384940e0,
+    2.05319162663775882187e0, 1.0)
+_AS241_E = (  # normal_icdf, far tails, numerator
+    2.01033439929228813265e-7, 2.71155556874348757815e-5, 1.24266094738807843860e-3,
+    2.65321895265761230930e-2, 2.96560571828504891230e-1, 1.78482653991729133580e0,
+    5.46378491116411436990e0, 6.65790464350110377720e0)
+_AS241_F = (  # normal_icdf, far tails, denominator
+    2.04426310338993978564e-15, 1.42151175831644588870e-7, 1.84631831751005468180e-5,
+    7.86869131145613259100e-4, 1.48753612908506148525e-2, 1.36929880922735805310e-1,
+    5.99832206555887937690e-1, 1.0)
+_LOGGAM = (  # log_gamma's Stirling series in 1/x^2
+    -1.39243221690590e00, 1.796443723688307e-01, -2.955065359477124e-02,
+    6.410256410256410e-03, -1.917526917526918e-03, 8.417508417508418e-04,
+    -5.952380952380952e-04, 7.936507936507937e-04, -2.777777777777778e-03,
+    8.333333333333333e-02)
 
 
 # ----------------------------------------------------------------------------- Taichi funcs
@@ -87,6 +121,15 @@ def uniform(seed, stream, draw, index):
 
 
 @ti.func
+def _horner(coeffs: ti.template(), r):
+    """Polynomial with f64 coefficients ``coeffs`` (a tuple, highest power first) at f64 r, by Horner."""
+    acc = ti.f64(coeffs[0])
+    for i in ti.static(range(1, len(coeffs))):
+        acc = acc * r + ti.f64(coeffs[i])
+    return acc
+
+
+@ti.func
 def normal_icdf(p):
     """Standard normal quantile Phi^-1(p) for f64 p in (0, 1), relative accuracy ~1e-16.
 
@@ -98,23 +141,7 @@ def normal_icdf(p):
     x = ti.f64(0.0)
     if ti.abs(q) <= ti.f64(0.425):
         r = ti.f64(0.180625) - q * q
-        num = ti.f64(2.5090809287301226727e3)
-        num = num * r + ti.f64(3.3430575583588128105e4)
-        num = num * r + ti.f64(6.7265770927008700853e4)
-        num = num * r + ti.f64(4.5921953931549871457e4)
-        num = num * r + ti.f64(1.3731693765509461125e4)
-        num = num * r + ti.f64(1.9715909503065514427e3)
-        num = num * r + ti.f64(1.3314166789178437745e2)
-        num = num * r + ti.f64(3.3871328727963666080e0)
-        den = ti.f64(5.2264952788528545610e3)
-        den = den * r + ti.f64(2.8729085735721942674e4)
-        den = den * r + ti.f64(3.9307895800092710610e4)
-        den = den * r + ti.f64(2.1213794301586595867e4)
-        den = den * r + ti.f64(5.3941960214247511077e3)
-        den = den * r + ti.f64(6.8718700749205790830e2)
-        den = den * r + ti.f64(4.2313330701600911252e1)
-        den = den * r + ti.f64(1.0)
-        x = q * num / den
+        x = q * _horner(_AS241_A, r) / _horner(_AS241_B, r)
     else:
         r = p
         if q > ti.f64(0.0):
@@ -124,40 +151,12 @@ def normal_icdf(p):
         den = ti.f64(1.0)
         if r <= ti.f64(5.0):
             r = r - ti.f64(1.6)
-            num = ti.f64(7.74545014278341407640e-4)
-            num = num * r + ti.f64(2.27238449892691845833e-2)
-            num = num * r + ti.f64(2.41780725177450611770e-1)
-            num = num * r + ti.f64(1.27045825245236838258e0)
-            num = num * r + ti.f64(3.64784832476320460504e0)
-            num = num * r + ti.f64(5.76949722146069140550e0)
-            num = num * r + ti.f64(4.63033784615654529590e0)
-            num = num * r + ti.f64(1.42343711074968357734e0)
-            den = ti.f64(1.05075007164441684324e-9)
-            den = den * r + ti.f64(5.47593808499534494600e-4)
-            den = den * r + ti.f64(1.51986665636164571966e-2)
-            den = den * r + ti.f64(1.48103976427480074590e-1)
-            den = den * r + ti.f64(6.89767334985100004550e-1)
-            den = den * r + ti.f64(1.67638483018380384940e0)
-            den = den * r + ti.f64(2.05319162663775882187e0)
-            den = den * r + ti.f64(1.0)
+            num = _horner(_AS241_C, r)
+            den = _horner(_AS241_D, r)
         else:
             r = r - ti.f64(5.0)
-            num = ti.f64(2.01033439929228813265e-7)
-            num = num * r + ti.f64(2.71155556874348757815e-5)
-            num = num * r + ti.f64(1.24266094738807843860e-3)
-            num = num * r + ti.f64(2.65321895265761230930e-2)
-            num = num * r + ti.f64(2.96560571828504891230e-1)
-            num = num * r + ti.f64(1.78482653991729133580e0)
-            num = num * r + ti.f64(5.46378491116411436990e0)
-            num = num * r + ti.f64(6.65790464350110377720e0)
-            den = ti.f64(2.04426310338993978564e-15)
-            den = den * r + ti.f64(1.42151175831644588870e-7)
-            den = den * r + ti.f64(1.84631831751005468180e-5)
-            den = den * r + ti.f64(7.86869131145613259100e-4)
-            den = den * r + ti.f64(1.48753612908506148525e-2)
-            den = den * r + ti.f64(1.36929880922735805310e-1)
-            den = den * r + ti.f64(5.99832206555887937690e-1)
-            den = den * r + ti.f64(1.0)
+            num = _horner(_AS241_E, r)
+            den = _horner(_AS241_F, r)
         x = num / den
         if q < ti.f64(0.0):
             x = -x
@@ -177,6 +176,25 @@ def normal(seed, stream, index):
 
 
 @ti.func
+def derived_key(key):
+    """A second u64 key from ``key`` (a :func:`stream_key`): mix64(key ^ GOLDEN)."""
+    return mix64(key ^ ti.u64(GOLDEN))
+
+
+@ti.func
+def normal_box_muller(key0, key1, index):
+    """Standard normal f64 by Box-Muller (Box & Muller 1958, cosine branch) from the uniforms of
+    (key0, index) and (key1, index): sqrt(-2 ln u1) cos(2 pi u2).
+
+    The proximity renderer's read noise (STREAM_PROX_READ, key1 = :func:`derived_key` of key0).  2 pi is
+    the float32-rounded constant that code has always used, so its frames replay bit-identically.
+    """
+    u1 = u01_key(key0, index)
+    u2 = u01_key(key1, index)
+    return ti.sqrt(ti.f64(-2.0) * ti.log(u1)) * ti.cos(ti.f64(_TWO_PI_F32) * u2)
+
+
+@ti.func
 def log_gamma(x):
     """ln Gamma(x) for f64 x >= 1: Stirling series with upward shift below 7.
 
@@ -190,16 +208,7 @@ def log_gamma(x):
             n = ti.cast(ti.f64(7.0) - x, ti.i32)
         x0 = x + ti.cast(n, ti.f64)
         x2 = (ti.f64(1.0) / x0) * (ti.f64(1.0) / x0)
-        gl0 = ti.f64(-1.39243221690590e00)
-        gl0 = gl0 * x2 + ti.f64(1.796443723688307e-01)
-        gl0 = gl0 * x2 + ti.f64(-2.955065359477124e-02)
-        gl0 = gl0 * x2 + ti.f64(6.410256410256410e-03)
-        gl0 = gl0 * x2 + ti.f64(-1.917526917526918e-03)
-        gl0 = gl0 * x2 + ti.f64(8.417508417508418e-04)
-        gl0 = gl0 * x2 + ti.f64(-5.952380952380952e-04)
-        gl0 = gl0 * x2 + ti.f64(7.936507936507937e-04)
-        gl0 = gl0 * x2 + ti.f64(-2.777777777777778e-03)
-        gl0 = gl0 * x2 + ti.f64(8.333333333333333e-02)
+        gl0 = _horner(_LOGGAM, x2)
         gl = gl0 / x0 + ti.f64(0.5 * 1.8378770664093453) + (x0 - ti.f64(0.5)) * ti.log(x0) - x0
         for _k in range(n):
             x0 -= ti.f64(1.0)
@@ -322,18 +331,31 @@ def stream_key_np(seed, stream: int, draw: int) -> np.ndarray:
         return mix64_np(np.asarray(seed, dtype=np.uint64) ^ (sd * _U(K_STREAM) + _U(K_OFFSET)))
 
 
-def hash_np(seed, stream: int, draw: int, index) -> np.ndarray:
-    """uint64 words for broadcastable ``seed`` and ``index`` arrays (twin of ``hash_key``)."""
-    key = stream_key_np(seed, stream, draw)
+def hash_key_np(key, index) -> np.ndarray:
+    """numpy twin of :func:`hash_key`: uint64 words for broadcastable uint64 ``key`` and ``index`` arrays."""
     idx = np.asarray(index, dtype=np.uint64)
     with np.errstate(over="ignore"):
-        return mix64_np(key + (idx + _U(1)) * _U(GOLDEN))
+        return mix64_np(np.asarray(key, dtype=np.uint64) + (idx + _U(1)) * _U(GOLDEN))
+
+
+def u01_key_np(key, index) -> np.ndarray:
+    """numpy twin of :func:`u01_key`: uniform float64 in (0, 1)."""
+    return ((hash_key_np(key, index) >> _U(11)).astype(np.float64) + 0.5) * _INV_2_53
+
+
+def derived_key_np(key) -> np.ndarray:
+    """numpy twin of :func:`derived_key`."""
+    return mix64_np(np.asarray(key, dtype=np.uint64) ^ _U(GOLDEN))
+
+
+def hash_np(seed, stream: int, draw: int, index) -> np.ndarray:
+    """uint64 words for broadcastable ``seed`` and ``index`` arrays (twin of ``hash_key``)."""
+    return hash_key_np(stream_key_np(seed, stream, draw), index)
 
 
 def uniform_np(seed, stream: int, draw: int, index) -> np.ndarray:
     """Uniform float64 in (0, 1), bit-identical to :func:`uniform`."""
-    h = hash_np(seed, stream, draw, index)
-    return ((h >> _U(11)).astype(np.float64) + 0.5) * _INV_2_53
+    return u01_key_np(stream_key_np(seed, stream, draw), index)
 
 
 def as_seeds(seeds, n: int, name: str = "seeds") -> np.ndarray:

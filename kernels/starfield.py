@@ -12,11 +12,11 @@ Signal model (electrons, per pixel (r, c) of case b)::
     e      = e + read_noise * N(0, 1)
     ADU    = clip(floor(e / gain + bias_adu + 1e-9), 0, 2^bit_depth - 1)   (no floor if not quantize)
 
-The PSF is a circular Gaussian of standard deviation ``psf_sigma_px`` integrated exactly over each
-pixel's area (the erf-difference form above; Phi is the standard normal CDF), evaluated in a window of
-half-width ``ceil(psf_window_sigma * sigma + 1)`` pixels around the star's pixel, so at most
-2 * Phi(-psf_window_sigma) of the flux (6.3e-5 for 4 sigma) falls outside per axis.  Stars are added in
-star order, one case per thread (no atomics), so a case's float sums do not depend on scheduling.
+Stage 1, the signal S (Gaussian PSFs of standard deviation ``psf_sigma_px`` integrated exactly over each
+pixel, in a window of half-width ``ceil(psf_window_sigma * sigma + 1)`` px, so at most 2 * Phi(-psf_window_sigma)
+of the flux (6.3e-5 for 4 sigma) falls outside per axis), is :mod:`dualsight.kernels.star_psf`.  This module
+holds the sensor model (:class:`SensorConfig`), stage 2 (the ``finalize`` kernel: charge, noise, ADC) and
+:func:`render_star_fields`, which runs both.
 
 Random numbers come from :mod:`dualsight.kernels.rng` (a counter-based hash of (case seed, stream,
 pixel index)), never from ``ti.random``: a case renders bit-identically whatever batch, position or
@@ -38,6 +38,7 @@ Taichi is initialised lazily (``dualsight.kernels._runtime.ensure_init``) on the
 """
 
 
+import functools
 import math
 import threading
 from dataclasses import dataclass, fields
@@ -45,13 +46,13 @@ from dataclasses import dataclass, fields
 import numpy as np
 import taichi as ti
 
-from dualsight.kernels import rng
+from dualsight.kernels import rng, star_psf
+from dualsight.kernels._config import is_finite_number, is_int, reject
 from dualsight.kernels._runtime import KernelCache
 
 __all__ = ["SensorConfig", "flux_from_magnitude", "render_star_fields", "false_star_lists",
            "append_false_stars", "release_scratch"]
 
-_INV_SQRT2 = 1.0 / math.sqrt(2.0)
 MAX_CHUNK_PIXELS = 1 << 26  # pixels per kernel call: 256 MB float32 scratch at most, indices fit in int32
 _QUANT_EPS = 1e-9  # ADU; keeps exact multiples of the gain from flooring one count low
 
@@ -107,12 +108,7 @@ class SensorConfig:
     false_star_flux_max_e: float = 20000.0
 
     def __post_init__(self):
-        def bad(name, allowed):
-            raise ValueError(f"SensorConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
-
-        def finite(v):
-            return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
+        bad = functools.partial(reject, self)
         for name, lo, lo_open in [("psf_sigma_px", 0.05, False), ("exposure_s", 0.0, True),
                                   ("gain_e_per_adu", 0.0, True), ("full_well_e", 0.0, True),
                                   ("zero_mag_rate_e_per_s", 0.0, False), ("psf_window_sigma", 1.0, False),
@@ -120,20 +116,19 @@ class SensorConfig:
                                   ("sky_background_e", 0.0, False), ("hot_pixel_e", 0.0, False),
                                   ("false_star_flux_min_e", 0.0, True)]:
             v = getattr(self, name)
-            if not finite(v) or (v <= lo if lo_open else v < lo):
+            if not is_finite_number(v) or (v <= lo if lo_open else v < lo):
                 bad(name, f"a finite number {'>' if lo_open else '>='} {lo}")
         if self.psf_sigma_px > 50:
             bad("psf_sigma_px", "<= 50 px")
-        if not finite(self.bias_adu):
+        if not is_finite_number(self.bias_adu):
             bad("bias_adu", "finite")
-        if not isinstance(self.bit_depth, int) or isinstance(self.bit_depth, bool) or not 1 <= self.bit_depth <= 24:
+        if not is_int(self.bit_depth) or not 1 <= self.bit_depth <= 24:
             bad("bit_depth", "an integer in [1, 24]")
-        if not finite(self.hot_pixel_fraction) or not 0.0 <= self.hot_pixel_fraction <= 1.0:
+        if not is_finite_number(self.hot_pixel_fraction) or not 0.0 <= self.hot_pixel_fraction <= 1.0:
             bad("hot_pixel_fraction", "in [0, 1]")
-        if (not isinstance(self.false_stars_per_frame, int) or isinstance(self.false_stars_per_frame, bool)
-                or not 0 <= self.false_stars_per_frame <= 10_000):
+        if not is_int(self.false_stars_per_frame) or not 0 <= self.false_stars_per_frame <= 10_000:
             bad("false_stars_per_frame", "an integer in [0, 10000]")
-        if not finite(self.false_star_flux_max_e) or self.false_star_flux_max_e < self.false_star_flux_min_e:
+        if not is_finite_number(self.false_star_flux_max_e) or self.false_star_flux_max_e < self.false_star_flux_min_e:
             bad("false_star_flux_max_e", f">= false_star_flux_min_e ({self.false_star_flux_min_e})")
         if self.hot_pixel_seed is not None and (not isinstance(self.hot_pixel_seed, int)
                                                 or not 0 <= self.hot_pixel_seed < 2 ** 64):
@@ -191,92 +186,6 @@ def flux_from_magnitude(vmag, cfg: SensorConfig = SensorConfig()) -> np.ndarray:
 
 # ============================================================================ Taichi funcs
 @ti.func
-def erfc(x):
-    """Complementary error function, f64, fractional error < 1.2e-7 everywhere.
-
-    Chebyshev fit of Press et al., Numerical Recipes (2nd ed., section 6.2, ``erfcc``).
-    """
-    z = ti.abs(x)
-    t = ti.f64(1.0) / (ti.f64(1.0) + ti.f64(0.5) * z)
-    p = ti.f64(0.17087277)
-    p = ti.f64(-0.82215223) + t * p
-    p = ti.f64(1.48851587) + t * p
-    p = ti.f64(-1.13520398) + t * p
-    p = ti.f64(0.27886807) + t * p
-    p = ti.f64(-0.18628806) + t * p
-    p = ti.f64(0.09678418) + t * p
-    p = ti.f64(0.37409196) + t * p
-    p = ti.f64(1.00002368) + t * p
-    ans = t * ti.exp(-z * z - ti.f64(1.26551223) + t * p)
-    if x < ti.f64(0.0):
-        ans = ti.f64(2.0) - ans
-    return ans
-
-
-@ti.func
-def phi(z):
-    """Standard normal CDF Phi(z) = erfc(-z / sqrt 2) / 2 (f64)."""
-    return ti.f64(0.5) * erfc(-z * ti.f64(_INV_SQRT2))
-
-
-@ti.func
-def star_window(xc, yc, flux, ok, sigma, wsig, width, height):
-    """Pixel window of one star: (c0, c1, r0, r1), half-open, clipped to the image.
-
-    Half-width R = ceil(wsig * sigma + 1) around the star's pixel (floor(xc), floor(yc)).
-    Returns an empty window (c1 <= c0) for invalid, non-finite, non-positive or off-image stars.
-    """
-    c0 = 0
-    c1 = 0
-    r0 = 0
-    r1 = 0
-    lim = ti.f64(1.0e7)
-    # the comparisons are False for NaN, so NaN coordinates or fluxes give an empty window
-    if ok != 0 and flux > ti.f64(0.0) and flux < ti.f64(1.0e300) and ti.abs(xc) < lim and ti.abs(yc) < lim:
-        R = ti.cast(ti.ceil(wsig * sigma + ti.f64(1.0)), ti.i32)
-        ci = ti.cast(ti.floor(xc), ti.i32)
-        ri = ti.cast(ti.floor(yc), ti.i32)
-        c0 = ti.max(ci - R, 0)
-        c1 = ti.min(ci + R + 1, width)
-        r0 = ti.max(ri - R, 0)
-        r1 = ti.min(ri + R + 1, height)
-        if c1 <= c0 or r1 <= r0:
-            c0 = 0
-            c1 = 0
-            r0 = 0
-            r1 = 0
-    return c0, c1, r0, r1
-
-
-@ti.func
-def splat_star(buf: ti.template(), b, base, pitch, pr0, pc0, flat: ti.template(), xc, yc, flux, sigma,
-               c0, c1, r0, r1):
-    """Add one star's pixel-integrated Gaussian to ``buf`` over the window [c0,c1) x [r0,r1).
-
-    flat=False: ``buf`` is (B, H, W) and pixel (r, c) is ``buf[b, r, c]``.
-    flat=True: ``buf`` is 1-D and pixel (r, c) is ``buf[base + (r - pr0) * pitch + (c - pc0)]``.
-    Each pixel gets f32(flux * fy * fx) with fx, fy erf differences in f64 (CDF carried between edges).
-    Not atomic: the caller must own the frame/patch (one thread per case or per patch).
-    """
-    inv = ti.f64(1.0) / sigma
-    py_lo = phi((ti.cast(r0, ti.f64) - yc) * inv)
-    for r in range(r0, r1):
-        py_hi = phi((ti.cast(r + 1, ti.f64) - yc) * inv)
-        fy = flux * (py_hi - py_lo)
-        py_lo = py_hi
-        px_lo = phi((ti.cast(c0, ti.f64) - xc) * inv)
-        for c in range(c0, c1):
-            px_hi = phi((ti.cast(c + 1, ti.f64) - xc) * inv)
-            v = ti.cast(fy * (px_hi - px_lo), ti.f32)
-            px_lo = px_hi
-            if ti.static(flat):
-                i = base + (r - pr0) * pitch + (c - pc0)
-                buf[i] = buf[i] + v
-            else:
-                buf[b, r, c] = buf[b, r, c] + v
-
-
-@ti.func
 def ideal_adu(s, base_e, full_well, gain, bias, max_adu, quantize):
     """ADU of a pixel holding f32 star signal ``s`` (e-) without random effects (f64 result)."""
     e = ti.min(ti.cast(s, ti.f64) + base_e, full_well)
@@ -292,22 +201,6 @@ _KERNELS = KernelCache()      # builders registered at the end of the module
 
 def _get(name: str, dtype=None):
     return _KERNELS.get(name, dtype)
-
-
-def _build_splat(_dtype=None):
-    @ti.kernel
-    def splat(x: ti.types.ndarray(dtype=ti.f64, ndim=2), y: ti.types.ndarray(dtype=ti.f64, ndim=2),
-              flux: ti.types.ndarray(dtype=ti.f64, ndim=2), ok: ti.types.ndarray(dtype=ti.u8, ndim=2),
-              buf: ti.types.ndarray(dtype=ti.f32, ndim=3), sigma: ti.f64, wsig: ti.f64):
-        W = buf.shape[2]
-        H = buf.shape[1]
-        for b in range(x.shape[0]):  # parallel over cases; stars of a case in order (deterministic sums)
-            for s in range(x.shape[1]):
-                c0, c1, r0, r1 = star_window(x[b, s], y[b, s], flux[b, s], ti.cast(ok[b, s], ti.i32),
-                                             sigma, wsig, W, H)
-                if c1 > c0:
-                    splat_star(buf, b, 0, 0, 0, 0, False, x[b, s], y[b, s], flux[b, s], sigma, c0, c1, r0, r1)
-    return splat
 
 
 def _build_finalize(dtype):
@@ -378,7 +271,7 @@ def _build_finalize(dtype):
     return finalize
 
 
-_KERNELS.builders.update({"splat": _build_splat, "finalize": _build_finalize})
+_KERNELS.builders.update({"finalize": _build_finalize})
 
 
 # ============================================================================ scratch buffer
@@ -531,7 +424,6 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
                          f"got {out.dtype} {out.shape}")
     if B == 0:
         return out
-    splat = _get("splat")
     fin = _get("finalize", dt)
     hot_seed = cfg.hot_pixel_seed
     # Poisson CDF table of the sky level (dark + background), shared by most pixels; exact inversion
@@ -544,8 +436,8 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
                 sl = slice(b0, min(B, b0 + chunk))
                 n = sl.stop - sl.start
                 buf = _scratch.get(n * H * W)
-                splat(x[sl], y[sl], f[sl], ok[sl], buf.reshape(n, H, W), float(cfg.psf_sigma_px),
-                      float(cfg.psf_window_sigma))
+                star_psf.splat_stars(x[sl], y[sl], f[sl], ok[sl], buf.reshape(n, H, W), cfg.psf_sigma_px,
+                                     cfg.psf_window_sigma)
                 fin(buf, out[sl].reshape(-1), n, H, W, seeds[sl], np.uint64(hot_seed or 0),
                     int(hot_seed is not None), float(cfg.base_e), float(cfg.full_well_e), float(cfg.gain_e_per_adu),
                     float(cfg.bias_adu), float(cfg.max_adu), int(cfg.quantize), int(cfg.shot_noise),

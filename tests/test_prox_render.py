@@ -293,6 +293,22 @@ def test_sensor_effects():
     assert not np.array_equal(noisy[0], noisy[1])
 
 
+def test_read_noise_is_the_counter_based_rng_stream():
+    # pixel (r, c) of a frame with seed s: Box-Muller of the uniforms (numpy twins of kernels/rng.py) at counter
+    # r * W + c under key0 = stream_key(s, STREAM_PROX_READ, 0) and key1 = derived_key(key0); 2 pi in float32
+    from dualsight.kernels import rng
+    seeds = np.array([7, 2**64 - 5, 123456789], np.uint64)
+    H, W = 40, 56
+    got = KP.apply_sensor(np.zeros((3, H, W), np.float32), read_noise=2.5, seeds=seeds)
+    idx = np.arange(H * W, dtype=np.uint64)[None]
+    key0 = rng.stream_key_np(seeds[:, None], rng.STREAM_PROX_READ, 0)
+    u1, u2 = rng.u01_key_np(key0, idx), rng.u01_key_np(rng.derived_key_np(key0), idx)
+    g = np.sqrt(-2.0 * np.log(u1)) * np.cos(float(np.float32(2 * np.pi)) * u2)
+    expect = (np.float32(2.5) * g.astype(np.float32)).reshape(3, H, W)
+    np.testing.assert_allclose(got, expect, rtol=1e-6, atol=1e-6)   # libm cos/log may differ in the last bit
+    assert np.mean(got == expect) > 0.99
+
+
 def test_occlusion_partial_pixels_far_composite():
     # far away, components overlap inside partly covered pixels: the coverage must be the union of
     # the components' silhouettes.  Truth: each component rendered alone on a 32x finer camera,

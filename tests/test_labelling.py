@@ -1,0 +1,127 @@
+"""The one connected-component labeller (kernels/labelling.py) against an independent one.
+
+Truth: OpenCV's ``connectedComponentsWithStats`` (labels, areas, bounding boxes, centroids) on random
+binary images, and brute-force numpy sums over OpenCV's labels for the moment sums.  Labels are compared
+up to renumbering: the map from our labels to OpenCV's must be a bijection on the foreground.
+"""
+
+import os
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+from dualsight.kernels.labelling import NSTAT, label_frames, label_segments, native_threshold
+
+_N = int(os.environ.get("DUALSIGHT_HYPOTHESIS_EXAMPLES", "0"))  # > 0: deeper runs (nightly, by hand)
+HSET = settings(max_examples=_N or 25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def _opencv(binary, conn):
+    """Per frame: (n, labels, stats, centroids) of OpenCV, background row dropped."""
+    out = []
+    for b in range(binary.shape[0]):
+        n, lab, stats, cents = cv2.connectedComponentsWithStats(binary[b].astype(np.uint8), connectivity=conn)
+        out.append((n - 1, lab, stats[1:], cents[1:]))
+    return out
+
+
+def _moments_np(lab, n, img, cov):
+    """Brute-force (n, NSTAT) sums over the pixels of OpenCV's components 1..n (pixel centres at +0.5)."""
+    yy, xx = np.nonzero(lab)
+    k = lab[yy, xx] - 1
+    x, y = xx + 0.5, yy + 0.5
+    I, w = img[yy, xx].astype(np.float64), cov[yy, xx].astype(np.float64)
+    cols = [np.ones_like(x), x, y, x * x, x * y, y * y, I, I * x, I * y, w, w * x, w * y, w * x * x, w * x * y,
+            w * y * y]
+    out = np.zeros((n, NSTAT))
+    for j, c in enumerate(cols):
+        np.add.at(out[:, j], k, c)
+    return out
+
+
+@HSET
+@given(seed=st.integers(0, 2**32 - 1), p=st.floats(0.05, 0.95), conn=st.sampled_from([4, 8]),
+       shape=st.tuples(st.integers(1, 3), st.integers(1, 40), st.integers(1, 40)),
+       dtype=st.sampled_from([np.uint8, np.uint16, np.float32, np.float64]))
+def test_labels_and_stats_match_opencv(seed, p, conn, shape, dtype):
+    rs = np.random.default_rng(seed)
+    binary = rs.random(shape) < p
+    # foreground = value > 9.5 whatever the dtype; background values just below, foreground anywhere above
+    img = np.where(binary, rs.integers(10, 200, shape), rs.integers(0, 10, shape)).astype(dtype)
+    cov = rs.random(shape).astype(np.float32)
+    comp = label_frames(img, 9.5, coverage=cov, connectivity=conn)
+    ref = _opencv(binary, conn)
+    assert comp.counts.tolist() == [r[0] for r in ref]
+    labels = comp.label_image(shape)
+    mom = comp.moments()
+    for b, (n, lab, stats, cents) in enumerate(ref):
+        s = slice(comp.offsets[b], comp.offsets[b + 1])
+        # same partition: our label <-> OpenCV's label is one-to-one on the foreground
+        fg = lab > 0
+        assert np.array_equal(labels[b] > 0, fg)
+        pairs = np.unique(np.stack([labels[b][fg], lab[fg]]), axis=1)
+        assert pairs.shape[1] == n and np.unique(pairs[0]).size == n and np.unique(pairs[1]).size == n
+        # stats, matched through that map (our label k+1 <-> OpenCV's label m)
+        m = np.empty(n, np.int64)
+        m[pairs[0] - 1] = pairs[1] - 1
+        st_ = stats[m]
+        np.testing.assert_array_equal(comp.npix[s], st_[:, cv2.CC_STAT_AREA])
+        x0, y0 = st_[:, cv2.CC_STAT_LEFT], st_[:, cv2.CC_STAT_TOP]
+        np.testing.assert_array_equal(comp.box[s], np.stack([x0, y0, x0 + st_[:, cv2.CC_STAT_WIDTH] - 1,
+                                                             y0 + st_[:, cv2.CC_STAT_HEIGHT] - 1], 1))
+        np.testing.assert_allclose(mom[s, 1] / mom[s, 0], cents[m, 0] + 0.5, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(mom[s, 2] / mom[s, 0], cents[m, 1] + 0.5, rtol=0, atol=1e-9)
+        # every moment sum against brute force over OpenCV's components
+        ref_m = _moments_np(lab, n, img[b], cov[b])[m]
+        np.testing.assert_allclose(mom[s], ref_m, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(comp.seg_stats[b], ref_m.sum(0), rtol=1e-12, atol=1e-9)
+    # a subset of components gives the very same sums (same runs, same order)
+    pick = np.arange(len(comp))[::3]
+    assert np.array_equal(comp.moments(pick), mom[pick])
+
+
+@HSET
+@given(seed=st.integers(0, 2**32 - 1), conn=st.sampled_from([4, 8]))
+def test_segments_label_like_the_cropped_frames(seed, conn):
+    # patches cut from frames, labelled as segments at their place: components and sums of each crop
+    rs = np.random.default_rng(seed)
+    frames = (rs.random((2, 30, 40)) < 0.4).astype(np.float32) * rs.uniform(1, 5, (2, 30, 40)).astype(np.float32)
+    boxes = [(0, 3, 17, 5, 21), (1, 0, 40, 0, 9), (0, 20, 31, 11, 30), (1, 12, 13, 14, 15)]  # frame, c0, c1, r0, r1
+    crops = [frames[f, r0:r1, c0:c1] for f, c0, c1, r0, r1 in boxes]
+    flat = np.concatenate([c.ravel() for c in crops])
+    start = np.cumsum([0] + [c.size for c in crops])[:-1]
+    bx = np.array(boxes)
+    comp = label_segments(flat, start, bx[:, 2] - bx[:, 1], bx[:, 4] - bx[:, 3], bx[:, 1], bx[:, 3], bx[:, 0],
+                          np.array([0.5, 0.5]), offset=np.array([0.25, -1.0]), connectivity=conn)
+    for g, (f, c0, c1, r0, r1) in enumerate(boxes):
+        one = label_frames(crops[g][None], 0.5, offset=[0.25, -1.0][f], connectivity=conn)
+        s = slice(comp.offsets[g], comp.offsets[g + 1])
+        assert comp.counts[g] == len(one)
+        np.testing.assert_array_equal(comp.npix[s], one.npix)
+        np.testing.assert_array_equal(comp.box[s], one.box + [c0, r0, c0, r0])
+        m, m1 = comp.moments(np.arange(s.start, s.stop)), one.moments()
+        np.testing.assert_array_equal(m[:, 6], m1[:, 6])                                 # sum I
+        np.testing.assert_allclose(m[:, 7] / m[:, 6], m1[:, 7] / m1[:, 6] + c0, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(m[:, 1] / m[:, 0], m1[:, 1] / m1[:, 0] + c0, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(m[:, 2] / m[:, 0], m1[:, 2] / m1[:, 0] + r0, rtol=0, atol=1e-12)
+
+
+def test_threshold_is_exact_for_every_dtype():
+    # value > t, decided exactly: t between two representable values, and t equal to one (float32(0.1) > 0.1)
+    for dtype, t, vals in ((np.uint8, 99.5, [99, 100]), (np.uint16, 100.0, [100, 101]),
+                           (np.float32, 0.1, [np.nextafter(np.float32(0.1), np.float32(0)), np.float32(0.1)]),
+                           (np.float64, 0.1, [0.1, np.nextafter(0.1, 1.0)])):
+        img = np.array(vals, dtype=dtype).reshape(1, 1, 2)
+        comp = label_frames(img, t)
+        assert comp.npix.tolist() == [1] and comp.box.tolist() == [[1, 0, 1, 0]], dtype
+    assert native_threshold([99.5, -3.0, 1e9], np.uint8).tolist() == [99, -1, 255]
+
+
+def test_empty_inputs():
+    comp = label_frames(np.zeros((3, 4, 5), np.float32), 0.0)
+    assert len(comp) == 0 and comp.counts.tolist() == [0, 0, 0] and comp.moments().shape == (0, NSTAT)
+    assert np.all(comp.seg_stats == 0)
+    with pytest.raises(ValueError, match="connectivity"):
+        label_frames(np.zeros((1, 2, 2)), 0.0, connectivity=6)
