@@ -2,7 +2,9 @@
 
 Kolomenkin et al. (2008) vote with every catalog pair whose angular distance matches an observed
 pair's within a tolerance; with the pairs sorted by angle, the candidates for one observed angle are
-one contiguous slice found by two binary searches (:func:`pairs_in_range`).
+one contiguous slice found by two binary searches (:func:`dualsight.nav.votes.pair_windows`).
+Angles are :func:`dualsight.scene.units.angle_between` (atan2 of |a x b| and a . b), the same
+function that measures the observed pairs.
 
 Building (:func:`build_pair_catalog`) is O(N * band) rather than O(N^2): stars are sorted by
 declination, and a chunk of rows is only dotted with the stars whose declination is within
@@ -22,9 +24,11 @@ import pyarrow as pa
 
 from dualsight.catalogs.cache import read_parquet_or_none, resolve_cache_dir, short_hash, write_parquet_atomic
 from dualsight.errors import ConfigError
+from dualsight.scene.units import angle_between
 
-FORMAT_VERSION = 1
-"""Bump when the build or the stored layout changes: old cache files are then ignored."""
+FORMAT_VERSION = 2
+"""Bump when the build or the stored layout changes: old cache files are then ignored.
+(2: angles by ``scene.units.angle_between``; version 1's einsum sums could differ by an ulp.)"""
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,13 +75,6 @@ def _check_max_angle(max_angle_rad) -> float:
     return float(max_angle_rad)
 
 
-def pair_angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(...,) angle (rad) between (..., 3) vectors: atan2(|a x b|, a . b), accurate at every angle
-    (acos of the dot product loses ~1e-8 rad near 0 and pi, where its argument is flat)."""
-    c = np.cross(a, b)
-    return np.arctan2(np.sqrt(np.einsum("...k,...k->...", c, c)), np.einsum("...k,...k->...", a, b))
-
-
 def build_pair_catalog(unit: np.ndarray, max_angle_rad: float, max_block: int = 1 << 22) -> PairCatalog:
     """Every pair of stars closer than ``max_angle_rad``.
 
@@ -110,7 +107,7 @@ def build_pair_catalog(unit: np.ndarray, max_angle_rad: float, max_block: int = 
         r, c = np.nonzero(dots >= cos_cut)
         keep = c > r                                                # column index is j_s - a, row is i_s - a
         r, c = r[keep] + a, c[keep] + a
-        ang = pair_angles(us[r], us[c])
+        ang = angle_between(us[r], us[c])
         ok = ang < theta
         ii.append(order[r[ok]])
         jj.append(order[c[ok]])
@@ -122,23 +119,6 @@ def build_pair_catalog(unit: np.ndarray, max_angle_rad: float, max_block: int = 
     lo, hi_ = np.minimum(i, j), np.maximum(i, j)
     s = np.lexsort((hi_, lo, ang))
     return PairCatalog(i=lo[s].astype(np.int32), j=hi_[s].astype(np.int32), angle=ang[s], limit_rad=theta)
-
-
-def pairs_in_range(cat: PairCatalog, lo, hi):
-    """Slices of ``cat`` with ``lo <= angle <= hi``, by binary search.
-
-    Parameters
-    ----------
-    lo, hi : scalars or arrays of one shape (rad).
-
-    Returns
-    -------
-    (start, stop) : int64 arrays (or scalars) of the shape of ``lo``/``hi``; the pairs are
-    ``cat.i[start:stop]`` etc. (empty when stop <= start).
-    """
-    start = np.searchsorted(cat.angle, lo, side="left")
-    stop = np.searchsorted(cat.angle, hi, side="right")
-    return start, stop
 
 
 _META_KEY = b"dualsight.pair_catalog"

@@ -31,6 +31,7 @@ import pyarrow as pa
 from dualsight.catalogs.cache import read_parquet_or_none, resolve_cache_dir, short_hash, write_parquet_atomic
 from dualsight.errors import ConfigError
 from dualsight.scene.attitude import radec_to_unit, unit_to_radec
+from dualsight.scene.units import MAS
 
 FORMAT_VERSION = 1
 """Bump when the build or the stored layout changes: old cache files are then ignored."""
@@ -41,8 +42,6 @@ HIP2_EPOCH_JYEAR = 1991.25
 MAG_LIMIT_RANGE = (-2.0, 12.0)
 MIN_STARS = 50
 """Fewest stars a catalog may hold over the whole sky (fewer cannot identify anything)."""
-
-MAS_TO_RAD = math.pi / (180.0 * 3600.0 * 1000.0)
 
 # Bessell (2000), "The Hipparcos and Tycho photometric system passbands", PASP 112, 961-965,
 # Table 2 ("relation between BT-VT and Hipparcos/Tycho data for B-G main-sequence stars and
@@ -229,7 +228,7 @@ def propagate_proper_motion(ra: np.ndarray, dec: np.ndarray, pmra_masyr: np.ndar
     sa, ca, sd = np.sin(ra), np.cos(ra), np.sin(dec)
     east = np.stack([-sa, ca, np.zeros_like(ra)], axis=-1)
     north = np.stack([-sd * ca, -sd * sa, np.cos(dec)], axis=-1)
-    k = float(dt_years) * MAS_TO_RAD
+    k = float(dt_years) * MAS
     v = p + k * (np.asarray(pmra_masyr, dtype=np.float64)[..., None] * east
                  + np.asarray(pmdec_masyr, dtype=np.float64)[..., None] * north)
     return v / np.linalg.norm(v, axis=-1, keepdims=True)

@@ -1,12 +1,15 @@
 """Attitude math over arrays: elementary rotations, Euler 1-2-3, random attitudes, RA/Dec.
 
 Attitude matrices ``A`` map inertial (ICRS) vectors into the camera frame: ``v_cam = A @ v_icrs``
-(DESIGN.md conventions).  All functions are vectorised over a leading batch axis.
+(DESIGN.md conventions).  All functions are vectorised over a leading batch axis; angles in radians.
+The angle between two directions is :func:`dualsight.scene.units.angle_between` (re-exported here).
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from dualsight.scene.units import angle_between  # noqa: F401  (re-export: jobs import it from here)
 
 
 def rot_axis(axis: int, angle: np.ndarray) -> np.ndarray:
@@ -76,36 +79,6 @@ def quat_to_dcm(q: np.ndarray) -> np.ndarray:
     ], axis=-2)
 
 
-def dcm_to_quat(R: np.ndarray) -> np.ndarray:
-    """(B, 4) quaternions (x, y, z, w), w >= 0, of (B, 3, 3) rotation matrices (inverse of :func:`quat_to_dcm`)."""
-    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
-    tr = np.trace(R, axis1=1, axis2=2)
-    cand = np.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2], tr], axis=-1)
-    k = np.argmax(cand, axis=-1)
-    q = np.empty((R.shape[0], 4))
-    # Shepperd's method: pick the largest of (x, y, z, w) to divide by.
-    for idx in range(4):  # four branches, each vectorised over the batch
-        m = k == idx
-        if not m.any():
-            continue
-        r = R[m]
-        if idx == 3:
-            w = 0.5 * np.sqrt(1 + tr[m])
-            q[m] = np.stack([(r[:, 2, 1] - r[:, 1, 2]) / (4 * w), (r[:, 0, 2] - r[:, 2, 0]) / (4 * w),
-                             (r[:, 1, 0] - r[:, 0, 1]) / (4 * w), w], -1)
-        else:
-            i, j, l = idx, (idx + 1) % 3, (idx + 2) % 3
-            s = 0.5 * np.sqrt(1 + r[:, i, i] - r[:, j, j] - r[:, l, l])
-            out = np.empty((r.shape[0], 4))
-            out[:, i] = s
-            out[:, j] = (r[:, j, i] + r[:, i, j]) / (4 * s)
-            out[:, l] = (r[:, l, i] + r[:, i, l]) / (4 * s)
-            out[:, 3] = (r[:, l, j] - r[:, j, l]) / (4 * s)
-            q[m] = out
-    q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
-    return q
-
-
 def radec_to_unit(ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
     """(..., 3) ICRS unit vectors from right ascension and declination (rad)."""
     ra, dec = np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
@@ -124,9 +97,3 @@ def boresight_radec(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """RA/Dec (rad) of the camera +z axis for (B, 3, 3) inertial-to-camera matrices: the third row of A."""
     A = np.asarray(A, dtype=np.float64)
     return unit_to_radec(A[..., 2, :])
-
-
-def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angle (rad) between (..., 3) vectors, accurate for small angles (atan2 of |a x b| and a . b)."""
-    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1))

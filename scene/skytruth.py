@@ -30,6 +30,7 @@ import numpy as np
 
 from dualsight.errors import ConfigError
 from dualsight.scene.attitude import radec_to_unit, rot_axis, unit_to_radec
+from dualsight.scene.units import angle_between
 
 _FILENAME = re.compile(
     r"(?P<date>\d{4}-\d{2}-\d{2})T(?P<h>\d{2}):?(?P<m>\d{2}):?(?P<s>\d{2}(?:\.\d+)?)"
@@ -213,9 +214,11 @@ def load_truth_json(path: str | Path) -> dict[str, dict]:
 
 
 def angle_deg(ra1_deg, dec1_deg, ra2_deg, dec2_deg):
-    """Great-circle angle (deg) between two RA/Dec directions (arrays broadcast)."""
-    from dualsight.scene.attitude import angle_between
+    """Great-circle angle (deg) between two RA/Dec directions given in degrees (truth files, CLI).
 
+    Arrays broadcast; returns float64 degrees of the broadcast shape, from
+    :func:`dualsight.scene.units.angle_between` (atan2 of |a x b| and a . b).
+    """
     a = radec_to_unit(np.radians(ra1_deg), np.radians(dec1_deg))
     b = radec_to_unit(np.radians(ra2_deg), np.radians(dec2_deg))
     return np.degrees(angle_between(a, b))

@@ -5,7 +5,8 @@ Truth used here, none of it computed by the code under test:
 - Johnson V of well-known stars (BSC / SIMBAD values);
 - ICRS J2000 positions of well-known stars (SIMBAD, "ICRS coord. (ep=J2000)");
 - astropy's ``SkyCoord.apply_space_motion`` for proper-motion propagation and ``separation`` for angles;
-- brute-force all-pairs angles (arccos of the full dot-product matrix) for the pair catalog.
+- brute-force all-pairs angles (arccos of the full dot-product matrix) for the pair catalog, and
+  Kahan's 2 atan2(|a - b|, |a + b|) for their exact values.
 """
 
 from __future__ import annotations
@@ -19,11 +20,10 @@ import pytest
 from dualsight.catalogs import cache as cache_mod
 from dualsight.catalogs import pairs as pairs_mod
 from dualsight.catalogs import stars as stars_mod
-from dualsight.catalogs.pairs import PairCatalog, build_pair_catalog, load_pair_catalog, pairs_in_range
+from dualsight.catalogs.pairs import PairCatalog, build_pair_catalog, load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog, read_hip2
 from dualsight.errors import ConfigError
-
-ARCSEC = math.pi / (180 * 3600)
+from dualsight.scene.units import ARCSEC, angle_between
 
 # SIMBAD ICRS coordinates at epoch J2000 (sexagesimal), by HIP number.
 KNOWN_J2000 = {
@@ -168,8 +168,8 @@ def test_proper_motion_matches_astropy(raw_hip2, epoch):
     c /= np.linalg.norm(c, axis=1, keepdims=True)
     p0 = sc.cartesian.xyz.value.T
     p0 /= np.linalg.norm(p0, axis=1, keepdims=True)
-    sep = np.arctan2(np.linalg.norm(np.cross(c, u_mine), axis=1), np.sum(c * u_mine, axis=1)) / ARCSEC
-    moved_by = np.arctan2(np.linalg.norm(np.cross(c, p0), axis=1), np.sum(c * p0, axis=1)) / ARCSEC
+    sep = angle_between(c, u_mine) / ARCSEC
+    moved_by = angle_between(c, p0) / ARCSEC
     assert np.all(moved_by > 8), "the stars did move by several arcsec"
     assert sep.max() < 0.1, dict(zip([HIGH_PM[h] for h in sorted(HIGH_PM)], sep.round(6)))
 
@@ -177,7 +177,7 @@ def test_proper_motion_matches_astropy(raw_hip2, epoch):
 def test_epoch_changes_positions(cat_dir, cat55):
     c25 = load_star_catalog(StarCatalogConfig(epoch_jyear=2025.0), cache_dir=cat_dir)
     k0, k1 = cat55.index_of(32349), c25.index_of(32349)  # Sirius: (-546, -1223) mas/yr
-    d = np.arccos(np.clip(cat55.unit[k0] @ c25.unit[k1], -1, 1)) / ARCSEC
+    d = angle_between(cat55.unit[k0], c25.unit[k1]) / ARCSEC
     assert abs(d - 25 * math.hypot(546.01, 1223.07) / 1000) < 0.01
 
 
@@ -271,8 +271,10 @@ def test_pairs_against_brute_force(seed, theta, n):
         assert pc.i.dtype == np.int32 and pc.j.dtype == np.int32 and pc.angle.dtype == np.float64
         assert np.all(pc.i < pc.j) and np.all(pc.angle < theta) and np.all(np.diff(pc.angle) >= 0)
         assert pc.max_angle == theta and pc.nbytes == 16 * len(pc)
-        # angles: arccos is only good to ~1e-8 rad at small angles; atan2 reference via astropy-free math
-        ref = np.arctan2(np.linalg.norm(np.cross(u[pc.i], u[pc.j]), axis=1), np.sum(u[pc.i] * u[pc.j], axis=1))
+        # angles: arccos is only good to ~1e-8 rad at small angles; Kahan's formula for unit vectors,
+        # 2 atan2(|a - b|, |a + b|), is accurate at every angle and independent of the code's atan2
+        a, b = u[pc.i], u[pc.j]
+        ref = 2 * np.arctan2(np.linalg.norm(a - b, axis=1), np.linalg.norm(a + b, axis=1))
         np.testing.assert_allclose(pc.angle, ref, rtol=0, atol=1e-15)
 
 
@@ -312,23 +314,6 @@ def test_dubhe_merak(cat55, paper_pairs):
     truth = _skycoord(KNOWN_J2000[54061][1]).separation(_skycoord(KNOWN_J2000[53910][1])).rad
     assert abs(math.degrees(truth) - 5.37) < 0.01
     assert abs(pc.angle[k[0]] - truth) < 0.1 * ARCSEC
-
-
-def test_pairs_in_range(paper_pairs):
-    _, pc = paper_pairs
-    rng = np.random.default_rng(3)
-    lo = rng.uniform(0, pc.max_angle, 25)
-    hi = lo + rng.uniform(0, 1e-3, 25)
-    lo[0], hi[0] = pc.angle[100], pc.angle[100]          # exact hit is inclusive
-    lo[1], hi[1] = 0.5, 0.4                              # empty
-    start, stop = pairs_in_range(pc, lo, hi)
-    assert start.shape == stop.shape == (25,)
-    brute = ((pc.angle[None, :] >= lo[:, None]) & (pc.angle[None, :] <= hi[:, None])).sum(axis=1)
-    np.testing.assert_array_equal(np.maximum(stop - start, 0), brute)
-    for s, e, l_, h_ in zip(start[:5], stop[:5], lo, hi):  # 5 spot checks of the slice contents
-        assert np.all((pc.angle[s:e] >= l_) & (pc.angle[s:e] <= h_))
-    s0, e0 = pairs_in_range(pc, 0.01, 0.02)
-    assert np.ndim(s0) == 0 and e0 >= s0
 
 
 def test_pair_cache(cat55, cat_dir, paper_pairs, monkeypatch):

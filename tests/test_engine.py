@@ -407,3 +407,27 @@ def test_taichi_is_not_initialised_at_import():
             "from dualsight.kernels import _runtime; print(_runtime.is_initialised())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=ENV)
     assert out.stdout.strip() == "False"
+
+
+def _rss_when_running(tmp_path, n: int, run: str) -> int:
+    """Resident memory (kB) of a run's coordinating process once its first shards are done."""
+    p = subprocess.Popen([sys.executable, "-m", "dualsight", "selftest", "run", "--cases", str(n), "--run", run,
+                          "--lake", str(tmp_path), "--workers", "1", "--shard-size", "20", "--sleep-ms", "1",
+                          "--no-progress"], env=ENV, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline and len(Lake(tmp_path).read_journal(run)) < 5:
+            time.sleep(0.1)
+        status = Path(f"/proc/{p.pid}/status").read_text()
+        return int(next(line.split()[1] for line in status.splitlines() if line.startswith("VmRSS")))
+    finally:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+
+
+def test_planning_a_billion_cases_takes_the_memory_of_a_thousand(tmp_path):
+    small = _rss_when_running(tmp_path, 1000, "small")
+    huge = _rss_when_running(tmp_path, 10**9, "huge")
+    assert huge < 1.15 * small + 5000, (small, huge)
+    m = Lake(tmp_path).read_manifest("huge")
+    assert m["n_cases"] == 10**9 and m["n_shards"] == 5 * 10**7

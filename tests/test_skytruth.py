@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 
 from dualsight.errors import ConfigError
-from dualsight.scene.attitude import angle_between, radec_to_unit
+from dualsight.scene.attitude import radec_to_unit
 from dualsight.scene.skytruth import (altaz_from_filename, angle_deg, attitude_from_altaz, boresight_from_altaz,
                                       load_truth_json)
+from dualsight.scene.units import angle_between
 
 
 def shared_real() -> Path:
