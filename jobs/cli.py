@@ -338,7 +338,7 @@ def cmd_runs(args) -> int:
             docs.append({"run_id": rid, "status": "damaged", "problem": e.detail})
             continue
         h = lake.scan(rid)
-        status = m.get("status") + (" (damaged files)" if h.problems else "")
+        status = lake.live_status(m) + (" (damaged files)" if h.problems else "")
         rows.append((rid, m.get("kind"), m.get("n_cases"), f"{m.get('shards_done', '?')}/{m.get('n_shards')}",
                      status, m.get("seed"), m.get("spec_hash")))
         docs.append(dict(m, problems=h.problems))

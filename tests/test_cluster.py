@@ -155,3 +155,27 @@ def test_hil_star_on_the_cluster_equals_in_process(tmp_path, cluster):
     a, b = th._rows(tmp_path / "local", "h"), th._rows(tmp_path / "dask", "h")
     assert len(a["hil_star"]) == 8 and sum(r["identified"] for r in a["hil_star"]) == 8
     assert a == b
+
+
+def test_dask_worker_killed_mid_shard_is_recomputed_never_duplicated(tmp_path):
+    (tmp_path / "c").mkdir()
+    c = Cluster(tmp_path / "c", workers=2)
+    import threading
+
+    def kill_one():
+        time.sleep(2.5)
+        os.kill(c.workers[0].pid, 9)          # the nanny process and its worker die with it
+        subprocess.run(["pkill", "-9", "-P", str(c.workers[0].pid)], capture_output=True)
+
+    threading.Thread(target=kill_one, daemon=True).start()
+    try:
+        m = run_job("selftest", {"seed": 5, "sleep_ms": 20}, n_cases=600, lake=Lake(tmp_path / "l"), run_id="r",
+                    scheduler=c.address, shard_size=25, progress=False)
+    finally:
+        c.close()
+    assert m["status"] == "complete"
+    got = rows(tmp_path / "l", "selftest_cases", "r", "case_id, x, k")
+    local = tmp_path / "local"
+    run_job("selftest", {"seed": 5, "sleep_ms": 20}, n_cases=600, lake=Lake(local), run_id="r", workers=2,
+            progress=False)
+    assert len(got) == 600 and got == rows(local, "selftest_cases", "r", "case_id, x, k")

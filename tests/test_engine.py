@@ -431,3 +431,45 @@ def test_planning_a_billion_cases_takes_the_memory_of_a_thousand(tmp_path):
     assert huge < 1.15 * small + 5000, (small, huge)
     m = Lake(tmp_path).read_manifest("huge")
     assert m["n_cases"] == 10**9 and m["n_shards"] == 5 * 10**7
+
+
+@pytest.fixture
+def ro_mount(tmp_path):
+    """``(source, mountpoint, set_ro)``: a bind mount of a folder that the test can switch to read-only."""
+    src, mnt = tmp_path / "src", tmp_path / "mnt"
+    src.mkdir(), mnt.mkdir()
+    if subprocess.run(["mount", "--bind", str(src), str(mnt)], capture_output=True).returncode != 0:
+        pytest.skip("cannot bind-mount here (needs root); the full-disk test covers the write-failure path")
+
+    def set_ro(ro: bool):
+        opt = "remount,bind,ro" if ro else "remount,bind,rw"
+        assert subprocess.run(["mount", "-o", opt, str(mnt)], capture_output=True).returncode == 0
+
+    yield src, mnt, set_ro
+    subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+def test_read_only_lake_is_a_clean_error_stays_readable_and_resumes(ro_mount):
+    """A lake remounted read-only after a run was SIGKILLed mid-way: queries still work, writing (a new run,
+    the resume) is one line, the run reads "stopped"; remounted read-write, the same command completes it."""
+    src, mnt, set_ro = ro_mount
+    run_job("selftest", {"seed": 2}, n_cases=100, lake=Lake(mnt), run_id="done", workers=1, progress=False)
+    p = _start(mnt, run="r", n=1000, sleep_ms=5)
+    deadline = time.time() + 30
+    while time.time() < deadline and len(Lake(mnt).read_journal("r")) < 3:
+        time.sleep(0.05)
+    os.killpg(p.pid, signal.SIGKILL)
+    p.wait()
+    set_ro(True)
+    assert_exact(mnt, "done", 2, 100)
+    for run, n in (("new", 10), ("r", 1000)):
+        r = cli("selftest", "run", "--cases", str(n), "--lake", str(mnt), "--run", run, "--shard-size", "20",
+                "--sleep-ms", "5", "--workers", "1", "--no-progress")
+        assert r.returncode == 2 and "Read-only file system" in r.stderr and "Traceback" not in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1
+    r = cli("runs", "--lake", str(mnt))
+    assert r.returncode == 0 and "stopped" in r.stdout
+    set_ro(False)
+    p = _start(mnt, run="r", n=1000, sleep_ms=5)
+    assert p.wait(timeout=120) == 0
+    assert_exact(mnt, "r", 1, 1000)

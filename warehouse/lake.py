@@ -216,6 +216,26 @@ class Lake:
     def lock(self, run_id: str) -> RunLock:
         return RunLock(self, check_run_id(run_id))
 
+    def is_being_written(self, run_id: str) -> bool:
+        """True while some process holds the run's lock (read-only probe, works on a read-only lake)."""
+        try:
+            with open(self.root / "_locks" / f"{run_id}.lock") as fh:
+                try:
+                    fcntl.flock(fh.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+                except OSError:
+                    return True
+                fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+                return False
+        except OSError:
+            return False
+
+    def live_status(self, manifest: dict) -> str:
+        """The manifest's status, except that "running" without a live writer reads "stopped (resume it)"."""
+        st = manifest.get("status", "?")
+        if st == "running" and not self.is_being_written(manifest["run_id"]):
+            return "stopped (run the same command to resume)"
+        return st
+
     # ----------------------------------------------------------------- shards
     def write_shard(self, info: ShardInfo, tables: dict[str, pa.Table], primary: str,
                     schemas: dict[str, pa.Schema] | None = None) -> dict:
