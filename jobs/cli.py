@@ -141,6 +141,18 @@ def build_parser() -> argparse.ArgumentParser:
     fmt.add_argument("--csv", action="store_true", help="CSV")
     p.set_defaults(func=cmd_sql)
 
+    p = sub.add_parser("replay", help="replay cases of any run, chosen by --case or an SQL predicate, into rerun "
+                                      "recordings; each case is verified against its row first")
+    _lake_arg(p)
+    p.add_argument("--run", type=run_id_arg, required=True)
+    sel = p.add_mutually_exclusive_group(required=True)
+    sel.add_argument("--case", type=positive_int(0, 10**9), default=None)
+    sel.add_argument("--where", default=None, help="SQL predicate over the run's primary dataset, e.g. "
+                                                   "\"status <> 'success'\"")
+    p.add_argument("--limit", type=positive_int(1, 1000), default=20, help="at most this many cases (default 20)")
+    p.add_argument("-o", "--output", type=Path, default=None, help="a .rrd file (one case) or a folder")
+    p.set_defaults(func=cmd_replay)
+
     p = sub.add_parser("runs", help="list the runs in the lake (damaged ones are named)")
     _lake_arg(p)
     p.add_argument("--json", action="store_true")
@@ -321,6 +333,16 @@ def cmd_sql(args) -> int:
         w.writerows(rows)
     elif cols:
         print(format_table(cols, rows))
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from dualsight.jobs.replay import replay_run
+
+    outs = replay_run(_lake(args), args.run, case=args.case, where=args.where, limit=args.limit, output=args.output)
+    for o in outs:
+        print(f"recording: {o}")
+    print(f"{len(outs)} case(s) verified and recorded; open with: rerun {outs[0]}", file=sys.stderr)
     return 0
 
 

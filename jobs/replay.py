@@ -51,6 +51,16 @@ def compare_rows(stored: dict, fresh: dict) -> list[str]:
     return bad
 
 
+def _refuse_mismatch(stored: dict, fresh: dict, case_id: int, run_id: str, manifest: dict):
+    """InputError naming the first differing column and both values, when the recomputed row differs."""
+    diff = compare_rows(stored, fresh)
+    if diff:
+        c = diff[0]
+        raise InputError(f"replay of case {case_id} does not reproduce the lake: column {c} is {stored[c]!r} in "
+                         f"the lake, {fresh[c]!r} recomputed ({len(diff)} column(s) differ: {', '.join(diff[:6])}); "
+                         f"run made with {manifest.get('code_version')}", source=f"run {run_id}")
+
+
 def recompute_case(lake: Lake, run_id: str, case_id: int, job, dataset: str, kinds: tuple[str, ...]):
     """Rebuild a run's spec from its manifest, recompute one case with its images, and check that the
     fresh row equals the stored one.  Returns (manifest, spec, context, compute_batch output, fresh row)."""
@@ -64,11 +74,7 @@ def recompute_case(lake: Lake, run_id: str, case_id: int, job, dataset: str, kin
     ctx = job.make_context(spec)
     out = job.compute_batch(spec, ctx, np.array([case_id], dtype=np.int64), keep_images=True)
     fresh = out["tables"][dataset].to_pylist()[0]
-    diff = compare_rows(stored, fresh)
-    if diff:
-        raise InputError(f"replay of case {case_id} does not reproduce the lake (columns differ: {diff}); "
-                         f"was the run made with another dualsight version? ({manifest.get('versions')})",
-                         source=f"run {run_id}")
+    _refuse_mismatch(stored, fresh, case_id, run_id, manifest)
     return manifest, spec, ctx, out, fresh
 
 
@@ -115,3 +121,112 @@ def replay_star_case(lake: Lake, run_id: str, case_id: int, output: Path | None 
                   det_ok=ok, pred_xy=pred_xy, pred_labels=pred_labels, truth_xy=truth_xy, info_md=info)
     rec.flush()
     return output
+
+
+# ============================================================================================ any kind, by SQL
+MAX_REPLAY = 1000
+
+
+def select_cases(lake: Lake, run_id: str, *, case: int | None = None, where: str | None = None,
+                 limit: int = 20) -> tuple[dict, list[int]]:
+    """(manifest, case ids) chosen by ``--case`` or by an SQL predicate over the run's primary dataset.
+
+    The predicate runs read-only (:func:`dualsight.warehouse.query.run_sql`) in
+    ``SELECT case_id FROM <primary> WHERE run = '<run>' AND (<predicate>) ORDER BY case_id LIMIT <limit>``.
+    """
+    from dualsight.warehouse.query import run_sql
+
+    manifest = lake.read_manifest(run_id)
+    if manifest is None:
+        raise InputError(f"no run {run_id!r} in {lake.root}", source="--run")
+    if (case is None) == (where is None):
+        raise InputError("give exactly one of --case N or --where \"SQL predicate\"", source="replay")
+    if case is not None:
+        if not 0 <= case < manifest["n_cases"]:
+            raise InputError(f"must be in [0, {manifest['n_cases'] - 1}], got {case}", source="--case")
+        return manifest, [int(case)]
+    if not 1 <= limit <= MAX_REPLAY:
+        raise InputError(f"must be in [1, {MAX_REPLAY}], got {limit}", source="--limit")
+    sql = (f"SELECT case_id FROM {manifest['primary']} WHERE run = '{run_id}' AND ({where}) "
+           f"ORDER BY case_id LIMIT {int(limit)}")
+    _, rows = run_sql(lake, sql)
+    return manifest, [int(r[0]) for r in rows]
+
+
+def verify_case(lake: Lake, manifest: dict, case_id: int):
+    """Recompute one case of any job kind with ``compute_shard`` and check it against its stored row.
+
+    Returns (spec, context, stored primary row, tables of the recomputed case).
+    """
+    from dualsight.jobs.runner import job_module
+
+    mod = job_module(manifest["kind"])
+    run_id = manifest["run_id"]
+    stored = _stored_row(lake, manifest["primary"], run_id, case_id)
+    spec = mod.spec_from_dict(manifest["spec"], source=f"manifest of run {run_id}")
+    ctx = mod.make_context(spec)
+    tables = mod.compute_shard(spec, np.array([case_id], dtype=np.int64), ctx)
+    fresh = tables[manifest["primary"]].to_pylist()[0]
+    _refuse_mismatch(stored, fresh, case_id, run_id, manifest)
+    return spec, ctx, stored, tables
+
+
+def replay_generic_case(lake: Lake, manifest: dict, case_id: int, output: Path) -> Path:
+    """Verify a case of any kind and record its image (re-read for real-image kinds) and its row."""
+    from dualsight.viz.recording import log_image_case, open_recording
+
+    spec, ctx, stored, tables = verify_case(lake, manifest, case_id)
+    image, points, labels = None, np.zeros((0, 2)), []
+    images = getattr(spec, "images", None)
+    if images:
+        from dualsight.scene.imageio import read_image
+
+        try:
+            image = read_image(Path(images[case_id].path), as_gray=True).adc_counts()
+        except InputError:
+            image = None
+    detail = [d for d in tables if d != manifest["primary"]]
+    if detail:
+        t = tables[detail[0]].to_pylist()
+        pts = [(r["x_px"], r["y_px"]) for r in t if r.get("x_px") is not None and r.get("y_px") is not None]
+        points = np.asarray(pts, dtype=float).reshape(-1, 2)
+        labels = [f"HIP {r['hip']} V{r['vmag']:.1f}" if r.get("hip") is not None and r.get("vmag") is not None
+                  else "" for r in t][: len(points)]
+    lines = [f"# {manifest['kind']} case {case_id} of run `{manifest['run_id']}`", ""]
+    lines += [f"- {k}: {v}" for k, v in stored.items() if not str(k).startswith(_TIMING)]
+    lines += ["", "Replay reproduced the lake's row exactly."]
+    rec = open_recording(output)
+    log_image_case(rec, image=image, points=points, labels=labels, info_md="\n".join(lines), frame=case_id)
+    rec.flush()
+    return output
+
+
+def replay_run(lake: Lake, run_id: str, *, case: int | None = None, where: str | None = None, limit: int = 20,
+               output: Path | None = None) -> list[Path]:
+    """Replay the selected cases of any run into rerun recordings: one ``.rrd`` file, or one per case in a
+    folder (``<run>-case<N>.rrd``).  Every case is verified against its row first."""
+    manifest, cases = select_cases(lake, run_id, case=case, where=where, limit=limit)
+    if not cases:
+        raise InputError("the predicate selects no case of this run", source="--where")
+    output = Path(output) if output is not None else Path(".")
+    single_file = output.suffix == ".rrd"
+    if single_file and len(cases) > 1:
+        raise InputError(f"{len(cases)} cases selected: give a folder, not a .rrd file", source="-o")
+    folder = output.parent if single_file else output
+    if not folder.is_dir():
+        if single_file or not folder.parent.is_dir():
+            raise InputError("folder does not exist (no folder is created but the one named)", source=str(folder))
+        folder.mkdir()
+    out = []
+    for c in cases:
+        path = output if single_file else folder / f"{run_id}-case{c}.rrd"
+        kind = manifest["kind"]
+        if kind == "star":
+            out.append(replay_star_case(lake, run_id, c, path))
+        elif kind in ("prox_sweep", "prox_trajectory"):
+            from dualsight.jobs.prox_replay import replay_prox_case
+
+            out.append(replay_prox_case(lake, run_id, c, path))
+        else:
+            out.append(replay_generic_case(lake, manifest, c, path))
+    return out

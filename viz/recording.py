@@ -20,7 +20,6 @@ def open_recording(path: Path | str, app_id: str = "dualsight"):
     """A rerun recording stream that saves to ``path``."""
     rr = _rr()
     rec = rr.RecordingStream(app_id)
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
     rec.save(str(path))
     return rec
 
@@ -77,4 +76,17 @@ def log_prox_frame(rec, *, image: np.ndarray, cob_xy, axes: np.ndarray | None, b
     for k, v in scalars.items():
         if v is not None and np.isfinite(v):
             rec.log(f"metrics/{k}", rr.Scalars(float(v)))
+    rec.log("case", rr.TextDocument(info_md, media_type=rr.MediaType.MARKDOWN))
+
+
+def log_image_case(rec, *, image: np.ndarray | None, points: np.ndarray, labels: list[str], info_md: str,
+                   frame: int = 0):
+    """Log a real-image case: the frame (when readable), its detections (K, 2) px with labels, the row as text."""
+    rr = _rr()
+    rec.set_time("frame", sequence=frame)
+    if image is not None:
+        rec.log("camera/image", rr.Image(_display(image)))
+    if len(points):
+        rec.log("camera/image/detections", rr.Points2D(points, radii=4.0, colors=[[40, 220, 40]],
+                                                       labels=labels or None))
     rec.log("case", rr.TextDocument(info_md, media_type=rr.MediaType.MARKDOWN))
