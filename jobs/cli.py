@@ -153,6 +153,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, default=None, help="a .rrd file (one case) or a folder")
     p.set_defaults(func=cmd_replay)
 
+    p = sub.add_parser("report", help="one self-contained HTML page for any run: tables, the reference's "
+                                      "figures, worst cases with thumbnails and replay commands, spec, timings")
+    _lake_arg(p)
+    p.add_argument("--run", type=run_id_arg, required=True)
+    p.add_argument("--html", type=Path, required=True, help="page to write (its folder must exist)")
+    p.set_defaults(func=cmd_report_html)
+
     p = sub.add_parser("runs", help="list the runs in the lake (damaged ones are named)")
     _lake_arg(p)
     p.add_argument("--json", action="store_true")
@@ -333,6 +340,14 @@ def cmd_sql(args) -> int:
         w.writerows(rows)
     elif cols:
         print(format_table(cols, rows))
+    return 0
+
+
+def cmd_report_html(args) -> int:
+    from dualsight.jobs.html_report import write_html
+
+    out = write_html(_lake(args), args.run, args.html)
+    print(f"report: {out} ({out.stat().st_size / 2**20:.1f} MiB, self-contained)", file=sys.stderr)
     return 0
 
 
