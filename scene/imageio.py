@@ -302,8 +302,10 @@ def _sniff(data: bytes) -> str | None:
 def _check_complete(path: Path, fmt: str, data: bytes):
     """Cheap structural checks that catch truncated files before decoding."""
     if fmt == "JPEG":
-        tail = data.rstrip(b"\x00\r\n ")  # some writers pad after the EOI marker
-        if not tail.endswith(b"\xff\xd9"):
+        # the last end-of-image marker, followed by nothing but padding (some writers and cameras append 0x00
+        # or 0xFF fill after it); inside the entropy-coded data 0xFF is always stuffed, so FFD9 is a marker
+        eoi = data.rfind(b"\xff\xd9")
+        if eoi < 0 or data[eoi + 2:].strip(b"\x00\xff\r\n "):
             raise ImageError(f"truncated JPEG: no end-of-image marker (FFD9) at the end of its {len(data)} bytes",
                              source=str(path))
     elif fmt == "PNG":

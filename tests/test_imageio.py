@@ -300,3 +300,26 @@ def test_calibrate_frame_shape_mismatch_names_shapes():
         calibrate_frame(np.zeros((4, 4)), flat=np.ones((4, 5)))
     with pytest.raises(ImageError, match="no finite positive"):
         calibrate_frame(np.zeros((4, 4)), flat=np.zeros((4, 4)))
+
+
+def test_jpeg_with_padding_after_the_end_marker_reads_and_a_truncated_one_is_refused(tmp_path):
+    """Cameras and some writers pad a JPEG with 0xFF or 0x00 after its end-of-image marker: still a whole image.
+    Cut inside the compressed data, it is refused as truncated."""
+    import cv2
+
+    from dualsight.errors import ImageError
+    from dualsight.scene.imageio import read_image
+
+    rng = np.random.default_rng(3)
+    img = (rng.random((48, 64)) * 255).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", img)
+    data = buf.tobytes()
+    ref = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    for pad in (b"\xff" * 100, b"\x00" * 37, b"\xff\x00\xff"):
+        p = tmp_path / "padded.jpg"
+        p.write_bytes(data + pad)
+        np.testing.assert_array_equal(read_image(p, as_gray=True).pixels, ref)
+    p = tmp_path / "cut.jpg"
+    p.write_bytes(data[: len(data) // 2] + b"\xff" * 10)
+    with pytest.raises(ImageError, match="truncated"):
+        read_image(p, as_gray=True)
