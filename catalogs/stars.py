@@ -24,12 +24,15 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import pyarrow as pa
+from pydantic import Field
 
 from dualsight.catalogs.cache import read_parquet_or_none, resolve_cache_dir, short_hash, write_parquet_atomic
 from dualsight.errors import ConfigError
+from dualsight.config import check_fields
 from dualsight.scene.attitude import radec_to_unit, unit_to_radec
 from dualsight.scene.units import MAS
 
@@ -88,28 +91,26 @@ than V = 2.5 agrees with the BSC within ~0.06 mag (tests/test_catalogs.py)."""
 # ---------------------------------------------------------------------------------------- config
 @dataclass(frozen=True)
 class StarCatalogConfig:
-    """What to build.
+    """What to build.  Both ranges are part of the field types (pydantic ``Field``), checked when a TOML
+    table is validated (``dualsight.jobs.config.validate``) and when the dataclass is built in Python
+    (ConfigError naming ``catalog.<field>``, the value and the range).
 
-    mag_limit : faintest Johnson V kept (mag), a finite number in [-2, 12]; the resulting catalog
-        must also hold at least :data:`MIN_STARS` stars (checked when it is built).
-    epoch_jyear : epoch of the positions (Julian year), finite, in [1900, 2100].
+    mag_limit : faintest Johnson V kept (mag), a finite number in [-2, 12] (:data:`MAG_LIMIT_RANGE`:
+        Sirius is V = -1.46, and Hipparcos is complete only to V ~ 7.3-9, with its faintest stars near
+        V = 12); the resulting catalog must also hold at least :data:`MIN_STARS` stars (checked when it
+        is built).
+    epoch_jyear : epoch of the positions (Julian year), finite, in [1900, 2100]: about a century either
+        side of the Hipparcos epoch J1991.25, covering every mission date, over which the positions are
+        propagated by proper motion only (no radial velocity).
     """
 
-    mag_limit: float = 5.5
-    epoch_jyear: float = 2000.0
+    mag_limit: Annotated[float, Field(ge=MAG_LIMIT_RANGE[0], le=MAG_LIMIT_RANGE[1])] = 5.5
+    epoch_jyear: Annotated[float, Field(ge=1900.0, le=2100.0)] = 2000.0
 
     def __post_init__(self):
-        lo, hi = MAG_LIMIT_RANGE
-        m = self.mag_limit
-        if not _is_number(m) or not math.isfinite(m) or not lo <= m <= hi:
-            raise ConfigError(f"must be a finite number in [{lo:g}, {hi:g}] (Johnson V), got {m!r}",
-                              field="catalog.mag_limit")
-        e = self.epoch_jyear
-        if not _is_number(e) or not math.isfinite(e) or not 1900.0 <= e <= 2100.0:
-            raise ConfigError(f"must be a finite number in [1900, 2100] (Julian year), got {e!r}",
-                              field="catalog.epoch_jyear")
-        object.__setattr__(self, "mag_limit", float(m))
-        object.__setattr__(self, "epoch_jyear", float(e))
+        check_fields(self, lambda name, msg: ConfigError(msg, field=f"catalog.{name}"), _UNITS)
+        object.__setattr__(self, "mag_limit", float(self.mag_limit))
+        object.__setattr__(self, "epoch_jyear", float(self.epoch_jyear))
 
     def key(self) -> str:
         """Short hash of the config, the source file and :data:`FORMAT_VERSION` (names cache files)."""
@@ -117,8 +118,7 @@ class StarCatalogConfig:
                            "epoch_jyear": repr(self.epoch_jyear), "source": _source_id()})
 
 
-def _is_number(x) -> bool:
-    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
+_UNITS = {"mag_limit": "mag (Johnson V)", "epoch_jyear": "Julian years"}
 
 
 # ---------------------------------------------------------------------------------------- catalog

@@ -9,93 +9,16 @@ a key ``<name>_arcsec`` or ``<name>_deg`` fills the field ``<name>_rad`` (conver
 from __future__ import annotations
 
 import dataclasses
-import functools
-import json
 import math
-import typing
+import re
 from pathlib import Path
 
-import pydantic
+from dualsight.config import MAX_DEPTH, _friendly, plain_tree, printable_key, validate  # noqa: F401 (re-exported)
 
 from dualsight.errors import ConfigError, InputError
 
 _ARCSEC = math.pi / (180 * 3600)
 _UNIT_SUFFIX = {"_arcsec": _ARCSEC, "_deg": math.pi / 180}
-
-
-MAX_DEPTH = 12
-"""Deepest nesting a configuration may have (tables and arrays); deeper input is refused, not recursed into."""
-
-
-def plain_tree(value, *, source: str, field: str = "", depth: int = 0):
-    """Check that a TOML/JSON value holds only tables, arrays, strings, booleans and finite numbers,
-    nested at most :data:`MAX_DEPTH` deep (iteratively bounded), and return it unchanged."""
-    if depth > MAX_DEPTH:
-        raise ConfigError(f"is nested more than {MAX_DEPTH} levels deep", source=source, field=field or None)
-    if isinstance(value, dict):
-        for k, v in value.items():
-            if not isinstance(k, str):
-                raise ConfigError(f"key {k!r} is not a string", source=source, field=field or None)
-            plain_tree(v, source=source, field=f"{field}.{k}" if field else k, depth=depth + 1)
-    elif isinstance(value, (list, tuple)):
-        for i, v in enumerate(value):
-            plain_tree(v, source=source, field=f"{field}[{i}]", depth=depth + 1)
-    elif isinstance(value, float):
-        if not math.isfinite(value):
-            raise ConfigError(f"must be a finite number, got {value!r}", source=source, field=field or None)
-    elif not (value is None or isinstance(value, (str, bool, int))):
-        raise ConfigError(f"must be a table, array, string, boolean or number, got {type(value).__name__} "
-                          f"{value!r}", source=source, field=field or None)
-    return value
-
-
-@functools.lru_cache(maxsize=None)
-def _adapter(tp) -> pydantic.TypeAdapter:
-    return pydantic.TypeAdapter(tp)
-
-
-def validate(tp, raw, *, source: str, section: str | None = None):
-    """Validate ``raw`` (TOML/JSON layout) into ``tp`` (a pydantic model or a dataclass) with pydantic in
-    strict JSON mode: nested tables become the nested types, arrays become tuples, but "3" is not a number
-    and 1.5 is not an integer.  The first problem becomes one ConfigError naming ``source``, the dotted field
-    (prefixed by ``section``) and the allowed range or values."""
-    plain_tree(raw, source=source, field=section or "")
-    try:
-        return _adapter(tp).validate_json(json.dumps(raw), strict=True)
-    except pydantic.ValidationError as e:
-        err = e.errors(include_url=False)[0]
-        loc = ".".join(str(x) for x in err["loc"] if x != "__root__")
-        fld = ".".join(x for x in (section, loc) if x) or None
-        msg = err["msg"].removeprefix("Value error, ")
-        if err["type"] == "unexpected_keyword_argument" or err["type"] == "extra_forbidden":
-            allowed = _field_names(tp, err["loc"][:-1])
-            msg = "unknown key" + (f"; allowed keys: {', '.join(allowed)}" if allowed else "")
-            raise ConfigError(msg, source=source, field=fld) from None
-        inp = err.get("input")
-        got = "" if err["type"] in ("missing", "missing_argument") or isinstance(inp, (dict, list)) \
-            else f", got {inp!r}"
-        raise ConfigError(f"{msg}{got}", source=source, field=fld) from None
-
-
-def _field_names(tp, loc) -> list[str]:
-    """Friendly key names allowed at ``loc`` inside ``tp`` (for "unknown key" messages)."""
-    for part in loc:
-        hints = _hints(tp)
-        if part not in hints:
-            return []
-        tp = hints[part]
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        if args and (dataclasses.is_dataclass(args[0]) or isinstance(args[0], type)):
-            tp = args[0]
-    return sorted(_friendly(n) for n in _hints(tp))
-
-
-def _hints(tp) -> dict:
-    if isinstance(tp, type) and issubclass(tp, pydantic.BaseModel):
-        return dict(tp.model_fields)
-    if dataclasses.is_dataclass(tp):
-        return {f.name: f.type for f in dataclasses.fields(tp) if f.init}
-    return {}
 
 
 def check_memory(nbytes: int, *, source: str, what: str = "this spec"):
@@ -118,12 +41,14 @@ def dataclass_from_table(cls, table: dict | None, *, source: str, section: str, 
     """Build frozen dataclass ``cls`` from a TOML table through :func:`validate` (pydantic, strict).
 
     ``base``: an instance whose values replace the class defaults (e.g. a named method's settings).
-    Keys ``<name>_arcsec`` / ``<name>_deg`` fill the field ``<name>_rad`` (converted to radians).
+    Keys ``<name>_arcsec`` / ``<name>_deg`` fill the field ``<name>_rad`` (converted to radians); an error
+    about such a field names the key and the value as the user wrote them.
     """
     if table is not None and not isinstance(table, dict):
         raise ConfigError("must be a table", source=source, field=section)
     fields = {f.name for f in dataclasses.fields(cls) if f.init}
     merged = dataclass_to_table(base) if base is not None else {}
+    written = {}                                   # field -> (key as written, scale)
     for key, value in (table or {}).items():
         name, scale = key, 1.0
         if key not in fields:
@@ -133,13 +58,24 @@ def dataclass_from_table(cls, table: dict | None, *, source: str, section: str, 
                     break
         if name not in fields:
             raise ConfigError(f"unknown key; allowed keys: {', '.join(sorted(_friendly(n) for n in fields))}",
-                              source=source, field=f"{section}.{key}")
+                              source=source, field=f"{section}.{printable_key(key)}")
         if scale != 1.0:
             if not _is_number(value):
                 raise ConfigError(f"must be a number, got {value!r}", source=source, field=f"{section}.{key}")
+            written[name] = (key, scale, value)
             value = value * scale
         merged[name] = value
-    return validate(cls, merged, source=source, section=section)
+    try:
+        return validate(cls, merged, source=source, section=section)
+    except ConfigError as e:
+        fld = (e.field or "").removeprefix(section + ".")
+        if fld in written:
+            key, scale, value = written[fld]
+            detail = e.detail.split(", got ")[0]
+            detail = re.sub(r"(-?\d+(?:\.\d+)?(?:e-?\d+)?)", lambda m: f"{float(m.group(1)) / scale:.6g}", detail)
+            raise ConfigError(f"{detail} ({key.rsplit('_', 1)[1]}), got {value!r}", source=source,
+                              field=f"{section}.{key}") from None
+        raise
 
 
 def dataclass_to_table(obj) -> dict:
@@ -153,10 +89,6 @@ def dataclass_to_table(obj) -> dict:
             v = list(v)
         out[f.name] = v
     return out
-
-
-def _friendly(name: str) -> str:
-    return name[:-4] + "_arcsec|_deg|_rad" if name.endswith("_rad") else name
 
 
 def _is_number(v) -> bool:

@@ -8,7 +8,7 @@ Modules, one stage each:
   ``prox_triangles`` + ``prox_raster`` (``accurate``), both shading by ``prox_shading`` (Eqs. 2-3) with
   ``prox_geometry``; ``prox_sensor`` (blur, read noise, quantisation); ``blobs`` (the blobber's labelling);
 * shared: ``labelling`` (the one connected-component labeller), ``rng`` (the one counter-based random
-  number generator), ``_runtime`` (lazy Taichi start, ``KernelCache``), ``_config`` (config validation).
+  number generator), ``_runtime`` (lazy Taichi start, ``KernelCache``).
 
 Importing this package only sets Taichi's environment (no version check over the network, no banner on
 stdout, which would corrupt ``--json`` output); the runtime itself is initialised lazily by

@@ -29,15 +29,16 @@ sample (every ``background_step``-th row and column): bg = median, sigma = stand
 sample within 4 * 1.4826 * MAD of the median (robust to the few star pixels; 0 when MAD = 0).
 """
 
-import functools
 from dataclasses import dataclass
+from typing import Annotated, Literal
 
 import numpy as np
 import taichi as ti
+from pydantic import Field
 
 from dualsight.kernels import star_psf
 from dualsight.kernels import starfield as sf
-from dualsight.kernels._config import is_finite_number, is_int, reject
+from dualsight.config import check_fields
 from dualsight.kernels._runtime import KernelCache
 from dualsight.kernels.labelling import Components, find, label_frames, label_segments, union
 
@@ -45,50 +46,50 @@ __all__ = ["DetectConfig", "Detections", "detect_stars", "render_and_detect_idea
 
 
 # ============================================================================ data
+_ADU = Annotated[float, Field(ge=-sf.MAX_ADU, le=sf.MAX_ADU)]
+_DETECT_UNITS = {"threshold_adu": "ADU", "k_sigma": "sigma", "background_adu": "ADU", "noise_sigma_adu": "ADU",
+                 "min_pixels": "px", "background_step": "px"}
+
+
 @dataclass(frozen=True)
 class DetectConfig:
     """Star detection settings.
 
+    Every field's range is part of its type (pydantic ``Field``), checked both when a TOML table is
+    validated (``dualsight.jobs.config.validate``) and when the dataclass is built in Python
+    (:func:`dualsight.config.check_fields`).  ADU bounds are the full scale of the deepest
+    ADC allowed, 2^24 (:data:`dualsight.kernels.starfield.MAX_ADU`); pixel counts are bounded by the
+    largest frame, 65536^2 = 2^32 pixels.
+
     Attributes
     ----------
-    threshold_adu : minimum level above the background (ADU); a pixel is "on" when
+    threshold_adu : minimum level above the background (ADU), in [0, 2^24]; a pixel is "on" when
         value > bg + max(threshold_adu, k_sigma * sigma).
-    k_sigma : threshold in units of the frame's noise sigma (0 = purely absolute threshold).
-    background_adu : known background level (ADU); None = per-frame median of a pixel sample
-        (the renderers' noise-free sky level for :func:`render_and_detect_ideal`).
-    noise_sigma_adu : known noise sigma (ADU); None = per-frame robust estimate (0 for noise-free frames).
-    min_pixels : smallest blob kept (pixels).
-    max_blobs_per_frame : keep at most this many blobs per frame (the highest-flux ones).
+    k_sigma : threshold in units of the frame's noise sigma, in [0, 1000] (0 = purely absolute
+        threshold; star trackers use 3-10).
+    background_adu : known background level (ADU), None or in [-2^24, 2^24]; None = per-frame median of
+        a pixel sample (the renderers' noise-free sky level for :func:`render_and_detect_ideal`).
+    noise_sigma_adu : known noise sigma (ADU), None or in [0, 2^24]; None = per-frame robust estimate
+        (0 for noise-free frames).
+    min_pixels : smallest blob kept (pixels), an integer in [1, 2^32].
+    max_blobs_per_frame : keep at most this many blobs per frame (the highest-flux ones), an integer in
+        [1, 10^6] (bounds the detection lists handed to identification).
     connectivity : 8 (default: diagonal neighbours connect) or 4.
-    background_step : sampling stride (rows and columns) of the background estimate.
+    background_step : sampling stride (rows and columns) of the background estimate (px), an integer in
+        [1, 65536] (the largest image side).
     """
 
-    threshold_adu: float = 0.0
-    k_sigma: float = 5.0
-    background_adu: float | None = None
-    noise_sigma_adu: float | None = None
-    min_pixels: int = 2
-    max_blobs_per_frame: int = 256
-    connectivity: int = 8
-    background_step: int = 16
+    threshold_adu: Annotated[float, Field(ge=0, le=sf.MAX_ADU)] = 0.0
+    k_sigma: Annotated[float, Field(ge=0, le=1000.0)] = 5.0
+    background_adu: _ADU | None = None
+    noise_sigma_adu: Annotated[float, Field(ge=0, le=sf.MAX_ADU)] | None = None
+    min_pixels: Annotated[int, Field(ge=1, le=2 ** 32)] = 2
+    max_blobs_per_frame: Annotated[int, Field(ge=1, le=10 ** 6)] = 256
+    connectivity: Literal[4, 8] = 8
+    background_step: Annotated[int, Field(ge=1, le=65536)] = 16
 
     def __post_init__(self):
-        bad = functools.partial(reject, self)
-        if not is_finite_number(self.threshold_adu) or self.threshold_adu < 0:
-            bad("threshold_adu", "a finite number >= 0")
-        if not is_finite_number(self.k_sigma) or self.k_sigma < 0:
-            bad("k_sigma", "a finite number >= 0")
-        if self.background_adu is not None and not is_finite_number(self.background_adu):
-            bad("background_adu", "None or a finite number")
-        sig = self.noise_sigma_adu
-        if sig is not None and (not is_finite_number(sig) or sig < 0):
-            bad("noise_sigma_adu", "None or a finite number >= 0")
-        for name, lo in (("min_pixels", 1), ("max_blobs_per_frame", 1), ("background_step", 1)):
-            v = getattr(self, name)
-            if not is_int(v) or v < lo:
-                bad(name, f"an integer >= {lo}")
-        if self.connectivity not in (4, 8) or isinstance(self.connectivity, bool):
-            bad("connectivity", "4 or 8")
+        check_fields(self, units=_DETECT_UNITS)
 
 
 @dataclass(frozen=True)

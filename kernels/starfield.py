@@ -38,16 +38,17 @@ Taichi is initialised lazily (``dualsight.kernels._runtime.ensure_init``) on the
 """
 
 
-import functools
 import math
 import threading
 from dataclasses import dataclass, fields
+from typing import Annotated
 
 import numpy as np
 import taichi as ti
+from pydantic import Field
 
 from dualsight.kernels import rng, star_psf
-from dualsight.kernels._config import is_finite_number, is_int, reject
+from dualsight.config import check_fields
 from dualsight.kernels._runtime import KernelCache
 
 __all__ = ["SensorConfig", "flux_from_magnitude", "render_star_fields", "false_star_lists",
@@ -58,84 +59,87 @@ _QUANT_EPS = 1e-9  # ADU; keeps exact multiples of the gain from flooring one co
 
 
 # ============================================================================ configuration
+MAX_CHARGE_E = 1e12
+"""Largest charge (e-) any charge field may hold: 1e6 above the deepest real full wells (~1e6 e-), so
+``full_well_e = 1e12`` still means "never saturates", while float32/float64 arithmetic stays exact enough."""
+MAX_ADU = 2 ** 24
+"""Largest ADU magnitude of any ADU field: the full scale of the deepest ADC allowed (``bit_depth`` 24)."""
+
+_Charge = Annotated[float, Field(ge=0, le=MAX_CHARGE_E)]
+_SENSOR_UNITS = {"psf_sigma_px": "px", "exposure_s": "s", "gain_e_per_adu": "e-/ADU", "full_well_e": "e-",
+                 "bit_depth": "bits", "bias_adu": "ADU", "zero_mag_rate_e_per_s": "e-/s", "psf_window_sigma": "sigma",
+                 "read_noise_e": "e- rms", "dark_current_e_per_s": "e-/s/px", "sky_background_e": "e-/px",
+                 "hot_pixel_e": "e-", "false_star_flux_min_e": "e-", "false_star_flux_max_e": "e-"}
+
+
 @dataclass(frozen=True)
 class SensorConfig:
     """Optics + detector model for star-field rendering.  The defaults describe an *ideal* sensor
     (every noise source off) that still quantises to 12-bit ADU.
 
+    Every field's range is part of its type (pydantic ``Field``), checked both when a TOML table is
+    validated (``dualsight.jobs.config.validate``) and when the dataclass is built in Python
+    (:func:`dualsight.config.check_fields`).
+
     Attributes
     ----------
-    psf_sigma_px : Gaussian PSF standard deviation (px); 0.8 = slight defocus (FWHM 1.9 px).
-    exposure_s : exposure time (s).
-    gain_e_per_adu : electrons per ADU (conversion gain).
-    full_well_e : pixel saturation charge (e-); charge is clipped here before read noise.
-    bit_depth : ADC bits; ADU are clipped to [0, 2^bit_depth - 1] (<= 16 for uint16 output).
-    bias_adu : constant ADC offset (ADU) added before quantisation (lets read noise go below zero).
+    psf_sigma_px : Gaussian PSF standard deviation (px), in [0.05, 50]; 0.8 = slight defocus (FWHM 1.9 px).
+        Below 0.05 px the PSF is a delta (the pixel integral is exact anyway); above 50 px a star is a
+        ~400 px wide disc and each window costs (2 * psf_window_sigma * sigma)^2 pixel evaluations.
+    exposure_s : exposure time (s), in (0, 3600]: star trackers expose ms to ~1 s; an hour is the
+        longest astronomical exposure worth modelling (and bounds the Poisson means).
+    gain_e_per_adu : electrons per ADU (conversion gain), in [1e-3, 1e4] e-/ADU (real sensors: ~0.1-20).
+    full_well_e : pixel saturation charge (e-), in (0, 1e12]; charge is clipped here before read noise
+        (real wells hold 1e3-1e6 e-; 1e12 = never saturates).
+    bit_depth : ADC bits, an integer in [1, 24]; ADU are clipped to [0, 2^bit_depth - 1] (<= 16 for
+        uint16 output; 24 keeps every ADU exact in float32).
+    bias_adu : constant ADC offset (ADU) added before quantisation (lets read noise go below zero), in
+        [-2^24, 2^24] ADU (the full scale of a 24-bit ADC).
     quantize : floor to integer ADU (True for a real ADC; False gives continuous ADU).
-    zero_mag_rate_e_per_s : electrons per second collected from a magnitude-0 star (see module doc).
-    psf_window_sigma : render each PSF out to this many sigma (+1 px) from the star.
-    read_noise_e : Gaussian read noise standard deviation (e- rms); 0 = off.
-    dark_current_e_per_s : mean dark current (e-/s/px); 0 = off.
-    sky_background_e : mean sky background (e-/px per exposure); 0 = off.
+    zero_mag_rate_e_per_s : electrons per second collected from a magnitude-0 star (see module doc), in
+        [0, 1e12] e-/s (1e12 is ~1e4 times a 1 m^2 aperture's rate).
+    psf_window_sigma : render each PSF out to this many sigma (+1 px) from the star, in [1, 10]: at 10
+        sigma the flux outside (2 Phi(-10) ~ 1.5e-23) is below float64 resolution; the window has
+        (2 ceil(psf_window_sigma * sigma + 1) + 1)^2 pixels, at most 1003^2 with the bounds.
+    read_noise_e : Gaussian read noise standard deviation (e- rms), in [0, 1e12]; 0 = off.
+    dark_current_e_per_s : mean dark current (e-/s/px), in [0, 1e12]; 0 = off.
+    sky_background_e : mean sky background (e-/px per exposure), in [0, 1e12]; 0 = off.
     shot_noise : Poisson noise on signal + dark + background (+ hot pixel charge).
-    hot_pixel_fraction : probability that a pixel is hot; 0 = off.
-    hot_pixel_e : extra charge of a hot pixel (e- per exposure).
-    hot_pixel_seed : None = hot pixels drawn per case from the case seed; an integer = one fixed
-        hot-pixel map (a property of the sensor) shared by every case.
+    hot_pixel_fraction : probability that a pixel is hot, in [0, 1]; 0 = off.
+    hot_pixel_e : extra charge of a hot pixel (e- per exposure), in [0, 1e12].
+    hot_pixel_seed : None = hot pixels drawn per case from the case seed; an integer in [0, 2^64) = one
+        fixed hot-pixel map (a property of the sensor) shared by every case.
     false_stars_per_frame : number of spurious point sources (glints, debris, planets) added to every
-        frame at uniform random positions; 0 = off.
-    false_star_flux_min_e, false_star_flux_max_e : their flux is log-uniform in this range (e-).
+        frame at uniform random positions, an integer in [0, 10000] (bounds the star lists); 0 = off.
+    false_star_flux_min_e, false_star_flux_max_e : their flux is log-uniform in this range (e-), each in
+        (0, 1e12], and max >= min (the one cross-field rule, checked in ``__post_init__``).
     """
 
-    psf_sigma_px: float = 0.8
-    exposure_s: float = 0.1
-    gain_e_per_adu: float = 5.0
-    full_well_e: float = 20000.0
-    bit_depth: int = 12
-    bias_adu: float = 0.0
+    psf_sigma_px: Annotated[float, Field(ge=0.05, le=50.0)] = 0.8
+    exposure_s: Annotated[float, Field(gt=0, le=3600.0)] = 0.1
+    gain_e_per_adu: Annotated[float, Field(ge=1e-3, le=1e4)] = 5.0
+    full_well_e: Annotated[float, Field(gt=0, le=MAX_CHARGE_E)] = 20000.0
+    bit_depth: Annotated[int, Field(ge=1, le=24)] = 12
+    bias_adu: Annotated[float, Field(ge=-MAX_ADU, le=MAX_ADU)] = 0.0
     quantize: bool = True
-    zero_mag_rate_e_per_s: float = 1.5e6
-    psf_window_sigma: float = 4.0
-    read_noise_e: float = 0.0
-    dark_current_e_per_s: float = 0.0
-    sky_background_e: float = 0.0
+    zero_mag_rate_e_per_s: _Charge = 1.5e6
+    psf_window_sigma: Annotated[float, Field(ge=1.0, le=10.0)] = 4.0
+    read_noise_e: _Charge = 0.0
+    dark_current_e_per_s: _Charge = 0.0
+    sky_background_e: _Charge = 0.0
     shot_noise: bool = False
-    hot_pixel_fraction: float = 0.0
-    hot_pixel_e: float = 5000.0
-    hot_pixel_seed: int | None = None
-    false_stars_per_frame: int = 0
-    false_star_flux_min_e: float = 500.0
-    false_star_flux_max_e: float = 20000.0
+    hot_pixel_fraction: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0
+    hot_pixel_e: _Charge = 5000.0
+    hot_pixel_seed: Annotated[int, Field(ge=0, lt=2 ** 64)] | None = None
+    false_stars_per_frame: Annotated[int, Field(ge=0, le=10_000)] = 0
+    false_star_flux_min_e: Annotated[float, Field(gt=0, le=MAX_CHARGE_E)] = 500.0
+    false_star_flux_max_e: Annotated[float, Field(gt=0, le=MAX_CHARGE_E)] = 20000.0
 
     def __post_init__(self):
-        bad = functools.partial(reject, self)
-        for name, lo, lo_open in [("psf_sigma_px", 0.05, False), ("exposure_s", 0.0, True),
-                                  ("gain_e_per_adu", 0.0, True), ("full_well_e", 0.0, True),
-                                  ("zero_mag_rate_e_per_s", 0.0, False), ("psf_window_sigma", 1.0, False),
-                                  ("read_noise_e", 0.0, False), ("dark_current_e_per_s", 0.0, False),
-                                  ("sky_background_e", 0.0, False), ("hot_pixel_e", 0.0, False),
-                                  ("false_star_flux_min_e", 0.0, True)]:
-            v = getattr(self, name)
-            if not is_finite_number(v) or (v <= lo if lo_open else v < lo):
-                bad(name, f"a finite number {'>' if lo_open else '>='} {lo}")
-        if self.psf_sigma_px > 50:
-            bad("psf_sigma_px", "<= 50 px")
-        if not is_finite_number(self.bias_adu):
-            bad("bias_adu", "finite")
-        if not is_int(self.bit_depth) or not 1 <= self.bit_depth <= 24:
-            bad("bit_depth", "an integer in [1, 24]")
-        if not is_finite_number(self.hot_pixel_fraction) or not 0.0 <= self.hot_pixel_fraction <= 1.0:
-            bad("hot_pixel_fraction", "in [0, 1]")
-        if not is_int(self.false_stars_per_frame) or not 0 <= self.false_stars_per_frame <= 10_000:
-            bad("false_stars_per_frame", "an integer in [0, 10000]")
-        if not is_finite_number(self.false_star_flux_max_e) or self.false_star_flux_max_e < self.false_star_flux_min_e:
-            bad("false_star_flux_max_e", f">= false_star_flux_min_e ({self.false_star_flux_min_e})")
-        if self.hot_pixel_seed is not None and (not isinstance(self.hot_pixel_seed, int)
-                                                or not 0 <= self.hot_pixel_seed < 2 ** 64):
-            bad("hot_pixel_seed", "None or an integer in [0, 2^64)")
-        for name in ("shot_noise", "quantize"):
-            if not isinstance(getattr(self, name), bool):
-                bad(name, "a bool")
+        check_fields(self, units=_SENSOR_UNITS)
+        if self.false_star_flux_max_e < self.false_star_flux_min_e:
+            raise ValueError(f"SensorConfig.false_star_flux_max_e must be >= false_star_flux_min_e "
+                             f"({self.false_star_flux_min_e!r}), got {self.false_star_flux_max_e!r}")
 
     # ------------------------------------------------------------------ derived
     @property

@@ -30,14 +30,20 @@ Estimators (named, side by side):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated, Literal, get_args
 
 import numpy as np
+from pydantic import Field
 
+from dualsight.config import check_fields
 from dualsight.kernels.blobs import label_blobs
 from dualsight.nav.range import range_eq1, range_oblique
 
-ESTIMATORS = ("paper", "subpixel")
-TARGETS = ("largest", "all")
+Estimator = Literal["paper", "subpixel"]
+Target = Literal["largest", "all"]
+AreaCurve = Literal["min", "mean", "max", "median", "relopt"]
+ESTIMATORS = get_args(Estimator)
+TARGETS = get_args(Target)
 _DEFAULT_CURVE = {"paper": "mean", "subpixel": "relopt"}
 
 
@@ -45,35 +51,33 @@ _DEFAULT_CURVE = {"paper": "mean", "subpixel": "relopt"}
 class BlobberConfig:
     """Blobber settings.
 
+    Every field's range is part of its type (pydantic ``Field``), checked when a TOML table is validated
+    (``dualsight.jobs.config.validate``) and when the dataclass is built in Python (ValueError naming the
+    field, the value and the allowed range).
+
     Attributes
     ----------
     estimator : "paper" (reference Eq. 1 exactly) or "subpixel" (see module docstring).
-    threshold : foreground is ``image > threshold`` (image units; 0 = every lit pixel of a rendered image).
+    threshold : foreground is ``image > threshold`` (image units: rendered intensity or ADU), in
+        [0, 1e12]; 0 = every lit pixel of a rendered image (a negative threshold would make the whole
+        frame one blob; 1e12 is above any ADU or rendered radiance, as the prox spec's bound).
     connectivity : 8 or 4.
     target : "largest" blob or "all" foreground pixels as one blob.
     area_curve : table curve for the range estimate ("min", "mean", "max", "median", "relopt");
         None = the estimator's default ("mean" for paper, "relopt" for subpixel).
-    min_pixels : a frame whose target blob has fewer whole pixels is "not found" (NaN outputs).
+    min_pixels : a frame whose target blob has fewer whole pixels is "not found" (NaN outputs); an
+        integer in [1, 2^32] (the pixels of the largest frame, 65536^2).
     """
 
-    estimator: str = "paper"
-    threshold: float = 0.0
-    connectivity: int = 8
-    target: str = "largest"
-    area_curve: str | None = None
-    min_pixels: int = 1
+    estimator: Estimator = "paper"
+    threshold: Annotated[float, Field(ge=0.0, le=1e12)] = 0.0
+    connectivity: Literal[4, 8] = 8
+    target: Target = "largest"
+    area_curve: AreaCurve | None = None
+    min_pixels: Annotated[int, Field(ge=1, le=2 ** 32)] = 1
 
     def __post_init__(self):
-        if self.estimator not in ESTIMATORS:
-            raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {self.estimator!r}")
-        if self.connectivity not in (4, 8):
-            raise ValueError(f"connectivity must be 4 or 8, got {self.connectivity!r}")
-        if self.target not in TARGETS:
-            raise ValueError(f"target must be one of {', '.join(TARGETS)}, got {self.target!r}")
-        if self.area_curve is not None and self.area_curve not in ("min", "mean", "max", "median", "relopt"):
-            raise ValueError(f"area_curve must be min, mean, max, median or relopt, got {self.area_curve!r}")
-        if not (isinstance(self.min_pixels, int) and self.min_pixels >= 1):
-            raise ValueError(f"min_pixels must be an integer >= 1, got {self.min_pixels!r}")
+        check_fields(self, units={"min_pixels": "px"})
 
     @property
     def curve(self) -> str:

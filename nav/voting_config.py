@@ -24,32 +24,56 @@ All angles are in radians (convert at the edge with :data:`dualsight.scene.units
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Annotated, Literal, get_args
 
-import numpy as np
+from pydantic import Field
 
 from dualsight.errors import ConfigError
+from dualsight.config import check_fields
 
-__all__ = ["VotingConfig", "ACCEPT_RULES"]
+__all__ = ["VotingConfig", "ACCEPT_RULES", "MAX_TOLERANCE_RAD", "MAX_STARS"]
 
-ACCEPT_RULES = ("fraction", "clique")
+AcceptRule = Literal["fraction", "clique"]
+ACCEPT_RULES = get_args(AcceptRule)
+
+MAX_TOLERANCE_RAD = math.pi / 180
+"""Largest angle tolerance (1 deg, in rad) of the voting, verification and attitude rounds.  A tolerance
+covers the error of an observed pair angle, a fraction of a pixel to a few pixels: 0.1-200 arcsec for
+any star tracker (pixels of ~5-150 arcsec).  At 1 deg every observed pair of a 16 deg field already
+votes for ~10 % of the pair catalog (e.g. all pairs 9-11 deg apart), so identification is noise;
+beyond it the windows only cost time."""
+
+MAX_STARS = 1000
+"""Most observed stars a case may vote with (and the largest count field): the HIL jobs keep at most 1000
+detections (``max_obs``), and the voting, verification and consistent-set steps grow with its square."""
+
+_Tol = Annotated[float, Field(gt=0, le=MAX_TOLERANCE_RAD)]
+_Count = Annotated[int, Field(ge=2, le=MAX_STARS)]
+_UNITS = {"tolerance_rad": "rad", "verify_tolerance_rad": "rad", "attitude_tolerance_rad": "rad",
+          "max_stars": "stars", "min_accepted": "stars", "min_verified": "stars", "max_vote_cells": "cells"}
 
 
 @dataclass(frozen=True)
 class VotingConfig:
     """Options of :func:`dualsight.nav.starid.identify`.  Defaults: the reference-faithful :meth:`paper`.
 
-    Invalid values raise :class:`dualsight.errors.ConfigError` (a ``ValueError``) naming
-    ``voting.<field>``.
+    Every field's range is part of its type (pydantic ``Field``), checked when a TOML table is validated
+    (``dualsight.jobs.config.validate``) and when the dataclass is built in Python; invalid values raise
+    :class:`dualsight.errors.ConfigError` (a ``ValueError``) naming ``voting.<field>``, the value and
+    the allowed range.
 
     Attributes
     ----------
-    tolerance_rad : half-width (rad) of the angle window in the voting round: a catalog pair votes
-        when ``|angle_ab - d_pq| < tolerance_rad``.  Should cover the error of an observed pair angle
-        (about sqrt(2) x the centroid error); the 17 mm / 4.65 um camera has 56.4 arcsec pixels, so the
-        default 1.5e-4 rad (31 arcsec, 0.55 px) suits ~0.1-0.2 px centroids.
+    tolerance_rad : half-width (rad) of the angle window in the voting round, in (0, pi/180] (1 deg,
+        :data:`MAX_TOLERANCE_RAD`): a catalog pair votes when ``|angle_ab - d_pq| < tolerance_rad``.
+        Should cover the error of an observed pair angle (about sqrt(2) x the centroid error); the
+        17 mm / 4.65 um camera has 56.4 arcsec pixels, so the default 1.5e-4 rad (31 arcsec, 0.55 px)
+        suits ~0.1-0.2 px centroids.
     max_stars : use only the ``max_stars`` brightest valid observed stars (the first valid ones; the
-        inputs are ordered brightest first) in voting and verification.
+        inputs are ordered brightest first) in voting and verification; an integer in [2, 1000]
+        (:data:`MAX_STARS`).
     require_unique_max : step 2 assigns an identity only when its vote count is strictly above every
         other catalog row's (a tie leaves the star unidentified, id -1), and an identity claimed by
         two observed stars stays only with the star that has strictly more votes for it.  Off: ties
@@ -63,72 +87,52 @@ class VotingConfig:
         tie-aware step 2: keep each star's m best-voted identities (ties to the lower row) and pick,
         among all (star, identity) candidates, the largest set whose every pairwise catalog angle
         matches the observed one (greedy pruning); stars outside that set keep the plain maximum.
-        Sparse fields, where the true identity often ties with chance coincidences, gain most.
+        Sparse fields, where the true identity often ties with chance coincidences, gain most.  An
+        integer in [1, 5]: the consistency table of one case has (max_stars x m)^2 cells, at most
+        2.5e7 with the bounds (the robust preset uses 3).
     accept_rule : "fraction" (verification votes >= accept_fraction * T, and > 0) or "clique"
         (largest mutually consistent set by greedy pruning; ``accept_fraction`` is unused).
-    accept_fraction : see ``accept_rule``.  The reference does not give its value; 0.5 by default.
-    min_accepted : a case with fewer accepted stars is rejected (T = 0).  2 is the minimum for an
-        attitude; without the attitude check, 3 removes most confident-but-wrong answers.
-    verify_tolerance_rad : tolerance (rad) of the verification round; None = ``tolerance_rad``.
+    accept_fraction : see ``accept_rule``, in [0, 1].  The reference does not give its value; 0.5 by
+        default.
+    min_accepted : a case with fewer accepted stars is rejected (T = 0); an integer in [2, 1000].  2 is
+        the minimum for an attitude; without the attitude check, 3 removes most confident-but-wrong
+        answers.
+    verify_tolerance_rad : tolerance (rad) of the verification round, None or in (0, pi/180];
+        None = ``tolerance_rad``.
     verify_attitude : after voting, solve the attitude (SVD) from the accepted stars, rotate every valid
         observed star into the catalog frame and match it to the nearest catalog star within
         ``attitude_tolerance_rad``; reject the case when fewer than ``min_verified`` observed stars
         match.  Not in the reference (off in :meth:`paper`).
-    attitude_tolerance_rad : match radius (rad) of the attitude check; None = 2 x ``tolerance_rad``.
+    attitude_tolerance_rad : match radius (rad) of the attitude check, None or in (0, pi/180];
+        None = 2 x ``tolerance_rad``.
     min_verified : minimum number of observed stars matched by the attitude check (including the
-        accepted ones): 4 = a pair needs two independent confirmations, a triple one.  3 solves a few
-        more three- and four-star fields at a small risk of a wrong triple.
+        accepted ones), an integer in [2, 1000]: 4 = a pair needs two independent confirmations, a
+        triple one.  3 solves a few more three- and four-star fields at a small risk of a wrong triple.
     reidentify : with ``verify_attitude``, replace the final ids by the attitude matches (this also
         identifies stars beyond ``max_stars`` or missed by voting) and accept exactly the matched stars.
-    max_vote_cells : memory bound: a dense vote table holds at most this many int64 cells (tables
-        are of max(1, min(max_vote_cells, 262144) // W) observed stars, W = N + 1 rounded up to 64),
-        at most this many catalog stars are expanded at once (with 262144, or one tile), and the
-        later steps work on blocks of cases of about this size.
+    max_vote_cells : memory bound, an integer in [1, 2^28] (2^28 int64 cells = 2 GiB): a dense vote
+        table holds at most this many int64 cells (tables are of max(1, min(max_vote_cells, 262144) // W)
+        observed stars, W = N + 1 rounded up to 64), at most this many catalog stars are expanded at
+        once (with 262144, or one tile), and the later steps work on blocks of cases of about this size.
     """
 
-    tolerance_rad: float = 1.5e-4
-    max_stars: int = 20
+    tolerance_rad: _Tol = 1.5e-4
+    max_stars: _Count = 20
     require_unique_max: bool = False
     vote_once_per_pair: bool = False
-    candidates_per_star: int = 1
-    accept_rule: str = "fraction"
-    accept_fraction: float = 0.5
-    min_accepted: int = 2
-    verify_tolerance_rad: float | None = None
+    candidates_per_star: Annotated[int, Field(ge=1, le=5)] = 1
+    accept_rule: AcceptRule = "fraction"
+    accept_fraction: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5
+    min_accepted: _Count = 2
+    verify_tolerance_rad: _Tol | None = None
     verify_attitude: bool = False
-    attitude_tolerance_rad: float | None = None
-    min_verified: int = 4
+    attitude_tolerance_rad: _Tol | None = None
+    min_verified: _Count = 4
     reidentify: bool = True
-    max_vote_cells: int = 250_000
+    max_vote_cells: Annotated[int, Field(ge=1, le=2 ** 28)] = 250_000
 
     def __post_init__(self):
-        def bad(name, allowed):
-            raise ConfigError(f"must be {allowed}, got {getattr(self, name)!r}", field=f"voting.{name}")
-
-        def pos(name, optional=False):
-            v = getattr(self, name)
-            if optional and v is None:
-                return
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (np.isfinite(v) and v > 0):
-                bad(name, "a number > 0 (rad)" + (" or None" if optional else ""))
-
-        def integer(name, lo):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-                bad(name, f"an integer >= {lo}")
-
-        pos("tolerance_rad")
-        pos("verify_tolerance_rad", optional=True)
-        pos("attitude_tolerance_rad", optional=True)
-        integer("max_stars", 2)
-        integer("candidates_per_star", 1)
-        integer("min_accepted", 2)
-        integer("min_verified", 2)
-        integer("max_vote_cells", 1)
-        if self.accept_rule not in ACCEPT_RULES:
-            bad("accept_rule", f"one of {ACCEPT_RULES}")
-        if isinstance(self.accept_fraction, bool) or not (0.0 <= self.accept_fraction <= 1.0):
-            bad("accept_fraction", "a number in [0, 1]")
+        check_fields(self, lambda name, msg: ConfigError(msg, field=f"voting.{name}"), _UNITS)
 
     @property
     def verify_tol(self) -> float:

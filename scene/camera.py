@@ -29,42 +29,67 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
+import pydantic
+from pydantic import Field
 
 from dualsight.errors import ConfigError
+from dualsight.config import check_fields
 
 _DIST_LEN = 5
 MAX_SIDE_PX = 65536
 """Largest image side the kernels address (pixel indices are 32-bit per row and column)."""
+MAX_FOCAL_PX = 1e7
+"""Largest focal length in pixels: 0.4 deg across the largest image (65536 px), narrower than any star
+tracker or navigation camera; the smallest, 1 px, is a ~180 deg field of view, beyond any pinhole model."""
+MAX_PRINCIPAL_PX = 1e6
+"""Largest distance (px) of the principal point from the image corner: ~15 x the largest image side."""
+PIXEL_PITCH_RANGE_M = (1e-8, 1e-3)
+"""Pixel pitch range (m): real pixels are ~0.5-50 um; 10 nm leaves room for supersampled virtual
+cameras (e.g. 32 x finer than a 4.65 um sensor), 1 mm is beyond any imaging sensor."""
+
+_Side = Annotated[int, Field(ge=1, le=MAX_SIDE_PX)]
+_Focal = Annotated[float, Field(ge=1.0, le=MAX_FOCAL_PX)]
+_Principal = Annotated[float, Field(ge=-MAX_PRINCIPAL_PX, le=MAX_PRINCIPAL_PX)]
+_BitDepth = Annotated[int, Field(ge=1, le=32)]
+_UNITS = {"width": "px", "height": "px", "pixel_pitch_m": "m", "fx": "px", "fy": "px", "cx": "px", "cy": "px",
+          "bit_depth": "bits"}
 
 
 @dataclass(frozen=True)
 class Camera:
     """Intrinsics of a pinhole camera.
 
+    Every field's range is part of its type (pydantic ``Field``), checked whenever a Camera is built
+    (ConfigError naming ``camera.<field>``, the value and the range).
+
     Attributes
     ----------
-    width, height : image size in pixels.
-    pixel_pitch_m : physical pixel size (m), square pixels.
-    fx, fy : focal length in pixels along columns and rows.
-    cx, cy : principal point in pixels (dualsight convention: from the top-left corner).
-    distortion : (k1, k2, p1, p2, k3), OpenCV's radial-tangential model on normalised coordinates.
-    bit_depth : ADC bits of the sensor (used by renderers to quantise).
+    width, height : image size in pixels, integers in [1, 65536] (:data:`MAX_SIDE_PX`).
+    pixel_pitch_m : physical pixel size (m), square pixels, in [1e-8, 1e-3] (:data:`PIXEL_PITCH_RANGE_M`).
+    fx, fy : focal length in pixels along columns and rows, in [1, 1e7] px (:data:`MAX_FOCAL_PX`).
+    cx, cy : principal point in pixels (dualsight convention: from the top-left corner), in
+        [-1e6, 1e6] px (:data:`MAX_PRINCIPAL_PX`).
+    distortion : (k1, k2, p1, p2, k3), OpenCV's radial-tangential model on normalised coordinates;
+        exactly 5 finite numbers (dimensionless).
+    bit_depth : ADC bits of the sensor (used by renderers to quantise), an integer in [1, 32].
     """
 
-    width: int
-    height: int
-    pixel_pitch_m: float
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    distortion: tuple[float, ...] = field(default=(0.0,) * _DIST_LEN)
-    bit_depth: int = 12
+    width: _Side
+    height: _Side
+    pixel_pitch_m: Annotated[float, Field(ge=PIXEL_PITCH_RANGE_M[0], le=PIXEL_PITCH_RANGE_M[1])]
+    fx: _Focal
+    fy: _Focal
+    cx: _Principal
+    cy: _Principal
+    distortion: Annotated[tuple[float, ...], Field(min_length=_DIST_LEN, max_length=_DIST_LEN)] = \
+        field(default=(0.0,) * _DIST_LEN)
+    bit_depth: _BitDepth = 12
 
     def __post_init__(self):
-        _check_camera(self, source="camera")
+        _check_camera(self, source=None)
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -91,55 +116,36 @@ class Camera:
 
     @classmethod
     def from_dict(cls, table: dict, source: str = "camera") -> "Camera":
-        """Build from a ``[camera]`` table (see module docstring); errors name ``source`` and the key."""
-        def need(key):
-            if key not in table:
-                raise ConfigError(f"missing key '{key}'", source=source, field=f"camera.{key}")
-            return table[key]
+        """Build from a ``[camera]`` table (see module docstring; the layout is :class:`CameraTable`),
+        validated by ``dualsight.jobs.config.validate``; errors name ``source`` and ``camera.<key>``."""
+        return cls.from_table(validate_table(CameraTable, table, source=source, section="camera"), source=source)
 
-        def num(key, lo, hi, integer=False, default=None):
-            v = table.get(key, default) if default is not None else need(key)
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool)
-            if integer:
-                ok = ok and float(v).is_integer()
-            if not ok or not (lo < v <= hi) or (isinstance(v, float) and not math.isfinite(v)):
-                kind = "an integer" if integer else "a number"
-                raise ConfigError(f"must be {kind} in ({lo}, {hi}], got {v!r}", source=source, field=f"camera.{key}")
-            return int(v) if integer else float(v)
-
-        known = {"width", "height", "pixel_pitch_um", "focal_length_mm", "fx", "fy", "cx", "cy",
-                 "distortion", "bit_depth", "name", "notes"}
-        unknown = sorted(set(table) - known)
-        if unknown:
-            raise ConfigError(f"unknown key(s) {unknown}; allowed: {sorted(known)}", source=source, field="camera")
-        w = num("width", 0, 100_000, integer=True)
-        h = num("height", 0, 100_000, integer=True)
-        pitch = num("pixel_pitch_um", 0, 1000.0) * 1e-6
-        if "fx" in table or "fy" in table:
-            fx = num("fx", 0, 1e7)
-            fy = num("fy", 0, 1e7, default=fx)
+    @classmethod
+    def from_table(cls, t: "CameraTable", source: str = "camera") -> "Camera":
+        """Build from a validated :class:`CameraTable` (friendly units: um, mm); the rules that tie keys
+        together (focal length given as fx/fy or as focal_length_mm) are checked here."""
+        pitch = t.pixel_pitch_um * 1e-6
+        if t.fx is not None:
+            fx, fy, derived = t.fx, (t.fy if t.fy is not None else t.fx), False
+        elif t.fy is not None:
+            raise ConfigError("missing key 'fx' (fy is given; give fx, and fy if it differs)", source=source,
+                              field="camera.fx")
+        elif t.focal_length_mm is None:
+            raise ConfigError("missing key 'focal_length_mm' (or fx/fy in pixels)", source=source,
+                              field="camera.focal_length_mm")
         else:
-            f_mm = table.get("focal_length_mm")
-            if f_mm is None:
-                raise ConfigError("missing key 'focal_length_mm' (or fx/fy in pixels)", source=source,
-                                  field="camera.focal_length_mm")
-            fmm = num("focal_length_mm", 0, 10_000.0)
-            fx = fy = fmm * 1e-3 / pitch
-        cx = num("cx", -1e6, 1e6, default=w / 2.0) if "cx" in table else w / 2.0
-        cy = num("cy", -1e6, 1e6, default=h / 2.0) if "cy" in table else h / 2.0
-        dist = table.get("distortion", [0.0] * _DIST_LEN)
-        if (not isinstance(dist, list) or not 1 <= len(dist) <= _DIST_LEN
-                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in dist)):
-            raise ConfigError(f"must be a list of 1-5 numbers [k1, k2, p1, p2, k3], got {dist!r}",
-                              source=source, field="camera.distortion")
-        d = [float(x) for x in dist] + [0.0] * (_DIST_LEN - len(dist))
-        bits = num("bit_depth", 0, 32, integer=True, default=12) if "bit_depth" in table else 12
-        cam = object.__new__(cls)
-        for k, v in dict(width=w, height=h, pixel_pitch_m=pitch, fx=fx, fy=fy, cx=cx, cy=cy,
-                         distortion=tuple(d), bit_depth=bits).items():
-            object.__setattr__(cam, k, v)
-        _check_camera(cam, source=source)
-        return cam
+            fx = fy = t.focal_length_mm * 1e-3 / pitch
+            derived = True
+        d = tuple(t.distortion) + (0.0,) * (_DIST_LEN - len(t.distortion))
+        cx = t.cx if t.cx is not None else t.width / 2.0
+        cy = t.cy if t.cy is not None else t.height / 2.0
+        try:
+            return cls(t.width, t.height, pitch, fx, fy, cx, cy, d, t.bit_depth)
+        except ConfigError as e:
+            if derived and e.field in ("camera.fx", "camera.fy"):
+                raise ConfigError(f"focal_length_mm / pixel_pitch_um gives a focal length of {fx:g} px, outside "
+                                  f"[1, {MAX_FOCAL_PX:g}] px", source=source, field="camera.focal_length_mm") from None
+            raise ConfigError(e.detail, source=source, field=e.field) from None
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "Camera":
@@ -293,20 +299,48 @@ def read_toml(path: Path) -> dict:
         raise ConfigError("is nested too deeply", source=str(path)) from None
 
 
-def _check_camera(cam: Camera, source: str):
-    checks = [
-        ("width", cam.width, isinstance(cam.width, int) and 0 < cam.width <= MAX_SIDE_PX, f"an integer in [1, {MAX_SIDE_PX}]"),
-        ("height", cam.height, isinstance(cam.height, int) and 0 < cam.height <= MAX_SIDE_PX, f"an integer in [1, {MAX_SIDE_PX}]"),
-        ("pixel_pitch_um", cam.pixel_pitch_m * 1e6, math.isfinite(cam.pixel_pitch_m) and cam.pixel_pitch_m > 0,
-         "> 0 um"),
-        ("fx", cam.fx, math.isfinite(cam.fx) and cam.fx > 0, "> 0 px (focal length must be positive)"),
-        ("fy", cam.fy, math.isfinite(cam.fy) and cam.fy > 0, "> 0 px (focal length must be positive)"),
-        ("cx", cam.cx, math.isfinite(cam.cx), "finite"),
-        ("cy", cam.cy, math.isfinite(cam.cy), "finite"),
-        ("distortion", cam.distortion,
-         len(cam.distortion) == _DIST_LEN and all(math.isfinite(x) for x in cam.distortion), "5 finite numbers"),
-        ("bit_depth", cam.bit_depth, 1 <= cam.bit_depth <= 32, "in [1, 32]"),
-    ]
-    for key, value, ok, allowed in checks:
-        if not ok:
-            raise ConfigError(f"must be {allowed}, got {value!r}", source=source, field=f"camera.{key}")
+def validate_table(model, table, *, source: str, section: str | None):
+    """``dualsight.jobs.config.validate`` (the one configuration layer, imported lazily) for the scene's
+    file readers; a key that cannot be printed on one line (e.g. holding a newline) is named escaped."""
+    from dualsight.jobs.config import validate
+
+    try:
+        return validate(model, table, source=source, section=section)
+    except ConfigError as e:
+        if e.field is not None and not e.field.isprintable():
+            raise ConfigError(e.detail, source=e.source, field=e.field.encode("unicode_escape").decode("ascii")) \
+                from None
+        raise
+
+
+def _check_camera(cam: Camera, source: str | None):
+    """Every field of ``cam`` within its declared range (ConfigError naming ``camera.<field>``)."""
+    check_fields(cam, lambda name, msg: ConfigError(msg, source=source, field=f"camera.{name}"), _UNITS)
+
+
+_Finite = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class CameraTable(pydantic.BaseModel):
+    """The ``[camera]`` table of a camera file (TOML layout, friendly units), validated by pydantic.
+
+    width, height : px, integers in [1, 65536].  pixel_pitch_um : um, in [0.01, 1000] (as
+    :data:`PIXEL_PITCH_RANGE_M`).  focal_length_mm : mm, in (0, 10000] (10 m, beyond any camera of a
+    spacecraft); used when fx is absent.  fx, fy : px, in [1, 1e7] (fy defaults to fx).  cx, cy : px, in
+    [-1e6, 1e6] (default: the image centre).  distortion : 1-5 numbers [k1, k2, p1, p2, k3] (the rest 0).
+    bit_depth : bits, an integer in [1, 32].  name, notes : free text.
+    """
+
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+    width: _Side
+    height: _Side
+    pixel_pitch_um: Annotated[float, Field(ge=PIXEL_PITCH_RANGE_M[0] * 1e6, le=PIXEL_PITCH_RANGE_M[1] * 1e6)]
+    focal_length_mm: Annotated[float, Field(gt=0, le=10_000.0)] | None = None
+    fx: _Focal | None = None
+    fy: _Focal | None = None
+    cx: _Principal | None = None
+    cy: _Principal | None = None
+    distortion: Annotated[tuple[_Finite, ...], Field(min_length=1, max_length=_DIST_LEN)] = (0.0,) * _DIST_LEN
+    bit_depth: _BitDepth = 12
+    name: str | None = None
+    notes: str | None = None

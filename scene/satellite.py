@@ -41,7 +41,10 @@ A TOML file with the reference's three parts (``examples/satellites/README.md`` 
     surface_resolution = 1e6     # optional per-component override
 
 Every problem raises :class:`~dualsight.errors.ConfigError` naming the file, the key (e.g.
-``component[1].size``) and what is allowed.
+``component[1].size``) and what is allowed.  The layout and every range are the pydantic models below
+(:class:`SatelliteTable`, :class:`SatCameraTable`, :class:`BodyTable`, :class:`ComponentTable`),
+validated by ``dualsight.jobs.config.validate``; the point clouds are bounded by
+:data:`MAX_SURFACE_POINTS`.
 """
 
 from __future__ import annotations
@@ -49,22 +52,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
+import pydantic
+from pydantic import Field
 
 from dualsight.errors import ConfigError
 from dualsight.scene import primitives as prim
-from dualsight.scene.camera import Camera, read_toml
+from dualsight.scene.camera import Camera, CameraTable, read_toml, validate_table
 from dualsight.scene.motion import frame_poses
-
-CAMERA_INTRINSIC_KEYS = ("width", "height", "pixel_pitch_um", "focal_length_mm", "fx", "fy", "cx", "cy",
-                         "distortion", "bit_depth", "name", "notes")
-CAMERA_SCENE_KEYS = ("light_direction", "I_a", "I_l", "position", "orientation_deg", "velocity", "rotation_deg")
-BODY_KEYS = ("components", "position", "orientation_deg", "velocity", "rotation_deg", "surface_resolution",
-             "name", "notes")
-COMPONENT_KEYS = ("name", "shape", "size", "k_a", "k_l", "k_s", "n", "position", "orientation_deg", "velocity",
-                  "rotation_deg", "surface_resolution", "notes")
-TOP_KEYS = ("name", "notes", "frames", "camera", "body", "component")
 
 Vec3 = tuple[float, float, float]
 _ZERO3: Vec3 = (0.0, 0.0, 0.0)
@@ -197,9 +194,99 @@ class SatelliteConfig:
         return max(float(np.linalg.norm(c.position)) + c.bounding_radius for c in self.components)
 
 
-# ----------------------------------------------------------------------------- validation helpers
-def _is_num(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))
+# ----------------------------------------------------------------------------- the file's layout (pydantic)
+MAX_DISTANCE_M = 1e5
+"""Largest coordinate (m) of a position, and of a velocity (m/frame): at 100 km even a 10 m spacecraft
+is ~0.1 px for the reference's 6 mm / 4.65 um camera, far beyond what a proximity camera resolves."""
+MAX_SIZE_M = 1000.0
+"""Largest dimension (m) of a component (the largest spacecraft, the ISS, is ~110 m across)."""
+MAX_RESOLUTION = 1e12
+"""Largest surface resolution (points/m^2): 1 um point spacing."""
+MAX_SURFACE_POINTS = 10_000_000
+"""Most surface points the satellite's point clouds may hold (all components together; ~0.5 GB of
+float64 positions and normals): e.g. 10 m^2 of surface at 1e6 points/m^2 (1 mm spacing)."""
+MAX_COMPONENTS = 1000
+"""Most components of one satellite (each is a mesh, a point cloud and a row of the materials table)."""
+MAX_FRAMES = 10_000_000
+"""Most frames of a movie (as the prox spec's ``frames``)."""
+
+_Coord = Annotated[float, Field(ge=-MAX_DISTANCE_M, le=MAX_DISTANCE_M)]
+_Vec3 = Annotated[tuple[_Coord, ...], Field(min_length=3, max_length=3)]
+_Deg3 = Annotated[tuple[Annotated[float, Field(ge=-360.0, le=360.0)], ...], Field(min_length=3, max_length=3)]
+_Direction = Annotated[tuple[float, ...], Field(min_length=3, max_length=3)]
+_Resolution = Annotated[float, Field(gt=0, le=MAX_RESOLUTION)]
+_Coefficient = Annotated[float, Field(ge=0, le=10.0)]
+_Intensity = Annotated[float, Field(ge=0, le=1000.0)]
+_Count = Annotated[int, Field(ge=1, le=MAX_COMPONENTS)]
+
+
+class _Table(pydantic.BaseModel):
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+
+
+class SatCameraTable(CameraTable):
+    """``[camera]``: the camera file's keys (:class:`dualsight.scene.camera.CameraTable`) and the scene's.
+
+    light_direction : 3 numbers, not all zero (checked after), towards the light (world frame, any
+    length).  I_a, I_l : intensities in [0, 1000] (relative units; the reference uses 0.3 and 1).
+    position (m) and velocity (m/frame) : 3 numbers in [-1e5, 1e5] (:data:`MAX_DISTANCE_M`).
+    orientation_deg (deg) and rotation_deg (deg/frame) : 3 numbers in [-360, 360].
+    """
+
+    light_direction: _Direction | None = None
+    I_a: _Intensity = 0.3
+    I_l: _Intensity = 1.0
+    position: _Vec3 = _ZERO3
+    orientation_deg: _Deg3 = _ZERO3
+    velocity: _Vec3 = _ZERO3
+    rotation_deg: _Deg3 = _ZERO3
+
+
+class BodyTable(_Table):
+    """``[body]``: components (an integer in [1, 1000], must equal the [[component]] count), position
+    (m, required), orientation_deg, velocity, rotation_deg (ranges as :class:`SatCameraTable`),
+    surface_resolution (points/m^2, in (0, 1e12])."""
+
+    components: _Count | None = None
+    position: _Vec3
+    orientation_deg: _Deg3 = _ZERO3
+    velocity: _Vec3 = _ZERO3
+    rotation_deg: _Deg3 = _ZERO3
+    surface_resolution: _Resolution = 1.0e6
+    name: str | None = None
+    notes: str | None = None
+
+
+class ComponentTable(_Table):
+    """``[[component]]``: shape; size (m), 1-3 numbers in (0, 1000] (the count the shape needs is
+    checked after); k_a, k_l, k_s in [0, 10] (fractions of the light, <= 1 physically; up to 10 for
+    unnormalised use); n (specular exponent) in (0, 1e4]; poses as :class:`SatCameraTable`;
+    surface_resolution (points/m^2) in (0, 1e12], default the body's."""
+
+    shape: Literal["cuboid", "sphere", "cylinder"]
+    size: Annotated[tuple[Annotated[float, Field(gt=0, le=MAX_SIZE_M)], ...], Field(min_length=1, max_length=3)]
+    k_a: _Coefficient = 1.0
+    k_l: _Coefficient = 0.8
+    k_s: _Coefficient = 0.3
+    n: Annotated[float, Field(gt=0, le=1e4)] = 10.0
+    position: _Vec3 = _ZERO3
+    orientation_deg: _Deg3 = _ZERO3
+    velocity: _Vec3 = _ZERO3
+    rotation_deg: _Deg3 = _ZERO3
+    surface_resolution: _Resolution | None = None
+    name: str | None = None
+    notes: str | None = None
+
+
+class SatelliteTable(_Table):
+    """Top level: name, notes, frames (an integer in [1, 1e7]), and the three parts (their own models)."""
+
+    name: str = ""
+    notes: str | None = None
+    frames: Annotated[int, Field(ge=1, le=MAX_FRAMES)] = 1
+    camera: dict
+    body: dict
+    component: Annotated[list[dict], Field(min_length=1, max_length=MAX_COMPONENTS)]
 
 
 class _Reader:
@@ -207,7 +294,10 @@ class _Reader:
         self.source = source
 
     def err(self, key: str, msg: str):
-        return ConfigError(msg, source=self.source, field=key)
+        return ConfigError(msg, source=self.source, field=key or None)
+
+    def validate(self, model, table, section: str | None):
+        return validate_table(model, table, source=self.source, section=section)
 
     def table(self, data: dict, key: str) -> dict:
         t = data.get(key)
@@ -218,49 +308,6 @@ class _Reader:
             raise self.err(key, f"must be a table [{key}], got {type(t).__name__}")
         return t
 
-    def unknown(self, t: dict, allowed, where: str):
-        extra = sorted(set(t) - set(allowed))
-        if extra:
-            raise self.err(where, f"unknown key(s) {extra}; allowed: {', '.join(allowed)}")
-
-    def num(self, t: dict, key: str, where: str, default=None, lo=None, lo_open=False, hi=None):
-        if key not in t:
-            if default is None:
-                raise self.err(f"{where}.{key}", "missing key (a number is required)")
-            return float(default)
-        v = t[key]
-        if not _is_num(v):
-            raise self.err(f"{where}.{key}", f"must be a finite number, got {v!r}")
-        v = float(v)
-        if lo is not None and (v <= lo if lo_open else v < lo):
-            raise self.err(f"{where}.{key}", f"must be {'>' if lo_open else '>='} {lo}, got {v!r}")
-        if hi is not None and v > hi:
-            raise self.err(f"{where}.{key}", f"must be <= {hi}, got {v!r}")
-        return v
-
-    def vec3(self, t: dict, key: str, where: str, default=None, nonzero=False) -> Vec3:
-        if key not in t:
-            if default is None:
-                raise self.err(f"{where}.{key}", "missing key (a list of 3 numbers is required)")
-            return tuple(float(x) for x in default)
-        v = t[key]
-        if not isinstance(v, list) or len(v) != 3 or not all(_is_num(x) for x in v):
-            raise self.err(f"{where}.{key}", f"must be a list of 3 finite numbers, got {v!r}")
-        out = tuple(float(x) for x in v)
-        if nonzero and not any(out):
-            raise self.err(f"{where}.{key}", "must not be the zero vector")
-        return out
-
-    def string(self, t: dict, key: str, where: str, default=None) -> str:
-        if key not in t:
-            if default is None:
-                raise self.err(f"{where}.{key}", "missing key (a string is required)")
-            return default
-        v = t[key]
-        if not isinstance(v, str):
-            raise self.err(f"{where}.{key}", f"must be a string, got {v!r}")
-        return v
-
 
 _SIZE_LEN = {"cuboid": (3, "[lx, ly, lz]"), "sphere": (1, "[diameter] or a number"),
              "cylinder": (2, "[diameter, length]")}
@@ -270,39 +317,53 @@ def _component(rd: _Reader, t, i: int, body_res: float) -> ComponentConfig:
     where = f"component[{i}]"
     if not isinstance(t, dict):
         raise rd.err(where, f"must be a table ([[component]]), got {type(t).__name__}")
-    rd.unknown(t, COMPONENT_KEYS, where)
-    shape = rd.string(t, "shape", where)
-    if shape not in prim.SHAPES:
-        raise rd.err(f"{where}.shape", f"unknown shape {shape!r}; allowed: {', '.join(prim.SHAPES)}")
-    if "size" not in t:
-        raise rd.err(f"{where}.size", f"missing key; a {shape} needs size = {_SIZE_LEN[shape][1]} (m)")
-    size = t["size"]
-    if shape == "sphere" and _is_num(size):
-        size = [size]
-    n_need, form = _SIZE_LEN[shape]
-    if not isinstance(size, list) or len(size) != n_need or not all(_is_num(x) for x in size):
-        raise rd.err(f"{where}.size", f"a {shape} needs size = {form} of finite numbers (m), got {t['size']!r}")
-    if any(float(x) <= 0 for x in size):
-        raise rd.err(f"{where}.size", f"every dimension must be > 0 m, got {t['size']!r}")
+    t = dict(t)
+    shape = t.get("shape")
+    if isinstance(shape, str) and shape in _SIZE_LEN:   # the size's form depends on the shape
+        n_need, form = _SIZE_LEN[shape]
+        size = t.get("size")
+        if size is None:
+            raise rd.err(f"{where}.size", f"missing key; a {shape} needs size = {form} (m)")
+        if shape == "sphere" and isinstance(size, (int, float)) and not isinstance(size, bool):
+            t["size"] = size = [size]
+        if not isinstance(size, list) or len(size) != n_need:
+            raise rd.err(f"{where}.size", f"a {shape} needs size = {form} of numbers (m), got {size!r}")
+    m = rd.validate(ComponentTable, t, where)
     comp = ComponentConfig(
-        shape=shape, size=tuple(float(x) for x in size),
-        k_a=rd.num(t, "k_a", where, 1.0, lo=0.0), k_l=rd.num(t, "k_l", where, 0.8, lo=0.0),
-        k_s=rd.num(t, "k_s", where, 0.3, lo=0.0), n=rd.num(t, "n", where, 10.0, lo=0.0, lo_open=True),
-        position=rd.vec3(t, "position", where, _ZERO3), orientation_deg=rd.vec3(t, "orientation_deg", where, _ZERO3),
-        velocity=rd.vec3(t, "velocity", where, _ZERO3), rotation_deg=rd.vec3(t, "rotation_deg", where, _ZERO3),
-        surface_resolution=rd.num(t, "surface_resolution", where, body_res, lo=0.0, lo_open=True, hi=1e12),
-        name=rd.string(t, "name", where, f"component{i}"))
-    # enough surface points at this resolution?  (count, do not build, for huge resolutions)
-    n_pts = _surface_point_count(comp)
-    if n_pts == 0:
+        shape=m.shape, size=tuple(m.size), k_a=m.k_a, k_l=m.k_l, k_s=m.k_s, n=m.n, position=m.position,
+        orientation_deg=m.orientation_deg, velocity=m.velocity, rotation_deg=m.rotation_deg,
+        surface_resolution=m.surface_resolution if m.surface_resolution is not None else body_res,
+        name=m.name if m.name is not None else f"component{i}")
+    res_key = f"{where}.surface_resolution" if m.surface_resolution is not None else "body.surface_resolution"
+    # memory: estimate the points from the areas first, never build or count grids beyond the bound
+    est = _surface_point_estimate(comp)
+    if est > MAX_SURFACE_POINTS:
+        raise rd.err(res_key, f"the {comp.shape} of size {list(comp.size)} m would have about {est:.3g} surface "
+                              f"points at surface_resolution = {comp.surface_resolution:g} points/m^2, over the "
+                              f"{MAX_SURFACE_POINTS:.0e} allowed per satellite; lower surface_resolution")
+    # enough surface points at this resolution?
+    if _surface_point_count(comp) == 0:
         need = _min_resolution(comp)
-        src_key = "surface_resolution" if "surface_resolution" in t else None
-        raise rd.err(f"{where}.{src_key or 'size'}",
-                     f"the {shape} of size {list(comp.size)} m has no surface points at surface_resolution = "
+        raise rd.err(f"{where}.{'surface_resolution' if m.surface_resolution is not None else 'size'}",
+                     f"the {comp.shape} of size {list(comp.size)} m has no surface points at surface_resolution = "
                      f"{comp.surface_resolution:g} points/m^2 "
-                     f"(point spacing {prim.spacing(comp.surface_resolution):g} m);"
-                     f" use at least ~{need:.3g} points/m^2 or a larger size")
+                     f"(point spacing {prim.spacing(comp.surface_resolution):g} m); "
+                     + (f"use at least ~{need:.3g} points/m^2 or a larger size" if math.isfinite(need) else
+                        f"no resolution within {MAX_SURFACE_POINTS:.0e} points gives it any; use a larger size"))
     return comp
+
+
+def _surface_point_estimate(c: ComponentConfig) -> float:
+    """Upper estimate of the points of ``c``'s point cloud, from its dimensions alone (no arrays)."""
+    res = c.surface_resolution
+    per_m = math.sqrt(res)                     # grid points per metre along a line (1 / spacing)
+    if c.shape == "cuboid":
+        n = [x * per_m + 2 for x in c.size]
+        return 8 + 4 * sum(n) + 2 * (n[0] * n[1] + n[1] * n[2] + n[0] * n[2])
+    if c.shape == "sphere":
+        return 1.1 * math.pi * c.size[0] ** 2 * res + 2 * math.pi * c.size[0] * per_m + 10
+    d, L = c.size
+    return 1.1 * 0.5 * math.pi * d * d * res + (math.pi * d * per_m + 2) * (L * per_m + 2) + 10
 
 
 def _surface_point_count(c: ComponentConfig) -> int:
@@ -322,63 +383,64 @@ def _surface_point_count(c: ComponentConfig) -> int:
 
 
 def _min_resolution(c: ComponentConfig) -> float:
-    """Smallest surface resolution (points/m^2, by doubling) giving ``c`` at least one surface point."""
+    """Smallest surface resolution (points/m^2, by doubling) giving ``c`` at least one surface point;
+    inf when none does within :data:`MAX_SURFACE_POINTS` (counting never builds more)."""
     res = c.surface_resolution
     for _ in range(200):
         res *= 2.0
-        if _surface_point_count(ComponentConfig(c.shape, c.size, surface_resolution=res)) > 0:
+        trial = ComponentConfig(c.shape, c.size, surface_resolution=res)
+        if res > MAX_RESOLUTION or _surface_point_estimate(trial) > MAX_SURFACE_POINTS:
+            return float("inf")
+        if _surface_point_count(trial) > 0:
             return res
     return float("inf")
 
 
 def satellite_from_dict(data: dict, source: str = "<dict>") -> SatelliteConfig:
-    """Validate a parsed satellite file (see module docstring) and build a :class:`SatelliteConfig`."""
+    """Validate a parsed satellite file (see module docstring) and build a :class:`SatelliteConfig`.
+
+    The layout is the pydantic models :class:`SatelliteTable`, :class:`SatCameraTable`,
+    :class:`BodyTable` and :class:`ComponentTable`, validated by ``dualsight.jobs.config.validate``
+    (types, ranges, unknown keys); the rules between keys (size per shape, surface points, component
+    count, light not zero, camera outside the body) are checked here."""
     rd = _Reader(source)
     if not isinstance(data, dict):
         raise rd.err("", "must be a TOML document")
-    rd.unknown(data, TOP_KEYS, "(top level)")
-    frames = data.get("frames", 1)
-    if not (isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1):
-        raise rd.err("frames", f"must be an integer >= 1, got {frames!r}")
-    name = rd.string(data, "name", "(top level)", "")
-
-    cam_t = rd.table(data, "camera")
-    rd.unknown(cam_t, CAMERA_INTRINSIC_KEYS + CAMERA_SCENE_KEYS, "camera")
-    camera = Camera.from_dict({k: v for k, v in cam_t.items() if k in CAMERA_INTRINSIC_KEYS}, source=source)
-    if "light_direction" not in cam_t:
-        raise rd.err("camera.light_direction", "missing key: direction towards the light source, a list of 3 "
-                                               "numbers in the world frame")
-    L = np.asarray(rd.vec3(cam_t, "light_direction", "camera", nonzero=True))
-    setup = CameraSetup(
-        camera=camera, light_direction=tuple(float(x) for x in L / np.linalg.norm(L)),
-        I_a=rd.num(cam_t, "I_a", "camera", 0.3, lo=0.0), I_l=rd.num(cam_t, "I_l", "camera", 1.0, lo=0.0),
-        position=rd.vec3(cam_t, "position", "camera", _ZERO3),
-        orientation_deg=rd.vec3(cam_t, "orientation_deg", "camera", _ZERO3),
-        velocity=rd.vec3(cam_t, "velocity", "camera", _ZERO3),
-        rotation_deg=rd.vec3(cam_t, "rotation_deg", "camera", _ZERO3))
-
-    body_t = rd.table(data, "body")
-    rd.unknown(body_t, BODY_KEYS, "body")
-    body = BodyConfig(
-        position=rd.vec3(body_t, "position", "body"),
-        orientation_deg=rd.vec3(body_t, "orientation_deg", "body", _ZERO3),
-        velocity=rd.vec3(body_t, "velocity", "body", _ZERO3),
-        rotation_deg=rd.vec3(body_t, "rotation_deg", "body", _ZERO3),
-        surface_resolution=rd.num(body_t, "surface_resolution", "body", 1.0e6, lo=0.0, lo_open=True, hi=1e12))
-
+    cam_t, body_t = rd.table(data, "camera"), rd.table(data, "body")
     comps_t = data.get("component")
     if comps_t is None or (isinstance(comps_t, list) and len(comps_t) == 0):
         raise rd.err("component", "no [[component]] entries; at least one primitive (shape = "
                                   f"{' | '.join(prim.SHAPES)}) is required")
     if not isinstance(comps_t, list):
         raise rd.err("component", "must be an array of tables, written [[component]]")
+    top = rd.validate(SatelliteTable, {**data, "component": [{} for _ in comps_t]}, None)
+
+    cam = rd.validate(SatCameraTable, cam_t, "camera")
+    camera = Camera.from_table(cam, source=source)
+    if cam.light_direction is None:
+        raise rd.err("camera.light_direction", "missing key: direction towards the light source, a list of 3 "
+                                               "numbers in the world frame")
+    L = np.asarray(cam.light_direction, dtype=np.float64)
+    if not np.linalg.norm(L) > 0:
+        raise rd.err("camera.light_direction", f"must not be the zero vector, got {list(cam.light_direction)}")
+    setup = CameraSetup(camera=camera, light_direction=tuple(float(x) for x in L / np.linalg.norm(L)),
+                        I_a=cam.I_a, I_l=cam.I_l, position=cam.position, orientation_deg=cam.orientation_deg,
+                        velocity=cam.velocity, rotation_deg=cam.rotation_deg)
+
+    b = rd.validate(BodyTable, body_t, "body")
+    body = BodyConfig(position=b.position, orientation_deg=b.orientation_deg, velocity=b.velocity,
+                      rotation_deg=b.rotation_deg, surface_resolution=b.surface_resolution)
+
     comps = tuple(_component(rd, t, i, body.surface_resolution) for i, t in enumerate(comps_t))
-    if "components" in body_t:
-        nc = body_t["components"]
-        if not (isinstance(nc, int) and not isinstance(nc, bool)) or nc != len(comps):
-            raise rd.err("body.components", f"says {nc!r} components but the file has {len(comps)} "
-                                            "[[component]] entries")
-    cfg = SatelliteConfig(camera=setup, body=body, components=comps, frames=int(frames), name=name,
+    if b.components is not None and b.components != len(comps):
+        raise rd.err("body.components", f"says {b.components!r} components but the file has {len(comps)} "
+                                        "[[component]] entries")
+    total = sum(_surface_point_estimate(c) for c in comps)
+    if total > MAX_SURFACE_POINTS:
+        raise rd.err("body.surface_resolution", f"the components would have about {total:.3g} surface points "
+                                                f"together, over the {MAX_SURFACE_POINTS:.0e} allowed; lower "
+                                                "surface_resolution")
+    cfg = SatelliteConfig(camera=setup, body=body, components=comps, frames=top.frames, name=top.name,
                           source=source)
     _check_camera_outside(cfg, rd)
     return cfg

@@ -177,39 +177,40 @@ def test_minimal_file_and_defaults(tmp_path):
     assert cfg.components[0].k_a == 1.0
 
 
+def _comp(shape: str, size: str, extra: str = "") -> str:
+    """One [[component]] table."""
+    return f'[[component]]\nshape = "{shape}"\nsize = {size}' + (f"\n{extra}" if extra else "")
+
+
+CUBOID_3U = "[0.1, 0.1, 0.3]"
+CAM64 = "[camera]\nwidth = 64\nheight = 48\npixel_pitch_um = 5.0\nfocal_length_mm = 6.0"      # no light direction
+
 BAD = {
-    "unknown shape": (dict(component='[[component]]\nshape = "cone"\nsize = [0.1]'),
-                      "component[0].shape", "cuboid, sphere, cylinder"),
-    "negative size": (dict(component='[[component]]\nshape = "cuboid"\nsize = [0.1, -0.2, 0.3]'),
-                      "component[0].size", "> 0"),
-    "zero size": (dict(component='[[component]]\nshape = "sphere"\nsize = 0.0'), "component[0].size", "> 0"),
-    "size wrong length": (dict(component='[[component]]\nshape = "cylinder"\nsize = [0.1]'),
-                          "component[0].size", "[diameter, length]"),
-    "size wrong type": (dict(component='[[component]]\nshape = "cuboid"\nsize = "big"'),
-                        "component[0].size", "[lx, ly, lz]"),
-    "no points": (dict(component='[[component]]\nshape = "sphere"\nsize = [0.0003]'),
-                  "component[0].size", "no surface points"),
-    "no points (override)": (dict(component='[[component]]\nshape = "cylinder"\nsize = [0.01, 0.01]\n'
-                                            'surface_resolution = 100.0'),
+    "unknown shape": (dict(component=_comp("cone", "[0.1]")), "component[0].shape",
+                      "'cuboid', 'sphere' or 'cylinder'"),
+    "negative size": (dict(component=_comp("cuboid", "[0.1, -0.2, 0.3]")), "component[0].size.1",
+                      "greater than 0, got -0.2"),
+    "zero size": (dict(component=_comp("sphere", "0.0")), "component[0].size.0", "greater than 0, got 0.0"),
+    "size wrong length": (dict(component=_comp("cylinder", "[0.1]")), "component[0].size", "[diameter, length]"),
+    "size wrong type": (dict(component=_comp("cuboid", '"big"')), "component[0].size", "[lx, ly, lz]"),
+    "no points": (dict(component=_comp("sphere", "[0.0003]")), "component[0].size", "no surface points"),
+    "no points (override)": (dict(component=_comp("cylinder", "[0.01, 0.01]", "surface_resolution = 100.0")),
                              "component[0].surface_resolution", "no surface points"),
     "missing camera": (dict(camera=""), "camera", "[camera]"),
     "missing body": (dict(body=""), "body", "[body]"),
     "no component": (dict(component=""), "component", "at least one"),
     "camera inside body": (dict(body="[body]\nposition = [0.0, 0.0, 0.1]"), "camera.position", "inside"),
-    "k_a wrong type": (dict(component='[[component]]\nshape = "cuboid"\nsize = [0.1, 0.1, 0.3]\nk_a = "shiny"'),
-                       "component[0].k_a", "finite number"),
-    "k_s negative": (dict(component='[[component]]\nshape = "cuboid"\nsize = [0.1, 0.1, 0.3]\nk_s = -1'),
-                     "component[0].k_s", ">= 0"),
-    "position wrong length": (dict(body="[body]\nposition = [0.0, 1.0]"), "body.position", "3 finite numbers"),
-    "light missing": (dict(camera="[camera]\nwidth = 64\nheight = 48\npixel_pitch_um = 5.0\nfocal_length_mm = 6.0"),
-                      "camera.light_direction", "missing"),
-    "light zero": (dict(camera="[camera]\nwidth = 64\nheight = 48\npixel_pitch_um = 5.0\nfocal_length_mm = 6.0\n"
-                               "light_direction = [0, 0, 0]"), "camera.light_direction", "zero"),
-    "camera width wrong type": (dict(camera="[camera]\nwidth = \"wide\"\nheight = 48\npixel_pitch_um = 5.0\n"
-                                            "focal_length_mm = 6.0\nlight_direction = [0, 0, -1]"),
+    "k_a wrong type": (dict(component=_comp("cuboid", CUBOID_3U, 'k_a = "shiny"')), "component[0].k_a",
+                       "valid number, got 'shiny'"),
+    "k_s negative": (dict(component=_comp("cuboid", CUBOID_3U, "k_s = -1")), "component[0].k_s",
+                     "greater than or equal to 0, got -1"),
+    "position wrong length": (dict(body="[body]\nposition = [0.0, 1.0]"), "body.position", "at least 3 items"),
+    "light missing": (dict(camera=CAM64), "camera.light_direction", "missing"),
+    "light zero": (dict(camera=CAM64 + "\nlight_direction = [0, 0, 0]"), "camera.light_direction", "zero"),
+    "camera width wrong type": (dict(camera=CAM64.replace("64", '"wide"') + "\nlight_direction = [0, 0, -1]"),
                                 "camera.width", "integer"),
-    "unknown key": (dict(component='[[component]]\nshape = "cuboid"\nsize = [0.1, 0.1, 0.3]\ncolour = "red"'),
-                    "component[0]", "colour"),
+    "unknown key": (dict(component=_comp("cuboid", CUBOID_3U, 'colour = "red"')), "component[0].colour",
+                    "unknown key"),
     "frames not integer": (dict(top="frames = 1.5"), "frames", "integer"),
     "component count mismatch": (dict(body="[body]\nposition = [0.0, 0.0, 1.0]\ncomponents = 2"),
                                  "body.components", "1 [[component]]"),
