@@ -38,3 +38,34 @@ class ConfigError(InputError):
 
 class ImageError(InputError):
     """An image file is missing, truncated or in an unsupported format."""
+
+
+def read_user_file(path, error=InputError, *, what: str = "file", max_bytes: int | None = None) -> bytes:
+    """The bytes of a file the user named, every failure one ``error`` naming the file.
+
+    Refuses folders, devices and pipes (``/dev/zero`` is never read), files larger than ``max_bytes`` and
+    empty files; ``what`` names the expected content in the messages ("TOML file", "image file").
+    """
+    import os
+    import stat
+    from pathlib import Path
+
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
+                raise error(f"is not a regular file (a device, pipe or folder); give a {what}", source=str(path))
+            data = fh.read() if max_bytes is None else fh.read(max_bytes + 1)
+    except FileNotFoundError:
+        raise error("file not found", source=str(path)) from None
+    except IsADirectoryError:
+        raise error(f"is a folder, expected a {what}", source=str(path)) from None
+    except PermissionError:
+        raise error("cannot be read (permission denied)", source=str(path)) from None
+    except OSError as e:
+        raise error(f"cannot be read ({e.strerror or e})", source=str(path)) from None
+    if max_bytes is not None and len(data) > max_bytes:
+        raise error(f"is larger than {max_bytes // 1024} KiB; a {what} is a few kB", source=str(path))
+    if not data:
+        raise error("file is empty (0 bytes)", source=str(path))
+    return data

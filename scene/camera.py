@@ -35,7 +35,7 @@ import numpy as np
 import pydantic
 from pydantic import Field
 
-from dualsight.errors import ConfigError
+from dualsight.errors import ConfigError, read_user_file
 from dualsight.config import check_fields
 
 _DIST_LEN = 5
@@ -268,29 +268,9 @@ MAX_CONFIG_BYTES = 1 << 20
 
 def read_toml(path: Path) -> dict:
     """Read a TOML file (a regular file of at most 1 MiB), turning every failure into a ConfigError naming it."""
-    import os
-    import stat
-
-    path = Path(path)
+    data = read_user_file(path, ConfigError, what="TOML file", max_bytes=MAX_CONFIG_BYTES)
     try:
-        with open(path, "rb") as fh:
-            st = os.fstat(fh.fileno())
-            if not stat.S_ISREG(st.st_mode):
-                raise ConfigError("is not a regular file (a device, pipe or folder); give a TOML file",
-                                  source=str(path))
-            data = fh.read(MAX_CONFIG_BYTES + 1)
-        if len(data) > MAX_CONFIG_BYTES:
-            raise ConfigError(f"is larger than {MAX_CONFIG_BYTES // 1024} KiB; a configuration file is a few kB",
-                              source=str(path))
         return tomllib.loads(data.decode("utf-8"))
-    except FileNotFoundError:
-        raise ConfigError("file not found", source=str(path)) from None
-    except IsADirectoryError:
-        raise ConfigError("is a folder, expected a TOML file", source=str(path)) from None
-    except PermissionError:
-        raise ConfigError("cannot be read (permission denied)", source=str(path)) from None
-    except OSError as e:
-        raise ConfigError(f"cannot be read ({e.strerror or e})", source=str(path)) from None
     except UnicodeDecodeError as e:
         raise ConfigError(f"is not UTF-8 text ({e.reason})", source=str(path)) from None
     except tomllib.TOMLDecodeError as e:

@@ -30,7 +30,7 @@ from typing import Iterable
 
 import numpy as np
 
-from dualsight.errors import ImageError
+from dualsight.errors import ImageError, read_user_file
 
 #: extension (lower case) -> format name
 FORMATS = {
@@ -265,19 +265,7 @@ def _format_of(path: Path) -> str:
 
 
 def _read_bytes(path: Path) -> bytes:
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise ImageError("file not found", source=str(path)) from None
-    except IsADirectoryError:
-        raise ImageError("is a folder, expected an image file", source=str(path)) from None
-    except PermissionError:
-        raise ImageError("cannot be read (permission denied)", source=str(path)) from None
-    except OSError as e:
-        raise ImageError(f"cannot be read ({e.strerror or e})", source=str(path)) from None
-    if len(data) == 0:
-        raise ImageError("file is empty (0 bytes)", source=str(path))
-    return data
+    return read_user_file(path, ImageError, what="image file")
 
 
 def _check_signature(path: Path, fmt: str, data: bytes):
