@@ -397,19 +397,8 @@ class Lake:
 
     def write_manifest(self, manifest: dict) -> Path:
         """Write the manifest atomically (temporary file, fsync, rename)."""
-        p = self.manifest_path(manifest["run_id"])
-        p.parent.mkdir(parents=True, exist_ok=True)
         manifest = dict(manifest, updated_unix=time.time(), manifest_version=MANIFEST_VERSION)
-        tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
-        try:
-            with open(tmp, "w") as fh:
-                fh.write(json.dumps(manifest, indent=1, sort_keys=True, default=_json_default))
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, p)
-        finally:
-            tmp.unlink(missing_ok=True)
-        return p
+        return write_json_atomic(self.manifest_path(manifest["run_id"]), manifest)
 
     def spec_copy_path(self, run_id: str) -> Path:
         return self.root / "_specs" / f"{run_id}.json"
@@ -423,10 +412,7 @@ class Lake:
         keep = {k: manifest[k] for k in ("run_id", "kind", "job", "spec", "spec_hash", "code_version", "seed",
                                          "n_cases", "shard_size", "n_shards", "datasets", "primary", "label",
                                          "created_unix") if k in manifest}
-        p.parent.mkdir(parents=True, exist_ok=True)
-        tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
-        tmp.write_text(json.dumps(keep, indent=1, sort_keys=True, default=_json_default))
-        os.replace(tmp, p)
+        write_json_atomic(p, keep)
 
     def read_spec_copy(self, run_id: str) -> dict | None:
         """The run's identity copy, or None when absent or damaged."""
@@ -506,6 +492,23 @@ class Lake:
             n += 1
             rid = f"{base}-{n}"
         return rid
+
+
+def write_json_atomic(path: Path, doc) -> Path:
+    """Write ``doc`` as JSON to ``path`` atomically: a temporary file in the same folder (created if
+    needed, inside the lake), fsync, rename; a reader sees the old file or the new one, never half."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "w") as fh:
+            fh.write(json.dumps(doc, indent=1, sort_keys=True, default=_json_default))
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
 
 
 def _manifest_problem(m, run_id: str) -> str | None:
