@@ -1,29 +1,66 @@
-"""Geometric-voting speed (``nav.starid.identify``): ms per case for the paper and robust presets.
+"""Geometric-voting speed (``nav.starid.identify``): the numpy stages against the Taichi kernels, side by side.
 
 Run by hand (never a timed test):
 
-    .venv/bin/python benchmarks/bench_voting.py                    # simulated batch + V 7.0 frames
-    .venv/bin/python benchmarks/bench_voting.py --ref /tmp/starid_old.py   # side by side, results compared
+    .venv/bin/python benchmarks/bench_voting.py                        # v5.5 and v7.0, batches 64 and 1024
+    .venv/bin/python benchmarks/bench_voting.py --workloads v5.5 --batches 64 256 --threads 2
+    .venv/bin/python benchmarks/bench_voting.py --workloads hil7       # synthetic HIL frames (below)
 
-Workloads:
+Inputs (made once, in this process, and saved to a temporary .npz that every timing process reads):
 
-* ``sim``: one batch of ``--cases`` (256) simulated cases of the star preset "paper" (the reference's
-  camera, V 5.5 catalog: 2867 stars / 138k pairs, ~11 detections per case), voting configs of the preset
-  (paper, and robust as ``compare_robust`` runs it).
-* ``v7``: ``--frames`` (32) synthetic frames for the HIL configuration: V 7.0 catalog (15.6k stars / 2.0M
-  pairs within 14 deg), an 11.4 x 8.4 deg camera of 40.3 arcsec pixels, the stars of V <= 7.3 in view,
-  brightest first, 5 arcsec noise, 1-3 stars dropped and 0-3 false stars; 25 stars vote, tolerance
-  20 arcsec, ``max_vote_cells`` 4M (as ``jobs.hil_star`` sets them).
+* ``v5.5``, ``v7.0``: the first ``max(--batches)`` rendered and detected cases of the star preset "paper"
+  (the reference's camera, 15.9 x 12.0 deg) with the catalog to V 5.5 (2867 stars, 138k pairs,
+  ~11 detections per case) or V 7.0 (15.6k stars, 4.0M pairs, ~60 detections, 20 voting); the voting
+  configs of the preset: paper, and robust as ``compare_robust`` runs it (10 arcsec).
+* ``hil7``: synthetic frames for the HIL configuration: V 7.0 catalog (2.0M pairs within 14 deg), an
+  11.4 x 8.4 deg camera of 40.3 arcsec pixels, the stars of V <= 7.3 in view, brightest first, 5 arcsec
+  noise, 1-3 stars dropped and 0-3 false stars; 25 stars vote, tolerance 20 arcsec, ``max_vote_cells``
+  4M (as ``jobs.hil_star`` sets them).
 
-For each, ``cold`` is the first call on fresh copies of the pair arrays (it includes building what
-is derived from the catalog once, :class:`dualsight.nav.starid.VotingIndex`) and ``warm`` the best
-of ``--repeats`` later calls (the machine may be shared: take the best of a few runs).  With ``--ref``
-another implementation of the module (a file, e.g. ``git show 89b6355:nav/starid.py > /tmp/old.py``)
-runs on the same inputs, every output array is compared for bit equality, and the warm speed-up
-is printed.
+For each Taichi thread count (``--threads``, one child process each with ``DUALSIGHT_TI_THREADS``, which
+Taichi reads once per process) and each workload, config and batch size B (the first B cases): both
+engines run on the same arrays, first once (Taichi compiles or loads its kernels, the catalog's
+``VotingIndex`` and window buckets are built), then ``--repeats`` times interleaved; ``warm`` is the best
+of those (the machine may be shared: a best-of is the least disturbed).  Every output array of the two
+engines is compared for bit equality (a difference stops the run).  ``ratio`` = numpy / taichi warm time.
+numpy is single-threaded whatever the setting.
 
-Measured (2-core Xeon VM, numpy 2.4, one process), warm ms per case (per frame for v7), before
-(``nav/starid.py`` as of commit 89b6355) -> after, ranges over runs on a noisy VM:
+Measured (2-core AMD EPYC VM, taichi 1.7.4, numpy 2.4; ``python benchmarks/bench_voting.py``, 2 runs),
+warm ms per case, numpy -> taichi (ratio).  The machine was shared with other test runs throughout (load
+average 3.0-3.8 on 2 cores), so a process got about one core: absolute times vary up to ~2x between
+runs, and 2 Taichi threads could not show their gain; the ratios within one run are the figure to read.
+All outputs were bit-identical in every row.
+
+=====  ======  =====  =======  ====================  ====================
+input  config  batch  threads  run 1                 run 2
+=====  ======  =====  =======  ====================  ====================
+v5.5   paper      64        1  0.146 -> 0.074 (2.0)  0.128 -> 0.061 (2.1)
+v5.5   paper    1024        1  0.086 -> 0.042 (2.1)  0.125 -> 0.060 (2.1)
+v5.5   robust     64        1  0.184 -> 0.125 (1.5)  0.681 -> 0.500 (1.4)
+v5.5   robust   1024        1  0.159 -> 0.103 (1.5)  0.439 -> 0.313 (1.4)
+v7.0   paper      64        1  2.00 -> 1.41 (1.4)    2.90 -> 1.76 (1.7)
+v7.0   paper    1024        1  2.09 -> 1.38 (1.5)    2.93 -> 2.17 (1.4)
+v7.0   robust     64        1  2.91 -> 2.29 (1.3)    5.61 -> 4.33 (1.3)
+v7.0   robust   1024        1  2.68 -> 2.17 (1.2)    4.03 -> 2.47 (1.6)
+v5.5   paper      64        2  0.146 -> 0.059 (2.5)  0.205 -> 0.094 (2.2)
+v5.5   paper    1024        2  0.086 -> 0.041 (2.1)  0.130 -> 0.060 (2.2)
+v5.5   robust     64        2  0.623 -> 0.436 (1.4)  0.739 -> 0.499 (1.5)
+v5.5   robust   1024        2  0.359 -> 0.281 (1.3)  0.478 -> 0.340 (1.4)
+v7.0   paper      64        2  1.89 -> 1.37 (1.4)    2.16 -> 1.49 (1.5)
+v7.0   paper    1024        2  1.91 -> 1.34 (1.4)    1.95 -> 1.49 (1.3)
+v7.0   robust     64        2  4.25 -> 3.50 (1.2)    4.44 -> 3.45 (1.3)
+v7.0   robust   1024        2  3.45 -> 2.55 (1.4)    3.56 -> 2.64 (1.4)
+=====  ======  =====  =======  ====================  ====================
+
+(Run 1 predates the whole-row scan of the vote kernel's second pass.)  ``hil7``,
+32 frames, 2 threads: paper 6.4 -> 2.0 (3.3), robust 8.6 -> 5.4 (1.6).  The robust config's ratio is
+capped by its attitude check (numpy in both engines, ~40 % of its time with the kernels).  Small
+batches: at B = 1 the kernels' launch costs make the Taichi engine ~0.1 ms per call slower (v5.5 paper
+0.54 -> 0.63 ms), equal at B = 4, faster from B = 16.
+
+History of the numpy stages (before the Taichi engine; 2-core Xeon VM, numpy 2.4, one process), warm ms
+per case (per frame for v7), ``nav/starid.py`` as of commit 89b6355 -> the tiled bincount of
+``nav/votes.py``:
 
 ========  =======  ===========  ===========  =========================
 workload  config   before       after        speed-up within one run
@@ -33,51 +70,46 @@ sim       robust   0.42 - 0.60  0.24 - 0.30  2.0 - 2.2x
 v7        paper    19 - 24      5.7 - 6.8    3.4x
 v7        robust   30 - 38      7.5 - 9.6    3.8 - 3.9x
 ========  =======  ===========  ===========  =========================
-
-Cold (first call on a catalog): v7 robust 16-21 ms per frame including the catalog index (~0.4 s
-once), where before every call paid 0.3-0.5 s for the previous-occurrence table.
-
-The split of ``nav/starid.py`` into one module per stage (votes, candidates, verify, attitude_check)
-changed no arithmetic of the voting round: against the single file before it, on the same inputs
-(256 sim cases, 64 v7 frames; best of 7 interleaved rounds on a loaded VM), warm time within
-0.95-1.11x, every output bit-identical.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import json
+import os
+import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
 from dualsight.scene.units import ARCSEC, DEG
 
 FIELDS = ("ids", "accepted", "T", "vote_ids", "votes", "verify_votes", "rejected", "n_attitude_matches")
+CONFIG_FIELDS = ("tolerance_rad", "max_stars", "require_unique_max", "vote_once_per_pair", "candidates_per_star",
+                 "accept_rule", "accept_fraction", "min_accepted", "verify_tolerance_rad", "verify_attitude",
+                 "attitude_tolerance_rad", "min_verified", "reidentify", "max_vote_cells")
 
 
-def load_impl(path):
-    """The module at ``path`` as a sibling of ``dualsight.nav.starid`` (its relative imports work)."""
-    if path is None:
-        from dualsight.nav import starid
-        return starid
-    spec = importlib.util.spec_from_file_location("dualsight.nav._bench_voting_ref", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod                             # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
+# ------------------------------------------------------------------------------ inputs (parent process)
 
-
-def sim_workload(cases):
+def rendered_workload(mag_limit: float, cases: int) -> dict:
+    """``cases`` rendered cases of the star preset "paper" with the catalog to ``mag_limit``."""
     from dualsight.jobs import star
 
-    spec, _ = star.resolve_spec("paper", None)
-    spec = star.spec_from_dict(spec)
+    spec_dict, _ = star.resolve_spec("paper", None)
+    spec_dict["catalog"]["mag_limit"] = mag_limit
+    spec = star.spec_from_dict(spec_dict)
     ctx = star.make_context(spec)
-    out = star.compute_batch(spec, ctx, np.arange(cases))
-    return dict(obs=out["obs"].vec, valid=out["obs"].valid, cat=ctx.catalog.unit, pairs=ctx.pairs,
-                configs={"paper": spec.voting, "robust": spec.robust})
+    parts = [star.compute_batch(spec, ctx, np.arange(c0, min(cases, c0 + 256)))["obs"] for c0 in range(0, cases, 256)]
+    S = max(o.vec.shape[1] for o in parts)                  # pad the chunks' star slots to the widest
+    obs = np.concatenate([np.pad(o.vec, ((0, 0), (0, S - o.vec.shape[1]), (0, 0)), constant_values=np.nan)
+                          for o in parts])
+    valid = np.concatenate([np.pad(o.valid, ((0, 0), (0, S - o.valid.shape[1]))) for o in parts])
+    return dict(obs=obs, valid=valid, cat=ctx.catalog.unit, pi=ctx.pairs.i, pj=ctx.pairs.j,
+                pa=ctx.pairs.angle, configs={"paper": spec.voting, "robust": spec.robust})
 
 
 def v7_frames(cat, frames, seed=5):
@@ -109,7 +141,7 @@ def v7_frames(cat, frames, seed=5):
     return obs, valid
 
 
-def v7_workload(frames):
+def hil7_workload(frames: int) -> dict:
     from dualsight.catalogs.pairs import load_pair_catalog
     from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
     from dualsight.nav.starid import VotingConfig
@@ -119,59 +151,88 @@ def v7_workload(frames):
     obs, valid = v7_frames(cat, frames)
     common = dict(max_stars=25, max_vote_cells=4_000_000)
     tol = 20 * ARCSEC
-    return dict(obs=obs, valid=valid, cat=cat.unit, pairs=pairs,
+    return dict(obs=obs, valid=valid, cat=cat.unit, pi=pairs.i, pj=pairs.j, pa=pairs.angle,
                 configs={"paper": VotingConfig.paper(tol, **common), "robust": VotingConfig.robust(tol, **common)})
 
 
-def fresh_pairs(pairs):
-    """Copies of the pair arrays (new objects: any per-catalog cache starts cold)."""
-    return pairs.i.copy(), pairs.j.copy(), pairs.angle.copy()
+WORKLOADS = {"v5.5": lambda n: rendered_workload(5.5, n), "v7.0": lambda n: rendered_workload(7.0, n),
+             "hil7": hil7_workload}
 
 
-def run(mod, w, name, cfg, repeats):
-    pi, pj, pa = fresh_pairs(w["pairs"])
-    B = w["obs"].shape[0]
-    t0 = time.perf_counter()
-    res = mod.identify(w["obs"], w["valid"], w["cat"], pi, pj, pa, cfg)
-    cold = time.perf_counter() - t0
-    warm = []
-    for _ in range(repeats):
+def save_inputs(names, cases: int, folder: Path) -> list[str]:
+    files = []
+    for name in names:
         t0 = time.perf_counter()
-        mod.identify(w["obs"], w["valid"], w["cat"], pi, pj, pa, cfg)
-        warm.append(time.perf_counter() - t0)
-    return res, cold / B * 1e3, min(warm) / B * 1e3
+        w = WORKLOADS[name](cases)
+        cfgs = {k: {f: getattr(c, f) for f in CONFIG_FIELDS} for k, c in w["configs"].items()}
+        path = folder / f"{name}.npz"
+        np.savez(path, obs=w["obs"], valid=w["valid"], cat=w["cat"], pi=w["pi"], pj=w["pj"], pa=w["pa"],
+                 configs=json.dumps(cfgs))
+        print(f"# inputs {name}: {w['obs'].shape[0]} cases, S = {w['obs'].shape[1]}, {len(w['cat'])} stars, "
+              f"{len(w['pa'])} pairs ({time.perf_counter() - t0:.1f} s to make)", flush=True)
+        files.append(str(path))
+    return files
+
+
+# ------------------------------------------------------------------------------ timing (child process)
+
+def time_engines(path: str, batches, repeats: int, threads: int):
+    """Time both engines on the saved inputs; one line per (workload, config, batch)."""
+    from dualsight.kernels.voting import n_threads
+    from dualsight.nav.starid import VotingConfig, identify
+
+    d = np.load(path)
+    name = Path(path).stem
+    configs = {k: VotingConfig(**v) for k, v in json.loads(str(d["configs"])).items()}
+    cat, pi, pj, pa = d["cat"], d["pi"], d["pj"], d["pa"]
+    assert n_threads() == threads, (n_threads(), threads)
+    for cname, cfg in configs.items():
+        for B in batches:
+            obs, valid = d["obs"][:B], d["valid"][:B]
+            if obs.shape[0] < B:
+                continue
+            res, warm = {}, {"numpy": [], "taichi": []}
+            for eng in warm:                                     # first call: kernels, index, buckets
+                res[eng] = identify(obs, valid, cat, pi, pj, pa, cfg, engine=eng)
+            for _ in range(repeats):
+                for eng in warm:
+                    t0 = time.perf_counter()
+                    identify(obs, valid, cat, pi, pj, pa, cfg, engine=eng)
+                    warm[eng].append(time.perf_counter() - t0)
+            same = all(np.array_equal(getattr(res["numpy"], f), getattr(res["taichi"], f))
+                       and getattr(res["numpy"], f).dtype == getattr(res["taichi"], f).dtype for f in FIELDS)
+            tn, tt = min(warm["numpy"]) / B * 1e3, min(warm["taichi"]) / B * 1e3
+            print(f"{name:6s} {cname:7s} {B:6d} {threads:8d} {tn:12.4f} {tt:12.4f} {tn / tt:7.2f}  {same}", flush=True)
+            if not same:
+                raise SystemExit(f"{name} {cname} B={B}: the engines differ")
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--cases", type=int, default=256)
-    ap.add_argument("--frames", type=int, default=32)
+    ap.add_argument("--workloads", nargs="+", choices=tuple(WORKLOADS), default=["v5.5", "v7.0"])
+    ap.add_argument("--batches", nargs="+", type=int, default=[64, 1024])
+    ap.add_argument("--threads", nargs="+", type=int, default=[1, 2], help="Taichi CPU threads (one process each)")
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--ref", default=None, help="another starid.py to time and compare against")
-    ap.add_argument("--only", choices=("sim", "v7"), default=None)
+    ap.add_argument("--child", nargs=2, metavar=("INPUTS", "THREADS"), help=argparse.SUPPRESS)
     args = ap.parse_args()
-    impls = {"current": load_impl(None)}
-    if args.ref:
-        impls["ref"] = load_impl(args.ref)
-    loads = {"sim": lambda: sim_workload(args.cases), "v7": lambda: v7_workload(args.frames)}
-    print(f"{'workload':8s} {'config':7s} {'impl':8s} {'cold ms/case':>13s} {'warm ms/case':>13s}")
-    for wname, load in loads.items():
-        if args.only and wname != args.only:
-            continue
-        w = load()
-        for cname, cfg in w["configs"].items():
-            outs, times = {}, {}
-            for iname, mod in impls.items():
-                res, cold, warm = run(mod, w, cname, cfg, args.repeats)
-                outs[iname], times[iname] = res, warm
-                print(f"{wname:8s} {cname:7s} {iname:8s} {cold:13.3f} {warm:13.3f}", flush=True)
-            if "ref" in outs:
-                same = all(np.array_equal(getattr(outs["ref"], f), getattr(outs["current"], f)) for f in FIELDS)
-                n_ok = int((outs["current"].T > 0).sum())
-                print(f"{'':8s} {cname:7s} identical: {same}  speed-up (warm) x{times['ref'] / times['current']:.1f}"
-                      f"  (confident cases {n_ok}/{w['obs'].shape[0]})")
-                if not same:
-                    raise SystemExit("results differ")
+    if args.child:
+        for path in args.child[0].split(","):
+            time_engines(path, args.batches, args.repeats, int(args.child[1]))
+        return
+    with tempfile.TemporaryDirectory(prefix="bench_voting_") as tmp:
+        files = save_inputs(args.workloads, max(args.batches), Path(tmp))
+        print(f"# load average {os.getloadavg()[0]:.2f} / {os.cpu_count()} cores; warm = best of {args.repeats}",
+              flush=True)
+        print(f"{'input':6s} {'config':7s} {'batch':>6s} {'threads':>8s} {'numpy ms':>12s} {'taichi ms':>12s} "
+              f"{'ratio':>7s}  identical   (ms per case)", flush=True)
+        for t in args.threads:
+            env = dict(os.environ, DUALSIGHT_TI_THREADS=str(t))
+            cmd = [sys.executable, __file__, "--child", ",".join(files), str(t), "--batches", *map(str, args.batches),
+                   "--repeats", str(args.repeats)]
+            rc = subprocess.run(cmd, env=env).returncode
+            if rc:
+                raise SystemExit(rc)
+        print(f"# load average {os.getloadavg()[0]:.2f} at the end", flush=True)
 
 
 if __name__ == "__main__":

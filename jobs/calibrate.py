@@ -32,7 +32,7 @@ from pydantic import Field
 
 from dualsight.errors import ConfigError, ImageError
 from dualsight.jobs.config import validate
-from dualsight.jobs.hil_common import Frozen, ImageEntry, check_unchanged, image_entries
+from dualsight.jobs.hil_common import Frozen, ImageEntry, check_unchanged, image_entries, n_cases, rows_table
 from dualsight.scene import calibration as cal
 
 NAME = "calibrate"
@@ -69,10 +69,6 @@ def build_spec(paths, *, board=(9, 6), square_m: float = 0.025, pixel_pitch_um: 
             "images": image_entries(paths)}
 
 
-def n_cases(spec: CalibSpec) -> int:
-    return len(spec.images)
-
-
 def make_context(spec: CalibSpec):
     return None
 
@@ -102,8 +98,7 @@ def compute_shard(spec: CalibSpec, case_ids: np.ndarray, ctx=None) -> dict[str, 
                      "width": v.width, "height": v.height, "bit_depth": v.bit_depth, "found": c is not None,
                      "n_corners": None if c is None else len(c) // 2, "corners_px": c,
                      "t_find_ns": time.perf_counter_ns() - t0})
-    return {PRIMARY: pa.table({f.name: pa.array([r[f.name] for r in rows], type=f.type) for f in SCHEMA},
-                              schema=SCHEMA)}
+    return {PRIMARY: rows_table(rows, SCHEMA)}
 
 
 def shard_summary(tables: dict[str, pa.Table]) -> dict[str, int]:

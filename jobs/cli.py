@@ -24,6 +24,8 @@ import sys
 from pathlib import Path
 
 from dualsight.errors import InputError
+from dualsight.jobs.cli_args import (Parser, _lake, _lake_arg, _latest_run, add_run_args,  # noqa: F401
+                                      positive_int, run_id_arg)
 
 # The one table from commands to job kinds (jobs/runner.py JOB_KINDS maps kinds to modules).
 COMMAND_KINDS = {
@@ -35,72 +37,6 @@ COMMAND_KINDS = {
     ("calibrate",): "calibrate",
     ("selftest", "run"): "selftest",
 }
-
-
-class Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (the usage is one ``--help`` away)."""
-
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
-def run_id_arg(text: str) -> str:
-    """argparse type for --run: the full-match run id check (an empty or multi-line id is refused)."""
-    from dualsight.warehouse.lake import RUN_ID_PATTERN, check_run_id
-
-    try:
-        return check_run_id(text)
-    except InputError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a run id: it must match {RUN_ID_PATTERN} in full") \
-            from None
-
-
-def positive_int(lo: int, hi: int):
-    """argparse type: an integer in [lo, hi] (also written as 1e6 or 1_000_000)."""
-    def parse(text: str) -> int:
-        try:
-            v = float(text.replace("_", "")) if any(c in text for c in "eE.") else int(text.replace("_", ""))
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-        if v != int(v) or not lo <= v <= hi:
-            raise argparse.ArgumentTypeError(f"must be an integer in [{lo}, {hi:,}], got {text}")
-        return int(v)
-    return parse
-
-
-def _lake_arg(p: argparse.ArgumentParser):
-    from dualsight.warehouse.lake import default_lake
-
-    p.add_argument("--lake", type=Path, default=None,
-                   help=f"lake folder (default: $DUALSIGHT_LAKE or ./lake, now {default_lake()})")
-
-
-def _lake(args):
-    from dualsight.warehouse.lake import Lake, default_lake
-
-    return Lake(args.lake if args.lake is not None else default_lake())
-
-
-def add_run_args(p: argparse.ArgumentParser, *, cases: bool = True):
-    """Options shared by every Monte Carlo command."""
-    p.add_argument("--preset", default=None, help="named preset (default: paper)")
-    p.add_argument("--config", type=Path, default=None, help="TOML file overriding the preset")
-    if cases:
-        p.add_argument("--cases", type=positive_int(1, 10**9), default=None,
-                       help="number of cases, 1 to 1e9 (default: the preset's)")
-    p.add_argument("--seed", type=positive_int(0, 2**63 - 1), default=None,
-                   help="run seed: case i draws from default_rng([seed, i])")
-    _lake_arg(p)
-    p.add_argument("--run", type=run_id_arg, default=None,
-                   help="run id, [A-Za-z0-9._-]{1,64} (default: <job>-<seed>-<cases>-<spec hash>); the same id "
-                        "with the same settings resumes, with other settings is refused")
-    p.add_argument("--workers", type=positive_int(1, 512), default=None,
-                   help="local worker processes (default: one per core)")
-    p.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786) to run shards on "
-                   "a cluster; the lake must be on storage every worker can write")
-    p.add_argument("--shard-size", type=positive_int(1, 10**6), default=None,
-                   help="cases per shard file (default: from the case count, 25 to 1000)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -189,9 +125,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _optional_registrations():
     """Command groups of the other jobs (each module adds its own sub-commands)."""
-    from dualsight.jobs import calibrate_cli, cli_hil, cli_prox
+    from dualsight.jobs import calibrate_cli, cli_hil, cli_prox, nightly
 
-    return [cli_prox.register, cli_hil.register, calibrate_cli.register_calibrate]
+    return [cli_prox.register, cli_hil.register, calibrate_cli.register_calibrate, nightly.register]
 
 
 def _help(p):
@@ -291,13 +227,6 @@ def cmd_selftest_run(args) -> int:
                 progress=not args.no_progress, source=source)
     print(f"run {m['run_id']}: {m['status']}, {m['n_cases']} cases", file=sys.stderr)
     return 0
-
-
-def _latest_run(lake, kinds) -> str:
-    runs = [m for m in lake.list_manifests() if m.get("kind") in kinds]
-    if not runs:
-        raise InputError(f"no {'/'.join(kinds)} run in {lake.root}; run one first", source="--run")
-    return max(runs, key=lambda m: m.get("created_unix", 0))["run_id"]
 
 
 def cmd_star_report(args) -> int:

@@ -57,13 +57,12 @@ def register(subparsers) -> None:
 
 
 def add_star_parser(hsub) -> argparse.ArgumentParser:
-    from dualsight.jobs.hil_common import add_engine_args
+    from dualsight.jobs.hil_common import add_engine_args, add_image_args
 
     p = hsub.add_parser("star", help="lost-in-space identification and attitude of real star images",
                         description="Identify real star images lost in space with the simulations' star chain; "
                                     "score them against a truth file or the tripod's time/site/alt-az.")
-    p.add_argument("images", nargs="+", type=Path, help="image files (PNG, JPEG, TIFF, FITS) or folders of them")
-    p.add_argument("--camera", type=Path, required=True, help="camera file (TOML with a [camera] table)")
+    add_image_args(p)
     p.add_argument("--truth", type=Path, default=None,
                    help="truth file in the format of shared/data/real/esa_tetra3/truth.json (keyed by file name)")
     g = p.add_argument_group("tripod truth (astropy AltAz -> ICRS; the reference's night-sky test)")
@@ -109,8 +108,9 @@ def add_star_parser(hsub) -> argparse.ArgumentParser:
     return p
 
 
-def star_spec_from_args(args) -> dict:
-    """The ``hil_star`` spec dict of the command line (validated pieces; truths resolved now)."""
+def star_spec_from_args(args):
+    """The validated ``hil_star`` spec of the command line (truths resolved now); every check is made
+    before the lake is touched.  Its dict form is ``spec.to_dict()``."""
     from dualsight.errors import InputError
     from dualsight.jobs import hil_star as hs
     from dualsight.jobs.hil_common import expand_inputs
@@ -143,7 +143,8 @@ def star_spec_from_args(args) -> dict:
         site = Site(args.lat, args.lon, args.height, args.time, args.alt, args.az, args.roll, args.pressure)
     elif args.alt is not None or args.az is not None:
         raise InputError("--alt/--az need the site: give --lat and --lon too", source="--lat")
-    return hs.build_spec(paths, camera, settings, resolve_star_truths(paths, truth_file, site))
+    return hs.spec_from_dict(hs.build_spec(paths, camera, settings, resolve_star_truths(paths, truth_file, site)),
+                             source="hil star")
 
 
 def cmd_hil_star(args) -> int:
@@ -151,14 +152,13 @@ def cmd_hil_star(args) -> int:
 
     from dualsight.jobs import hil_star as hs
     from dualsight.jobs import hil_star_report as rep
-    from dualsight.jobs.hil_common import engine_lake, run_engine
+    from dualsight.jobs.hil_common import done_message, engine_lake, run_engine
     from dualsight.warehouse.query import connect, run_report
 
     t_start = time.perf_counter()
-    spec_dict = star_spec_from_args(args)
-    spec = hs.spec_from_dict(spec_dict, source="hil star")        # every check before the lake is touched
+    spec = star_spec_from_args(args)
     with engine_lake(args) as (lake, kept):
-        manifest = run_engine("hil_star", spec_dict, hs.n_cases(spec), lake, args, label="hil star")
+        manifest = run_engine("hil_star", spec.to_dict(), hs.n_cases(spec), lake, args, label="hil star")
         run_id = manifest["run_id"]
         con = connect(lake)
         rows, stars = rep.fetch(con, run_id)
@@ -174,12 +174,8 @@ def cmd_hil_star(args) -> int:
         cols, srows = run_report(con, "hil_star_summary", run=run_id)
         summary = dict(zip(cols, srows[0]))
         con.close()
-    elapsed = time.perf_counter() - t_start
     n_err = summary["errors"]
-    msg = (f"{summary['images']} images: {summary['identified']} identified, {n_err} could not be processed "
-           f"({elapsed:.1f} s)")
-    if kept:
-        msg += (f"; run {run_id} in {lake.root} (datasets hil_star, hil_star_stars)\n"
-                f"query: dualsight sql \"SELECT * FROM hil_star WHERE run = '{run_id}'\" --lake {lake.root}")
-    print(msg, file=sys.stderr)
+    print(done_message(f"{summary['images']} images: {summary['identified']} identified, {n_err} could not be "
+                       "processed", time.perf_counter() - t_start, run_id, lake, kept, tuple(hs.SCHEMAS),
+                       query="hil_star"), file=sys.stderr)
     return 1 if n_err else 0

@@ -45,7 +45,7 @@ _FLAGS = {"thresholds": "--threshold", "open_px": "--open", "close_px": "--close
 
 def add_parser(hsub) -> argparse.ArgumentParser:
     """Add ``hil prox`` to the ``hil`` group's sub-parsers (jobs/cli_hil.py)."""
-    from dualsight.jobs.hil_common import add_engine_args
+    from dualsight.jobs.hil_common import add_engine_args, add_image_args
     from dualsight.jobs.hil_prox import DEFAULT_THRESHOLD
     from dualsight.nav.blobber import ESTIMATORS, TARGETS
 
@@ -54,8 +54,7 @@ def add_parser(hsub) -> argparse.ArgumentParser:
                                     "opened and closed) and run the simulations' blobber on them: direction and "
                                     "range by Eq. 1 with the target's projected-area table; a threshold sweep "
                                     "gives the reference's Figure 8.")
-    p.add_argument("images", nargs="+", type=Path, help="image files (PNG, JPEG, TIFF, FITS) or folders of them")
-    p.add_argument("--camera", type=Path, required=True, help="camera file (TOML with a [camera] table)")
+    add_image_args(p)
     p.add_argument("--target", type=Path, required=True,
                    help="target model: a satellite TOML (examples/targets/), for its projected-area table")
     g = p.add_argument_group("image processing (reference Sec. 2.4)")
@@ -116,7 +115,7 @@ def cmd_hil_prox(args) -> int:
     from dualsight.errors import InputError
     from dualsight.jobs import hil_prox as hp
     from dualsight.jobs import hil_prox_report as rep
-    from dualsight.jobs.hil_common import engine_lake, expand_inputs, run_engine
+    from dualsight.jobs.hil_common import done_message, engine_lake, expand_inputs, run_engine
     from dualsight.jobs.hil_truth import load_range_truth
     from dualsight.scene.camera import Camera
     from dualsight.warehouse.query import connect
@@ -129,11 +128,11 @@ def cmd_hil_prox(args) -> int:
         raise InputError("no image files given", source="IMAGES")
     truths, truth_kind = load_range_truth(args.range_truth, paths)
     target = hp.target_spec(args.target)
-    spec_dict = hp.build_spec(paths, camera, target, settings, truths, truth_kind)
-    spec = hp.spec_from_dict(spec_dict, source="hil prox")        # every check before the lake is touched
+    spec = hp.spec_from_dict(hp.build_spec(paths, camera, target, settings, truths, truth_kind),
+                             source="hil prox")        # every check before the lake is touched
 
     with engine_lake(args) as (lake, kept):
-        manifest = run_engine("hil_prox", spec_dict, hp.n_cases(spec), lake, args, label="hil prox")
+        manifest = run_engine("hil_prox", spec.to_dict(), hp.n_cases(spec), lake, args, label="hil prox")
         run_id = manifest["run_id"]
         con = connect(lake)
         data = rep.fetch(con, run_id)
@@ -152,12 +151,9 @@ def cmd_hil_prox(args) -> int:
     else:
         print(text)
     n_err = sum(1 for c in data["cases"] if c["error"])
-    elapsed = time.perf_counter() - t_start
-    msg = (f"{len(paths)} images x {len(spec.settings.thresholds)} threshold(s): {n_err} could not be processed "
-           f"({elapsed:.1f} s)")
-    if kept:
-        msg += (f"; run {run_id} in {lake.root} (datasets hil_prox_cases, hil_prox)\n"
-                f"query: dualsight sql \"SELECT * FROM hil_prox WHERE run = '{run_id}'\" --lake {lake.root}")
+    msg = done_message(f"{len(paths)} images x {len(spec.settings.thresholds)} threshold(s): {n_err} could not be "
+                       "processed", time.perf_counter() - t_start, run_id, lake, kept, tuple(hp.SCHEMAS),
+                       query="hil_prox")
     if args.plot is not None:
         msg += f"\nfigure: {args.plot}"
     print(msg, file=sys.stderr)

@@ -65,15 +65,13 @@ def _run(args, overrides: dict) -> dict:
     from dualsight.jobs.cli import _lake
     from dualsight.jobs.runner import run_job
 
-    spec = prox.resolve_spec(args.preset, args.config, seed=args.seed, mode=getattr(args, "mode", None),
-                             satellite=str(args.satellite) if getattr(args, "satellite", None) else None,
-                             **overrides)
-    s = prox.spec_from_dict(spec)
+    s = prox.resolve(args.preset, args.config, seed=args.seed, mode=getattr(args, "mode", None),
+                     satellite=str(args.satellite) if getattr(args, "satellite", None) else None, **overrides)
     n = s.n_cases
     kind = f"prox_{s.job}"
     run_id = args.run or f"prox-{s.job}-{s.mode}-{s.seed}-{n}"
     lake = _lake(args)
-    m = run_job(kind, spec, n_cases=n, lake=lake, run_id=run_id, workers=args.workers, scheduler=args.scheduler,
+    m = run_job(kind, s.to_dict(), n_cases=n, lake=lake, run_id=run_id, workers=args.workers, scheduler=args.scheduler,
                 shard_size=args.shard_size, progress=not args.no_progress, label=f"prox {s.job} {run_id}")
     print(f"run {run_id}: {m['status']}, {n} cases in {lake.root}", file=sys.stderr)
     print(f"report: dualsight prox report --lake {lake.root} --run {run_id}", file=sys.stderr)

@@ -6,8 +6,11 @@
   entry with ``bytes = mtime_ns = None``: it becomes an error row.  A worker that finds a file different
   from its entry (:func:`check_unchanged`) writes an error row instead of results of another image, so a
   run's rows are a function of its spec alone.
-* The engine options of the HIL commands (:func:`add_engine_args`) and the call of the engine with a
-  temporary lake for ``--no-lake`` (:func:`engine_lake`, :func:`run_engine`).
+* The spec dict's common part (:func:`spec_base`: camera table, settings table, image entries), the case
+  count (:func:`n_cases`: one case per image) and the rows -> Arrow table of every HIL dataset (:func:`rows_table`).
+* The options of the HIL commands (:func:`add_image_args`, :func:`add_engine_args`), the call of the engine
+  with a temporary lake for ``--no-lake`` (:func:`engine_lake`, :func:`run_engine`) and the closing line
+  (:func:`done_message`).
 """
 
 from __future__ import annotations
@@ -20,13 +23,15 @@ import sys
 import tempfile
 from pathlib import Path
 
+import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from dualsight.errors import ImageError
 from dualsight.scene.imageio import list_images
 
-__all__ = ["Frozen", "ImageEntry", "image_entries", "check_unchanged", "expand_inputs", "add_engine_args",
-           "engine_lake", "run_engine", "fixed_point"]
+__all__ = ["Frozen", "ImageEntry", "image_entries", "check_unchanged", "expand_inputs", "spec_base", "n_cases",
+           "rows_table", "add_image_args", "add_engine_args", "engine_lake", "run_engine", "done_message",
+           "fixed_point"]
 
 
 class Frozen(BaseModel):
@@ -72,6 +77,24 @@ def image_entries(paths) -> list[dict]:
     return out
 
 
+def spec_base(paths, camera, settings) -> dict:
+    """``{"camera", "settings", "images"}`` of a HIL spec dict: the camera's table (a ``Camera`` or its
+    table), the settings' table (a ``Frozen`` model, a table or None) and the images' entries (stat now)."""
+    return {"camera": camera.to_dict() if hasattr(camera, "to_dict") else dict(camera),
+            "settings": settings.to_dict() if isinstance(settings, Frozen) else dict(settings or {}),
+            "images": image_entries(paths)}
+
+
+def n_cases(spec) -> int:
+    """Cases of a HIL run: one per image of its spec."""
+    return len(spec.images)
+
+
+def rows_table(rows: list[dict], schema: pa.Schema) -> pa.Table:
+    """Arrow table of ``schema`` from row dicts (a key a row does not have is null)."""
+    return pa.table({f.name: pa.array([r.get(f.name) for r in rows], type=f.type) for f in schema}, schema=schema)
+
+
 def check_unchanged(entry: ImageEntry):
     """Raise ImageError (naming the file) unless the file is as it was when the run was planned."""
     if entry.bytes is None:
@@ -107,6 +130,12 @@ def fixed_point(normalise, value, rounds: int = 4):
 
 
 # ============================================================================================ CLI and engine
+def add_image_args(p: argparse.ArgumentParser):
+    """The positional ``images`` (files or folders) and ``--camera``."""
+    p.add_argument("images", nargs="+", type=Path, help="image files (PNG, JPEG, TIFF, FITS) or folders of them")
+    p.add_argument("--camera", type=Path, required=True, help="camera file (TOML with a [camera] table)")
+
+
 def add_engine_args(p: argparse.ArgumentParser, *, prefix: str):
     """``--lake``, ``--run``, ``--no-lake``, ``--workers``, ``--scheduler``, ``--shard-size``, ``--no-progress``."""
     from dualsight.jobs.cli import _lake_arg
@@ -152,3 +181,14 @@ def run_engine(kind: str, spec: dict, n_cases: int, lake, args, *, label: str, p
                    workers=getattr(args, "workers", None), scheduler=getattr(args, "scheduler", None),
                    shard_size=getattr(args, "shard_size", None), progress=progress, label=label,
                    source=label)
+
+
+def done_message(summary: str, elapsed_s: float, run_id: str, lake, kept: bool, datasets: tuple[str, ...],
+                 query: str) -> str:
+    """The closing stderr line of a HIL command: ``summary``, the time, and (lake kept) where the rows are,
+    with an SQL example over dataset ``query``."""
+    msg = f"{summary} ({elapsed_s:.1f} s)"
+    if kept:
+        msg += (f"; run {run_id} in {lake.root} (datasets {', '.join(datasets)})\n"
+                f"query: dualsight sql \"SELECT * FROM {query} WHERE run = '{run_id}'\" --lake {lake.root}")
+    return msg

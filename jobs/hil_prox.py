@@ -61,7 +61,8 @@ from pydantic import Field, model_validator
 
 from dualsight.errors import ConfigError, ImageError
 from dualsight.jobs.config import validate
-from dualsight.jobs.hil_common import Frozen, ImageEntry, check_unchanged, fixed_point, image_entries
+from dualsight.jobs.hil_common import (Frozen, ImageEntry, check_unchanged, fixed_point, n_cases, rows_table,
+                                      spec_base)
 from dualsight.nav.blobber import ESTIMATORS, TARGETS, BlobberConfig, run_blobber
 from dualsight.nav.hil_score import score_range
 from dualsight.scene.camera import Camera
@@ -143,7 +144,11 @@ class HilProxSpec(Frozen):
 
 def settings_from_dict(d: dict | None, source: str = "hil prox", section: str | None = None) -> ProxSettings:
     """Validated settings (ConfigError naming ``source`` and the key); the blobber's own checks too."""
-    s = validate(ProxSettings, dict(d or {}), source=source, section=section)
+    return _check_blobber(validate(ProxSettings, dict(d or {}), source=source, section=section), source, section)
+
+
+def _check_blobber(s: ProxSettings, source: str, section: str | None) -> ProxSettings:
+    """``s`` when the blobber accepts its settings, else a ConfigError naming ``source`` and ``section``."""
     try:
         s.blobber_config()
     except ValueError as e:
@@ -156,7 +161,7 @@ def spec_from_dict(d: dict, source: str = "spec") -> HilProxSpec:
     if not isinstance(d, dict):
         raise ConfigError("must be a table", source=source)
     m = validate(HilProxSpec, d, source=source)
-    settings_from_dict(m.settings.to_dict(), source=source, section="settings")
+    _check_blobber(m.settings, source, "settings")
     from dualsight.catalogs.areas import shape_spec
 
     try:
@@ -196,14 +201,8 @@ def target_spec(path: str | Path) -> dict:
 def build_spec(paths, camera: Camera | dict, target: dict, settings: ProxSettings | dict | None = None,
                truths_m: list[float | None] | None = None, truth_source: str = "none") -> dict:
     """A spec dict for ``run_job("hil_prox", ...)`` (images stat'ed now)."""
-    s = settings.to_dict() if isinstance(settings, ProxSettings) else dict(settings or {})
-    return {"camera": camera.to_dict() if isinstance(camera, Camera) else dict(camera), "target": dict(target),
-            "settings": s, "images": image_entries(paths), "truths_m": list(truths_m or []),
+    return {**spec_base(paths, camera, settings), "target": dict(target), "truths_m": list(truths_m or []),
             "truth_source": truth_source}
-
-
-def n_cases(spec: HilProxSpec) -> int:
-    return len(spec.images)
 
 
 # ============================================================================================ context
@@ -240,6 +239,17 @@ def make_context(spec: HilProxSpec) -> Context:
     return Context(Camera.from_dict(spec.camera, source="spec"), make_target(spec.target, spec.settings))
 
 
+def memory_estimate(spec: HilProxSpec) -> int:
+    """Peak bytes of one worker, before anything is allocated (the engine refuses a spec over the limit).
+
+    One image at a time, per pixel: the decoded pixels and the undistorted copy (float64, up to 3 channels:
+    48 bytes), the foreground score (8) and, for each of the :data:`_CHUNK` thresholds of a blobber batch,
+    the binary mask, the blobber's float32 frame and its int32 labels (9 bytes each); plus the projected-area
+    table's samples (~64 bytes each)."""
+    cam = Camera.from_dict(spec.camera, source="spec")
+    return int((48 + 8 + 9 * _CHUNK) * cam.width * cam.height + 64 * spec.settings.table_samples)
+
+
 # ============================================================================================ computing
 def compute_shard(spec: HilProxSpec, case_ids: np.ndarray, ctx: Context) -> dict[str, pa.Table]:
     """The engine's contract: rows of images ``case_ids`` (int64, ascending)."""
@@ -250,7 +260,7 @@ def compute_shard(spec: HilProxSpec, case_ids: np.ndarray, ctx: Context) -> dict
                                 spec.truth_source if spec.truth(k) is not None else "none")
         cases.append(case)
         rows.extend(r)
-    return {"hil_prox_cases": _table(cases, CASES_SCHEMA), "hil_prox": _table(rows, SCHEMA)}
+    return {"hil_prox_cases": rows_table(cases, CASES_SCHEMA), "hil_prox": rows_table(rows, SCHEMA)}
 
 
 def process_image(k: int, image: ImageEntry | str | Path, camera: Camera, target: Target, settings: ProxSettings,
@@ -370,10 +380,6 @@ SCHEMAS = {"hil_prox_cases": CASES_SCHEMA, "hil_prox": SCHEMA}
 TIMING_COLUMNS = ("t_read_ns", "t_prep_ns", "t_blob_ns")
 
 
-def _table(rows: list[dict], schema: pa.Schema) -> pa.Table:
-    return pa.table({f.name: pa.array([r.get(f.name) for r in rows], type=f.type) for f in schema}, schema=schema)
-
-
 def shard_summary(tbls: dict[str, pa.Table]) -> dict[str, int]:
     t = tbls["hil_prox_cases"]
     return {"images": t.num_rows, "errors": sum(e is not None for e in t.column("error").to_pylist()),
@@ -386,5 +392,5 @@ def progress_postfix(stats: dict) -> str:
 
 __all__ = ["NAME", "PRIMARY", "SCHEMAS", "ProxSettings", "TargetSpec", "HilProxSpec", "settings_from_dict",
            "spec_from_dict", "parse_sweep", "target_spec", "build_spec", "n_cases", "Target", "make_target",
-           "load_target", "make_context", "compute_shard", "process_image", "shard_summary", "progress_postfix",
-           "DEFAULT_THRESHOLD"]
+           "load_target", "make_context", "memory_estimate", "compute_shard", "process_image", "shard_summary",
+           "progress_postfix", "DEFAULT_THRESHOLD"]

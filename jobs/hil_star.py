@@ -1,7 +1,7 @@
 """Job kind ``hil_star``: the SIL star chain on real night-sky frames, scored against independent truth.
 
     read (scene.imageio) -> smooth background (scene.background) -> detect/centroid (kernels.detect)
-    -> back-project -> lost-in-space geometric voting -> SVD attitude (jobs.star_pipeline stages)
+    -> back-project (nav.observations) -> lost-in-space geometric voting -> SVD attitude (nav.star_solution)
     -> boresight RA/Dec and roll (scene.pointing), per-star residuals (reference Table 6)
     -> errors against the truth (nav.hil_score) -> lake rows ``hil_star``, ``hil_star_stars``
 
@@ -52,14 +52,15 @@ import pyarrow as pa
 from dualsight.catalogs.pairs import load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 from dualsight.errors import ImageError
-from dualsight.jobs import star_pipeline as pipe
 from dualsight.jobs.config import validate
-from dualsight.jobs.hil_common import ImageEntry, check_unchanged, image_entries
-from dualsight.jobs.hil_star_spec import (MAX_VOTE_CELLS, METHODS, HilStarSpec, Matched, StarSettings, StarTruth,
-                                          normalise_settings, settings_from_table, spec_from_dict)
+from dualsight.jobs.hil_common import ImageEntry, check_unchanged, n_cases, rows_table, spec_base
+from dualsight.jobs.hil_star_spec import (MAX_VOTE_CELLS, HilStarSpec, StarSettings, StarTruth,
+                                          settings_from_table, spec_from_dict)
+from dualsight.jobs.star import catalog_bytes, pair_angle
 from dualsight.kernels.detect import DetectConfig, detect_stars
 from dualsight.nav import hil_score
-from dualsight.nav.errors import ARCSEC
+from dualsight.nav.observations import observations
+from dualsight.nav.star_solution import identify, solve
 from dualsight.nav.starid import VotingConfig
 from dualsight.scene.attitude import angle_between, unit_to_radec
 from dualsight.scene.background import subtract_background
@@ -76,13 +77,7 @@ def build_spec(paths, camera: Camera | dict, settings: StarSettings | dict | Non
                truths: list[dict] | None = None) -> dict:
     """A spec dict for ``run_job("hil_star", ...)`` from image paths (stat now), a camera, settings and
     the per-image truths of :func:`dualsight.jobs.hil_truth.resolve_star_truths`."""
-    s = settings.to_dict() if isinstance(settings, StarSettings) else dict(settings or {})
-    return {"camera": camera.to_dict() if isinstance(camera, Camera) else dict(camera), "settings": s,
-            "images": image_entries(paths), "truths": list(truths or [])}
-
-
-def n_cases(spec: HilStarSpec) -> int:
-    return len(spec.images)
+    return {**spec_base(paths, camera, settings), "truths": list(truths or [])}
 
 
 # ============================================================================================ context
@@ -121,7 +116,22 @@ class Context:
 def make_context(spec: HilStarSpec) -> Context:
     rt = runtime(spec)
     cat = load_star_catalog(rt.catalog)
-    return Context(rt, cat, load_pair_catalog(cat, rt.camera.fov_rad[2]))
+    return Context(rt, cat, load_pair_catalog(cat, pair_angle(rt.camera)))
+
+
+FRAME_PLANES = 6
+"""float32-sized planes per frame in flight: the decoded frame, the stacked batch, the background-subtracted
+frame, the background grid and the detector's threshold mask and labels."""
+
+
+def memory_estimate(spec: HilStarSpec) -> int:
+    """Peak bytes of one worker, before anything is allocated (the engine refuses a spec over the limit):
+    ``batch_size`` frames of the camera's size x :data:`FRAME_PLANES` float32 planes, the vote tables
+    (:data:`~dualsight.jobs.hil_star_spec.MAX_VOTE_CELLS` int64 cells), and the star and pair catalogs
+    for the magnitude limit and the field diagonal (:func:`dualsight.jobs.star.catalog_bytes`)."""
+    cam = Camera.from_dict(spec.camera, source="spec")
+    frames = FRAME_PLANES * 4 * cam.width * cam.height * spec.settings.batch_size
+    return frames + 8 * MAX_VOTE_CELLS + catalog_bytes(float(spec.settings.catalog["mag_limit"]), pair_angle(cam))
 
 
 # ============================================================================================ computing
@@ -218,15 +228,16 @@ def _run_batch(idx: list[int], spec: HilStarSpec, ctx: Context) -> list[ImageRes
     t0 = time.perf_counter_ns()
     _, bg, det = detect_frames(np.stack(frames), rt.settings, rt.detect)
     t1 = time.perf_counter_ns()
-    obs = pipe.observations(det, B, rt.camera, max_obs=rt.settings.max_obs)
-    ident = pipe.identify(obs, ctx.catalog, ctx.pairs, rt.voting)
+    cat_unit = ctx.catalog.unit
+    obs = observations(det, B, rt.camera, max_obs=rt.settings.max_obs)
+    ident = identify(obs, cat_unit, ctx.pairs, rt.voting)
     t2 = time.perf_counter_ns()
-    sol = pipe.solve(obs, ident, ctx.catalog, None)
+    sol = solve(obs, ident, cat_unit, None)
     t3 = time.perf_counter_ns()
     alt = None
     if rt.alt_voting is not None:
-        ident_a = pipe.identify(obs, ctx.catalog, ctx.pairs, rt.alt_voting)
-        alt = (ident_a, pipe.solve(obs, ident_a, ctx.catalog, None))
+        ident_a = identify(obs, cat_unit, ctx.pairs, rt.alt_voting)
+        alt = (ident_a, solve(obs, ident_a, cat_unit, None))
     t4 = time.perf_counter_ns()
     share = {"t_detect_ns": (t1 - t0) // B, "t_identify_ns": (t2 - t1) // B, "t_attitude_ns": (t3 - t2) // B,
              "t_alt_ns": (t4 - t3) // B}
@@ -341,12 +352,10 @@ TIMING_COLUMNS = ("t_read_ns", "t_detect_ns", "t_identify_ns", "t_attitude_ns", 
 
 def tables(results: list[ImageResult]) -> dict[str, pa.Table]:
     """The ``hil_star`` and ``hil_star_stars`` tables of some images."""
-    img_cols = {f.name: pa.array([r.row.get(f.name) for r in results], type=f.type) for f in IMAGES_SCHEMA}
-    stars = [(r, s) for r in results for s in r.stars]
-    star_cols = {f.name: pa.array([(r.row[f.name] if f.name in ("case_id", "image", "method") else getattr(s, f.name))
-                                   for r, s in stars], type=f.type) for f in STARS_SCHEMA}
-    return {"hil_star": pa.table(img_cols, schema=IMAGES_SCHEMA),
-            "hil_star_stars": pa.table(star_cols, schema=STARS_SCHEMA)}
+    stars = [{**vars(s), "case_id": r.row["case_id"], "image": r.row["image"], "method": r.row["method"]}
+             for r in results for s in r.stars]
+    return {"hil_star": rows_table([r.row for r in results], IMAGES_SCHEMA),
+            "hil_star_stars": rows_table(stars, STARS_SCHEMA)}
 
 
 def shard_summary(tbls: dict[str, pa.Table]) -> dict[str, int]:
@@ -361,6 +370,6 @@ def progress_postfix(stats: dict) -> str:
     return f"identified {stats.get('identified', 0)}, errors {stats.get('errors', 0)}"
 
 
-__all__ = ["NAME", "PRIMARY", "SCHEMAS", "StarSettings", "StarTruth", "Matched", "HilStarSpec", "settings_from_table",
-           "normalise_settings", "spec_from_dict", "build_spec", "MAX_VOTE_CELLS", "ARCSEC", "n_cases", "make_context", "compute_shard",
-           "shard_summary", "progress_postfix", "read_frame", "detect_frames", "runtime", "tables", "METHODS"]
+__all__ = ["NAME", "PRIMARY", "SCHEMAS", "StarSettings", "StarTruth", "HilStarSpec", "settings_from_table",
+           "spec_from_dict", "build_spec", "n_cases", "make_context", "memory_estimate", "compute_shard",
+           "shard_summary", "progress_postfix", "read_frame", "detect_frames", "runtime", "tables"]

@@ -189,6 +189,7 @@ def write_overlays(spec, rows: list[dict], stars: dict[int, list[dict]], folder:
     from dualsight.catalogs.stars import load_star_catalog
     from dualsight.errors import ImageError
     from dualsight.jobs import hil_star as hs
+    from dualsight.scene.starfield_geometry import catalog_in_image
     from dualsight.viz.overlay import star_overlay
 
     folder = Path(folder)
@@ -213,10 +214,8 @@ def write_overlays(spec, rows: list[dict], stars: dict[int, list[dict]], folder:
         field_xy = field_vmag = None
         if r["identified"]:
             cat = cat or load_star_catalog(rt.catalog)
-            A = np.asarray(r["A_est"], np.float64).reshape(3, 3)
-            pxs, front = cam.project(cat.unit @ A.T)
-            inside = front & cam.in_image(np.nan_to_num(pxs, nan=-1.0))
-            field_xy, field_vmag = pxs[inside], cat.vmag[inside]
+            field_xy, rows_in = catalog_in_image(np.reshape(r["A_est"], (3, 3)), cat.unit, cam)
+            field_vmag = cat.vmag[rows_in]
         truth = spec.truth(k)
         truth_xy = None
         if truth.matched is not None:

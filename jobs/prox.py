@@ -182,8 +182,9 @@ def spec_from_dict(d: dict, source: str = "spec") -> ProxSpec:
                     t.batch_size, t.blobber.model_dump(), sensor, t.areas.model_dump(), satellite)
 
 
-def resolve_spec(preset: str | None, config: Path | None, **overrides) -> dict:
-    """Merge preset, config file and flags (None = not given); validate; return the canonical spec dict."""
+def resolve(preset: str | None, config: Path | None, **overrides) -> ProxSpec:
+    """Merge preset, config file and flags (None = not given) into the validated spec; the one way from
+    the command line to a spec (``spec.to_dict()`` is its canonical dict, what the engine stores)."""
     d, source = preset_and_config(PRESETS, preset, config)
     sat = d.get("satellite")
     if config is not None and isinstance(sat, str) and not Path(sat).is_absolute():
@@ -193,7 +194,12 @@ def resolve_spec(preset: str | None, config: Path | None, **overrides) -> dict:
     for k, v in overrides.items():
         if v is not None:
             d[k] = v
-    return spec_from_dict(d, source=source).to_dict()
+    return spec_from_dict(d, source=source)
+
+
+def resolve_spec(preset: str | None, config: Path | None, **overrides) -> dict:
+    """:func:`resolve` in the engine's form: ``spec.to_dict()``."""
+    return resolve(preset, config, **overrides).to_dict()
 
 
 # ------------------------------------------------------------------------------------------ context

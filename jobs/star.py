@@ -1,7 +1,8 @@
-"""Star-tracker software-in-the-loop job: the whole chain for a batch of cases.
+"""Star-tracker software-in-the-loop job: the whole chain for a batch of cases (orchestration only).
 
-    draw attitudes -> stars in the field -> render (Taichi) -> detect/centroid (Taichi)
-    -> back-project -> geometric voting (+ verification, T) -> SVD attitude -> Eqs. 4-7 -> Arrow rows
+    draw attitudes (here) -> stars in the field (scene.starfield_geometry) -> render and detect/centroid
+    (kernels.starfield, kernels.detect) -> back-project (nav.observations) -> geometric voting + T and
+    SVD attitude + Eqs. 4-7 (nav.star_solution) -> truth of the detections (nav.truth_match) -> Arrow rows
 
 One row per case in ``star_cases`` and one row per detection in ``star_detections``.  Case ``i`` draws
 its attitude and its sensor-noise seed from ``default_rng([seed, i])`` only.
@@ -36,13 +37,18 @@ from dualsight.catalogs.pairs import load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 from dualsight.errors import InputError
 from dualsight.jobs.config import dataclass_from_table, dataclass_to_table, preset_and_config, validate
+from dualsight.kernels import detect as kdetect
+from dualsight.kernels import starfield as kstar
 from dualsight.kernels.detect import DetectConfig
 from dualsight.kernels.starfield import SensorConfig
-from dualsight.jobs import star_pipeline as pipe
 from dualsight.nav.errors import STATUS_NAMES
+from dualsight.nav.observations import observations, ragged_rank
+from dualsight.nav.star_solution import identify, solve
 from dualsight.nav.starid import VotingConfig
+from dualsight.nav.truth_match import match_truth
 from dualsight.scene.attitude import boresight_radec, euler123_to_dcm, quat_to_dcm, random_quaternions
 from dualsight.scene.camera import Camera
+from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
 
 NAME = "star"
 PRIMARY = "star_cases"
@@ -130,9 +136,13 @@ def spec_from_dict(d: dict, source: str = "spec") -> StarSpec:
                     batch_size=int(bs), attitudes=att, error_frame=frame, source=source)
 
 
-def resolve_spec(preset: str | None, config: Path | None, *, seed: int | None = None,
-                 cases: int | None = None) -> tuple[dict, int]:
-    """Merge preset, config file and flags; validate; return (canonical spec dict, number of cases)."""
+def resolve(preset: str | None, config: Path | None, *, seed: int | None = None,
+            cases: int | None = None) -> tuple[StarSpec, int]:
+    """Merge preset, config file and flags into the validated spec; returns (spec, number of cases).
+
+    The one way from the command line to a spec: ``spec.to_dict()`` is its canonical dict (what the
+    engine stores).  The catalog is built (or read from the cache) here, so a magnitude limit that leaves
+    too few stars fails before anything touches the lake."""
     d, source = preset_and_config(PRESETS, preset, config)
     if seed is not None:
         d["seed"] = seed
@@ -141,37 +151,46 @@ def resolve_spec(preset: str | None, config: Path | None, *, seed: int | None = 
         raise InputError(f"number of cases must be an integer in [1, 1e9], got {n!r}",
                          source="--cases" if cases is not None else source)
     spec = spec_from_dict(d, source=source)
-    # the catalog must leave enough stars: checked now, before anything touches the lake
     load_star_catalog(spec.catalog)
-    return spec.to_dict(), int(n)
+    return spec, int(n)
 
 
-def catalog_info(spec_dict: dict) -> dict:
-    """Size of the run's star and pair catalogs (built or read from the cache)."""
-    spec = spec_from_dict(spec_dict)
-    cat = load_star_catalog(spec.catalog)
-    diag = spec.camera.fov_rad[2]
-    pairs = load_pair_catalog(cat, diag)
-    return {"stars": len(cat.hip), "mag_limit": spec.catalog.mag_limit, "pairs": len(pairs.angle),
-            "pair_max_angle_deg": math.degrees(diag), "pair_catalog_bytes": int(pairs.nbytes),
-            "star_catalog_bytes": int(cat.nbytes)}
+def resolve_spec(preset: str | None, config: Path | None, *, seed: int | None = None,
+                 cases: int | None = None) -> tuple[dict, int]:
+    """:func:`resolve` in the engine's form: (``spec.to_dict()``, number of cases)."""
+    spec, n = resolve(preset, config, seed=seed, cases=cases)
+    return spec.to_dict(), n
+
+
+def catalog_info(spec: StarSpec | dict) -> dict:
+    """Size of the run's star and pair catalogs (built or read from the cache, as the workers load them).
+
+    ``spec``: the spec, or its dict form (validated by :func:`spec_from_dict`)."""
+    if not isinstance(spec, StarSpec):
+        spec = spec_from_dict(spec)
+    ctx = make_context(spec)
+    return {"stars": len(ctx.catalog.hip), "mag_limit": spec.catalog.mag_limit, "pairs": len(ctx.pairs.angle),
+            "pair_max_angle_deg": math.degrees(pair_angle(spec.camera)),
+            "pair_catalog_bytes": int(ctx.pairs.nbytes), "star_catalog_bytes": int(ctx.catalog.nbytes)}
 
 
 # ------------------------------------------------------------------------------------------ context
-@dataclass
+@dataclass(frozen=True)
 class StarContext:
-    """Per-process state: the catalogs (read from the cache) and kernel buffers."""
+    """Per-process state: the star catalog and its pair catalog (read from the cache)."""
 
     catalog: object
     pairs: object
-    buffers: dict
+
+
+def pair_angle(camera: Camera) -> float:
+    """Largest angle (rad) between two stars of one image: the field's diagonal (the pair catalog's limit)."""
+    return camera.fov_rad[2]
 
 
 def make_context(spec: StarSpec) -> StarContext:
     cat = load_star_catalog(spec.catalog)
-    diag = spec.camera.fov_rad[2]
-    pairs = load_pair_catalog(cat, diag)
-    return StarContext(cat, pairs, {})
+    return StarContext(cat, load_pair_catalog(cat, pair_angle(spec.camera)))
 
 
 # ------------------------------------------------------------------------------------------ cases
@@ -205,22 +224,68 @@ def compute_shard(spec: StarSpec, case_ids: np.ndarray, ctx: StarContext) -> dic
     return {d: pa.concat_tables(parts[d]) if parts[d] else SCHEMAS[d].empty_table() for d in SCHEMAS}
 
 
+def catalog_bytes(mag_limit: float, pair_angle_rad: float) -> int:
+    """Estimated bytes of the star catalog to ``mag_limit`` and its pair catalog to ``pair_angle_rad``.
+
+    Stars from the Hipparcos count-magnitude relation log10 N = 0.52 V + 0.1 (fit to V 5.5: 2.9k, V 7: 16k,
+    V 9: 120k), ~200 bytes each; pairs ~ N^2/2 x (1 - cos d)/2 (the sky fraction of a cap of radius d),
+    24 bytes each (angle, two indices), twice for sorting scratch.
+    """
+    n_stars = 10 ** (0.52 * mag_limit + 0.1)
+    pairs = n_stars ** 2 / 2 * (1 - math.cos(min(pair_angle_rad, math.pi))) / 2
+    return int(2 * 24 * pairs + 200 * n_stars)
+
+
 def memory_estimate(spec: StarSpec) -> int:
     """Peak bytes one worker needs for this spec, estimated before anything is allocated.
 
-    Frames: ``batch_size`` x width x height float32 images (three buffers) when the dense path runs;
-    catalogs: stars to the magnitude limit (counted on the cached catalog when it exists, else from the
-    Hipparcos count-magnitude relation, log10 N = 0.52 V + 0.1 (fit to V 5.5: 2.9k, V 7: 16k, V 9: 120k))
-    times the fraction of the sky inside the pair angle (the field diagonal): pairs ~ N^2/2 x (1 - cos d)/2,
-    24 bytes each (angle, two indices) plus sorting scratch.
+    Frames: ``batch_size`` x width x height float32 images (three planes) when the dense path runs (noise-free
+    frames take the sparse path: windows around stars only); plus :func:`catalog_bytes` for the magnitude
+    limit and the field diagonal.
     """
     w, h = spec.camera.width, spec.camera.height
-    dense = not spec.sensor.is_ideal
-    frames = 3 * 4 * w * h * spec.batch_size if dense else 0
-    n_stars = 10 ** (0.52 * spec.catalog.mag_limit + 0.1)
-    diag = spec.camera.fov_rad[2]
-    pairs = n_stars ** 2 / 2 * (1 - math.cos(min(diag, math.pi))) / 2
-    return int(frames + 2 * 24 * pairs + 200 * n_stars)
+    frames = 3 * 4 * w * h * spec.batch_size if not spec.sensor.is_ideal else 0
+    return frames + catalog_bytes(spec.catalog.mag_limit, pair_angle(spec.camera))
+
+
+# ------------------------------------------------------------------------------------------ render
+@dataclass(frozen=True)
+class Rendered:
+    """The batch's frames through the render and detection kernels.
+
+    detections : ``kernels.detect.Detections``; images : (B, H, W) float32 when kept (replay), else None;
+    t_render_ns, t_detect_ns : wall time of the stages (t_detect_ns None: detection ran fused into the
+    sparse render, not as its own stage).
+    """
+
+    detections: object
+    images: np.ndarray | None
+    t_render_ns: int
+    t_detect_ns: int | None
+
+
+def psf_margin_px(sensor: SensorConfig) -> float:
+    """How far outside the frame (px) a star still puts light into it: the PSF's render window."""
+    return float(sensor.psf_window_sigma * sensor.psf_sigma_px + 1.0)
+
+
+def render_and_detect(field_: FieldStars, noise_seeds: np.ndarray, camera: Camera, sensor: SensorConfig,
+                      detect_cfg: DetectConfig, keep_images: bool = False) -> Rendered:
+    """Render the batch's star fields and detect/centroid the stars (Taichi kernels).
+
+    Noise-free frames that need not be kept take the sparse path (render and label only the windows
+    around stars: the same blobs as full frames)."""
+    t0 = time.perf_counter_ns()
+    if sensor.is_ideal and not keep_images:
+        det = kdetect.render_and_detect_ideal(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
+                                              camera.height, sensor, detect_cfg, noise_seeds)
+        return Rendered(det, None, time.perf_counter_ns() - t0, None)
+    images = kstar.render_star_fields(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
+                                      camera.height, sensor, noise_seeds)
+    t1 = time.perf_counter_ns()
+    det = kdetect.detect_stars(images, detect_cfg)
+    t2 = time.perf_counter_ns()
+    return Rendered(det, images if keep_images else None, t1 - t0, t2 - t1)
 
 
 def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_images: bool = False) -> dict:
@@ -232,30 +297,31 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
     t = {}
     t0 = time.perf_counter_ns()
     draw = draw_cases(spec, case_ids)
-    field_ = pipe.stars_in_field(draw["A_true"], ctx.catalog, spec.camera, spec.sensor)
+    cat = ctx.catalog
+    flux = kstar.flux_from_magnitude(cat.vmag.astype(np.float64), spec.sensor)
+    field_ = stars_in_field(draw["A_true"], cat.unit, flux, spec.camera, psf_margin_px(spec.sensor))
     t["sample"] = time.perf_counter_ns() - t0
 
-    r = pipe.render_and_detect(field_, draw["noise_seed"], spec.camera, spec.sensor, spec.detect, ctx.buffers,
-                               keep_images=keep_images)
+    r = render_and_detect(field_, draw["noise_seed"], spec.camera, spec.sensor, spec.detect, keep_images=keep_images)
     t["render"], t["detect"] = r.t_render_ns, r.t_detect_ns
 
     t1 = time.perf_counter_ns()
-    obs = pipe.observations(r.detections, B, spec.camera)
-    ident = pipe.identify(obs, ctx.catalog, ctx.pairs, spec.voting)
+    obs = observations(r.detections, B, spec.camera)
+    ident = identify(obs, cat.unit, ctx.pairs, spec.voting)
     t["identify"] = time.perf_counter_ns() - t1
 
     t2 = time.perf_counter_ns()
-    sol = pipe.solve(obs, ident, ctx.catalog, draw["A_true"], spec.error_frame)
+    sol = solve(obs, ident, cat.unit, draw["A_true"], spec.error_frame)
     t["attitude"] = time.perf_counter_ns() - t2
 
     alt = None
     if spec.robust is not None:   # dualsight's method beside the reference's, on the same detections
         t3 = time.perf_counter_ns()
-        ident_r = pipe.identify(obs, ctx.catalog, ctx.pairs, spec.robust)
-        alt = (ident_r, pipe.solve(obs, ident_r, ctx.catalog, draw["A_true"], spec.error_frame))
+        ident_r = identify(obs, cat.unit, ctx.pairs, spec.robust)
+        alt = (ident_r, solve(obs, ident_r, cat.unit, draw["A_true"], spec.error_frame))
         t["robust"] = time.perf_counter_ns() - t3
 
-    truth = pipe.match_truth(r.detections, field_, obs, ctx.catalog)
+    truth = match_truth(r.detections, field_, obs, cat.hip)
     per_case = {k: (np.full(B, v // max(B, 1), dtype=np.int64) if v is not None else None) for k, v in t.items()}
     tables = {"star_cases": cases_table(case_ids, spec, draw, field_, r.detections, obs, ident, sol, truth, per_case,
                                         alt),
@@ -309,7 +375,7 @@ def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, al
     if alt is not None:
         ident_r, sol_r = alt
         robust = {"T_robust": ident_r.T, "n_identified_robust": ident_r.accepted.sum(1),
-                  "id_correct_robust": truth.id_correct(ident_r, obs),
+                  "id_correct_robust": truth.id_correct(ident_r),
                   "err_x_robust_rad": sol_r.axis_err[:, 0], "err_y_robust_rad": sol_r.axis_err[:, 1],
                   "err_z_robust_rad": sol_r.axis_err[:, 2], "err_total_robust_rad": sol_r.total_err,
                   "status_robust": names[sol_r.status]}
@@ -326,9 +392,9 @@ def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, al
         "noise_seed": draw["noise_seed"],
         "n_generated": field_.n_generated.astype(np.int32), "n_observed": np.diff(det.offsets).astype(np.int32),
         "n_used": obs.valid.sum(1).astype(np.int32), "n_identified": ident.accepted.sum(1).astype(np.int32),
-        "n_correct_ids": truth.n_correct(ident, obs).astype(np.int32),
-        "n_wrong_ids": truth.n_wrong(ident, obs).astype(np.int32),
-        "id_correct": truth.id_correct(ident, obs), "T": ident.T.astype(np.int32),
+        "n_correct_ids": truth.n_correct(ident).astype(np.int32),
+        "n_wrong_ids": truth.n_wrong(ident).astype(np.int32),
+        "id_correct": truth.id_correct(ident), "T": ident.T.astype(np.int32),
         "err_x_rad": sol.axis_err[:, 0], "err_y_rad": sol.axis_err[:, 1], "err_z_rad": sol.axis_err[:, 2],
         "err_total_rad": sol.total_err, "status": status,
         **robust,
@@ -346,9 +412,7 @@ def _mat9(A: np.ndarray) -> pa.FixedSizeListArray:
 
 
 def detections_table(case_ids, det, obs, ident, sol, truth, catalog) -> pa.Table:
-    K = len(det.case)
-    case_local = det.case.astype(np.int64)
-    rank = np.arange(K) - det.offsets[case_local]
+    case_local, rank = ragged_rank(det.case, det.offsets)
     S = obs.valid.shape[1]
     used = rank < S
     r_ok = np.where(used, rank, 0)

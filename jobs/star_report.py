@@ -90,11 +90,9 @@ def text(rep: dict) -> str:
 
 def plot(rep: dict, path: Path) -> Path:
     """Figures 9 and 10 of the reference: mean error per axis and RSS against stars observed."""
-    import matplotlib
+    from dualsight.viz.prox_figures import _plt, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _plt()
     rows = rep["json"]["error_vs_stars_observed"]
     n = [r["stars_observed"] for r in rows]
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
@@ -111,8 +109,4 @@ def plot(rep: dict, path: Path) -> Path:
     b.set_ylabel("mean RSS error (arcsec)")
     b.set_title("RSS error vs stars observed (cf. Fig. 10)")
     fig.suptitle(f"run {rep['json']['run']}: {rep['json']['cases']} cases")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

@@ -15,7 +15,7 @@ from .cliques import greedy_clique
 from .votes import ObservedPairs, pair_slots
 from .voting_config import VotingConfig
 
-__all__ = ["assign_identities", "select_candidates", "drop_duplicates"]
+__all__ = ["assign_identities", "assign_identities_taichi", "select_candidates", "drop_duplicates"]
 
 
 def assign_identities(cand_ids: np.ndarray, cand_votes: np.ndarray, pairs: ObservedPairs, cat_unit: np.ndarray,
@@ -69,6 +69,50 @@ def assign_identities(cand_ids: np.ndarray, cand_votes: np.ndarray, pairs: Obser
     if cfg.require_unique_max:
         vote_ids = drop_duplicates(vote_ids, top)
     return vote_ids, np.where(vote_ids >= 0, top, 0)
+
+
+def _pair_cosine_bounds(pairs: ObservedPairs, B: int, K: int, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """(B, K, K) float64 cosine bounds of the observed pairs, ``c_lo = cos(min(d + tol, pi))`` and
+    ``c_hi = cos(d - tol)`` (2 where d <= tol); inf / 2 on the diagonal and for unused stars."""
+    P = K * (K - 1) // 2
+    d = pairs.angle
+    c_lo = np.full((B, P + 1), np.inf)
+    c_hi = np.full((B, P + 1), 2.0)
+    c_lo[pairs.case, pairs.pair] = np.cos(np.minimum(d + tol, np.pi))
+    c_hi[pairs.case, pairs.pair] = np.where(d > tol, np.cos(d - tol), 2.0)
+    pid = pair_slots(K)
+    return c_lo[:, pid], c_hi[:, pid]
+
+
+def _node_cosines(cand: np.ndarray, cat_unit: np.ndarray) -> np.ndarray:
+    """(b, K m, K m) float64 catalog cosines between the candidate nodes of ``cand (b, K, m)`` (NaN
+    where a node has no candidate), by the one matrix product of :func:`select_candidates`."""
+    B, K, m = cand.shape
+    ids_n = cand.reshape(B, K * m)
+    has = ids_n >= 0
+    ref = np.where(has[..., None], cat_unit[np.where(has, ids_n, 0)], np.nan)
+    return ref @ np.swapaxes(ref, 1, 2)
+
+
+def assign_identities_taichi(cand_ids: np.ndarray, cand_votes: np.ndarray, pairs: ObservedPairs,
+                             cat_unit: np.ndarray, cfg: VotingConfig) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`assign_identities` by the Taichi kernel ``select`` of :mod:`dualsight.kernels.voting`
+    (same arguments, the same results bit for bit, as int32).  The floating-point inputs of the
+    candidate cliques (the observed pairs' cosine bounds, the catalog cosines of the nodes) are
+    computed here with the very numpy expressions, in the same blocks of cases, as the numpy stage;
+    the kernel compares, prunes the cliques and drops duplicates, in parallel over cases."""
+    from dualsight.kernels import voting as kvoting
+
+    B, K, _ = cand_ids.shape
+    m = int(cfg.candidates_per_star)
+    blocks = None
+    if m > 1 and B and K:
+        c_lo, c_hi = _pair_cosine_bounds(pairs, B, K, cfg.verify_tol)
+        cand = np.ascontiguousarray(cand_ids[..., :m])
+        blk = max(1, int(cfg.max_vote_cells) // max(1, (K * m) ** 2))   # bounded (cases, Km, Km) arrays
+        blocks = ((b0, _node_cosines(cand[b0:b0 + blk], cat_unit), c_lo[b0:b0 + blk], c_hi[b0:b0 + blk])
+                  for b0 in range(0, B, blk))
+    return kvoting.select_identities(cand_ids, cand_votes, m, cfg.require_unique_max, blocks)
 
 
 def select_candidates(cand: np.ndarray, cand_votes: np.ndarray, c_lo: np.ndarray, c_hi: np.ndarray,

@@ -20,6 +20,9 @@ stage (module)                          what it does
                                         re-identification from that attitude
 =====================================  ==========================================================
 
+Stages 1-5 run as Taichi kernels (:mod:`dualsight.kernels.voting`, ``engine="taichi"``, the default)
+or as the numpy stages (``engine="numpy"``, the reference the kernels are tested against bit for bit);
+the floating-point values the decisions read are computed by numpy in both.
 :mod:`~dualsight.nav.cliques` (largest consistent set) serves the robust options of stages 2 and 5;
 :mod:`~dualsight.nav.voting_config` holds :class:`VotingConfig` and its two presets, ``paper``
 (reference-faithful) and ``robust`` (dualsight).  An accepted set that fails ``min_accepted`` or the
@@ -37,14 +40,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from .attitude_check import confirm_by_attitude
-from .candidates import assign_identities
+from .candidates import assign_identities, assign_identities_taichi
 from .pair_index import VotingIndex, pair_arrays, voting_index
-from .verify import accept, verify
-from .votes import observed_pairs, vote
+from .verify import accept, verify, verify_accept_taichi
+from .votes import observed_pairs, vote, vote_taichi
 from .voting_config import ACCEPT_RULES, VotingConfig
 
 __all__ = ["VotingConfig", "Identification", "VotingIndex", "identify", "pair_arrays", "voting_index",
-           "ACCEPT_RULES"]
+           "ACCEPT_RULES", "ENGINES"]
+
+ENGINES = ("taichi", "numpy")
+"""Implementations of steps 1-5 (:func:`identify`'s ``engine``): ``"taichi"`` (default), the kernels of
+:mod:`dualsight.kernels.voting` over the whole batch; ``"numpy"``, the vectorised numpy stages, kept as
+the reference the kernels are tested against bit for bit (``tests/test_voting_kernel.py``)."""
 
 
 @dataclass(frozen=True)
@@ -79,7 +87,7 @@ class Identification:
 
 
 def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, pair_j=None,
-             pair_angle=None, cfg: VotingConfig = VotingConfig()) -> Identification:
+             pair_angle=None, cfg: VotingConfig = VotingConfig(), engine: str = "taichi") -> Identification:
     """Identify observed stars by geometric voting (Kolomenkin et al. 2008), all cases at once.
 
     Parameters
@@ -92,6 +100,9 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
         :class:`VotingIndex` (what is derived from the catalog once; for arrays or an object,
         :func:`voting_index` keeps the last few, keyed by the arrays' identity).
     cfg : :class:`VotingConfig` (angles in rad).
+    engine : :data:`ENGINES`: ``"taichi"`` (Taichi CPU kernels for the vote counting, candidate
+        selection and verification, parallel over cases and observed stars) or ``"numpy"`` (the
+        reference stages).  Both give the same outputs bit for bit; the attitude check is numpy in both.
 
     Returns
     -------
@@ -107,6 +118,8 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
     are O(B x max_stars^2) (x ``candidates_per_star``^2), the attitude check O(B x (N + S x 40)).
     The first call on a pair catalog also builds its :class:`VotingIndex` (O(M log M), once).
     """
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
     obs = np.asarray(obs, dtype=np.float64)
     valid = np.asarray(valid, dtype=bool)
     cat_unit = np.asarray(cat_unit, dtype=np.float64)
@@ -128,10 +141,16 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
     obs_k = np.where(use[..., None], np.take_along_axis(obs, cols[..., None], axis=1), 0.0)
 
     pairs = observed_pairs(obs_k, use)
-    cand_ids, cand_votes = vote(pairs, use, index, N, cfg)                       # step 1
-    vote_ids, top = assign_identities(cand_ids, cand_votes, pairs, cat_unit, cfg)   # step 2
-    cons, vv, T = verify(pairs, vote_ids, cat_unit, cfg)                        # steps 3-4
-    acc_k, reject = accept(cons, vv, T, top, cfg)                               # step 5
+    if engine == "taichi":
+        cand_ids, cand_votes = vote_taichi(pairs, use, index, N, cfg)                      # step 1
+        vote_ids, top = assign_identities_taichi(cand_ids, cand_votes, pairs, cat_unit, cfg)   # step 2
+        vv, T, acc_k, reject = verify_accept_taichi(pairs, vote_ids, top, cat_unit, cfg)   # steps 3-5
+        vote_ids, top, vv, T = (x.astype(np.int64) for x in (vote_ids, top, vv, T))
+    else:
+        cand_ids, cand_votes = vote(pairs, use, index, N, cfg)                             # step 1
+        vote_ids, top = assign_identities(cand_ids, cand_votes, pairs, cat_unit, cfg)      # step 2
+        cons, vv, T = verify(pairs, vote_ids, cat_unit, cfg)                              # steps 3-4
+        acc_k, reject = accept(cons, vv, T, top, cfg)                                     # step 5
 
     def scatter(x_k, fill):                                            # (B, K) slots -> (B, S) columns
         out = np.full((B, S), fill, dtype=x_k.dtype)

@@ -23,7 +23,7 @@ from .cliques import greedy_clique
 from .votes import ObservedPairs
 from .voting_config import VotingConfig
 
-__all__ = ["verify", "accept"]
+__all__ = ["verify", "accept", "verify_accept_taichi"]
 
 
 def verify(pairs: ObservedPairs, ids: np.ndarray, cat_unit: np.ndarray,
@@ -38,6 +38,29 @@ def verify(pairs: ObservedPairs, ids: np.ndarray, cat_unit: np.ndarray,
     ``cons``); ``T (B,)`` int64 the most votes of any star of the case (0 for an empty case).
     """
     B, K = ids.shape
+    cons = _consistent_pairs(pairs, ids, cat_unit, cfg)
+    vv = cons.sum(axis=2)
+    T = vv.max(axis=1) if K else np.zeros(B, np.int64)
+    return cons, vv, T
+
+
+def verify_accept_taichi(pairs: ObservedPairs, ids: np.ndarray, top: np.ndarray, cat_unit: np.ndarray,
+                         cfg: VotingConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Steps 3-5 (:func:`verify` then :func:`accept`) with the counting, T, acceptance and rejection in
+    the Taichi kernel ``verify_accept`` of :mod:`dualsight.kernels.voting` (parallel over cases); the
+    consistency of the identified pairs (catalog angles, the tolerance test) is computed here with
+    numpy, as :func:`verify` does.  Returns ``vv (B, K)`` int32, ``T (B,)`` int32, ``accepted (B, K)``
+    and ``reject (B,)`` bool, bit for bit those of the numpy stages.
+    """
+    from dualsight.kernels import voting as kvoting
+
+    cons = _consistent_pairs(pairs, ids, cat_unit, cfg)
+    return kvoting.verify_accept(cons, top, cfg.accept_rule == "clique", cfg.accept_fraction, int(cfg.min_accepted))
+
+
+def _consistent_pairs(pairs: ObservedPairs, ids: np.ndarray, cat_unit: np.ndarray, cfg: VotingConfig) -> np.ndarray:
+    """(B, K, K) bool symmetric: identified stars p != q with ``|angle(id_p, id_q) - d_pq| < verify_tol``."""
+    B, K = ids.shape
     has = ids >= 0
     both = has[pairs.case, pairs.p] & has[pairs.case, pairs.q]
     b, p, q = pairs.case[both], pairs.p[both], pairs.q[both]
@@ -47,9 +70,7 @@ def verify(pairs: ObservedPairs, ids: np.ndarray, cat_unit: np.ndarray,
     cons = np.zeros((B, K, K), bool)
     cons[b[c], p[c], q[c]] = True
     cons[b[c], q[c], p[c]] = True
-    vv = cons.sum(axis=2)
-    T = vv.max(axis=1) if K else np.zeros(B, np.int64)
-    return cons, vv, T
+    return cons
 
 
 def accept(cons: np.ndarray, vv: np.ndarray, T: np.ndarray, top: np.ndarray,

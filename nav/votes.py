@@ -19,11 +19,16 @@ of :attr:`VotingIndex.stars_plus_one`) and counted with ``np.bincount`` into den
 row) tables of a few rows at a time (row-major keys, tables that stay in cache), bounded by
 ``cfg.max_vote_cells``.  One vote per pair needs no sort: a catalog star occurs for the first time in
 a window of pairs when its previous pair (:attr:`VotingIndex.prev`) lies before the window.
-Speed: ``benchmarks/bench_voting.py``.
+
+:func:`vote_taichi` is the same stage by the Taichi kernels of :mod:`dualsight.kernels.voting` (the
+default engine of :func:`dualsight.nav.starid.identify`; :func:`vote` stays as the reference it is
+tested against bit for bit, ``tests/test_voting_kernel.py``).  Speed of both:
+``benchmarks/bench_voting.py``.
 """
 
 from __future__ import annotations
 
+import weakref
 from typing import NamedTuple
 
 import numpy as np
@@ -33,12 +38,13 @@ from dualsight.scene.units import angle_between
 from .pair_index import PAD, VotingIndex
 from .voting_config import VotingConfig
 
-__all__ = ["ObservedPairs", "observed_pairs", "pair_slots", "pair_windows", "vote", "TILES"]
+__all__ = ["ObservedPairs", "observed_pairs", "pair_slots", "pair_windows", "vote", "vote_taichi", "TILES"]
 
 TILES = (16, 32, 64, 128, PAD)   # tile lengths (stars gathered per row of a 2-D gather)
 _BLOCK = 64              # vote-table widths are multiples of this
 _PIECE = 1 << 18         # stars expanded at once, so that the temporaries stay in cache
 _TABLE = 1 << 18         # cells of one vote table (2 MB of int64, in cache), unless max_vote_cells is smaller
+_BUCKETS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()   # VotingIndex -> its window buckets
 
 
 class ObservedPairs(NamedTuple):
@@ -131,6 +137,31 @@ def vote(pairs: ObservedPairs, use: np.ndarray, index: VotingIndex, n_cat: int,
     cand_ids[use] = r_ids
     cand_votes[use] = r_cnt
     return cand_ids, cand_votes
+
+
+def vote_taichi(pairs: ObservedPairs, use: np.ndarray, index: VotingIndex, n_cat: int,
+                cfg: VotingConfig) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`vote` by the Taichi kernel ``vote`` of :mod:`dualsight.kernels.voting` (same arguments, same
+    results bit for bit, as int32): windows by binary search per observed pair, votes counted per
+    observed star in a row of N int32 counts per thread (``min(threads, max(1, cfg.max_vote_cells //
+    N))`` rows), then the ``cfg.candidates_kept`` best read off while the row is cleared.  The window
+    keys ``d - tol`` and ``d + tol`` are computed here, with numpy, exactly as :func:`pair_windows`
+    does; the window buckets of the catalog (:func:`dualsight.kernels.voting.bucket_starts`) are built
+    once per :class:`VotingIndex` and kept while it lives.
+    """
+    if np.dtype(index.tile_dtype) != np.int32:                          # ~500M pairs: beyond int32
+        ids, cnt = vote(pairs, use, index, n_cat, cfg)
+        return ids.astype(np.int32), cnt.astype(np.int32)
+    from dualsight.kernels import voting as kvoting
+
+    tol = cfg.tolerance_rad
+    once = cfg.vote_once_per_pair
+    buckets = _BUCKETS.get(index)
+    if buckets is None:
+        buckets = _BUCKETS[index] = kvoting.bucket_starts(index.angle)
+    return kvoting.vote_top_k(pairs.case, pairs.p, pairs.q, pairs.angle - tol, pairs.angle + tol, index.angle,
+                              buckets, index.stars_plus_one, index.prev_padded if once else None, use.shape,
+                              cfg.candidates_kept, n_cat, cfg.max_vote_cells)
 
 
 def _tile_length(n_el: np.ndarray) -> int:

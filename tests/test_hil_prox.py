@@ -15,8 +15,6 @@ those tests skip with a reason when the folder is absent.
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import math
 import os
@@ -29,24 +27,18 @@ import numpy as np
 import pytest
 
 from dualsight.errors import ConfigError
-from dualsight.jobs import calibrate_cli, cli, cli_hil
 from dualsight.jobs import hil_prox as hp
 from dualsight.jobs.hil_truth import load_range_truth
 from dualsight.scene.camera import Camera
 from dualsight.scene.segment import binarize
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import connect, run_report
+from test_hil_star import lake_rows, run_cli, shared_real
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_CHESS = ROOT / "examples" / "targets" / "opencv_chessboard.toml"
 TARGET_3U = ROOT / "examples" / "targets" / "cubesat_3u_analog.toml"
 CAM_HIL = ROOT / "examples" / "cameras" / "paper_hil_prox.toml"
-
-
-def shared_real() -> Path:
-    env = os.environ.get("DUALSIGHT_SHARED")
-    base = Path(env) if env else ROOT.parent / "shared"
-    return base / "data" / "real"
 
 
 CHESS = shared_real() / "opencv_chessboard"
@@ -59,33 +51,6 @@ needs_chess = pytest.mark.skipif(not YML.exists(), reason=f"real OpenCV chessboa
 # an opening of 9 px removes thin dark clutter (shirt stripes, cables); a closing of 61 px (> the largest
 # square, ~50 px at 0.27 m) merges the squares into one blob.
 CHESS_ARGS = ["--invert", "--threshold", "210", "--border", "6", "--open", "9", "--close", "61"]
-
-
-def _main(argv) -> int:
-    """``dualsight <argv>`` with ``hil`` and ``calibrate`` registered (as jobs/cli.py's
-    _optional_registrations will list them)."""
-    orig = cli._optional_registrations
-    regs = list(orig())
-    for r in (cli_hil.register, calibrate_cli.register_calibrate):
-        if r not in regs and not any(getattr(x, "__name__", "") == r.__name__ and
-                                     getattr(x, "__module__", "") == r.__module__ for x in regs):
-            regs.append(r)
-    cli._optional_registrations = lambda: regs
-    try:
-        return cli.main(argv)
-    finally:
-        cli._optional_registrations = orig
-
-
-def run_cli(argv) -> tuple[int, str, str]:
-    """Run the CLI capturing stdout/stderr by hand (works in module-scoped fixtures)."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            rc = _main([str(a) for a in argv])
-        except SystemExit as e:             # argparse errors
-            rc = int(e.code)
-    return rc, out.getvalue(), err.getvalue()
 
 
 # ============================================================================================ truth helpers
@@ -499,16 +464,9 @@ def test_spec_round_trip_shards_and_changed_files(rendered, tmp_path):
     lake = Lake(tmp_path / "lake")
     run_job("hil_prox", d, n_cases=len(paths), lake=lake, run_id="one", workers=1, progress=False)
     run_job("hil_prox", d, n_cases=len(paths), lake=lake, run_id="four", workers=1, shard_size=4, progress=False)
-    con = connect(lake)
-
     def rows(run):
-        out = {}
-        for ds in hp.SCHEMAS:
-            cur = con.execute(f"SELECT * EXCLUDE (run) FROM {ds} WHERE run = ? ORDER BY case_id, "
-                              f"{'threshold' if ds == 'hil_prox' else 'case_id'}", [run])
-            cols = [c[0] for c in cur.description]
-            out[ds] = [{c: v for c, v in zip(cols, r) if c not in hp.TIMING_COLUMNS} for r in cur.fetchall()]
-        return out
+        return lake_rows(lake.root, run, {"hil_prox_cases": "case_id", "hil_prox": "case_id, threshold"},
+                         hp.TIMING_COLUMNS)
 
     one = rows("one")
     assert len(one["hil_prox"]) == 2 * len(paths) and one == rows("four")

@@ -8,6 +8,8 @@ synthetic frame rendered at a known attitude (runs without the real data).
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
 import os
@@ -18,8 +20,8 @@ import numpy as np
 import pytest
 
 from dualsight.errors import ConfigError
-from dualsight.jobs import cli, cli_hil
 from dualsight.jobs import hil_star as hs
+from dualsight.jobs.cli import main
 from dualsight.jobs.hil_truth import Site, resolve_star_truths
 from dualsight.jobs.runner import run_job
 from dualsight.scene.attitude import angle_between, radec_to_unit, rot_axis, unit_to_radec
@@ -36,10 +38,9 @@ CAMERA = ROOT / "examples" / "cameras" / "esa_tetra3.toml"
 ARCSEC = math.pi / (180 * 3600)
 
 
-def shared_real() -> Path:
+def shared_real() -> Path:                     # $DUALSIGHT_SHARED/data/real or ../shared/data/real
     env = os.environ.get("DUALSIGHT_SHARED")
-    base = Path(env) if env else ROOT.parent / "shared"
-    return base / "data" / "real"
+    return (Path(env) if env else ROOT.parent / "shared") / "data" / "real"
 
 
 ESA = shared_real() / "esa_tetra3"
@@ -48,43 +49,26 @@ SITE = ["--lat", "52.08", "--lon", "4.37"]          # esa_tetra3/README.md: fitt
 needs_esa = pytest.mark.skipif(not TRUTH.exists(), reason=f"ESA tetra3 frames not found at {ESA}")
 
 
-def _main(argv) -> int:
-    """``dualsight <argv>`` with the hil group registered (as jobs/cli.py's _optional_registrations will)."""
-    orig = cli._optional_registrations
-    regs = list(orig())
-    if cli_hil.register not in regs:
-        regs.append(cli_hil.register)
-    cli._optional_registrations = lambda: regs
-    try:
-        return cli.main(argv)
-    finally:
-        cli._optional_registrations = orig
-
-
-def hil(argv, capsys):
-    """Run the CLI; returns (exit status, stdout, stderr)."""
-    rc = _main(argv)
-    out, err = capsys.readouterr()
-    return rc, out, err
+def run_cli(argv) -> tuple[int, str, str]:
+    """``dualsight <argv>`` -> (exit status, stdout, stderr), captured by hand (module-scoped fixtures too)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = main([str(a) for a in argv])
+    return rc, out.getvalue(), err.getvalue()
 
 
 # ============================================================================================ ESA frames
 @pytest.fixture(scope="module")
 def esa(tmp_path_factory):
     """One run over the 8 frames: truth file + tripod truth, JSON, lake and overlays."""
-    import contextlib
-    import io
-
     if not TRUTH.exists():
         pytest.skip(f"ESA tetra3 frames not found at {ESA}")
     tmp = tmp_path_factory.mktemp("hil")
     lake, ov = tmp / "lake", tmp / "overlays"
-    out, err = io.StringIO(), io.StringIO()          # capsys is function-scoped: capture by hand
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        rc = _main(["hil", "star", str(ESA), "--camera", str(CAMERA), "--truth", str(TRUTH), *SITE, "--json",
-                    "--lake", str(lake), "--run", "esa", "--overlay-dir", str(ov)])
-    assert rc == 0, err.getvalue()
-    return {"json": json.loads(out.getvalue()), "stderr": err.getvalue(), "lake": lake, "overlays": ov,
+    rc, out, err = run_cli(["hil", "star", ESA, "--camera", CAMERA, "--truth", TRUTH, *SITE, "--json", "--lake", lake,
+                            "--run", "esa", "--overlay-dir", ov])
+    assert rc == 0, err
+    return {"json": json.loads(out), "stderr": err, "lake": lake, "overlays": ov,
             "truth": json.loads(TRUTH.read_text())}
 
 
@@ -180,7 +164,7 @@ def test_tripod_truth_reported_beside_the_file_truth(esa):
 
 
 @needs_esa
-def test_table6_and_figure11_per_image(esa, capsys):
+def test_table6_and_figure11_per_image(esa):
     pngs = sorted(esa["overlays"].glob("*.png"))
     assert len(pngs) == 8
     for r in esa["json"]:
@@ -189,8 +173,8 @@ def test_table6_and_figure11_per_image(esa, capsys):
         assert img is not None and img.shape[0] > 500 and img.shape[1] > 1000
     # text mode: the summary line and Table 6 for one frame (no lake)
     one = ESA / "2019-07-29T204726_Alt60_Azi-45_Try1.tiff"
-    rc, out, err = hil(["hil", "star", str(one), "--camera", str(CAMERA), "--truth", str(TRUTH), "--no-lake",
-                        "--no-compare"], capsys)
+    rc, out, err = run_cli(["hil", "star", str(one), "--camera", str(CAMERA), "--truth", str(TRUTH), "--no-lake",
+                            "--no-compare"])
     assert rc == 0, err
     assert "HIP" in out and "error (arcsec)" in out and "boresight error" in out
     assert "68756" in out   # HIP 68756 (V 3.65), the frame's brightest star in truth.json
@@ -221,14 +205,14 @@ def test_lake_rows_are_queryable_with_sql(esa):
 
 
 @needs_esa
-def test_real_and_simulated_runs_of_the_same_camera_side_by_side(esa, capsys, tmp_path):
+def test_real_and_simulated_runs_of_the_same_camera_side_by_side(esa, tmp_path):
     """warehouse/sql/hil_star_vs_sim.sql over the HIL run and a small SIL run of the ESA camera."""
     spec = tmp_path / "esa_sim.toml"
     spec.write_text("[camera]\nwidth = 1024\nheight = 768\npixel_pitch_um = 6.9\nfx = 5119.0\nfy = 5119.0\n"
                     "[catalog]\nmag_limit = 7.0\nepoch_jyear = 2019.6\n"
                     "[voting]\ntolerance_arcsec = 20.0\nmax_stars = 25\n")
-    rc, _, err = hil(["star", "run", "--config", str(spec), "--cases", "12", "--lake", str(esa["lake"]), "--run",
-                      "sim-esa", "--workers", "1", "--no-progress"], capsys)
+    rc, _, err = run_cli(["star", "run", "--config", str(spec), "--cases", "12", "--lake", str(esa["lake"]), "--run",
+                          "sim-esa", "--workers", "1", "--no-progress"])
     assert rc == 0, err
     cols, rows = run_report(connect(esa["lake"]), "hil_star_vs_sim", run="esa", sim_run="sim-esa")
     t = {(r[0], r[1]): dict(zip(cols, r)) for r in rows}
@@ -256,7 +240,7 @@ def _astropy_boresight(time_utc: str, lat: float, lon: float, alt: float, az: fl
 
 
 @needs_esa
-def test_tripod_truth_alone(capsys, tmp_path):
+def test_tripod_truth_alone(tmp_path):
     """Alt/az truth only (time and nominal alt/az from the file names, site from the README), checked
     against two truths the code under test does not compute:
 
@@ -271,8 +255,8 @@ def test_tripod_truth_alone(capsys, tmp_path):
     names = ["2019-07-29T204726_Alt40_Azi-135_Try1.tiff", "2019-07-29T204726_Alt60_Azi45_Try1.tiff"]
     nominal = {names[0]: (40.0, -135.0), names[1]: (60.0, 45.0)}
     file_truth = json.loads(TRUTH.read_text())
-    rc, out, err = hil(["hil", "star", *[str(ESA / n) for n in names], "--camera", str(CAMERA), *SITE, "--json",
-                        "--no-lake", "--no-compare"], capsys)
+    rc, out, err = run_cli(["hil", "star", *[str(ESA / n) for n in names], "--camera", str(CAMERA), *SITE, "--json",
+                            "--no-lake", "--no-compare"])
     assert rc == 0, err
     res = json.loads(out)
     assert [r["image"] for r in res] == names
@@ -287,22 +271,22 @@ def test_tripod_truth_alone(capsys, tmp_path):
         assert abs((r["roll_true_deg"] - float(roll_deg(R)) + 180) % 360 - 180) < 5.0, r["image"]
         assert r["boresight_error_arcsec"] == pytest.approx(gap_deg * 3600, abs=30.0), r["image"]
         assert r["altaz_error_deg"] == pytest.approx(r["boresight_error_arcsec"] / 3600, abs=1e-3)
-    rc, out2, err = hil(["hil", "star", str(ESA / names[0]), "--camera", str(CAMERA), *SITE, "--time",
-                         "2019-07-29T20:47:26", "--alt", "40", "--az", "-135", "--json", "--no-lake", "--no-compare"],
-                        capsys)
+    rc, out2, err = run_cli(["hil", "star", str(ESA / names[0]), "--camera", str(CAMERA), *SITE, "--time",
+                             "2019-07-29T20:47:26", "--alt", "40", "--az", "-135", "--json", "--no-lake",
+                             "--no-compare"])
     assert rc == 0, err
     assert json.loads(out2)[0]["altaz_error_deg"] == pytest.approx(res[0]["altaz_error_deg"], abs=1e-6)
 
 
 @needs_esa
-def test_bad_images_are_reported_and_the_others_run(capsys, tmp_path):
+def test_bad_images_are_reported_and_the_others_run(tmp_path):
     good = ESA / "2019-07-29T204726_Alt60_Azi135_Try1.tiff"
     trunc = tmp_path / "truncated.tiff"
     trunc.write_bytes(good.read_bytes()[:400_000])
     missing = tmp_path / "missing.tiff"
     lake = tmp_path / "lake"
-    rc, out, err = hil(["hil", "star", str(trunc), str(missing), str(good), "--camera", str(CAMERA), "--truth",
-                        str(TRUTH), "--json", "--lake", str(lake), "--run", "bad", "--no-compare"], capsys)
+    rc, out, err = run_cli(["hil", "star", str(trunc), str(missing), str(good), "--camera", str(CAMERA), "--truth",
+                            str(TRUTH), "--json", "--lake", str(lake), "--run", "bad", "--no-compare"])
     assert rc == 1
     assert "truncated.tiff" in err and "missing.tiff" in err and "not found" in err
     res = json.loads(out)
@@ -315,18 +299,30 @@ def test_bad_images_are_reported_and_the_others_run(capsys, tmp_path):
 
 
 # ============================================================================================ no real data needed
-def test_bad_options_exit_2_and_leave_the_lake_untouched(capsys, tmp_path):
-    lake = tmp_path / "lake"
-    img = tmp_path / "x.png"
+WIDE = "width = 1024\nheight = 768\npixel_pitch_um = 5.0\nfx = 56.0\nfy = 56.0"          # 170 deg diagonal
+HUGE = "width = 65536\nheight = 65536\npixel_pitch_um = 5.0\nfocal_length_mm = 5000.0"   # the largest frame
+
+
+@pytest.mark.parametrize("kind, camera, flags, needle", [
+    ("star", "nope.toml", [], "nope.toml"),
+    ("star", CAMERA, ["--lat", "52"], "--lon"),
+    ("star", CAMERA, ["--mag-limit", "30"], "mag_limit"),
+    # the HIL kinds' memory_estimate, checked by the engine before anything is allocated:
+    ("star", WIDE, ["--mag-limit", "12"], "GiB per worker"),    # catalog to V 12 over 170 deg: ~1e12 pairs
+    ("star", HUGE, [], "GiB per worker"),                        # 16 frames of 65536^2 px in a batch: ~1.6 TB
+    ("prox", HUGE, ["--target", ROOT / "examples" / "targets" / "cubesat_3u_analog.toml"], "GiB per worker"),
+], ids=["no-camera-file", "lat-without-lon", "mag-limit-30", "star-V12-170deg", "star-huge-frames", "prox-huge-frame"])
+def test_bad_options_exit_2_with_one_line_and_leave_the_lake_untouched(tmp_path, kind, camera, flags, needle):
+    img, lake, cam = tmp_path / "x.png", tmp_path / "lake", camera
     cv2.imwrite(str(img), np.zeros((8, 8), np.uint8))
-    rc, _, err = hil(["hil", "star", str(img), "--camera", str(tmp_path / "nope.toml"), "--lake", str(lake)], capsys)
-    assert rc == 2 and "nope.toml" in err
-    rc, _, err = hil(["hil", "star", str(img), "--camera", str(CAMERA), "--lat", "52", "--lake", str(lake)], capsys)
-    assert rc == 2 and "--lon" in err
-    rc, _, err = hil(["hil", "star", str(img), "--camera", str(CAMERA), "--mag-limit", "30", "--lake", str(lake)],
-                     capsys)
-    assert rc == 2 and "mag_limit" in err
-    assert not lake.exists()
+    if camera in (WIDE, HUGE):
+        cam = tmp_path / "cam.toml"
+        cam.write_text(f"[camera]\n{camera}\n")
+    elif not isinstance(camera, Path):
+        cam = tmp_path / camera                                  # does not exist
+    rc, out, err = run_cli(["hil", kind, img, "--camera", cam, *flags, "--lake", lake])
+    assert rc == 2 and needle in err and len(err.strip().splitlines()) == 1, err
+    assert not lake.exists() and out == ""
 
 
 def test_subtract_background_removes_a_gradient_and_keeps_stars():
@@ -369,13 +365,14 @@ def test_observation_epoch():
     assert julian_year("2000-01-01T12:00:00") == pytest.approx(2000.0, abs=1e-9)
 
 
-def test_synthetic_frame_round_trip(capsys, tmp_path):
+def test_synthetic_frame_round_trip(tmp_path):
     """A noisy frame rendered at a known attitude (sky gradient, shot/read noise, hot pixels), written as
     a 12-bit-in-16-bit TIFF like the ESA frames, with a truth file of the same format: identified, and the
     boresight within a few arcsec of the attitude it was rendered with."""
     from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
-    from dualsight.jobs import star_pipeline as pipe
-    from dualsight.kernels.starfield import SensorConfig, render_star_fields
+    from dualsight.jobs.star import psf_margin_px
+    from dualsight.kernels.starfield import SensorConfig, flux_from_magnitude, render_star_fields
+    from dualsight.scene.starfield_geometry import stars_in_field
 
     cam = Camera.from_toml(CAMERA)
     ra0, dec0, roll = math.radians(84.0), math.radians(-3.0), math.radians(30.0)
@@ -387,7 +384,7 @@ def test_synthetic_frame_round_trip(capsys, tmp_path):
     cat = load_star_catalog(StarCatalogConfig(mag_limit=7.0, epoch_jyear=2019.6))   # the ESA tests' catalog
     sensor = SensorConfig(exposure_s=0.3, shot_noise=True, read_noise_e=15.0, sky_background_e=300.0,
                           hot_pixel_fraction=2e-4, hot_pixel_e=3000.0, hot_pixel_seed=7, bias_adu=20.0)
-    f = pipe.stars_in_field(A[None], cat, cam, sensor)
+    f = stars_in_field(A[None], cat.unit, flux_from_magnitude(cat.vmag, sensor), cam, psf_margin_px(sensor))
     img = render_star_fields(f.x, f.y, f.flux_e, f.valid, cam.width, cam.height, sensor,
                              np.array([12345], np.uint64))[0].astype(np.float64)
     img += 40.0 * np.linspace(0, 1, cam.width)[None, :]                     # vignetting-like gradient
@@ -397,8 +394,8 @@ def test_synthetic_frame_round_trip(capsys, tmp_path):
     truth = tmp_path / "truth.json"
     truth.write_text(json.dumps({"synthetic.tiff": {"ra_deg": ra, "dec_deg": dec, "R_icrs_to_cam": A.tolist(),
                                                     "matched": []}}))
-    rc, out, err = hil(["hil", "star", str(tif), "--camera", str(CAMERA), "--truth", str(truth), "--json",
-                        "--lake", str(tmp_path / "lake"), "--epoch", "2019.6"], capsys)
+    rc, out, err = run_cli(["hil", "star", str(tif), "--camera", str(CAMERA), "--truth", str(truth), "--json",
+                            "--lake", str(tmp_path / "lake"), "--epoch", "2019.6"])
     assert rc == 0, err
     r = json.loads(out)[0]
     assert r["identified"] and r["status"] == "success", r
@@ -417,15 +414,20 @@ def _esa_spec(names=None) -> dict:
     return hs.build_spec(paths, Camera.from_toml(CAMERA), settings, truths)
 
 
-def _rows(lake: Path, run_id: str) -> dict[str, list[dict]]:
-    """Every row of both datasets of a run (SQL over the lake), timing columns dropped."""
+def lake_rows(lake: Path, run_id: str, order: dict[str, str], timing=()) -> dict[str, list[dict]]:
+    """Every row of the datasets ``order`` ({dataset: ORDER BY}) of a run (SQL over the lake), ``timing``
+    columns dropped."""
     con = connect(lake)
     out = {}
-    for ds, order in (("hil_star", "case_id"), ("hil_star_stars", "case_id, det_index")):
-        cur = con.execute(f"SELECT * EXCLUDE (run) FROM {ds} WHERE run = ? ORDER BY {order}", [run_id])
+    for ds, by in order.items():
+        cur = con.execute(f"SELECT * EXCLUDE (run) FROM {ds} WHERE run = ? ORDER BY {by}", [run_id])
         cols = [d[0] for d in cur.description]
-        out[ds] = [{c: v for c, v in zip(cols, r) if c not in hs.TIMING_COLUMNS} for r in cur.fetchall()]
+        out[ds] = [{c: v for c, v in zip(cols, r) if c not in timing} for r in cur.fetchall()]
     return out
+
+
+def _rows(lake: Path, run_id: str) -> dict[str, list[dict]]:
+    return lake_rows(lake, run_id, {"hil_star": "case_id", "hil_star_stars": "case_id, det_index"}, hs.TIMING_COLUMNS)
 
 
 def test_spec_round_trip_and_errors_name_the_field(tmp_path):

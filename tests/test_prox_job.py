@@ -3,22 +3,21 @@
 from __future__ import annotations
 
 import json
-import math
+import shutil
 
 import cv2
 import numpy as np
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
 import pytest
 
+from dualsight.jobs import prox
 from dualsight.jobs.cli import main
+from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import run_sql
+from test_star_job import _snapshot
 
 RANGES = ["1.585", "6.31", "25.12"]
-
-
-def _snapshot(root):
-    if not root.exists():
-        return {}
-    return {str(p.relative_to(root)): p.stat().st_mtime_ns for p in root.rglob("*") if p.is_file()}
 
 
 @pytest.fixture(scope="module")
@@ -73,10 +72,66 @@ def test_trajectory_follows_table2_motion(lake, capsys):
     assert n == 12
 
 
-def test_replay_prox_case(lake, tmp_path):
+CASE = 41          # second range, an oblique view
+
+
+def _rrd(path) -> dict:
+    """{entity path: first row} of a rerun recording, read with rerun's own reader (timestamps left out)."""
+    chunk = pytest.importorskip("rerun.chunk")
+    out = {}
+    for ch in chunk.RrdReader(str(path)).stream().to_chunks():
+        rb = ch.to_record_batch()
+        keep = [n for n in rb.schema.names if n not in ("log_time", "rerun.controls.RowId")]
+        out.setdefault(ch.entity_path, rb.select(keep).to_pylist()[0])
+    return out
+
+
+def test_replay_records_the_row_and_the_row_is_the_image(lake, tmp_path):
+    """The replayed numbers are the stored row's, and the row is what the rendered image shows: the blob's pixel
+    count and centre of brightness recomputed with numpy (the accurate preset's blobber takes every lit pixel,
+    value > 0, as the target; pixel (r, c) has its centre at (c + 0.5, r + 0.5))."""
     out = tmp_path / "c.rrd"
-    assert main(["prox", "replay", "--lake", str(lake), "--run", "acc", "--case", "41", "-o", str(out)]) == 0
-    assert out.stat().st_size > 1000
+    assert main(["prox", "replay", "--lake", str(lake), "--run", "acc", "--case", str(CASE), "-o", str(out)]) == 0
+    cols, rows = run_sql(lake, f"SELECT * FROM prox_cases WHERE run = 'acc' AND case_id = {CASE}")
+    row = dict(zip(cols, rows[0]))
+    spec = prox.spec_from_dict(Lake(lake).read_manifest("acc")["spec"])
+    img = prox.compute_batch(spec, prox.make_context(spec), np.array([CASE]), keep_images=True)["images"][0]
+    r, c = np.nonzero(img > 0)
+    w = img[r, c].astype(np.float64)
+    assert row["found"] and row["n_pixels"] == len(r) > 100
+    assert row["cob_x_px"] == pytest.approx(np.sum((c + 0.5) * w) / w.sum(), rel=1e-12)
+    assert row["cob_y_px"] == pytest.approx(np.sum((r + 0.5) * w) / w.sum(), rel=1e-12)
+    rec = _rrd(out)
+    blob = np.asarray(rec["/camera/image/blob"]["SegmentationImage:buffer"][0])
+    assert np.count_nonzero(blob) == row["n_pixels"]
+    np.testing.assert_allclose(rec["/camera/image/cob"]["Points2D:positions"][0], [row["cob_x_px"], row["cob_y_px"]],
+                               rtol=0, atol=1e-3)                     # rerun stores float32
+    for est in ("paper", "subpixel"):
+        assert rec[f"/metrics/{est}_range_m"]["Scalars:scalars"][0] == row[f"{est}_range_est_m"]
+    assert rec["/metrics/true_range_m"]["Scalars:scalars"][0] == row["true_range_m"]
+
+
+def test_replay_refuses_a_tampered_row(lake, tmp_path, capsys):
+    """A stored row that the recomputation does not reproduce (one pixel added to n_pixels, the file's size
+    updated in the run's journal so that the lake still reads it) is refused: exit 2, the column named, no
+    recording written."""
+    copy = tmp_path / "lake"
+    shutil.copytree(lake, copy)
+    journal = copy / "_manifests" / "acc.shards.jsonl"
+    entries = [json.loads(x) for x in journal.read_text().splitlines()]
+    for e in entries:
+        if e["case_start"] <= CASE < e["case_stop"]:
+            f = Lake(copy).shard_path("prox_cases", "acc", e["shard"])
+            t = pq.read_table(f)
+            n = pc.if_else(pc.equal(t.column("case_id"), CASE), pc.add(t.column("n_pixels"), 1), t.column("n_pixels"))
+            pq.write_table(t.set_column(t.schema.get_field_index("n_pixels"), "n_pixels", n), f)
+            e["bytes"]["prox_cases"] = f.stat().st_size
+    journal.write_text("".join(json.dumps(e) + "\n" for e in entries))
+    out = tmp_path / "c.rrd"
+    assert main(["prox", "replay", "--lake", str(copy), "--run", "acc", "--case", str(CASE), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "does not reproduce" in err and "n_pixels" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("toml, needle", [

@@ -53,13 +53,9 @@ def star_overlay(path: str | Path, image: np.ndarray, *, detections: np.ndarray 
         its error (error / |offset|, median over the stars), i.e. the panel shows the offsets' directions
         with their true angular lengths.
     """
-    import matplotlib
+    from dualsight.viz.prox_figures import _plt, save_figure
 
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    plt = _plt()
     disp, _, _ = _display(image)
     H, W = disp.shape[:2]
     fig = plt.figure(figsize=(13.2, 6.9), dpi=dpi)
@@ -144,6 +140,4 @@ def star_overlay(path: str | Path, image: np.ndarray, *, detections: np.ndarray 
         fig.text(0.04, 0.93, "\n".join(info), fontsize=8.5, va="top", ha="left", family="monospace")
     if credit:
         fig.text(0.985, 0.012, credit, fontsize=7, ha="right", va="bottom", color="0.3")
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=dpi)

@@ -1,5 +1,6 @@
 """Figures of proximity runs: Fig. 7 (range estimates with min/max bars per true range) and Fig. 6
-(trajectory: true vs estimated position per axis)."""
+(trajectory: true vs estimated position per axis); and the two helpers every report figure uses
+(:func:`_plt`: matplotlib without a display, :func:`save_figure`)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,16 @@ def _plt():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def save_figure(fig, path: Path, dpi: int = 110) -> Path:
+    """Write ``fig`` as ``path`` (its folder created) and close it; returns the path."""
+    plt = _plt()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
 
 
 def plot_sweep(rep: dict, path: Path) -> Path:
@@ -35,11 +46,7 @@ def plot_sweep(rep: dict, path: Path) -> Path:
     ax.set_ylabel("estimated range (m)")
     ax.set_title(f"Range sweep {rep['run']} (renderer: {rep['mode']})")
     ax.legend()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_trajectory(rep: dict, path: Path) -> Path:
@@ -55,8 +62,4 @@ def plot_trajectory(rep: dict, path: Path) -> Path:
     axes[0].legend()
     axes[-1].set_xlabel("frame")
     fig.suptitle(f"Trajectory {rep['run']} (renderer: {rep['mode']})")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

@@ -1,0 +1,135 @@
+"""The nightly's page: one self-contained HTML file (no network) with the night's verdict table, the nights'
+summary and every metric's trend, drawn with matplotlib and embedded as a base64 PNG; the same figure is
+saved as ``<page>.png`` beside the page.  Input: verdict rows as the nightly_verdicts dataset holds them
+(jobs/nightly_store.py), never the jobs themselves.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import math
+from pathlib import Path
+
+RED = ("REGRESSION", "not comparable", "no baseline", "failed")
+COLOURS = {"identical": "#2e7d32", "ok": "#43a047", "improved": "#1e88e5", "info": "#9e9e9e",
+           "skipped": "#9e9e9e", "changed": "#fb8c00"}
+
+
+def _colour(verdict: str) -> str:
+    if verdict == "REGRESSION" or verdict == "failed":
+        return "#d32f2f"
+    if verdict in RED:                  # not comparable, no baseline: a suite or spec change to accept
+        return "#8e24aa"
+    return COLOURS.get(verdict, "#616161")
+
+
+def trend_figure(rows: list[dict], path: Path, max_panels: int = 120):
+    """Small multiples: per (job, metric) the fixed-seed and fresh-seed values over the nights, the baseline
+    as a grey step line, each point coloured by its verdict (red: regression / not comparable)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    nights = sorted({r["night"] for r in rows})
+    xi = {n: i for i, n in enumerate(nights)}
+    panels: dict = {}
+    for r in rows:
+        if r["comparison"] not in ("fixed", "fresh", "throughput") or r["metric"] in ("-", "rows"):
+            continue
+        panels.setdefault((r["job"], r["metric"]), []).append(r)
+    keys = sorted(panels)[:max_panels]
+    ncol = 6
+    nrow = max(1, math.ceil(len(keys) / ncol))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(3.2 * ncol, 2.1 * nrow + 0.6), squeeze=False)
+    for ax in axes.ravel()[len(keys):]:
+        ax.axis("off")
+    for ax, key in zip(axes.ravel(), keys):
+        pts = panels[key]
+        for comp, style in (("fixed", "-o"), ("throughput", "-o"), ("fresh", "--s")):
+            p = sorted((r for r in pts if r["comparison"] == comp and r["now"] is not None), key=lambda r: r["night"])
+            if not p:
+                continue
+            x = [xi[r["night"]] for r in p]
+            ax.plot(x, [r["now"] for r in p], style, color="#455a64", lw=1, ms=0, label=comp)
+            ax.scatter(x, [r["now"] for r in p], c=[_colour(r["verdict"]) for r in p], s=22, zorder=3,
+                       marker="o" if comp != "fresh" else "s")
+            if comp != "fresh":                 # the accepted baseline's value at each night: grey bars
+                b = [(xi[r["night"]], r["baseline"]) for r in p if r["baseline"] is not None]
+                if b:
+                    ax.plot([v[0] for v in b], [v[1] for v in b], "_", color="#9e9e9e", ms=16, mew=3, zorder=1)
+        ys = [r[k] for r in pts for k in ("now", "baseline") if r.get(k) is not None and r[k] == r[k]]
+        if ys and max(ys) - min(ys) <= 1e-9 * max(1.0, abs(max(ys))):     # constant: no offset notation
+            c = ys[0]
+            ax.set_ylim(c - 0.05 * (abs(c) or 1.0), c + 0.05 * (abs(c) or 1.0))
+        ax.ticklabel_format(axis="y", useOffset=False)
+        ax.set_title(f"{key[0]}\n{key[1]}", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.set_xticks(range(len(nights)))
+        ax.set_xticklabels([n[4:8] + "\n" + n[9:15] + n[16:] for n in nights], fontsize=6)
+        ax.grid(alpha=0.3)
+    fig.suptitle("dualsight nightly: metric per night (circles: fixed seeds, squares: fresh seeds, grey bars: "
+                 "baseline; "
+                 "green identical/ok, blue improved, red regression, purple not comparable / no baseline, "
+                 "grey info)", fontsize=10)
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def _cell(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return "nan" if v != v else f"{v:.4g}"
+    return html.escape(str(v))
+
+
+def write_page(path: Path, night_rows: list[dict], all_rows: list[dict], nights: list[dict], title: str,
+               outcome: tuple[int, str] | None = None) -> Path:
+    """Write the HTML page and ``<page>.png`` (the trend figure); returns the PNG's path.  ``outcome``: the
+    night's exit status and message, when known (an accepted first night is green though it has no baseline)."""
+    path = Path(path)
+    png = path.with_suffix(".png")
+    trend_figure(all_rows, png)
+    data = base64.b64encode(png.read_bytes()).decode("ascii")
+    night = night_rows[0]["night"] if night_rows else "-"
+    red = [r for r in night_rows if r["verdict"] in RED]
+    code = outcome[0] if outcome else (1 if red else 0)
+    status = {0: "GREEN", 1: "RED", 2: "COULD NOT RUN"}.get(code, str(code))
+    message = html.escape(outcome[1]) if outcome else ""
+    order = sorted(night_rows, key=lambda r: (r["verdict"] not in RED, r["job"], r["comparison"], r["metric"]))
+    cols = ("job", "comparison", "metric", "baseline", "now", "test", "threshold_or_p", "alpha", "verdict", "note")
+    trs = []
+    for r in order:
+        tds = "".join(f"<td>{_cell(r.get(c))}</td>" for c in cols)
+        trs.append(f'<tr style="background:{"#ffebee" if r["verdict"] in RED else "white"}">{tds}</tr>')
+    ncols = ("night", "exit", "accepted", "verdicts", "regressions", "not_comparable", "identical", "ok", "improved")
+    ntrs = "".join("<tr>" + "".join(f"<td>{_cell(n.get(c))}</td>" for c in ncols) + "</tr>" for n in nights)
+    page = f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
+<style>
+body {{ font-family: sans-serif; margin: 1.5em; }}
+table {{ border-collapse: collapse; font-size: 12px; }}
+td, th {{ border: 1px solid #ccc; padding: 2px 6px; text-align: left; }}
+th {{ background: #eceff1; }}
+.status {{ font-size: 20px; font-weight: bold; color: {"#2e7d32" if code == 0 else "#d32f2f"}; }}
+</style></head><body>
+<h1>{html.escape(title)}</h1>
+<p class="status">night {html.escape(night)}: {status} ({len(red)} red of {len(night_rows)} verdicts)</p>
+<p>{message}</p>
+<h2>Nights</h2>
+<table><tr><th>night</th><th>exit (0 green, 1 red, 2 could not run)</th><th>accepted as baseline</th>
+<th>verdicts</th><th>regressions</th><th>not comparable / no baseline / failed</th>
+<th>identical</th><th>ok</th><th>improved</th></tr>{ntrs}</table>
+<h2>Trends</h2>
+<img alt="metric trends" src="data:image/png;base64,{data}" style="max-width:100%">
+<h2>Verdicts of night {html.escape(night)}</h2>
+<table><tr>{"".join(f"<th>{c}</th>" for c in cols)}</tr>
+{"".join(trs)}
+</table>
+</body></html>
+"""
+    path.write_text(page, encoding="utf-8")
+    return png
