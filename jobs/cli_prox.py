@@ -11,7 +11,7 @@ from dualsight.errors import InputError
 
 
 def register(sub):
-    from dualsight.jobs.cli import _lake_arg, add_run_args
+    from dualsight.jobs.cli_args import _lake_arg, add_run_args
 
     prox = sub.add_parser("prox", help="proximity operations: range sweeps, trajectories, reports, replay")
     psub = prox.add_subparsers(dest="action", metavar="ACTION")
@@ -62,7 +62,7 @@ def register(sub):
 
 def _run(args, overrides: dict) -> dict:
     from dualsight.jobs import prox
-    from dualsight.jobs.cli import _lake
+    from dualsight.jobs.cli_args import _lake
     from dualsight.jobs.runner import run_job
 
     s = prox.resolve(args.preset, args.config, seed=args.seed, mode=getattr(args, "mode", None),
@@ -161,7 +161,7 @@ def report_text(rep: dict) -> str:
 
 
 def cmd_report(args) -> int:
-    from dualsight.jobs.cli import _lake, _latest_run
+    from dualsight.jobs.cli_args import _lake, _latest_run
 
     lake = _lake(args)
     run_id = args.run or _latest_run(lake, ["prox_sweep", "prox_trajectory"])
@@ -181,7 +181,7 @@ def cmd_report(args) -> int:
 
 
 def cmd_replay(args) -> int:
-    from dualsight.jobs.cli import _lake
+    from dualsight.jobs.cli_args import _lake
     from dualsight.jobs.prox_replay import replay_prox_case
 
     out = replay_prox_case(_lake(args), args.run, args.case, args.output)

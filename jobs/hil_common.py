@@ -138,7 +138,7 @@ def add_image_args(p: argparse.ArgumentParser):
 
 def add_engine_args(p: argparse.ArgumentParser, *, prefix: str):
     """``--lake``, ``--run``, ``--no-lake``, ``--workers``, ``--scheduler``, ``--shard-size``, ``--no-progress``."""
-    from dualsight.jobs.cli import _lake_arg
+    from dualsight.jobs.cli_args import _lake_arg
 
     g = p.add_argument_group("engine and lake")
     _lake_arg(g)
@@ -161,7 +161,7 @@ def engine_lake(args):
     from dualsight.warehouse.lake import Lake
 
     if not getattr(args, "no_lake", False):
-        from dualsight.jobs.cli import _lake
+        from dualsight.jobs.cli_args import _lake
 
         yield _lake(args), True
         return

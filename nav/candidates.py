@@ -46,21 +46,13 @@ def assign_identities(cand_ids: np.ndarray, cand_votes: np.ndarray, pairs: Obser
         cand = np.ascontiguousarray(cand_ids[..., :m])
         votes = np.ascontiguousarray(cand_votes[..., :m])
         # cosine bounds of the observed pairs (p < q); column P (p = q, or a missing star): inf = never
-        tol = cfg.verify_tol
-        P = K * (K - 1) // 2
-        d = pairs.angle
-        c_lo = np.full((B, P + 1), np.inf)
-        c_hi = np.full((B, P + 1), 2.0)
-        c_lo[pairs.case, pairs.pair] = np.cos(np.minimum(d + tol, np.pi))
-        c_hi[pairs.case, pairs.pair] = np.where(d > tol, np.cos(d - tol), 2.0)
-        pid = pair_slots(K)
+        c_lo, c_hi = _pair_cosine_bounds(pairs, B, K, cfg.verify_tol)
         sel_ids = np.full((B, K), -1, np.int64)
         sel_votes = np.zeros((B, K), np.int64)
         blk = max(1, int(cfg.max_vote_cells) // max(1, (K * m) ** 2))   # bounded (cases, Km, Km) arrays
         for b0 in range(0, B, blk):                                    # a handful of blocks
             sl = slice(b0, b0 + blk)
-            sel_ids[sl], sel_votes[sl] = select_candidates(cand[sl], votes[sl], c_lo[sl][:, pid],
-                                                           c_hi[sl][:, pid], cat_unit)
+            sel_ids[sl], sel_votes[sl] = select_candidates(cand[sl], votes[sl], c_lo[sl], c_hi[sl], cat_unit)
         chosen = sel_ids >= 0
         vote_ids = np.where(chosen, sel_ids, vote_ids)
         top = np.where(chosen, sel_votes, top)
