@@ -69,3 +69,19 @@ def read_user_file(path, error=InputError, *, what: str = "file", max_bytes: int
     if not data:
         raise error("file is empty (0 bytes)", source=str(path))
     return data
+
+
+def output_path(path, *, folder: bool = False):
+    """``path`` as a Path when its parent folder exists (and, with ``folder``, create ``path`` itself as the
+    one folder the user named); otherwise an InputError: dualsight creates no folder the user did not name."""
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise InputError("folder does not exist (dualsight creates no folder you did not name)",
+                         source=str(path.parent))
+    if folder:
+        if path.exists() and not path.is_dir():
+            raise InputError("exists and is not a folder", source=str(path))
+        path.mkdir(exist_ok=True)
+    return path

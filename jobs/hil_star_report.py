@@ -187,13 +187,12 @@ def write_overlays(spec, rows: list[dict], stars: dict[int, list[dict]], folder:
     The frame is re-read and its background subtraction and detection re-run (the same code and settings
     as the run, so the same detections); an image that changed since the run is skipped with a warning."""
     from dualsight.catalogs.stars import load_star_catalog
-    from dualsight.errors import ImageError
+    from dualsight.errors import ImageError, output_path
     from dualsight.jobs import hil_star as hs
     from dualsight.scene.starfield_geometry import catalog_in_image
     from dualsight.viz.overlay import star_overlay
 
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = output_path(folder, folder=True)
     rt = hs.runtime(spec)
     cam = rt.camera
     cat = None

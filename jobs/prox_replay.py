@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dualsight.errors import InputError
+from dualsight.errors import InputError, output_path
 from dualsight.jobs.replay import recompute_case
 from dualsight.warehouse.lake import Lake
 
@@ -58,8 +58,7 @@ def write_trajectory_video(spec, path: Path, fps: float = 10.0, batch: int = 16)
 
     ctx = prox.make_context(spec)
     cam = spec.satellite.camera.camera
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = output_path(path)
     fourcc = cv2.VideoWriter_fourcc(*("mp4v" if path.suffix.lower() == ".mp4" else "MJPG"))
     writer = cv2.VideoWriter(str(path), fourcc, float(fps), (cam.width, cam.height), isColor=False)
     if not writer.isOpened():

@@ -209,3 +209,16 @@ def test_voting_returns_the_right_hipparcos_ids_on_rendered_cases(small_run):
     # and the attitude of those cases meets the reference's 100 arcsec criterion on every axis
     _, rows = run_sql(small_run, "SELECT avg((status = 'success')::DOUBLE) FROM star_cases WHERE run = 'small'")
     assert rows[0][0] >= 0.95
+
+
+def test_no_folder_is_created_that_was_not_named(small_run, tmp_path, capsys):
+    for argv in (["star", "report", "--run", "small", "--plot", str(tmp_path / "a" / "b" / "f.png")],
+                 ["replay", "--run", "small", "--case", "1", "-o", str(tmp_path / "a" / "b" / "c.rrd")],
+                 ["replay", "--run", "small", "--where", "T > 0", "-o", str(tmp_path / "a" / "b")],
+                 ["report", "--run", "small", "--html", str(tmp_path / "a" / "r.html")]):
+        assert main(argv + ["--lake", str(small_run)]) == 2, argv
+        assert "folder does not exist" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists()
+    out = tmp_path / "recs"                      # the one folder named is created, nothing above it
+    assert main(["replay", "--run", "small", "--where", "case_id < 2", "-o", str(out), "--lake", str(small_run)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["small-case0.rrd", "small-case1.rrd"]

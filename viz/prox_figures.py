@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dualsight.errors import output_path
+
 
 def _plt():
     import matplotlib
@@ -19,10 +21,13 @@ def _plt():
 
 
 def save_figure(fig, path: Path, dpi: int = 110) -> Path:
-    """Write ``fig`` as ``path`` (its folder created) and close it; returns the path."""
+    """Write ``fig`` as ``path`` (its folder must exist) and close it; returns the path."""
     plt = _plt()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        path = output_path(path)
+    except Exception:
+        plt.close(fig)
+        raise
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path

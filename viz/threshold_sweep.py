@@ -100,8 +100,6 @@ def threshold_sweep_figure(path: str | Path, thresholds, range_m, range_min_m, r
         b.set_xlabel("binary threshold")
     else:
         a.set_xlabel("binary threshold")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return path
+    from dualsight.viz.prox_figures import save_figure
+
+    return save_figure(fig, path, dpi=dpi)
