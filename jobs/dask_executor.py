@@ -14,7 +14,7 @@ import hashlib
 
 from dualsight.errors import InputError
 
-CONNECT_TIMEOUT_S = 10
+CONNECT_TIMEOUT_S = 8
 RETRIES = 2
 
 
