@@ -109,6 +109,24 @@ def _search(angle: ti.template(), starts: ti.template(), inv_w, key, right):
 
 
 @ti.func
+def _keep_best(ids: ti.template(), cs: ti.template(), s, v, k: ti.template()):
+    """Offer catalog row ``s`` with ``v`` votes to the best-``k`` list (ids, cs), sorted by votes descending,
+    ties to the lower row; one bubble pass upwards.  Rows offered in ascending order (the whole-row scan)
+    never displace an equal count, so both vote walks keep exactly the numpy stage's candidates."""
+    if v > cs[k - 1] or (v == cs[k - 1] and v > 0 and s < ids[k - 1]):
+        ids[k - 1] = s
+        cs[k - 1] = v
+        for j in ti.static(range(k - 1, 0, -1)):
+            if cs[j] > cs[j - 1] or (cs[j] == cs[j - 1] and ids[j] < ids[j - 1]):
+                i_j = ids[j]
+                c_j = cs[j]
+                ids[j] = ids[j - 1]
+                cs[j] = cs[j - 1]
+                ids[j - 1] = i_j
+                cs[j - 1] = c_j
+
+
+@ti.func
 def _greedy_clique(cons: ti.template(), work: ti.template(), b, n, nn):
     """Greedy pruning of :func:`dualsight.nav.cliques.greedy_clique` for case b of ``n`` nodes:
     ``cons[b, u, v]`` (i8, symmetric, 0 on the diagonal; read only between the ``nn`` nodes listed,
@@ -248,20 +266,9 @@ def _build_vote(k: int, once: bool):
                     # the lower row already kept), clear it
                     for s in range(N):
                         v = table[sl, s]
-                        if v > cs[k - 1]:
+                        if v != 0:
                             table[sl, s] = 0
-                            ids[k - 1] = s
-                            cs[k - 1] = v
-                            for j in ti.static(range(k - 1, 0, -1)):   # one bubble pass upwards
-                                if cs[j] > cs[j - 1]:
-                                    i_j = ids[j]
-                                    c_j = cs[j]
-                                    ids[j] = ids[j - 1]
-                                    cs[j] = cs[j - 1]
-                                    ids[j - 1] = i_j
-                                    cs[j - 1] = c_j
-                        elif v != 0:
-                            table[sl, s] = 0
+                            _keep_best(ids, cs, s, v, k)
                 else:
                     # few entries: read each touched count once (then clear it), keep the k best
                     for y in range(K):
@@ -272,17 +279,7 @@ def _build_vote(k: int, once: bool):
                                 s = stars1[e] - 1
                                 v = table[sl, s]
                                 table[sl, s] = 0
-                                if v > cs[k - 1] or (v == cs[k - 1] and v > 0 and s < ids[k - 1]):
-                                    ids[k - 1] = s
-                                    cs[k - 1] = v
-                                    for j in ti.static(range(k - 1, 0, -1)):   # one bubble pass upwards
-                                        if cs[j] > cs[j - 1] or (cs[j] == cs[j - 1] and ids[j] < ids[j - 1]):
-                                            i_j = ids[j]
-                                            c_j = cs[j]
-                                            ids[j] = ids[j - 1]
-                                            cs[j] = cs[j - 1]
-                                            ids[j - 1] = i_j
-                                            cs[j - 1] = c_j
+                                _keep_best(ids, cs, s, v, k)
                 for j in ti.static(range(k)):
                     out[0, b, x, j] = ids[j]
                     out[1, b, x, j] = cs[j]
