@@ -9,16 +9,15 @@ a key ``<name>_arcsec`` or ``<name>_deg`` fills the field ``<name>_rad`` (conver
 from __future__ import annotations
 
 import dataclasses
-import math
 import re
 from pathlib import Path
 
+from dualsight.scene.units import ARCSEC, DEG
 from dualsight.config import MAX_DEPTH, _friendly, plain_tree, printable_key, validate  # noqa: F401 (re-exported)
 
 from dualsight.errors import ConfigError, InputError
 
-_ARCSEC = math.pi / (180 * 3600)
-_UNIT_SUFFIX = {"_arcsec": _ARCSEC, "_deg": math.pi / 180}
+_UNIT_SUFFIX = {"_arcsec": ARCSEC, "_deg": DEG}
 
 
 def check_memory(nbytes: int, *, source: str, what: str = "this spec"):

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from dualsight.errors import InputError
+from dualsight.scene.units import ARCSEC
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import connect
 
@@ -103,7 +104,7 @@ def replay_star_case(lake: Lake, run_id: str, case_id: int, output: Path | None 
     else:
         pred_xy, pred_labels = np.zeros((0, 2)), []
     truth_xy = np.stack([field_.x[0][field_.inside[0]], field_.y[0][field_.inside[0]]], axis=-1)
-    arcsec = 180 * 3600 / math.pi
+    arcsec = 1.0 / ARCSEC
     info = "\n".join([
         f"# star case {case_id} of run `{run_id}`", "",
         f"- status: **{fresh['status']}** (robust method: {fresh['status_robust']})",

@@ -44,6 +44,10 @@ def connect(lake: Lake | Path | str, threads: int | None = None, *, warn=None,
         con.execute(f"CREATE VIEW \"{ds}\" AS SELECT * FROM read_parquet([{lst}], hive_partitioning = true, "
                     f"union_by_name = true)")
         allowed.append((lake.root / ds).resolve().as_posix() + "/")
+    # the one conversion of the report SQL to arcseconds, from the one units module
+    from dualsight.scene.units import ARCSEC
+
+    con.execute(f"CREATE MACRO arcsec_per_rad() AS {1.0 / ARCSEC!r}")
     if locked:
         if allowed:
             con.execute("SET allowed_directories = " + "[" + ", ".join("'" + a.replace("'", "''") + "'"

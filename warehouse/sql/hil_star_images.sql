@@ -9,16 +9,16 @@ SELECT
     degrees(dec_rad)                                         AS dec_deg,
     roll_deg,
     truth_source,
-    boresight_error_rad * 206264.80624709636                 AS boresight_error_arcsec,
-    attitude_error_rad * 206264.80624709636                  AS attitude_error_arcsec,
-    residual_median_rad * 206264.80624709636                 AS residual_median_arcsec,
-    truth_residual_median_rad * 206264.80624709636           AS truth_residual_median_arcsec,
+    boresight_error_rad * arcsec_per_rad()                 AS boresight_error_arcsec,
+    attitude_error_rad * arcsec_per_rad()                  AS attitude_error_arcsec,
+    residual_median_rad * arcsec_per_rad()                 AS residual_median_arcsec,
+    truth_residual_median_rad * arcsec_per_rad()           AS truth_residual_median_arcsec,
     truth_ids_agree,
     truth_ids_disagree,
     degrees(altaz_error_rad)                                 AS altaz_error_deg,
     alt_method,
     alt_T,
-    alt_boresight_error_rad * 206264.80624709636             AS alt_boresight_error_arcsec,
+    alt_boresight_error_rad * arcsec_per_rad()             AS alt_boresight_error_arcsec,
     t_total_ns / 1e6                                         AS ms
 FROM hil_star
 WHERE run = $run

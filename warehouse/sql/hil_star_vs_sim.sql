@@ -10,9 +10,9 @@ SELECT source, method, cases, identified_rate, success_rate, median_stars_observ
            median(stars_detected) AS median_stars_observed,
            median(stars_identified) FILTER (WHERE T > 0) AS median_stars_identified,
            avg(T) FILTER (WHERE T > 0) AS mean_T,
-           median(boresight_error_rad) * 206264.80624709636 AS median_boresight_error_arcsec,
-           median(attitude_error_rad) * 206264.80624709636 AS median_attitude_error_arcsec,
-           (SELECT median(residual_rad) FROM hil_star_stars WHERE run = $run) * 206264.80624709636
+           median(boresight_error_rad) * arcsec_per_rad() AS median_boresight_error_arcsec,
+           median(attitude_error_rad) * arcsec_per_rad() AS median_attitude_error_arcsec,
+           (SELECT median(residual_rad) FROM hil_star_stars WHERE run = $run) * arcsec_per_rad()
                AS median_residual_arcsec
     FROM hil_star WHERE run = $run AND error IS NULL
     UNION ALL
@@ -24,10 +24,10 @@ SELECT source, method, cases, identified_rate, success_rate, median_stars_observ
            avg(T) FILTER (WHERE T > 0),
            median(2 * asin(sqrt((A_est[7] - A_true[7]) ^ 2 + (A_est[8] - A_true[8]) ^ 2
                                 + (A_est[9] - A_true[9]) ^ 2) / 2)) FILTER (WHERE isfinite(A_est[9]))
-               * 206264.80624709636,
-           median(err_total_rad) FILTER (WHERE isfinite(err_total_rad)) * 206264.80624709636,
+               * arcsec_per_rad(),
+           median(err_total_rad) FILTER (WHERE isfinite(err_total_rad)) * arcsec_per_rad(),
            (SELECT median(residual_rad) FROM star_detections
-             WHERE run = $sim_run AND accepted AND isfinite(residual_rad)) * 206264.80624709636
+             WHERE run = $sim_run AND accepted AND isfinite(residual_rad)) * arcsec_per_rad()
     FROM star_cases WHERE run = $sim_run
     UNION ALL
     SELECT 3, 'sim', 'robust', count(*),
@@ -37,7 +37,7 @@ SELECT source, method, cases, identified_rate, success_rate, median_stars_observ
            median(n_identified_robust) FILTER (WHERE T_robust > 0),
            avg(T_robust) FILTER (WHERE T_robust > 0),
            NULL,
-           median(err_total_robust_rad) FILTER (WHERE isfinite(err_total_robust_rad)) * 206264.80624709636,
+           median(err_total_robust_rad) FILTER (WHERE isfinite(err_total_robust_rad)) * arcsec_per_rad(),
            NULL
     FROM star_cases WHERE run = $sim_run AND status_robust IS NOT NULL
 )

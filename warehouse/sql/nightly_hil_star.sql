@@ -6,8 +6,8 @@
 SELECT case_id,
        coalesce(identified, false)                                             AS identified,
        CASE WHEN truth_source <> 'none' THEN status = 'success' END            AS success,
-       CASE WHEN identified THEN boresight_error_rad * 206264.80624709636 END  AS boresight_err_arcsec,
-       CASE WHEN identified THEN attitude_error_rad * 206264.80624709636 END   AS attitude_err_arcsec
+       CASE WHEN identified THEN boresight_error_rad * arcsec_per_rad() END  AS boresight_err_arcsec,
+       CASE WHEN identified THEN attitude_error_rad * arcsec_per_rad() END   AS attitude_err_arcsec
 FROM hil_star
 WHERE run = $run
 ORDER BY case_id;

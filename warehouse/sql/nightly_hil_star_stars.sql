@@ -1,6 +1,6 @@
 -- Nightly metrics of one star HIL run ($run), one row per identified star (METRICS["hil_star"]):
 --   residual_arcsec              observed centroid vs the catalog star through the solved attitude
-SELECT case_id, det_index, residual_rad * 206264.80624709636 AS residual_arcsec
+SELECT case_id, det_index, residual_rad * arcsec_per_rad() AS residual_arcsec
 FROM hil_star_stars
 WHERE run = $run
 ORDER BY case_id, det_index;

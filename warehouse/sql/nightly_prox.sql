@@ -16,7 +16,7 @@ SELECT case_id,
        CASE WHEN found THEN abs(subpixel_range_est_m - true_range_m) / true_range_m END AS range_rel_err_subpixel,
        CASE WHEN found THEN (paper_range_est_m - true_range_m) / true_range_m END       AS range_bias_paper,
        CASE WHEN found THEN (subpixel_range_est_m - true_range_m) / true_range_m END    AS range_bias_subpixel,
-       CASE WHEN found THEN dir_err_rad * 206264.80624709636 END                        AS dir_err_arcsec,
+       CASE WHEN found THEN dir_err_rad * arcsec_per_rad() END                        AS dir_err_arcsec,
        CASE WHEN found THEN abs(subpixel_x_m - true_x_m) END                            AS pos_err_x_m,
        CASE WHEN found THEN abs(subpixel_y_m - true_y_m) END                            AS pos_err_y_m,
        CASE WHEN found THEN abs(subpixel_z_m - true_z_m) END                            AS pos_err_z_m

@@ -17,9 +17,9 @@ SELECT c.case_id,
        c.id_correct                                                            AS identification,
        c.status_robust = 'success'                                             AS success_robust,
        c.status_robust = 'confident_wrong'                                     AS confident_wrong_robust,
-       CASE WHEN c.status = 'success' THEN abs(c.err_x_rad) * 206264.80624709636 END AS err_x_arcsec,
-       CASE WHEN c.status = 'success' THEN abs(c.err_y_rad) * 206264.80624709636 END AS err_y_arcsec,
-       CASE WHEN c.status = 'success' THEN abs(c.err_z_rad) * 206264.80624709636 END AS err_z_arcsec,
+       CASE WHEN c.status = 'success' THEN abs(c.err_x_rad) * arcsec_per_rad() END AS err_x_arcsec,
+       CASE WHEN c.status = 'success' THEN abs(c.err_y_rad) * arcsec_per_rad() END AS err_y_arcsec,
+       CASE WHEN c.status = 'success' THEN abs(c.err_z_rad) * arcsec_per_rad() END AS err_z_arcsec,
        det.centroid_err_px
 FROM star_cases c LEFT JOIN det USING (case_id)
 WHERE c.run = $run

@@ -13,6 +13,6 @@ SELECT
     avg(abs(subpixel_y_m - true_y_m))                             AS subpixel_mean_abs_err_y_m,
     avg(abs(subpixel_z_m - true_z_m))                             AS subpixel_mean_abs_err_z_m,
     avg(abs(subpixel_range_est_m - true_range_m) / true_range_m) * 100 AS subpixel_mean_rel_range_err_pct,
-    avg(dir_err_rad) * 206264.80624709636                         AS mean_direction_err_arcsec
+    avg(dir_err_rad) * arcsec_per_rad()                         AS mean_direction_err_arcsec
 FROM prox_cases
 WHERE run = $run AND job = 'trajectory' AND found;

@@ -3,10 +3,10 @@
 SELECT
     n_observed                                                         AS stars_observed,
     count(*)                                                           AS cases,
-    avg(abs(err_x_rad)) * 206264.80624709636                           AS mean_err_x_arcsec,
-    avg(abs(err_y_rad)) * 206264.80624709636                           AS mean_err_y_arcsec,
-    avg(abs(err_z_rad)) * 206264.80624709636                           AS mean_err_z_arcsec,
-    avg(sqrt(err_x_rad ^ 2 + err_y_rad ^ 2 + err_z_rad ^ 2)) * 206264.80624709636 AS mean_rss_arcsec
+    avg(abs(err_x_rad)) * arcsec_per_rad()                           AS mean_err_x_arcsec,
+    avg(abs(err_y_rad)) * arcsec_per_rad()                           AS mean_err_y_arcsec,
+    avg(abs(err_z_rad)) * arcsec_per_rad()                           AS mean_err_z_arcsec,
+    avg(sqrt(err_x_rad ^ 2 + err_y_rad ^ 2 + err_z_rad ^ 2)) * arcsec_per_rad() AS mean_rss_arcsec
 FROM star_cases
 WHERE run = $run AND status = 'success'
 GROUP BY n_observed

@@ -6,9 +6,9 @@ SELECT method, success_rate, confident_wrong_rate, no_solution_rate, identificat
            avg((status = 'confident_wrong')::DOUBLE) AS confident_wrong_rate,
            avg((status = 'no_solution')::DOUBLE) AS no_solution_rate,
            avg(id_correct::DOUBLE) AS identification_rate,
-           avg(abs(err_x_rad)) FILTER (WHERE status = 'success') * 206264.80624709636 AS mean_err_x_arcsec,
-           avg(abs(err_y_rad)) FILTER (WHERE status = 'success') * 206264.80624709636 AS mean_err_y_arcsec,
-           avg(abs(err_z_rad)) FILTER (WHERE status = 'success') * 206264.80624709636 AS mean_err_z_arcsec
+           avg(abs(err_x_rad)) FILTER (WHERE status = 'success') * arcsec_per_rad() AS mean_err_x_arcsec,
+           avg(abs(err_y_rad)) FILTER (WHERE status = 'success') * arcsec_per_rad() AS mean_err_y_arcsec,
+           avg(abs(err_z_rad)) FILTER (WHERE status = 'success') * arcsec_per_rad() AS mean_err_z_arcsec
     FROM star_cases WHERE run = $run
     UNION ALL
     SELECT 2, 'robust (dualsight)',
@@ -16,9 +16,9 @@ SELECT method, success_rate, confident_wrong_rate, no_solution_rate, identificat
            avg((status_robust = 'confident_wrong')::DOUBLE),
            avg((status_robust = 'no_solution')::DOUBLE),
            avg(id_correct_robust::DOUBLE),
-           avg(abs(err_x_robust_rad)) FILTER (WHERE status_robust = 'success') * 206264.80624709636,
-           avg(abs(err_y_robust_rad)) FILTER (WHERE status_robust = 'success') * 206264.80624709636,
-           avg(abs(err_z_robust_rad)) FILTER (WHERE status_robust = 'success') * 206264.80624709636
+           avg(abs(err_x_robust_rad)) FILTER (WHERE status_robust = 'success') * arcsec_per_rad(),
+           avg(abs(err_y_robust_rad)) FILTER (WHERE status_robust = 'success') * arcsec_per_rad(),
+           avg(abs(err_z_robust_rad)) FILTER (WHERE status_robust = 'success') * arcsec_per_rad()
     FROM star_cases WHERE run = $run AND status_robust IS NOT NULL
 )
 ORDER BY k;

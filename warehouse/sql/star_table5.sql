@@ -6,8 +6,8 @@ SELECT metric, dualsight, reference FROM (
     SELECT 1 AS k, 'Stars generated' AS metric, avg(n_generated) AS dualsight, 11.4607 AS reference FROM s
     UNION ALL SELECT 2, 'Stars observed', avg(n_observed), 10.1152 FROM s
     UNION ALL SELECT 3, 'T', avg(T), 8.6230 FROM s
-    UNION ALL SELECT 4, 'eps_x (arcsec)', avg(abs(err_x_rad)) * 206264.80624709636, 10.6237 FROM s
-    UNION ALL SELECT 5, 'eps_y (arcsec)', avg(abs(err_y_rad)) * 206264.80624709636, 7.7998 FROM s
-    UNION ALL SELECT 6, 'eps_z (arcsec)', avg(abs(err_z_rad)) * 206264.80624709636, 6.4789 FROM s
+    UNION ALL SELECT 4, 'eps_x (arcsec)', avg(abs(err_x_rad)) * arcsec_per_rad(), 10.6237 FROM s
+    UNION ALL SELECT 5, 'eps_y (arcsec)', avg(abs(err_y_rad)) * arcsec_per_rad(), 7.7998 FROM s
+    UNION ALL SELECT 6, 'eps_z (arcsec)', avg(abs(err_z_rad)) * arcsec_per_rad(), 6.4789 FROM s
 )
 ORDER BY k;
