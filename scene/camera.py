@@ -124,7 +124,10 @@ class Camera:
     def from_table(cls, t: "CameraTable", source: str = "camera") -> "Camera":
         """Build from a validated :class:`CameraTable` (friendly units: um, mm); the rules that tie keys
         together (focal length given as fx/fy or as focal_length_mm) are checked here."""
-        pitch = t.pixel_pitch_um * 1e-6
+        if t.pixel_pitch_um is None and t.fx is None:
+            raise ConfigError("missing key 'pixel_pitch_um' (needed to turn focal_length_mm into pixels; or give "
+                              "fx and fy in pixels)", source=source, field="camera.pixel_pitch_um")
+        pitch = t.pixel_pitch_um * 1e-6 if t.pixel_pitch_um is not None else UNKNOWN_PITCH_M
         if t.fx is not None:
             fx, fy, derived = t.fx, (t.fy if t.fy is not None else t.fx), False
         elif t.fy is not None:
@@ -301,11 +304,17 @@ def _check_camera(cam: Camera, source: str | None):
 _Finite = Annotated[float, Field(allow_inf_nan=False)]
 
 
+UNKNOWN_PITCH_M = 1e-6
+"""Pixel pitch (m) of a camera file that gives fx, fy in pixels but no pitch: a placeholder that changes no
+result (projection, identification and attitude use pixels; the blobber's Eq. 1 uses f / p = fx)."""
+
+
 class CameraTable(pydantic.BaseModel):
     """The ``[camera]`` table of a camera file (TOML layout, friendly units), validated by pydantic.
 
     width, height : px, integers in [1, 65536].  pixel_pitch_um : um, in [0.01, 1000] (as
-    :data:`PIXEL_PITCH_RANGE_M`).  focal_length_mm : mm, in (0, 10000] (10 m, beyond any camera of a
+    :data:`PIXEL_PITCH_RANGE_M`); needed only to turn focal_length_mm into pixels: with fx given and no pitch,
+    :data:`UNKNOWN_PITCH_M` stands in (every algorithm works in pixels, and Eq. 1's f / p is fx).  focal_length_mm : mm, in (0, 10000] (10 m, beyond any camera of a
     spacecraft); used when fx is absent.  fx, fy : px, in [1, 1e7] (fy defaults to fx).  cx, cy : px, in
     [-1e6, 1e6] (default: the image centre).  distortion : 1-5 numbers [k1, k2, p1, p2, k3] (the rest 0).
     bit_depth : bits, an integer in [1, 32].  name, notes : free text.
@@ -314,7 +323,7 @@ class CameraTable(pydantic.BaseModel):
     model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
     width: _Side
     height: _Side
-    pixel_pitch_um: Annotated[float, Field(ge=PIXEL_PITCH_RANGE_M[0] * 1e6, le=PIXEL_PITCH_RANGE_M[1] * 1e6)]
+    pixel_pitch_um: Annotated[float, Field(ge=PIXEL_PITCH_RANGE_M[0] * 1e6, le=PIXEL_PITCH_RANGE_M[1] * 1e6)] | None = None
     focal_length_mm: Annotated[float, Field(gt=0, le=10_000.0)] | None = None
     fx: _Focal | None = None
     fy: _Focal | None = None

@@ -123,3 +123,21 @@ def test_reference_monte_carlo_attitudes(stars):
     print(f"\nstars in view over {len(seen)} attitudes: mean {np.mean(seen):.2f}, min {min(seen)}, max {max(seen)}")
     assert sum(n > 0 for n in seen) >= 190
     assert 8 <= np.mean(seen) <= 18
+
+
+def test_camera_file_with_fx_fy_needs_no_pixel_pitch():
+    """A calibrated camera is known in pixels: fx, fy without a pitch is a complete camera file; only
+    focal_length_mm needs the pitch (to become pixels)."""
+    import pytest as _pytest
+
+    from dualsight.errors import ConfigError
+    from dualsight.scene.camera import Camera
+
+    c = Camera.from_dict({"width": 1392, "height": 1040, "fx": 6920.5, "fy": 6921.0, "cx": 700.2, "cy": 519.8})
+    assert (c.fx, c.fy, c.cx, c.cy) == (6920.5, 6921.0, 700.2, 519.8)
+    with_pitch = Camera.from_dict({"width": 1392, "height": 1040, "fx": 6920.5, "fy": 6921.0, "cx": 700.2,
+                                   "cy": 519.8, "pixel_pitch_um": 6.45})
+    v = np.array([[0.01, -0.02, 1.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_array_equal(c.project(v)[0], with_pitch.project(v)[0])     # the pitch plays no part
+    with _pytest.raises(ConfigError, match="pixel_pitch_um"):
+        Camera.from_dict({"width": 1392, "height": 1040, "focal_length_mm": 50.0})
