@@ -475,3 +475,25 @@ def test_spec_round_trip_shards_and_changed_files(rendered, tmp_path):
                                spec.settings)
     assert "changed since the run was planned" in case["error"] and len(r) == 1 and r[0].get("threshold") is None
     assert r[0]["error"] == case["error"]
+
+
+def test_sphere_target_gives_the_analytic_range(tmp_path):
+    """A sphere target (default surface resolution: once a 40 GiB point cloud) on a photographed disc: Eq. 1
+    with A = pi r^2 gives rho = fx * sqrt(pi r^2 / N), and N ~ pi (fx r / rho)^2, so the disc of radius
+    R px must come back at fx * r / R within the disc's pixelisation (< 0.5 %)."""
+    target = tmp_path / "sphere.toml"
+    target.write_text('name = "ball"\nframes = 1\n[camera]\nwidth = 2048\nheight = 1536\npixel_pitch_um = 2.9475\n'
+                      'focal_length_mm = 4.356\nlight_direction = [0.0, 0.0, -1.0]\n[body]\nposition = [0.0, 0.0, 1.0]\n'
+                      '[[component]]\nshape = "sphere"\nsize = [0.3]\n')
+    img = np.full((1536, 2048), 230, np.uint8)
+    R = 250
+    cv2.circle(img, (1024, 768), R, 20, -1)
+    photo = tmp_path / "disc.png"
+    cv2.imwrite(str(photo), img)
+    cam = Path(__file__).parents[1] / "examples" / "cameras" / "paper_hil_prox.toml"
+    rc, out, err = run_cli(["hil", "prox", str(photo), "--camera", str(cam), "--target", str(target), "--invert",
+                            "--no-lake", "--json"])
+    assert rc == 0, err
+    res = json.loads(out)["images"][0]["results"][0]
+    fx = Camera.from_toml(cam).fx
+    assert res["found"] and res["range_m"] == pytest.approx(fx * 0.15 / R, rel=5e-3)
