@@ -332,15 +332,8 @@ def _hil_prox(j: JobTable, paths, at: str, source: str, base: Path, check_only: 
     target = hp.target_spec(_resolve(j.target, base))
     if check_only:
         return {}
-    if j.calibrate is not None:
-        import cv2
-
-        threads = cv2.getNumThreads()
-        cv2.setNumThreads(1)               # OpenCV's threaded solver moves the 12th digit from run to run
-        try:
-            res = calibrate_chessboard(paths, board=j.calibrate.board, square_m=j.calibrate.square_m)
-        finally:
-            cv2.setNumThreads(threads)
+    if j.calibrate is not None:          # deterministic: the solver runs single-threaded (scene/calibration)
+        res = calibrate_chessboard(paths, board=j.calibrate.board, square_m=j.calibrate.square_m)
         dist = {v.path.name: float(v.distance_m) for v in res.views}
         camera, truths, kind = res.camera, [dist.get(p.name) for p in paths], "calibration"
     else:

@@ -261,8 +261,13 @@ def solve_calibration(views: Iterable[ViewCorners], board: tuple[int, int] = (9,
     k0 = np.array([[aspect_ratio, 0, size[0] / 2 - 0.5], [0, 1.0, size[1] / 2 - 0.5], [0, 0, 1]])
     objs = [obj] * len(found)
     imgs = [c.reshape(-1, 1, 2).astype(np.float32) for _, c in found]
-    rms, K, dist, rvecs, tvecs, std_in, _std_ex, _per_view = cv2.calibrateCameraExtended(
-        objs, imgs, size, k0, None, flags=flags)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)     # OpenCV's threaded solver moves the 9th digit from call to call: one thread repeats
+    try:
+        rms, K, dist, rvecs, tvecs, std_in, _std_ex, _per_view = cv2.calibrateCameraExtended(
+            objs, imgs, size, k0, None, flags=flags)
+    finally:
+        cv2.setNumThreads(threads)
 
     centre = np.array([(board[0] - 1) / 2 * square_m, (board[1] - 1) / 2 * square_m, 0.0])
     out = []
