@@ -3,7 +3,9 @@
 Modules, one stage each:
 
 * star tracker: ``star_psf`` (PSF splat) -> ``starfield`` (sensor model, noise, ADC; ``render_star_fields``)
-  -> ``detect`` (threshold, label, centroid; and the sparse noise-free path ``render_and_detect_ideal``);
+  -> ``detect`` (threshold, label, centroid; and the sparse noise-free path ``render_and_detect_ideal``)
+  -> ``voting`` (geometric voting, step 1: vote counting) -> ``voting_select`` (steps 2-5: candidates,
+  verification, acceptance);
 * proximity: ``points`` (entry point, ``render``) dispatching to ``prox_splat`` (``paper``) or
   ``prox_triangles`` + ``prox_raster`` (``accurate``), both shading by ``prox_shading`` (Eqs. 2-3) with
   ``prox_geometry``; ``prox_sensor`` (blur, read noise, quantisation); ``blobs`` (the blobber's labelling);

@@ -93,7 +93,7 @@ def assign_identities_taichi(cand_ids: np.ndarray, cand_votes: np.ndarray, pairs
     candidate cliques (the observed pairs' cosine bounds, the catalog cosines of the nodes) are
     computed here with the very numpy expressions, in the same blocks of cases, as the numpy stage;
     the kernel compares, prunes the cliques and drops duplicates, in parallel over cases."""
-    from dualsight.kernels import voting as kvoting
+    from dualsight.kernels import voting_select as kselect
 
     B, K, _ = cand_ids.shape
     m = int(cfg.candidates_per_star)
@@ -104,7 +104,7 @@ def assign_identities_taichi(cand_ids: np.ndarray, cand_votes: np.ndarray, pairs
         blk = max(1, int(cfg.max_vote_cells) // max(1, (K * m) ** 2))   # bounded (cases, Km, Km) arrays
         blocks = ((b0, _node_cosines(cand[b0:b0 + blk], cat_unit), c_lo[b0:b0 + blk], c_hi[b0:b0 + blk])
                   for b0 in range(0, B, blk))
-    return kvoting.select_identities(cand_ids, cand_votes, m, cfg.require_unique_max, blocks)
+    return kselect.select_identities(cand_ids, cand_votes, m, cfg.require_unique_max, blocks)
 
 
 def select_candidates(cand: np.ndarray, cand_votes: np.ndarray, c_lo: np.ndarray, c_hi: np.ndarray,

@@ -52,10 +52,10 @@ def verify_accept_taichi(pairs: ObservedPairs, ids: np.ndarray, top: np.ndarray,
     numpy, as :func:`verify` does.  Returns ``vv (B, K)`` int32, ``T (B,)`` int32, ``accepted (B, K)``
     and ``reject (B,)`` bool, bit for bit those of the numpy stages.
     """
-    from dualsight.kernels import voting as kvoting
+    from dualsight.kernels import voting_select as kselect
 
     cons = _consistent_pairs(pairs, ids, cat_unit, cfg)
-    return kvoting.verify_accept(cons, top, cfg.accept_rule == "clique", cfg.accept_fraction, int(cfg.min_accepted))
+    return kselect.verify_accept(cons, top, cfg.accept_rule == "clique", cfg.accept_fraction, int(cfg.min_accepted))
 
 
 def _consistent_pairs(pairs: ObservedPairs, ids: np.ndarray, cat_unit: np.ndarray, cfg: VotingConfig) -> np.ndarray:

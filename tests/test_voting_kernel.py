@@ -29,6 +29,7 @@ import pytest
 import dualsight.kernels
 from dualsight.jobs import star
 from dualsight.kernels import voting as kvoting
+from dualsight.kernels import voting_select as kselect
 from dualsight.nav.starid import VotingConfig, identify, voting_index
 
 FIELDS = ("ids", "accepted", "T", "vote_ids", "votes", "verify_votes", "rejected", "n_attitude_matches")
@@ -158,7 +159,7 @@ def test_window_search_is_searchsorted():
 
 # ------------------------------------------------------------------------------ planted bugs
 
-PLANTED = {   # name: (text of kernels/voting.py, its replacement)
+PLANTED = {   # name: (text of kernels/voting.py or voting_select.py, its replacement)
     "window_off_by_one": ("c = ti.max(hi - lo, 0)", "c = ti.max(hi - lo - 1, 0)"),
     "second_star_not_voted": (   # entries 2m, 2m + 1 = stars i, j of catalog pair m: count only i
         "for e in range(2 * l, 2 * (l + c)):\n                            # a plain load",
@@ -175,17 +176,19 @@ PLANTED_ON = {"row_scan_ties_to_higher_row": "v70"}   # the whole-row scan runs 
 
 
 def _patched_kernels(tmp_path: Path, name: str):
-    """kernels/voting.py with one planted bug, as a separate module (its own kernels)."""
+    """(module name, the kernels module -- voting or voting_select -- with one planted bug), as a separate module
+    (its own kernels)."""
     old, new = PLANTED[name]
-    src = Path(kvoting.__file__).read_text()
-    assert src.count(old) == 1, f"{name}: the text to patch must occur once in kernels/voting.py"
-    path = tmp_path / f"voting_planted_{name}.py"
-    path.write_text(src.replace(old, new))
-    spec = importlib.util.spec_from_file_location(f"dualsight.kernels._voting_planted_{name}", path)
+    where = [m for m in (kvoting, kselect) if Path(m.__file__).read_text().count(old) == 1]
+    assert len(where) == 1, f"{name}: the text to patch must occur once in the voting kernels"
+    short = where[0].__name__.rsplit(".", 1)[1]
+    path = tmp_path / f"{short}_planted_{name}.py"
+    path.write_text(Path(where[0].__file__).read_text().replace(old, new))
+    spec = importlib.util.spec_from_file_location(f"dualsight.kernels._{short}_planted_{name}", path)
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod
     spec.loader.exec_module(mod)
-    return mod
+    return short, mod
 
 
 @pytest.mark.parametrize("name", list(PLANTED))
@@ -194,7 +197,7 @@ def test_planted_bug_is_caught(request, tmp_path, monkeypatch, name):
     cases, or the 64 V 7.0 cases for a bug in the whole-row scan)."""
     w = request.getfixturevalue(PLANTED_ON.get(name, "v55"))
     refs = {c: _run(w, w.configs[c], "numpy") for c in ("paper", "robust")}
-    monkeypatch.setattr(dualsight.kernels, "voting", _patched_kernels(tmp_path, name))
+    monkeypatch.setattr(dualsight.kernels, *_patched_kernels(tmp_path, name))
     differ = {c: _differences(refs[c], _run(w, w.configs[c], "taichi")) for c in refs}
     assert differ["paper"] or differ["robust"], f"planted bug {name} not detected"
     monkeypatch.undo()
