@@ -75,7 +75,8 @@ def make_context(spec: CalibSpec):
 
 SCHEMA = pa.schema([
     ("case_id", pa.int64()), ("image", pa.string()), ("path", pa.string()), ("error", pa.string()),
-    ("width", pa.int32()), ("height", pa.int32()), ("bit_depth", pa.int32()), ("found", pa.bool_()),
+    ("width", pa.int32()), ("height", pa.int32()), ("bit_depth", pa.int32()), ("image_digest", pa.int64()),
+    ("found", pa.bool_()),
     ("n_corners", pa.int32()), ("corners_px", pa.list_(pa.float64())), ("t_find_ns", pa.int64()),
 ])
 SCHEMAS = {PRIMARY: SCHEMA}
@@ -95,7 +96,8 @@ def compute_shard(spec: CalibSpec, case_ids: np.ndarray, ctx=None) -> dict[str, 
             v = cal.ViewCorners(Path(entry.path), error=e.detail)
         c = None if v.corners is None else np.asarray(v.corners, np.float64).ravel().tolist()
         rows.append({"case_id": int(k), "image": entry.name, "path": entry.path, "error": v.error,
-                     "width": v.width, "height": v.height, "bit_depth": v.bit_depth, "found": c is not None,
+                     "width": v.width, "height": v.height, "bit_depth": v.bit_depth, "image_digest": v.digest,
+                     "found": c is not None,
                      "n_corners": None if c is None else len(c) // 2, "corners_px": c,
                      "t_find_ns": time.perf_counter_ns() - t0})
     return {PRIMARY: rows_table(rows, SCHEMA)}

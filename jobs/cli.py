@@ -86,7 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
     sel.add_argument("--where", default=None, help="SQL predicate over the run's primary dataset, e.g. "
                                                    "\"status <> 'success'\"")
     p.add_argument("--limit", type=positive_int(1, 1000), default=20, help="at most this many cases (default 20)")
-    p.add_argument("-o", "--output", type=Path, default=None, help="a .rrd file (one case) or a folder")
+    p.add_argument("-o", "--output", type=Path, default=None,
+                   help="a .rrd file (every selected case in one recording, on the 'frame' time line: a "
+                        "trajectory plays as a film) or a folder (one <run>-case<N>.rrd per case)")
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("report", help="one self-contained HTML page for any run: tables, the reference's "

@@ -59,6 +59,7 @@ import numpy as np
 import pyarrow as pa
 from pydantic import Field, model_validator
 
+from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.errors import ConfigError, ImageError
 from dualsight.jobs.config import validate
 from dualsight.jobs.hil_common import (Frozen, ImageEntry, check_unchanged, fixed_point, n_cases, rows_table,
@@ -297,7 +298,7 @@ def process_image(k: int, image: ImageEntry | str | Path, camera: Camera, target
         pix, cam = undistort_image(pix, camera, fill=full if settings.invert else 0.0)
     score = score_image(pix, invert=settings.invert, full_scale=full)
     shape = dict(width=img.width, height=img.height, channels=img.channels, bit_depth=img.bit_depth, full_scale=full)
-    case.update(shape, t_read_ns=t1 - t0)
+    case.update(shape, t_read_ns=t1 - t0, image_digest=int(to_int64(frame_digest(img.pixels[None]))[0]))
     base.update(shape, t_read_ns=t1 - t0)
     cfg = settings.blobber_config()
     th = settings.thresholds
@@ -350,7 +351,8 @@ def _blob_row(r, k: int) -> dict:
 CASES_SCHEMA = pa.schema([
     ("case_id", pa.int64()), ("image", pa.string()), ("path", pa.string()), ("error", pa.string()),
     ("width", pa.int32()), ("height", pa.int32()), ("channels", pa.int32()), ("bit_depth", pa.int32()),
-    ("full_scale", pa.float64()), ("truth_range_m", pa.float64()), ("truth_source", pa.string()),
+    ("full_scale", pa.float64()), ("image_digest", pa.int64()), ("truth_range_m", pa.float64()),
+    ("truth_source", pa.string()),
     ("n_thresholds", pa.int32()), ("found_any", pa.bool_()), ("t_read_ns", pa.int64()),
 ])
 

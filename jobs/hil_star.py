@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyarrow as pa
 
+from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.catalogs.pairs import load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 from dualsight.errors import ImageError
@@ -218,7 +219,8 @@ def _run_batch(idx: list[int], spec: HilStarSpec, ctx: Context) -> list[ImageRes
             res.row["t_read_ns"] = time.perf_counter_ns() - t0
             continue
         t_read[k] = time.perf_counter_ns() - t0
-        res.row.update(width=img.width, height=img.height, bit_depth=img.bit_depth, shift=img.shift)
+        res.row.update(width=img.width, height=img.height, bit_depth=img.bit_depth, shift=img.shift,
+                       image_digest=int(to_int64(frame_digest(px[None]))[0]))
         good.append(k)
         frames.append(px)
     if not good:
@@ -314,6 +316,7 @@ IMAGES_SCHEMA = pa.schema([
     ("case_id", pa.int64()), ("image", pa.string()), ("path", pa.string()), ("error", pa.string()),
     ("status", pa.string()), ("identified", pa.bool_()), ("method", pa.string()),
     ("width", pa.int32()), ("height", pa.int32()), ("bit_depth", pa.int32()), ("shift", pa.int32()),
+    ("image_digest", pa.int64()),
     ("background_adu", pa.float64()), ("detect_background_adu", pa.float64()), ("threshold_adu", pa.float64()),
     ("stars_detected", pa.int32()), ("stars_used", pa.int32()), ("stars_identified", pa.int32()), ("T", pa.int32()),
     ("ra_rad", pa.float64()), ("dec_rad", pa.float64()), ("roll_deg", pa.float64()), ("A_est", _MAT9),

@@ -36,6 +36,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from dualsight.catalogs.areas import area_table
 from dualsight.errors import ConfigError
 from dualsight.jobs.config import preset_and_config, validate
+from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.kernels.points import apply_sensor, render
 from dualsight.nav.blobber import BlobberConfig, run_blobber
 from dualsight.scene.attitude import angle_between, quat_to_dcm, random_quaternions
@@ -265,6 +266,7 @@ def compute_batch(spec: ProxSpec, ctx: ProxContext, case_ids: np.ndarray, keep_i
     t_total = time.perf_counter_ns() - t0
     timing = {"t_sample_ns": t1 - t0, "t_render_ns": t2 - t1, "t_blob_paper_ns": t_blob["paper"],
               "t_blob_subpixel_ns": t_blob["subpixel"], "t_total_ns": t_total}
+    draw = {**draw, "image_digest": frame_digest(img)}
     table = cases_table(spec, case_ids, draw, results, {k: v // max(B, 1) for k, v in timing.items()})
     out = {"draw": draw, "results": results, "tables": {"prox_cases": table}}
     if keep_images:
@@ -295,7 +297,8 @@ CASES_SCHEMA = pa.schema([
     ("case_id", pa.int64()), ("job", pa.string()), ("mode", pa.string()), ("seed", pa.int64()),
     ("frame", pa.int64()), ("range_index", pa.int64()), ("true_range_m", pa.float64()),
     ("true_x_m", pa.float64()), ("true_y_m", pa.float64()), ("true_z_m", pa.float64()),
-    ("R_body", pa.list_(pa.float64(), 9)), ("noise_seed", pa.uint64()), ("found", pa.bool_()),
+    ("R_body", pa.list_(pa.float64(), 9)), ("noise_seed", pa.uint64()), ("image_digest", pa.int64()),
+    ("found", pa.bool_()),
     ("n_blobs", pa.int64()), ("n_pixels", pa.int64()), ("n_coverage", pa.float64()),
     ("cob_x_px", pa.float64()), ("cob_y_px", pa.float64()), ("axis_ratio", pa.float64()),
     ("major_px", pa.float64()), ("minor_px", pa.float64()), ("dir_err_rad", pa.float64()),
@@ -319,7 +322,7 @@ def cases_table(spec: ProxSpec, case_ids, draw, results, timing) -> pa.Table:
         "range_index": draw["range_index"], "true_range_m": true_r,
         "true_x_m": t[:, 0], "true_y_m": t[:, 1], "true_z_m": t[:, 2],
         "R_body": pa.FixedSizeListArray.from_arrays(pa.array(P.R_body.reshape(-1).astype(np.float64)), 9),
-        "noise_seed": draw["noise_seed"],
+        "noise_seed": draw["noise_seed"], "image_digest": to_int64(draw["image_digest"]),
     }
     base = results["paper"]
     cols.update({"found": base.found, "n_blobs": base.n_blobs, "n_pixels": base.n_pixels,

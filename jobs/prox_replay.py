@@ -12,7 +12,9 @@ from dualsight.jobs.replay import recompute_case
 from dualsight.warehouse.lake import Lake
 
 
-def replay_prox_case(lake: Lake, run_id: str, case_id: int, output: Path | None = None) -> Path:
+def replay_prox_case(lake: Lake, run_id: str, case_id: int, output: Path | None = None, rec=None) -> Path:
+    """Re-render a proximity case, verify it against its row (image digest and every metric), and log it
+    into ``rec`` (an open recording) or a new recording at ``output``."""
     from dualsight.jobs import prox
     from dualsight.viz.recording import log_prox_frame, open_recording
 
@@ -37,16 +39,23 @@ def replay_prox_case(lake: Lake, run_id: str, case_id: int, output: Path | None 
         f"- paper (Eq. 1): {fresh['paper_range_min_m']:.3f} / **{fresh['paper_range_est_m']:.3f}** / "
         f"{fresh['paper_range_max_m']:.3f} m (min / est / max)",
         f"- subpixel: {fresh['subpixel_range_min_m']:.3f} / **{fresh['subpixel_range_est_m']:.3f}** / "
-        f"{fresh['subpixel_range_max_m']:.3f} m", "",
+        f"{fresh['subpixel_range_max_m']:.3f} m",
+        f"- image digest: {fresh['image_digest']} (re-rendered frame = stored)", "",
         "Yellow: centre of brightness; blue: true body origin; red/green: major/minor axes.", "",
         "Replay reproduced the lake's row bit for bit."])
     output = Path(output or f"{run_id}-case{case_id}.rrd")
-    rec = open_recording(output)
+    own = rec is None
+    rec = open_recording(output) if own else rec
+    t_true = out["draw"]["poses"].t_body[0]
+    positions = {"true": t_true} | {est: np.array([fresh[f"{est}_x_m"], fresh[f"{est}_y_m"], fresh[f"{est}_z_m"]],
+                                                 dtype=float) for est in ("paper", "subpixel")}
     log_prox_frame(rec, image=img, cob_xy=res.cob_px[0], axes=axes, blob_mask=(img > 0), true_xy=true_px[0],
+                   positions=positions,
                    info_md=info, scalars={"true_range_m": fresh["true_range_m"],
                                           "paper_range_m": fresh["paper_range_est_m"],
                                           "subpixel_range_m": fresh["subpixel_range_est_m"]}, frame=case_id)
-    rec.flush()
+    if own:
+        rec.flush()
     return output
 
 

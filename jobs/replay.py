@@ -79,7 +79,9 @@ def recompute_case(lake: Lake, run_id: str, case_id: int, job, dataset: str, kin
     return manifest, spec, ctx, out, fresh
 
 
-def replay_star_case(lake: Lake, run_id: str, case_id: int, output: Path | None = None) -> Path:
+def replay_star_case(lake: Lake, run_id: str, case_id: int, output: Path | None = None, rec=None) -> Path:
+    """Re-render a star case, verify it against its row (image digest and every metric), and log it into
+    ``rec`` (an open recording) or a new recording at ``output``."""
     from dualsight.jobs import star
     from dualsight.viz.recording import log_star_case, open_recording
 
@@ -93,14 +95,14 @@ def replay_star_case(lake: Lake, run_id: str, case_id: int, output: Path | None 
     ids[:min(K, S)] = ident.ids[0, :min(K, S)]
     acc[:min(K, S)] = ident.accepted[0, :min(K, S)]
     true_rows = out["truth"].true_row
-    hip = ctx.catalog.hip
-    labels = [f"HIP {hip[i]}" + ("" if a else "?") if i >= 0 else "-" for i, a in zip(ids, acc)]
+    hip, vmag = ctx.catalog.hip, ctx.catalog.vmag
+    labels = [f"HIP {hip[i]} V{vmag[i]:.2f}" + ("" if a else "?") if i >= 0 else "-" for i, a in zip(ids, acc)]
     ok = acc & (ids == true_rows) & (ids >= 0)
     if np.isfinite(sol.A_est[0]).all():
         v = ctx.catalog.unit @ sol.A_est[0].T
         px, front = spec.camera.project(v)
         inside = front & spec.camera.in_image(np.nan_to_num(px, nan=-1.0))
-        pred_xy, pred_labels = px[inside], [f"HIP {h}" for h in hip[inside]]
+        pred_xy, pred_labels = px[inside], [f"HIP {h} V{m:.2f}" for h, m in zip(hip[inside], vmag[inside])]
     else:
         pred_xy, pred_labels = np.zeros((0, 2)), []
     truth_xy = np.stack([field_.x[0][field_.inside[0]], field_.y[0][field_.inside[0]]], axis=-1)
@@ -115,12 +117,20 @@ def replay_star_case(lake: Lake, run_id: str, case_id: int, output: Path | None 
         f"- angles (deg): {np.degrees([fresh['theta1_rad'], fresh['theta2_rad'], fresh['theta3_rad']]).round(4)}",
         "", "Blue: true stars; yellow: catalog predicted by the estimated attitude; "
         "green/red: detections identified right / not.",
+        f"- image digest: {fresh['image_digest']} (re-rendered frame = stored)",
         "", "Replay reproduced the lake's row bit for bit."])
     output = Path(output or f"{run_id}-case{case_id}.rrd")
-    rec = open_recording(output)
+    own = rec is None
+    rec = open_recording(output) if own else rec
+    errs = {k: (fresh[k] * arcsec if fresh[k] is not None else None)
+            for k in ("err_x_rad", "err_y_rad", "err_z_rad", "err_total_rad")}
     log_star_case(rec, image=out["rendered"].images[0], det_xy=np.stack([det.x, det.y], -1), det_labels=labels,
-                  det_ok=ok, pred_xy=pred_xy, pred_labels=pred_labels, truth_xy=truth_xy, info_md=info)
-    rec.flush()
+                  det_ok=ok, pred_xy=pred_xy, pred_labels=pred_labels, truth_xy=truth_xy, info_md=info,
+                  frame=case_id, attitudes={"true": out["draw"]["A_true"][0], "estimated": sol.A_est[0]},
+                  scalars={k.replace("_rad", "_arcsec"): v for k, v in errs.items()}
+                  | {"n_identified": fresh["n_identified"]})
+    if own:
+        rec.flush()
     return output
 
 
@@ -172,8 +182,10 @@ def verify_case(lake: Lake, manifest: dict, case_id: int):
     return spec, ctx, stored, tables
 
 
-def replay_generic_case(lake: Lake, manifest: dict, case_id: int, output: Path) -> Path:
-    """Verify a case of any kind and record its image (re-read for real-image kinds) and its row."""
+def replay_generic_case(lake: Lake, manifest: dict, case_id: int, output: Path, rec=None) -> Path:
+    """Verify a case of any kind and record its image (re-read for real-image kinds; its digest must equal
+    the row's ``image_digest``) and its row."""
+    from dualsight.kernels.digest import frame_digest, to_int64
     from dualsight.viz.recording import log_image_case, open_recording
 
     spec, ctx, stored, tables = verify_case(lake, manifest, case_id)
@@ -183,9 +195,16 @@ def replay_generic_case(lake: Lake, manifest: dict, case_id: int, output: Path) 
         from dualsight.scene.imageio import read_image
 
         try:
-            image = read_image(Path(images[case_id].path), as_gray=True).adc_counts()
+            img = read_image(Path(images[case_id].path), as_gray=("image_digest" not in stored
+                                                                  or manifest["kind"] == "hil_star"))
         except InputError:
-            image = None
+            img = None
+        if img is not None:
+            image = img.adc_counts() if manifest["kind"] == "hil_star" else img.pixels
+            d = int(to_int64(frame_digest(np.asarray(image)[None]))[0])
+            if "image_digest" in stored and stored["image_digest"] is not None and d != stored["image_digest"]:
+                raise InputError(f"replay of case {case_id}: column image_digest is {stored['image_digest']} in "
+                                 f"the lake, {d} for the image read now", source=images[case_id].path)
     detail = [d for d in tables if d != manifest["primary"]]
     if detail:
         t = tables[detail[0]].to_pylist()
@@ -196,38 +215,46 @@ def replay_generic_case(lake: Lake, manifest: dict, case_id: int, output: Path) 
     lines = [f"# {manifest['kind']} case {case_id} of run `{manifest['run_id']}`", ""]
     lines += [f"- {k}: {v}" for k, v in stored.items() if not str(k).startswith(_TIMING)]
     lines += ["", "Replay reproduced the lake's row exactly."]
-    rec = open_recording(output)
+    own = rec is None
+    rec = open_recording(output) if own else rec
     log_image_case(rec, image=image, points=points, labels=labels, info_md="\n".join(lines), frame=case_id)
-    rec.flush()
+    if own:
+        rec.flush()
     return output
 
 
 def replay_run(lake: Lake, run_id: str, *, case: int | None = None, where: str | None = None, limit: int = 20,
                output: Path | None = None) -> list[Path]:
-    """Replay the selected cases of any run into rerun recordings: one ``.rrd`` file, or one per case in a
-    folder (``<run>-case<N>.rrd``).  Every case is verified against its row first."""
+    """Replay the selected cases of any run into rerun recordings: one ``.rrd`` file holding every selected
+    case on the ``frame`` time line (a trajectory plays as a film), or one file per case in a folder
+    (``<run>-case<N>.rrd``).  Every case is verified against its row first."""
     manifest, cases = select_cases(lake, run_id, case=case, where=where, limit=limit)
     if not cases:
         raise InputError("the predicate selects no case of this run", source="--where")
     output = Path(output) if output is not None else Path(".")
     single_file = output.suffix == ".rrd"
-    if single_file and len(cases) > 1:
-        raise InputError(f"{len(cases)} cases selected: give a folder, not a .rrd file", source="-o")
     folder = output.parent if single_file else output
     if not folder.is_dir():
         if single_file or not folder.parent.is_dir():
             raise InputError("folder does not exist (no folder is created but the one named)", source=str(folder))
         folder.mkdir()
+    from dualsight.viz.recording import open_recording
+
+    rec = open_recording(output) if single_file else None
     out = []
     for c in cases:
         path = output if single_file else folder / f"{run_id}-case{c}.rrd"
         kind = manifest["kind"]
         if kind == "star":
-            out.append(replay_star_case(lake, run_id, c, path))
+            replay_star_case(lake, run_id, c, path, rec=rec)
         elif kind in ("prox_sweep", "prox_trajectory"):
             from dualsight.jobs.prox_replay import replay_prox_case
 
-            out.append(replay_prox_case(lake, run_id, c, path))
+            replay_prox_case(lake, run_id, c, path, rec=rec)
         else:
-            out.append(replay_generic_case(lake, manifest, c, path))
+            replay_generic_case(lake, manifest, c, path, rec=rec)
+        if path not in out:
+            out.append(path)
+    if rec is not None:
+        rec.flush()
     return out

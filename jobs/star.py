@@ -40,6 +40,7 @@ from dualsight.jobs.config import dataclass_from_table, dataclass_to_table, pres
 from dualsight.kernels import detect as kdetect
 from dualsight.kernels import starfield as kstar
 from dualsight.kernels.detect import DetectConfig
+from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.kernels.starfield import SensorConfig
 from dualsight.nav.errors import STATUS_NAMES
 from dualsight.nav.observations import observations, ragged_rank
@@ -256,12 +257,15 @@ class Rendered:
     detections : ``kernels.detect.Detections``; images : (B, H, W) float32 when kept (replay), else None;
     t_render_ns, t_detect_ns : wall time of the stages (t_detect_ns None: detection ran fused into the
     sparse render, not as its own stage).
+    digest : (B,) uint64 digest of each full frame (:mod:`dualsight.kernels.digest`, sky = the sensor's
+        empty-sky level), the same whether the frame was rendered whole or only around its stars.
     """
 
     detections: object
     images: np.ndarray | None
     t_render_ns: int
     t_detect_ns: int | None
+    digest: np.ndarray
 
 
 def psf_margin_px(sensor: SensorConfig) -> float:
@@ -277,15 +281,16 @@ def render_and_detect(field_: FieldStars, noise_seeds: np.ndarray, camera: Camer
     around stars: the same blobs as full frames)."""
     t0 = time.perf_counter_ns()
     if sensor.is_ideal and not keep_images:
-        det = kdetect.render_and_detect_ideal(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
-                                              camera.height, sensor, detect_cfg, noise_seeds)
-        return Rendered(det, None, time.perf_counter_ns() - t0, None)
+        det, digest = kdetect.render_and_detect_ideal(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
+                                                      camera.height, sensor, detect_cfg, noise_seeds, digest=True)
+        return Rendered(det, None, time.perf_counter_ns() - t0, None, digest)
     images = kstar.render_star_fields(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
                                       camera.height, sensor, noise_seeds)
+    digest = frame_digest(images, np.asarray(sensor.empty_pixel_adu()).astype(images.dtype))
     t1 = time.perf_counter_ns()
     det = kdetect.detect_stars(images, detect_cfg)
     t2 = time.perf_counter_ns()
-    return Rendered(det, images if keep_images else None, t1 - t0, t2 - t1)
+    return Rendered(det, images if keep_images else None, t1 - t0, t2 - t1, digest)
 
 
 def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_images: bool = False) -> dict:
@@ -324,7 +329,7 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
     truth = match_truth(r.detections, field_, obs, cat.hip)
     per_case = {k: (np.full(B, v // max(B, 1), dtype=np.int64) if v is not None else None) for k, v in t.items()}
     tables = {"star_cases": cases_table(case_ids, spec, draw, field_, r.detections, obs, ident, sol, truth, per_case,
-                                        alt),
+                                        alt, r.digest),
               "star_detections": detections_table(case_ids, r.detections, obs, ident, sol, truth, ctx.catalog)}
     return {"draw": draw, "field": field_, "rendered": r, "obs": obs, "ident": ident, "sol": sol, "alt": alt,
             "truth": truth, "tables": tables}
@@ -339,7 +344,7 @@ CASES_SCHEMA = pa.schema([
     ("A_true", _MAT9), ("A_est", _MAT9),
     ("ra_true_rad", pa.float64()), ("dec_true_rad", pa.float64()),
     ("ra_est_rad", pa.float64()), ("dec_est_rad", pa.float64()),
-    ("noise_seed", pa.uint64()),
+    ("noise_seed", pa.uint64()), ("image_digest", pa.int64()),
     ("n_generated", pa.int32()), ("n_observed", pa.int32()), ("n_used", pa.int32()),
     ("n_identified", pa.int32()), ("n_correct_ids", pa.int32()), ("n_wrong_ids", pa.int32()),
     ("id_correct", pa.bool_()), ("T", pa.int32()),
@@ -365,7 +370,7 @@ DETECTIONS_SCHEMA = pa.schema([
 SCHEMAS = {"star_cases": CASES_SCHEMA, "star_detections": DETECTIONS_SCHEMA}
 
 
-def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, alt=None) -> pa.Table:
+def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, alt=None, det_digest=None) -> pa.Table:
     B = len(case_ids)
     ra_t, dec_t = boresight_radec(draw["A_true"])
     ra_e, dec_e = boresight_radec(sol.A_est)
@@ -389,7 +394,7 @@ def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, al
         "theta1_rad": draw["angles"][:, 0], "theta2_rad": draw["angles"][:, 1], "theta3_rad": draw["angles"][:, 2],
         "A_true": _mat9(draw["A_true"]), "A_est": _mat9(sol.A_est),
         "ra_true_rad": ra_t, "dec_true_rad": dec_t, "ra_est_rad": ra_e, "dec_est_rad": dec_e,
-        "noise_seed": draw["noise_seed"],
+        "noise_seed": draw["noise_seed"], "image_digest": to_int64(det_digest),
         "n_generated": field_.n_generated.astype(np.int32), "n_observed": np.diff(det.offsets).astype(np.int32),
         "n_used": obs.valid.sum(1).astype(np.int32), "n_identified": ident.accepted.sum(1).astype(np.int32),
         "n_correct_ids": truth.n_correct(ident).astype(np.int32),

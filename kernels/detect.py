@@ -40,6 +40,7 @@ from dualsight.kernels import star_psf
 from dualsight.kernels import starfield as sf
 from dualsight.config import check_fields
 from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.digest import patch_digest
 from dualsight.kernels.labelling import Components, find, label_frames, label_segments, union
 
 __all__ = ["DetectConfig", "Detections", "detect_stars", "render_and_detect_ideal", "estimate_background"]
@@ -348,7 +349,7 @@ def detect_stars(images: np.ndarray, cfg: DetectConfig = DetectConfig()) -> Dete
 
 def render_and_detect_ideal(x, y, flux_e, valid, width: int, height: int,
                             sensor: sf.SensorConfig = sf.SensorConfig(), detect: DetectConfig = DetectConfig(),
-                            seeds=None, *, dtype=np.uint16) -> Detections:
+                            seeds=None, *, dtype=np.uint16, digest: bool = False):
     """Detections of noise-free star fields without rendering the empty sky (sparse fast path).
 
     Gives the same blobs as ``detect_stars(render_star_fields(x, y, flux_e, valid, width, height,
@@ -367,10 +368,12 @@ def render_and_detect_ideal(x, y, flux_e, valid, width: int, height: int,
     detect : :class:`DetectConfig`; background_adu None = the constant empty-sky level, noise_sigma_adu
         None = 0.  The threshold must lie at or above the empty-sky level.
     dtype : the output dtype of the dense render this path reproduces (uint16 or float32).
+    digest : also return the (B,) uint64 digests of the dense frames (:mod:`dualsight.kernels.digest`,
+        sky = the empty-sky level), computed from the windows.
 
     Returns
     -------
-    :class:`Detections`.
+    :class:`Detections`, or (Detections, digests) when ``digest``.
     """
     if sensor.has_pixel_noise:
         raise ValueError("render_and_detect_ideal needs a noise-free sensor (shot_noise=False, read_noise_e=0, "
@@ -387,8 +390,9 @@ def render_and_detect_ideal(x, y, flux_e, valid, width: int, height: int,
     if B and not np.all(sky <= thr):
         raise ValueError(f"threshold {thr.min()} ADU is below the empty-sky level {sky} ADU: every pixel "
                          "would be a star pixel")
+    no_digest = np.zeros(B, np.uint64)
     if B == 0:
-        return _empty(B, detect, bg, thr)
+        return (_empty(B, detect, bg, thr), no_digest) if digest else _empty(B, detect, bg, thr)
     win = np.empty((B, S, 4), np.int32)
     root = np.empty(B * S, np.int32)
     _get("group")(x, y, f, ok, win, root, float(sensor.psf_sigma_px), float(sensor.psf_window_sigma), W, H)
@@ -397,7 +401,7 @@ def render_and_detect_ideal(x, y, flux_e, valid, width: int, height: int,
     gb, gs = np.nonzero(root == ar[None, :])  # group roots, ordered by (case, first star)
     G = gb.size
     if G == 0:
-        return _empty(B, detect, bg, thr)
+        return (_empty(B, detect, bg, thr), no_digest) if digest else _empty(B, detect, bg, thr)
     gbox = np.ascontiguousarray(win[gb, gs])
     area = (gbox[:, 1] - gbox[:, 0]).astype(np.int64) * (gbox[:, 3] - gbox[:, 2])
     poff = np.zeros(G + 1, np.int64)
@@ -419,4 +423,7 @@ def render_and_detect_ideal(x, y, flux_e, valid, width: int, height: int,
     # each patch is one segment of the labeller, at its place in its frame
     comp = label_segments(val, poff[:-1], gbox[:, 1] - gbox[:, 0], gbox[:, 3] - gbox[:, 2], gbox[:, 0], gbox[:, 2],
                           gb, thr, offset=bg, connectivity=detect.connectivity)
-    return _from_components(comp, gb, B, detect, bg, thr)
+    det = _from_components(comp, gb, B, detect, bg, thr)
+    if not digest:
+        return det
+    return det, patch_digest(val.astype(dt), poff, gbox, gb, B, W, np.asarray(sky).astype(dt))

@@ -36,6 +36,7 @@ from typing import Iterable
 
 import numpy as np
 
+from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.errors import ConfigError, ImageError, InputError
 from dualsight.scene.camera import Camera, read_toml
 from dualsight.scene.imageio import Image, list_images, read_image
@@ -160,6 +161,7 @@ class ViewCorners:
     corners : (N, 2) float32 corners (col, row) in OpenCV's convention (pixel centres at integers), or
         None when the board was not found or the image could not be read.
     error : why the image could not be read (None if it was).
+    digest : the decoded frame's digest as int64 (:mod:`dualsight.kernels.digest`), None if unread.
     """
 
     path: Path
@@ -168,6 +170,7 @@ class ViewCorners:
     bit_depth: int | None = None
     corners: np.ndarray | None = None
     error: str | None = None
+    digest: int | None = None
 
 
 def find_view(path: str | Path, board: tuple[int, int] = (9, 6), find_flags: int = FIND_FLAGS_DEFAULT) -> ViewCorners:
@@ -178,7 +181,8 @@ def find_view(path: str | Path, board: tuple[int, int] = (9, 6), find_flags: int
     except ImageError as e:
         return ViewCorners(path, error=e.detail)
     return ViewCorners(path, img.width, img.height, img.bit_depth or 8,
-                       find_corners(_to_gray8(img), board, find_flags))
+                       find_corners(_to_gray8(img), board, find_flags),
+                       digest=int(to_int64(frame_digest(img.pixels[None]))[0]))
 
 
 def check_settings(board, square_m, pixel_pitch_m=None) -> tuple[int, int]:

@@ -119,3 +119,105 @@ def test_hil_star_frame_is_reread_verified_and_recorded(tmp_path):
     assert "/camera/image" in rec
     assert len(column(rec["/camera/image/detections"], "Points2D:positions")[0]) == n_stars
     assert "HIP" in str(column(rec["/camera/image/detections"], "Points2D:labels")[0])
+
+
+# ------------------------------------------------------------------------------------------ issue 10, point 5
+def _tamper(lake: Path, run: str, dataset: str, case_id: int, column_name: str, value) -> None:
+    """Rewrite one stored value in a shard file, as a hostile edit would, and fix the journal's byte count
+    so that the lake still serves the file (the replay, not the size check, must catch it)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    for f in sorted((lake / dataset / f"run={run}").glob("*.parquet")):
+        t = pq.read_table(f)
+        ids = t.column("case_id").to_numpy()
+        if case_id not in ids:
+            continue
+        col = t.column(column_name).to_pylist()
+        col[int(np.flatnonzero(ids == case_id)[0])] = value
+        t = t.set_column(t.schema.get_field_index(column_name), t.schema.field(column_name),
+                         pa.array(col, type=t.schema.field(column_name).type))
+        pq.write_table(t, f)
+        journal = lake / "_manifests" / f"{run}.shards.jsonl"
+        lines = [json.loads(x) for x in journal.read_text().splitlines()]
+        for e in lines:
+            if e["case_start"] <= case_id < e["case_stop"]:
+                e["bytes"][dataset] = f.stat().st_size
+        journal.write_text("".join(json.dumps(e) + "\n" for e in lines))
+        return
+    raise AssertionError(f"case {case_id} not found")
+
+
+@pytest.mark.parametrize("column_name,delta", [("image_digest", 1), ("err_x_rad", 1e-9)])
+def test_a_tampered_stored_metric_fails_the_replay_naming_it(star_lake, tmp_path, capsys, column_name, delta):
+    lake2 = tmp_path / "lake2"
+    shutil.copytree(star_lake, lake2)
+    _, rows = run_sql(lake2, f"SELECT {column_name} FROM star_cases WHERE run = 's' AND case_id = 7")
+    old = rows[0][0]
+    _tamper(lake2, "s", "star_cases", 7, column_name, old + delta)
+    _, rows = run_sql(lake2, f"SELECT {column_name} FROM star_cases WHERE run = 's' AND case_id = 7")
+    assert rows[0][0] == old + delta                     # the lake serves the tampered value
+    assert main(["replay", "--lake", str(lake2), "--run", "s", "--case", "7", "-o", str(tmp_path / "x.rrd")]) == 2
+    err = capsys.readouterr().err
+    assert f"column {column_name} is {old + delta!r} in the lake, {old!r} recomputed" in err
+    assert main(["replay", "--lake", str(lake2), "--run", "s", "--case", "6", "-o", str(tmp_path / "y.rrd")]) == 0
+
+
+def test_star_recording_has_magnitudes_and_both_attitudes(star_lake, tmp_path):
+    from dualsight.jobs import star
+
+    _, rows = run_sql(star_lake, "SELECT case_id, A_true, A_est FROM star_cases WHERE run = 's' "
+                                 "AND status = 'success' ORDER BY case_id LIMIT 1")
+    case_id, A_true, A_est = rows[0]
+    _, hips = run_sql(star_lake, f"SELECT hip_assigned FROM star_detections WHERE run = 's' AND case_id = {case_id} "
+                                 "AND accepted ORDER BY det_index")
+    out = tmp_path / "c.rrd"
+    assert main(["replay", "--lake", str(star_lake), "--run", "s", "--case", str(case_id), "-o", str(out)]) == 0
+    rec = read_rrd(out)
+    np.testing.assert_allclose(np.asarray(column(rec["/attitude/true"], "Arrows3D:vectors")[0]),
+                               np.reshape(A_true, (3, 3)), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(column(rec["/attitude/estimated"], "Arrows3D:vectors")[0]),
+                               np.reshape(A_est, (3, 3)), atol=1e-6)
+    labels = column(rec["/camera/image/detections"], "Points2D:labels")[0]
+    spec, _ = star.resolve("paper", None)
+    cat = star.make_context(spec).catalog
+    vmag = dict(zip(cat.hip.tolist(), cat.vmag.tolist()))
+    assert len(hips) >= 3
+    for (hip,) in hips:
+        assert any(lab.startswith(f"HIP {hip} V{vmag[hip]:.2f}") for lab in labels), hip
+    assert column(rec["/metrics/err_x_arcsec"], "Scalars:scalars")
+
+
+def test_a_trajectory_replays_as_one_recording_on_the_frame_time_line(tmp_path):
+    from dualsight.jobs import prox
+
+    spec = prox.resolve_spec("paper", None, job="trajectory", frames=8)
+    run_job("prox_trajectory", spec, n_cases=8, lake=Lake(tmp_path / "l"), run_id="tr", workers=1, progress=False)
+    _, rows = run_sql(tmp_path / "l", "SELECT case_id, true_x_m, true_y_m, true_z_m FROM prox_cases "
+                                      "WHERE run = 'tr' AND case_id % 2 = 0 ORDER BY case_id")
+    out = tmp_path / "traj.rrd"
+    assert main(["replay", "--lake", str(tmp_path / "l"), "--run", "tr", "--where", "case_id % 2 = 0", "-o",
+                 str(out)]) == 0
+    rec = read_rrd(out)
+    true_rows = rec["/scene/true"]
+    assert [r["frame"] for r in true_rows] == [r[0] for r in rows]        # one point per frame, at its frame
+    got = np.array([column([r], "Points3D:positions")[0][0] for r in true_rows])
+    np.testing.assert_allclose(got, np.array([r[1:] for r in rows]), rtol=1e-6, atol=1e-6)
+    assert len(rec["/camera/image"]) == len(rows)
+
+
+def test_a_tampered_hil_image_digest_fails_the_replay(tmp_path, capsys):
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import test_hil_star as th
+
+    if not th.ESA.is_dir():
+        pytest.skip(f"real ESA frames not found in {th.ESA}")
+    spec = th._esa_spec()
+    run_job("hil_star", spec, n_cases=2, lake=Lake(tmp_path / "l"), run_id="h", workers=1, progress=False)
+    _, rows = run_sql(tmp_path / "l", "SELECT image_digest FROM hil_star WHERE run = 'h' AND case_id = 1")
+    _tamper(tmp_path / "l", "h", "hil_star", 1, "image_digest", rows[0][0] ^ 1)
+    assert main(["replay", "--lake", str(tmp_path / "l"), "--run", "h", "--case", "1", "-o",
+                 str(tmp_path / "h.rrd")]) == 2
+    assert f"column image_digest is {rows[0][0] ^ 1}" in capsys.readouterr().err

@@ -31,18 +31,44 @@ def _display(image: np.ndarray) -> np.ndarray:
     return (np.sqrt(np.clip(img / hi, 0, 1)) * 255).astype(np.uint8)
 
 
+def log_attitudes(rec, attitudes: dict[str, np.ndarray | None]):
+    """Log attitudes as the camera's three axes in the inertial frame (Arrows3D, unit length).
+
+    attitudes : {name: (3, 3) DCM A (inertial -> camera; its rows are the camera axes in the inertial
+    frame) or None}; entity ``attitude/<name>``, arrows x red, y green, z (boresight) blue.
+    """
+    rr = _rr()
+    for name, A in attitudes.items():
+        if A is not None and np.all(np.isfinite(A)):
+            rec.log(f"attitude/{name}", rr.Arrows3D(vectors=np.asarray(A, dtype=np.float64).reshape(3, 3),
+                                                    colors=[[240, 60, 60], [40, 220, 40], [80, 140, 255]],
+                                                    labels=[f"{name} x", f"{name} y", f"{name} z"]))
+
+
+def log_scalars(rec, scalars: dict[str, float | None]):
+    """Log finite numbers as time series ``metrics/<name>`` (plotted along the recording's time lines)."""
+    rr = _rr()
+    for k, v in scalars.items():
+        if v is not None and np.isfinite(v):
+            rec.log(f"metrics/{k}", rr.Scalars(float(v)))
+
+
 def log_star_case(rec, *, image: np.ndarray, det_xy: np.ndarray, det_labels: list[str], det_ok: np.ndarray,
                   pred_xy: np.ndarray, pred_labels: list[str], truth_xy: np.ndarray, info_md: str,
-                  frame: int = 0):
+                  frame: int = 0, attitudes: dict | None = None, scalars: dict | None = None):
     """Log one star-tracker case.
 
     image : (H, W) raw frame.  det_xy : (K, 2) centroids (col, row; top-left corner convention).
+    det_labels : (K,) "HIP <id> V<mag>" of identified detections.
     det_ok : (K,) bool, identity accepted and right (green) / otherwise (red).
     pred_xy : (M, 2) catalog stars projected with the *estimated* attitude (predicted positions).
     truth_xy : (G, 2) catalog stars projected with the true attitude (generated stars).
+    attitudes : {"true": A, "estimated": A} (:func:`log_attitudes`).  scalars : numbers (:func:`log_scalars`).
     """
     rr = _rr()
     rec.set_time("frame", sequence=frame)
+    log_attitudes(rec, attitudes or {})
+    log_scalars(rec, scalars or {})
     rec.log("camera/image", rr.Image(_display(image)))
     green, red, blue, yellow = [40, 220, 40], [240, 60, 60], [80, 140, 255], [250, 210, 40]
     if len(truth_xy):
@@ -56,13 +82,21 @@ def log_star_case(rec, *, image: np.ndarray, det_xy: np.ndarray, det_labels: lis
 
 
 def log_prox_frame(rec, *, image: np.ndarray, cob_xy, axes: np.ndarray | None, blob_mask: np.ndarray | None,
-                   true_xy, info_md: str, scalars: dict[str, float], frame: int = 0):
+                   true_xy, info_md: str, scalars: dict[str, float], frame: int = 0,
+                   positions: dict[str, np.ndarray] | None = None):
     """Log one proximity frame: image, blob, centre of brightness, principal axes, numbers.
 
     axes : (2, 2, 2) line segments (major, minor) through the COB, in pixels, or None.
+    positions : {name: (3,) target position in the camera frame (m)}, logged as ``scene/<name>``
+        points (true and each estimator's), so a trajectory's frames trace both paths on the time line.
     """
     rr = _rr()
     rec.set_time("frame", sequence=frame)
+    colors = {"true": [80, 140, 255], "paper": [250, 210, 40], "subpixel": [40, 220, 40]}
+    for name, p in (positions or {}).items():
+        if p is not None and np.all(np.isfinite(p)):
+            rec.log(f"scene/{name}", rr.Points3D([np.asarray(p, dtype=np.float64)], radii=0.02,
+                                                 colors=[colors.get(name, [200, 200, 200])], labels=[name]))
     rec.log("camera/image", rr.Image(_display(image)))
     if blob_mask is not None:
         rec.log("camera/image/blob", rr.SegmentationImage(blob_mask.astype(np.uint8)))
@@ -73,9 +107,7 @@ def log_prox_frame(rec, *, image: np.ndarray, cob_xy, axes: np.ndarray | None, b
                                                         labels=["truth"]))
     if axes is not None and np.all(np.isfinite(axes)):
         rec.log("camera/image/axes", rr.LineStrips2D(axes, colors=[[240, 60, 60], [40, 220, 40]]))
-    for k, v in scalars.items():
-        if v is not None and np.isfinite(v):
-            rec.log(f"metrics/{k}", rr.Scalars(float(v)))
+    log_scalars(rec, scalars)
     rec.log("case", rr.TextDocument(info_md, media_type=rr.MediaType.MARKDOWN))
 
 

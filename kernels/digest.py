@@ -1,0 +1,106 @@
+"""A 64-bit digest of a rendered or decoded frame, stored in each row so that a replay can prove it drew
+the same image.
+
+Definition (one formula for every path that makes a frame)::
+
+    digest(I) = sum over pixels p of (bits(I[p]) - bits(sky)) * splitmix64(p)      (mod 2^64)
+
+p is the flat row-major index (channels innermost for colour frames), ``bits`` the value's unsigned
+bit pattern (the integer itself for uint8/16/32 frames, the IEEE-754 pattern for float32/float64),
+``sky`` the frame's constant empty-sky level (0 for real images) and splitmix64 the finaliser of
+Steele, Lea & Flood (2014), "Fast splittable pseudorandom number generators", OOPSLA (the constants of
+``java.util.SplittableRandom``).  Pixels at the sky level add nothing, so the sparse star path, which
+renders only the windows around stars, gets the digest of the whole frame from its windows alone;
+any changed pixel value or position changes the digest (up to a 2^-64 chance).  It is a checksum for
+reproducibility, not a cryptographic hash.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["splitmix64", "frame_digest", "patch_digest", "to_int64"]
+
+_C1, _C2, _C3 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
+_WEIGHTS: dict[int, np.ndarray] = {}
+
+
+def splitmix64(index: np.ndarray) -> np.ndarray:
+    """splitmix64 of each index.  index : (...) integer array; returns (...) uint64."""
+    with np.errstate(over="ignore"):
+        z = np.asarray(index).astype(np.uint64) * _C1 + _C1
+        z = (z ^ (z >> np.uint64(30))) * _C2
+        z = (z ^ (z >> np.uint64(27))) * _C3
+        return z ^ (z >> np.uint64(31))
+
+
+def _weights(n: int) -> np.ndarray:
+    """splitmix64(0..n-1), cached for the last few frame sizes (8 bytes per pixel)."""
+    w = _WEIGHTS.get(n)
+    if w is None:
+        if len(_WEIGHTS) >= 4:
+            _WEIGHTS.pop(next(iter(_WEIGHTS)))
+        w = _WEIGHTS[n] = splitmix64(np.arange(n, dtype=np.uint64))
+    return w
+
+
+def _bits(a: np.ndarray) -> np.ndarray:
+    """Unsigned bit patterns of an array's values, as uint64."""
+    a = np.asarray(a)
+    if a.dtype.kind == "f":
+        a = a.view(np.uint32 if a.dtype.itemsize == 4 else np.uint64)
+    elif a.dtype.kind == "b":
+        a = a.view(np.uint8)
+    elif a.dtype.kind == "i":
+        a = a.view(a.dtype.str.replace("i", "u"))
+    elif a.dtype.kind != "u":
+        raise ValueError(f"cannot digest a frame of dtype {a.dtype}")
+    return a.astype(np.uint64)
+
+
+def frame_digest(frames: np.ndarray, sky=0) -> np.ndarray:
+    """Digests of a batch of frames.
+
+    frames : (B, H, W) or (B, H, W, C) array of any integer or float dtype (one frame: add the batch
+        axis).  sky : scalar or (B,) empty-sky level in the frames' dtype (0 for real images).
+    Returns (B,) uint64.
+    """
+    frames = np.asarray(frames)
+    B = frames.shape[0]
+    flat = frames.reshape(B, -1)
+    w = _weights(flat.shape[1])
+    sky_bits = _bits(np.broadcast_to(np.asarray(sky, dtype=frames.dtype), (B,)))
+    out = np.empty(B, np.uint64)
+    with np.errstate(over="ignore"):
+        for b in range(B):   # one vectorised pass per frame (B is a batch of frames, not pixels)
+            out[b] = ((_bits(flat[b]) - sky_bits[b]) * w).sum(dtype=np.uint64)
+    return out
+
+
+def patch_digest(values: np.ndarray, poff: np.ndarray, boxes: np.ndarray, patch_frame: np.ndarray,
+                 n_frames: int, width: int, sky) -> np.ndarray:
+    """Digests of frames known only by disjoint rectangular patches on a constant sky (the sparse path).
+
+    values : (P,) pixel values in the frames' dtype, patches concatenated row-major.
+    poff : (G + 1,) int64 start of patch g in ``values``.  boxes : (G, 4) int (c0, c1, r0, r1), half-open.
+    patch_frame : (G,) frame index of each patch.  width : frame width (px).  sky : scalar, the sky level.
+    Returns (n_frames,) uint64, equal to :func:`frame_digest` of the full frames.
+    """
+    values = np.asarray(values)
+    out = np.zeros(n_frames, np.uint64)
+    if values.size == 0:
+        return out
+    boxes = np.asarray(boxes, np.int64)
+    g = np.repeat(np.arange(len(boxes)), np.diff(poff))
+    i = np.arange(values.size, dtype=np.int64) - np.asarray(poff, np.int64)[g]
+    pw = (boxes[:, 1] - boxes[:, 0])[g]
+    idx = (boxes[:, 2][g] + i // pw) * int(width) + boxes[:, 0][g] + i % pw
+    with np.errstate(over="ignore"):
+        term = (_bits(values) - _bits(np.asarray(sky, dtype=values.dtype))) * splitmix64(idx)
+        np.add.at(out, np.asarray(patch_frame, np.int64)[g], term)
+    return out
+
+
+def to_int64(d: np.ndarray) -> np.ndarray:
+    """The digests as signed int64 (same bits), the column type of the lake."""
+    return np.asarray(d, np.uint64).view(np.int64)
