@@ -23,7 +23,11 @@ comes back through the warehouse SQL (``warehouse/sql/hil_prox_*.sql``).
      "sweep": [{"threshold", "images", "found", "with_truth", "avg_range_m", "avg_range_min_m",
                 "avg_range_max_m", "avg_truth_m", "avg_abs_error_m", "avg_rel_error_pct",
                 "median_rel_error_pct", "within_min_max_pct", ...}, ...],
-     "best": the sweep row with the smallest avg_rel_error_pct (null without truth)}
+     "best": the sweep row of the threshold chosen without truth (where the range estimates change least
+             with the threshold; null with fewer than 3 thresholds),
+     "oracle": the sweep row with the smallest avg_rel_error_pct (chosen with the truth: optimistic; null
+               without truth),
+     "cross_validated_rel_error_pct": leave-one-image-out error of choosing by truth (null without truth)}
 
 Exit status: 0 when every image was processed (a blob found or not), 1 when an image could not be read
 (it is reported on stderr, gets an error entry/row, and the others run), 2 for bad options (nothing

@@ -29,10 +29,72 @@ def fetch(con, run_id: str) -> dict:
             "sweep": _dicts(*run_report(con, "hil_prox_sweep", run=run_id))}
 
 
-def best_threshold(sweep: list[dict]) -> dict | None:
-    """The sweep row with the smallest average relative error (None without truth)."""
+def oracle_threshold(sweep: list[dict]) -> dict | None:
+    """The sweep row with the smallest average relative error: chosen WITH the truth, so its error is an
+    optimistic bound, not what a user without truth would get (None without truth)."""
     ok = [s for s in sweep if s.get("avg_rel_error_pct") is not None]
     return min(ok, key=lambda s: s["avg_rel_error_pct"]) if ok else None
+
+
+def _range_grid(rows: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(thresholds (T,), range estimates (N, T) with NaN where no blob, truths (N,) NaN where unknown);
+    rows of images that could not be read (no threshold) are left out."""
+    rows = [r for r in rows if r.get("threshold") is not None]
+    th = np.array(sorted({r["threshold"] for r in rows}), dtype=float)
+    cases = sorted({r["case_id"] for r in rows})
+    ci = {c: i for i, c in enumerate(cases)}
+    est = np.full((len(cases), len(th)), np.nan)
+    truth = np.full(len(cases), np.nan)
+    for r in rows:   # a few rows per image and threshold: bookkeeping, not a pixel loop
+        i, j = ci[r["case_id"]], int(np.searchsorted(th, r["threshold"]))
+        if r.get("found") and r.get("range_m") is not None:
+            est[i, j] = r["range_m"]
+        if r.get("truth_range_m") is not None:
+            truth[i] = r["truth_range_m"]
+    return th, est, truth
+
+
+def stable_threshold(rows: list[dict]) -> float | None:
+    """The threshold chosen without the truth: where the images' range estimates change least with the
+    threshold (smallest mean |d ln range| to the neighbouring thresholds over the images with a blob at
+    both), the middle of the flattest part of the sweep.  rows : the ``hil_prox`` rows of one run.
+    None with fewer than 3 thresholds."""
+    th, est, _ = _range_grid(rows)
+    if len(th) < 3:
+        return None
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = np.abs(np.diff(np.log(est), axis=1))                    # (N, T - 1)
+        step = np.nanmean(d, axis=0)                                # per interval
+    left = np.concatenate([[np.nan], step])
+    right = np.concatenate([step, [np.nan]])
+    score = np.nanmean(np.stack([left, right]), axis=0)
+    found = np.isfinite(est).mean(axis=0)
+    score = np.where(found >= 0.5 * found.max(), score, np.nan)     # a threshold that loses the target is no choice
+    return float(th[int(np.nanargmin(score))]) if np.isfinite(score).any() else None
+
+
+def cross_validated_error(rows: list[dict]) -> float | None:
+    """Leave-one-image-out error of choosing the threshold with the truth: for each image with a truth,
+    pick the threshold with the smallest mean relative error over the OTHER images, and take this image's
+    relative error there (no blob counts as 100 %).  Returns the mean, in %, or None (fewer than 2 images
+    with a truth)."""
+    th, est, truth = _range_grid(rows)
+    keep = np.isfinite(truth)
+    est, truth = est[keep], truth[keep]
+    n = len(truth)
+    if n < 2:
+        return None
+    rel = np.where(np.isfinite(est), np.abs(est - truth[:, None]) / truth[:, None], 1.0)   # (n, T)
+    others = (rel.sum(axis=0)[None, :] - rel) / (n - 1)                                      # (n, T)
+    pick = np.argmin(others, axis=1)
+    return float(100.0 * rel[np.arange(n), pick].mean())
+
+
+def best_threshold(sweep: list[dict], rows: list[dict] | None = None) -> dict | None:
+    """The threshold a user without truth would use (:func:`stable_threshold` over ``rows``), as its sweep
+    row; without ``rows`` or with fewer than 3 thresholds, None."""
+    t = stable_threshold(rows) if rows else None
+    return next((s for s in sweep if s["threshold"] == t), None) if t is not None else None
 
 
 def _r(v, nd=6):
@@ -71,7 +133,8 @@ def json_document(data: dict, *, run_id: str | None, camera: dict, target: dict,
     rows = _by_case(data["rows"])
     return {"run": run_id, "camera": camera, "target": target, "settings": settings,
             "images": [_image_json(c, rows.get(c["case_id"], [])) for c in data["cases"]], "sweep": clean,
-            "best": best_threshold(clean)}
+            "best": best_threshold(clean, data["rows"]), "oracle": oracle_threshold(clean),
+            "cross_validated_rel_error_pct": _r(cross_validated_error(data["rows"]), 4)}
 
 
 def _fmt_thresholds(th) -> str:
@@ -83,7 +146,8 @@ def text_report(con, run_id: str, data: dict, settings) -> str:
     from dualsight.warehouse.query import format_table, run_report
 
     s, sweep = settings, data["sweep"]
-    best = best_threshold(sweep)
+    best = best_threshold(sweep, data["rows"])
+    oracle, cv = oracle_threshold(sweep), cross_validated_error(data["rows"])
     th = s.thresholds
     show_t = th[0] if len(th) == 1 else (best["threshold"] if best else th[len(th) // 2])
     out = [f"threshold{'s' if len(th) > 1 else ''} {_fmt_thresholds(th)}{' on the inverted image' if s.invert else ''}; "
@@ -109,9 +173,15 @@ def text_report(con, run_id: str, data: dict, settings) -> str:
                                  "avg rel err %", "within %"], [[x.get(k) for k in keys] for x in sweep],
                                 floatfmt="{:.4g}"))
         if best:
-            out.append(f"best threshold {best['threshold']:g}: average residual {best['avg_abs_error_m']:.4g} m "
-                       f"({best['avg_rel_error_pct']:.2f} %), true range inside [min, max] for "
-                       f"{best['within_min_max_pct']:.0f} % of the images")
+            line = f"chosen threshold {best['threshold']:g} (without the truth: where the range changes least)"
+            if best.get("avg_rel_error_pct") is not None:
+                line += (f": average residual {best['avg_abs_error_m']:.4g} m ({best['avg_rel_error_pct']:.2f} %), "
+                         f"true range inside [min, max] for {best['within_min_max_pct']:.0f} % of the images")
+            out.append(line)
+        if oracle:
+            out.append(f"oracle threshold {oracle['threshold']:g} (chosen WITH the truth, optimistic): "
+                       f"{oracle['avg_rel_error_pct']:.2f} %; leave-one-image-out error of that choice: "
+                       + ("-" if cv is None else f"{cv:.2f} %"))
     return "\n".join(out)
 
 

@@ -251,6 +251,10 @@ def _run_batch(idx: list[int], spec: HilStarSpec, ctx: Context) -> list[ImageRes
     return [results[k] for k in idx]
 
 
+MIN_IDENTIFIED_STARS = 3
+"""Fewest identified stars for an image to count as identified (two give an attitude but no check)."""
+
+
 def _fill(res: ImageResult, b: int, det, obs, ident, sol, alt, truth: StarTruth, ctx: Context):
     """Per-image numbers and per-star rows from the batch's stage outputs."""
     cam, cat, rt = ctx.rt.camera, ctx.catalog, ctx.rt
@@ -263,7 +267,8 @@ def _fill(res: ImageResult, b: int, det, obs, ident, sol, alt, truth: StarTruth,
              T=int(ident.T[b]), stars_identified=int(ident.accepted[b].sum()))
     A_true = truth.matrix("A")
     matched = truth.matched.arrays() if truth.matched is not None else None
-    ok = bool(sol.ok[b]) and int(ident.T[b]) > 0
+    # two stars fit any catalog pair at their separation: an answer needs a third star that checks it
+    ok = bool(sol.ok[b]) and int(ident.T[b]) > 0 and int(ident.accepted[b].sum()) >= MIN_IDENTIFIED_STARS
     r["identified"] = ok
     A = sol.A_est[b]
     agrees = None
@@ -301,7 +306,7 @@ def _fill(res: ImageResult, b: int, det, obs, ident, sol, alt, truth: StarTruth,
                                         altaz_A=truth.matrix("altaz_A")))
     if alt is not None:
         ident_a, sol_a = alt
-        ok_a = bool(sol_a.ok[b]) and int(ident_a.T[b]) > 0
+        ok_a = bool(sol_a.ok[b]) and int(ident_a.T[b]) > 0 and int(ident_a.accepted[b].sum()) >= MIN_IDENTIFIED_STARS
         r.update(alt_identified=ok_a, alt_T=int(ident_a.T[b]), alt_stars_identified=int(ident_a.accepted[b].sum()))
         if ok_a:
             ra_ = sol_a.residual[b][ident_a.accepted[b] & (ident_a.ids[b] >= 0)]

@@ -497,3 +497,47 @@ def test_sphere_target_gives_the_analytic_range(tmp_path):
     res = json.loads(out)["images"][0]["results"][0]
     fx = Camera.from_toml(cam).fx
     assert res["found"] and res["range_m"] == pytest.approx(fx * 0.15 / R, rel=5e-3)
+
+
+# ------------------------------------------------------------------ issue 11.8: a threshold chosen without truth
+def _sweep_rows(est: np.ndarray, truth: np.ndarray, th) -> list[dict]:
+    return [{"case_id": i, "threshold": float(t), "found": bool(np.isfinite(est[i, j])),
+             "range_m": float(est[i, j]) if np.isfinite(est[i, j]) else None,
+             "truth_range_m": float(truth[i]) if np.isfinite(truth[i]) else None}
+            for i in range(est.shape[0]) for j, t in enumerate(th)]
+
+
+def test_chosen_threshold_is_the_flattest_and_ignores_the_truth():
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from dualsight.jobs.hil_prox_report import stable_threshold
+
+    th = [10, 20, 30, 40, 50]
+    # ranges change a lot at both ends and hardly around threshold 30
+    est = np.array([[5.0, 9.0, 9.05, 9.1, 14.0], [6.0, 10.0, 10.02, 10.1, 15.0]])
+    assert stable_threshold(_sweep_rows(est, np.array([9.0, 10.0]), th)) == 30.0
+
+    @settings(max_examples=30, deadline=None)
+    @given(st.lists(st.floats(0.1, 100), min_size=2, max_size=2), st.lists(st.floats(0.1, 100), min_size=2,
+                                                                          max_size=2))
+    def same_without_truth(t1, t2):
+        assert stable_threshold(_sweep_rows(est, np.array(t1), th)) == \
+            stable_threshold(_sweep_rows(est, np.array(t2), th)) == \
+            stable_threshold(_sweep_rows(est, np.full(2, np.nan), th))
+
+    same_without_truth()
+
+
+def test_cross_validated_error_by_hand():
+    from dualsight.jobs.hil_prox_report import cross_validated_error
+
+    th = [1, 2]
+    truth = np.array([10.0, 10.0, 10.0])
+    est = np.array([[11.0, 10.5], [12.0, 10.0], [10.0, np.nan]])
+    # relative errors (no blob = 1.0): image 0: .10 .05; image 1: .20 .00; image 2: .00 1.0
+    # leave 0 out: mean over 1,2 = (.10, .50) -> t1 -> image 0 error .10
+    # leave 1 out: over 0,2 = (.05, .525) -> t1 -> image 1 error .20
+    # leave 2 out: over 0,1 = (.15, .025) -> t2 -> image 2 error 1.0
+    assert cross_validated_error(_sweep_rows(est, truth, th)) == pytest.approx(100 * (0.10 + 0.20 + 1.0) / 3)
+    assert cross_validated_error(_sweep_rows(est, np.array([10.0, np.nan, np.nan]), th)) is None

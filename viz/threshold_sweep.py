@@ -95,7 +95,7 @@ def threshold_sweep_figure(path: str | Path, thresholds, range_m, range_min_m, r
         c.set_ylim(-5, 105)
         if np.isfinite(rel).any():
             k = int(np.nanargmin(rel))
-            b.annotate(f"best {sx[k]:g}: {rel[k]:.1f} %", (sx[k], rel[k]), textcoords="offset points",
+            b.annotate(f"oracle (with truth) {sx[k]:g}: {rel[k]:.1f} %", (sx[k], rel[k]), textcoords="offset points",
                        xytext=(5, 8), fontsize=8)
         b.set_xlabel("binary threshold")
     else:
