@@ -57,6 +57,7 @@ JOB_KINDS = {
     "hil_prox": "dualsight.jobs.hil_prox",
     "calibrate": "dualsight.jobs.calibrate",
     "selftest": "dualsight.jobs.selftest",
+    "peer_star": "dualsight.jobs.peer_import",
 }
 MAX_CASES = 10**9
 MAX_SHARD_SIZE = 10**6
