@@ -40,7 +40,7 @@ from dualsight.kernels import star_psf
 from dualsight.kernels import starfield as sf
 from dualsight.config import check_fields
 from dualsight.kernels._runtime import KernelCache
-from dualsight.kernels.digest import patch_digest
+from dualsight.kernels.digest import patch_digest_taichi
 from dualsight.kernels.labelling import Components, find, label_frames, label_segments, union
 
 __all__ = ["DetectConfig", "Detections", "detect_stars", "render_and_detect_ideal", "estimate_background"]
@@ -107,6 +107,9 @@ class Detections:
     offsets : (B + 1,) int64; frame b's blobs are [offsets[b], offsets[b + 1]).
     background_adu : (B,) float64 background level used per frame.
     threshold_adu : (B,) float64 absolute threshold used per frame (on = value > threshold).
+    sigma_px : optional (K,) float64 centroid uncertainty per axis (px), None when the detector states none
+        (:func:`dualsight.kernels.detect_local.detect_real`: the Cramér-Rao bound of its PSF fit).
+    saturated : optional (K,) bool, the blob has saturated pixels (None when the detector does not check).
     """
 
     case: np.ndarray
@@ -117,6 +120,8 @@ class Detections:
     offsets: np.ndarray
     background_adu: np.ndarray
     threshold_adu: np.ndarray
+    sigma_px: np.ndarray | None = None
+    saturated: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -426,4 +431,4 @@ def render_and_detect_ideal(x, y, flux_e, valid, width: int, height: int,
     det = _from_components(comp, gb, B, detect, bg, thr)
     if not digest:
         return det
-    return det, patch_digest(val.astype(dt), poff, gbox, gb, B, W, np.asarray(sky).astype(dt))
+    return det, patch_digest_taichi(val, dt, poff, gbox, gb, B, W, np.asarray(sky).astype(dt))

@@ -15,11 +15,11 @@ any changed pixel value or position changes the digest (up to a 2^-64 chance).  
 reproducibility, not a cryptographic hash.
 """
 
-from __future__ import annotations
 
 import numpy as np
+import taichi as ti   # importing does not start Taichi; kernels are built on first use (kernels/_runtime.py)
 
-__all__ = ["splitmix64", "frame_digest", "patch_digest", "to_int64"]
+__all__ = ["splitmix64", "frame_digest", "patch_digest", "patch_digest_taichi", "to_int64"]
 
 _C1, _C2, _C3 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
 _WEIGHTS: dict[int, np.ndarray] = {}
@@ -97,7 +97,66 @@ def patch_digest(values: np.ndarray, poff: np.ndarray, boxes: np.ndarray, patch_
     idx = (boxes[:, 2][g] + i // pw) * int(width) + boxes[:, 0][g] + i % pw
     with np.errstate(over="ignore"):
         term = (_bits(values) - _bits(np.asarray(sky, dtype=values.dtype))) * splitmix64(idx)
-        np.add.at(out, np.asarray(patch_frame, np.int64)[g], term)
+        starts = np.asarray(poff[:-1], np.int64)
+        nonempty = np.diff(poff) > 0
+        per_patch = np.add.reduceat(term, starts[nonempty])          # (G',) uint64, wrapping sums
+        np.add.at(out, np.asarray(patch_frame, np.int64)[nonempty], per_patch)
+    return out
+
+
+def _build_patch_sums(dtype):
+    is_float = np.dtype(dtype).kind == "f"
+
+    @ti.kernel
+    def patch_sums(val: ti.types.ndarray(dtype=ti.f32, ndim=1), poff: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                   gbox: ti.types.ndarray(dtype=ti.i32, ndim=2), width: ti.i64, sky_bits: ti.u64,
+                   out: ti.types.ndarray(dtype=ti.u64, ndim=1)):
+        for g in range(gbox.shape[0]):   # one thread per patch; wrapping u64 arithmetic, as the numpy version
+            pw = ti.cast(gbox[g, 1] - gbox[g, 0], ti.i64)
+            acc = ti.u64(0)
+            for i in range(ti.cast(poff[g + 1] - poff[g], ti.i32)):
+                idx = ti.cast((gbox[g, 2] + i // pw) * width + gbox[g, 0] + i % pw, ti.u64)
+                z = idx * ti.u64(0x9E3779B97F4A7C15) + ti.u64(0x9E3779B97F4A7C15)
+                z = (z ^ (z >> ti.u64(30))) * ti.u64(0xBF58476D1CE4E5B9)
+                z = (z ^ (z >> ti.u64(27))) * ti.u64(0x94D049BB133111EB)
+                z = z ^ (z >> ti.u64(31))
+                v = val[poff[g] + i]
+                b = ti.u64(0)
+                if ti.static(is_float):
+                    b = ti.cast(ti.bit_cast(v, ti.u32), ti.u64)
+                else:
+                    b = ti.cast(ti.cast(v, ti.i64), ti.u64)
+                acc += (b - sky_bits) * z
+            out[g] = acc
+
+    return patch_sums
+
+
+_KERNELS = None
+
+
+def patch_digest_taichi(values_f32: np.ndarray, dtype, poff: np.ndarray, boxes: np.ndarray,
+                        patch_frame: np.ndarray, n_frames: int, width: int, sky) -> np.ndarray:
+    """:func:`patch_digest` in a Taichi kernel (one thread per patch), for the sparse star path.
+
+    values_f32 : (P,) float32 pixel values holding the frames' ``dtype`` values (uint16 integers or
+    float32); the other arguments as :func:`patch_digest`.  Returns (n_frames,) uint64, equal to it.
+    """
+    global _KERNELS
+    from dualsight.kernels._runtime import KernelCache
+
+    if _KERNELS is None:
+        _KERNELS = KernelCache({"patch_sums": _build_patch_sums})
+    dt = np.dtype(dtype)
+    boxes = np.ascontiguousarray(boxes, np.int32)
+    sums = np.zeros(len(boxes), np.uint64)
+    out = np.zeros(n_frames, np.uint64)
+    if len(boxes):
+        sky_bits = int(_bits(np.asarray(sky, dtype=dt).reshape(1))[0])
+        _KERNELS.get("patch_sums", dt)(np.ascontiguousarray(values_f32, np.float32), np.asarray(poff, np.int64),
+                                       boxes, int(width), sky_bits, sums)
+        with np.errstate(over="ignore"):
+            np.add.at(out, np.asarray(patch_frame, np.int64), sums)
     return out
 
 

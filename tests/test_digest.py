@@ -64,20 +64,26 @@ def test_any_changed_or_moved_pixel_changes_the_digest():
     assert to_int64(frame_digest(f)).dtype == np.int64
 
 
-def test_patches_on_a_constant_sky_give_the_whole_frame_digest():
+@pytest.mark.parametrize("dtype", [np.uint16, np.float32])
+def test_patches_on_a_constant_sky_give_the_whole_frame_digest(dtype):
+    from dualsight.kernels.digest import patch_digest_taichi
+
     rng = np.random.default_rng(1)
-    H, W, sky = 40, 50, 7
-    frames = np.full((2, H, W), sky, np.uint16)
+    H, W, sky = 40, 50, dtype(7)
+    frames = np.full((2, H, W), sky, dtype)
     boxes = np.array([[3, 9, 2, 6], [20, 31, 10, 25], [0, 4, 30, 40]])
     frame_of = np.array([0, 0, 1])
     vals = []
     for (c0, c1, r0, r1), b in zip(boxes, frame_of):
-        v = rng.integers(0, 999, (r1 - r0, c1 - c0), dtype=np.uint16)
+        v = (rng.integers(0, 999, (r1 - r0, c1 - c0)) * (0.37 if dtype is np.float32 else 1)).astype(dtype)
         frames[b, r0:r1, c0:c1] = v
         vals.append(v.ravel())
     poff = np.concatenate([[0], np.cumsum([len(v) for v in vals])])
-    got = patch_digest(np.concatenate(vals), poff, boxes, frame_of, 2, W, np.uint16(sky))
-    assert [int(v) for v in got] == [ref_digest(f, sky) for f in frames]
+    want = [ref_digest(f, sky) for f in frames]
+    got = patch_digest(np.concatenate(vals), poff, boxes, frame_of, 2, W, sky)
+    assert [int(v) for v in got] == want
+    got_ti = patch_digest_taichi(np.concatenate(vals).astype(np.float32), dtype, poff, boxes, frame_of, 2, W, sky)
+    assert [int(v) for v in got_ti] == want
 
 
 def test_sparse_star_path_stores_the_digest_of_the_dense_frame():
