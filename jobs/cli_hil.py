@@ -103,9 +103,26 @@ def add_star_parser(hsub) -> argparse.ArgumentParser:
                    help="write one Figure-11-style PNG per image (<image stem>.png) here")
     o.add_argument("--credit", default=None,
                    help="attribution on the overlays (default: the Licence line of a README.md next to the images)")
+    w = p.add_argument_group("tuning by sweep (jobs/hil_star_sweep.py)")
+    w.add_argument("--sweep", action="append", default=None, metavar="KEY=V1,V2,...",
+                   help="run every combination of these settings over the images as one job and rank them "
+                        "(repeatable; keys: k-sigma, min-pixels, max-stars, tolerance-arcsec, mag-limit, "
+                        "background-block, method); with --truth by success rate, else by agreement")
     add_engine_args(p, prefix="hil-star")
     p.set_defaults(func=cmd_hil_star)
     return p
+
+
+def settings_from_args(args, config: dict | None, epoch: float):
+    """The ``hil_star`` settings of the command line's method options over the ``--config`` table."""
+    from dualsight.jobs import hil_star as hs
+
+    return hs.settings_from_table(config, source=str(args.config) if args.config else "hil star",
+                                  method=args.method, compare=not args.no_compare,
+                                  background_block_px=args.background_block, limit_arcsec=args.limit_arcsec,
+                                  mag_limit=args.mag_limit, epoch_jyear=epoch,
+                                  tolerance_arcsec=args.tolerance_arcsec, max_stars=args.max_stars,
+                                  k_sigma=args.k_sigma, min_pixels=args.min_pixels)
 
 
 def star_spec_from_args(args):
@@ -128,12 +145,7 @@ def star_spec_from_args(args):
     if not paths:
         raise InputError("no image files given", source="IMAGES")
     epoch = args.epoch if args.epoch is not None else (observation_epoch(paths, args.time) or 2000.0)
-    settings = hs.settings_from_table(config, source=str(args.config) if args.config else "hil star",
-                                      method=args.method, compare=not args.no_compare,
-                                      background_block_px=args.background_block, limit_arcsec=args.limit_arcsec,
-                                      mag_limit=args.mag_limit, epoch_jyear=epoch,
-                                      tolerance_arcsec=args.tolerance_arcsec, max_stars=args.max_stars,
-                                      k_sigma=args.k_sigma, min_pixels=args.min_pixels)
+    settings = settings_from_args(args, config, epoch)
     truth_file = load_truth_json(args.truth) if args.truth is not None else None
     site = None
     if args.lat is not None or args.lon is not None:
@@ -157,6 +169,8 @@ def cmd_hil_star(args) -> int:
 
     t_start = time.perf_counter()
     spec = star_spec_from_args(args)
+    if args.sweep:
+        return cmd_hil_star_sweep(args, spec, t_start)
     with engine_lake(args) as (lake, kept):
         manifest = run_engine("hil_star", spec.to_dict(), hs.n_cases(spec), lake, args, label="hil star")
         run_id = manifest["run_id"]
@@ -178,4 +192,42 @@ def cmd_hil_star(args) -> int:
     print(done_message(f"{summary['images']} images: {summary['identified']} identified, {n_err} could not be "
                        "processed", time.perf_counter() - t_start, run_id, lake, kept, tuple(hs.SCHEMAS),
                        query="hil_star"), file=sys.stderr)
+    return 1 if n_err else 0
+
+
+def cmd_hil_star_sweep(args, base, t_start: float) -> int:
+    """``hil star --sweep``: the grid of settings as one ``hil_star_sweep`` job, ranked."""
+    import argparse
+    import time
+
+    from dualsight.jobs import hil_star_sweep as sw
+    from dualsight.jobs.hil_common import done_message, engine_lake, run_engine
+    from dualsight.scene.camera import read_toml
+    from dualsight.warehouse.query import connect
+
+    points = sw.grid(sw.parse_sweeps(args.sweep))
+    config = read_toml(args.config) if args.config is not None else None
+    epoch = float(base.settings.catalog["epoch_jyear"])
+    variants = []
+    for pt in points:
+        a = argparse.Namespace(**vars(args))
+        for k, v in pt.items():
+            setattr(a, sw.SWEEP_KEYS[k][0], v)
+        variants.append(settings_from_args(a, config, epoch))
+    spec = sw.spec_from_dict(sw.build_spec(base, variants, [sw.label(p) for p in points]), source="hil star --sweep")
+    with engine_lake(args) as (lake, kept):
+        manifest = run_engine("hil_star_sweep", spec.to_dict(), sw.n_cases(spec), lake, args, label="hil star sweep")
+        run_id = manifest["run_id"]
+        con = connect(lake)
+        cur = con.execute(f"SELECT * EXCLUDE (run) FROM {sw.PRIMARY} WHERE run = $run ORDER BY case_id",
+                          {"run": run_id})
+        names = [d[0] for d in cur.description]
+        rows = [dict(zip(names, r)) for r in cur.fetchall()]
+        con.close()
+    summary = sw.summarize(rows, len(spec.variants), list(spec.labels))
+    print(json.dumps(summary, indent=1) if args.json else sw.text(summary))
+    n_err = sum(r["error"] is not None for r in rows)
+    print(done_message(f"{len(points)} settings x {len(spec.images)} images, best {summary[0]['label']}",
+                       time.perf_counter() - t_start, run_id, lake, kept, tuple(sw.SCHEMAS), query=sw.PRIMARY),
+          file=sys.stderr)
     return 1 if n_err else 0

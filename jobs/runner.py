@@ -57,6 +57,7 @@ JOB_KINDS = {
     "hil_prox": "dualsight.jobs.hil_prox",
     "calibrate": "dualsight.jobs.calibrate",
     "selftest": "dualsight.jobs.selftest",
+    "hil_star_sweep": "dualsight.jobs.hil_star_sweep",
     "peer_star": "dualsight.jobs.peer_import",
 }
 MAX_CASES = 10**9
