@@ -11,6 +11,7 @@ order (the catalog is sorted brightest first, so the padding keeps brightness or
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,8 +70,17 @@ def field_half_angle(camera, margin_px: float = 0.0) -> float:
     """Half-angle (rad) of a cone about +z that holds the whole image grown by ``margin_px`` on every side.
 
     The corners and edge midpoints are back-projected through the camera model (distortion included);
-    the widest of them, with 2 % and 1e-4 rad to spare, capped at pi/2.
+    the widest of them, with 2 % and 1e-4 rad to spare, capped at pi/2.  Memoised per (camera, margin):
+    the back-projection iterates the distortion model and costs about 1 ms.
     """
+    try:
+        return _half_angle(camera, float(margin_px))
+    except TypeError:           # an unhashable camera-like object: compute it
+        return _half_angle.__wrapped__(camera, float(margin_px))
+
+
+@functools.lru_cache(maxsize=64)
+def _half_angle(camera, margin_px: float) -> float:
     w, h, m = camera.width, camera.height, margin_px
     xs, ys = np.array([-m, w / 2, w + m]), np.array([-m, h / 2, h + m])
     pts = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
@@ -103,18 +113,22 @@ def stars_in_field(A: np.ndarray, cat_unit: np.ndarray, flux_e: np.ndarray, came
     with np.errstate(invalid="ignore"):
         near_k = front & (x > -margin) & (x < camera.width + margin) & (y > -margin) & (y < camera.height + margin)
         inside_k = front & (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
-    B, N = z.shape
-    near = np.zeros((B, N), dtype=bool)
-    near[b[near_k], n[near_k]] = True
-    dense = {}
-    for name, vals in (("x", x), ("y", y)):
-        a = np.zeros((B, N))
-        a[b[near_k], n[near_k]] = vals[near_k]
-        dense[name] = a
-    ins = np.zeros((B, N), dtype=bool)
-    ins[b[inside_k], n[inside_k]] = True
-    valid, (xp, yp, fp, ip), cols = pack_rows(near, dense["x"], dense["y"], np.asarray(flux_e), ins, fill=0)
-    return FieldStars(xp, yp, fp.astype(np.float32), valid, cols, ip & valid, ins.sum(axis=1))
+    B = z.shape[0]
+    # pack the kept stars of each case to the left, in catalog order (np.nonzero is row-major), as
+    # pack_rows would, without (B, N) intermediates
+    bk, nk = b[near_k], n[near_k]
+    counts = np.bincount(bk, minlength=B)
+    S = max(1, int(counts.max()) if B else 1)
+    pos = np.arange(bk.size) - (np.cumsum(counts) - counts)[bk]
+    valid = np.zeros((B, S), dtype=bool)
+    valid[bk, pos] = True
+    cols = np.full((B, S), -1, dtype=np.int64)
+    cols[bk, pos] = nk
+    xp, yp, ip = np.zeros((B, S)), np.zeros((B, S)), np.zeros((B, S), dtype=bool)
+    xp[bk, pos], yp[bk, pos], ip[bk, pos] = x[near_k], y[near_k], inside_k[near_k]
+    fp = np.zeros((B, S), dtype=np.float32)
+    fp[bk, pos] = np.asarray(flux_e)[nk]
+    return FieldStars(xp, yp, fp, valid, cols, ip, np.bincount(b[inside_k], minlength=B))
 
 
 def catalog_in_image(A: np.ndarray, cat_unit: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
