@@ -47,8 +47,9 @@ from dualsight.nav.observations import observations, ragged_rank
 from dualsight.nav.star_solution import identify, solve
 from dualsight.nav.starid import VotingConfig
 from dualsight.nav.truth_match import match_truth
-from dualsight.scene.attitude import boresight_radec, euler123_to_dcm, quat_to_dcm, random_quaternions
+from dualsight.scene.attitude import boresight_radec, euler123_to_dcm, quat_to_dcm, quaternions_from_uniforms
 from dualsight.scene.camera import Camera
+from dualsight.scene.case_rng import streams as case_streams
 from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
 
 NAME = "star"
@@ -203,14 +204,14 @@ def draw_cases(spec: StarSpec, case_ids: np.ndarray) -> dict:
     B = len(case_ids)
     angles = np.full((B, 3), np.nan)
     quat = np.full((B, 4), np.nan)
-    noise = np.empty(B, dtype=np.uint64)
-    for k, i in enumerate(case_ids):  # one generator per case (cheap), so a case never depends on its batch
-        rng = np.random.default_rng([spec.seed, int(i)])
-        if spec.attitudes == "euler123":
-            angles[k] = rng.uniform(-np.pi, np.pi, 3)
-        else:
-            quat[k] = random_quaternions(rng, 1)[0]
-        noise[k] = rng.integers(0, 2**63, dtype=np.uint64)
+    # one generator per case, default_rng([seed, i]), all stepped at once (scene/case_rng.py: the same
+    # draws bit for bit), so a case never depends on its batch
+    rng = case_streams(spec.seed, np.asarray(case_ids, np.int64))
+    if spec.attitudes == "euler123":
+        angles = np.stack([rng.uniform(-np.pi, np.pi) for _ in range(3)], axis=-1)
+    else:
+        quat = quaternions_from_uniforms(rng.random(), rng.random(), rng.random())
+    noise = rng.integers_63()
     A = euler123_to_dcm(angles) if spec.attitudes == "euler123" else quat_to_dcm(quat)
     return {"angles": angles, "quat": quat, "A_true": A, "noise_seed": noise}
 

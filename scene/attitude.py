@@ -62,6 +62,11 @@ def random_euler123(rng: np.random.Generator, n: int) -> np.ndarray:
 def random_quaternions(rng: np.random.Generator, n: int) -> np.ndarray:
     """(n, 4) unit quaternions (x, y, z, w) uniform on SO(3) (Shoemake 1992, "Uniform random rotations")."""
     u1, u2, u3 = rng.random((3, n))
+    return quaternions_from_uniforms(u1, u2, u3)
+
+
+def quaternions_from_uniforms(u1: np.ndarray, u2: np.ndarray, u3: np.ndarray) -> np.ndarray:
+    """(n, 4) unit quaternions (x, y, z, w) from three (n,) U[0, 1) draws (Shoemake 1992's map)."""
     a, b = np.sqrt(1 - u1), np.sqrt(u1)
     return np.stack([a * np.sin(2 * np.pi * u2), a * np.cos(2 * np.pi * u2),
                      b * np.sin(2 * np.pi * u3), b * np.cos(2 * np.pi * u3)], axis=-1)
