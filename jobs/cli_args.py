@@ -80,3 +80,26 @@ def _latest_run(lake, kinds) -> str:
     if not runs:
         raise InputError(f"no {'/'.join(kinds)} run in {lake.root}; run one first", source="--run")
     return max(runs, key=lambda m: m.get("created_unix", 0))["run_id"]
+
+
+def add_image_args(p: argparse.ArgumentParser):
+    """The positional ``images`` (files or folders) and ``--camera``."""
+    p.add_argument("images", nargs="+", type=Path, help="image files (PNG, JPEG, TIFF, FITS) or folders of them")
+    p.add_argument("--camera", type=Path, required=True, help="camera file (TOML with a [camera] table)")
+
+
+def add_engine_args(p: argparse.ArgumentParser, *, prefix: str):
+    """``--lake``, ``--run``, ``--no-lake``, ``--workers``, ``--scheduler``, ``--shard-size``, ``--no-progress``."""
+    g = p.add_argument_group("engine and lake")
+    _lake_arg(g)
+    g.add_argument("--run", default=None,
+                   help=f"run id (default {prefix}-<hash of the spec and code version>: the same images, settings "
+                        "and code resume the same run)")
+    g.add_argument("--no-lake", action="store_true",
+                   help="run into a temporary lake that is deleted afterwards (nothing kept)")
+    g.add_argument("--workers", type=int, default=None, help="local worker processes (default: one per core)")
+    g.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786) to run the shards "
+                   "on a cluster; the lake and the images must be on storage every worker can read and write")
+    g.add_argument("--shard-size", type=int, default=None, help="images per shard file (default: automatic)")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar")
+

@@ -57,7 +57,7 @@ def register(subparsers) -> None:
 
 
 def add_star_parser(hsub) -> argparse.ArgumentParser:
-    from dualsight.jobs.hil_common import add_engine_args, add_image_args
+    from dualsight.jobs.cli_args import add_engine_args, add_image_args
 
     p = hsub.add_parser("star", help="lost-in-space identification and attitude of real star images",
                         description="Identify real star images lost in space with the simulations' star chain; "
@@ -108,6 +108,12 @@ def add_star_parser(hsub) -> argparse.ArgumentParser:
                    help="run every combination of these settings over the images as one job and rank them "
                         "(repeatable; keys: k-sigma, min-pixels, max-stars, tolerance-arcsec, mag-limit, "
                         "background-block, method); with --truth by success rate, else by agreement")
+    f = p.add_argument_group("lens distortion from the sky (jobs/fit_distortion.py)")
+    f.add_argument("--fit-distortion", action="store_true",
+                   help="fit k1, k2 and the focal length (fx = fy) to the solved frames' identified stars and "
+                        "write the fitted camera file to -o (in-process; nothing is written to the lake)")
+    f.add_argument("-o", "--output", type=Path, default=None, help="camera file written by --fit-distortion")
+    f.add_argument("--force", action="store_true", help="let --fit-distortion overwrite an existing -o file")
     add_engine_args(p, prefix="hil-star")
     p.set_defaults(func=cmd_hil_star)
     return p
@@ -167,6 +173,9 @@ def cmd_hil_star(args) -> int:
     from dualsight.jobs.hil_common import done_message, engine_lake, run_engine
     from dualsight.warehouse.query import connect, run_report
 
+    if args.fit_distortion or args.output is not None or args.force:     # lens distortion from the sky
+        from dualsight.jobs import fit_distortion
+        return fit_distortion.cmd_fit_distortion(args)
     t_start = time.perf_counter()
     spec = star_spec_from_args(args)
     if args.sweep:

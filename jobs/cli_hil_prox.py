@@ -49,9 +49,9 @@ _FLAGS = {"thresholds": "--threshold", "open_px": "--open", "close_px": "--close
 
 def add_parser(hsub) -> argparse.ArgumentParser:
     """Add ``hil prox`` to the ``hil`` group's sub-parsers (jobs/cli_hil.py)."""
-    from dualsight.jobs.hil_common import add_engine_args, add_image_args
-    from dualsight.jobs.hil_prox import DEFAULT_THRESHOLD
-    from dualsight.nav.blobber import ESTIMATORS, TARGETS
+    from dualsight.jobs.cli_args import add_engine_args, add_image_args
+    from dualsight.jobs.hil_defaults import DEFAULT_THRESHOLD
+    from dualsight.nav.blobber_names import ESTIMATORS, TARGETS
 
     p = hsub.add_parser("prox", help="the proximity blobber on real photos of a target (range vs threshold)",
                         description="Threshold real photos of a target (any channel >= T, optionally inverted, "

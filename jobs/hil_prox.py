@@ -59,6 +59,7 @@ import numpy as np
 import pyarrow as pa
 from pydantic import Field, model_validator
 
+from dualsight.jobs.hil_defaults import DEFAULT_THRESHOLD
 from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.errors import ConfigError, ImageError
 from dualsight.jobs.config import validate
@@ -72,8 +73,6 @@ from dualsight.scene.segment import foreground_masks, score_image, undistort_ima
 
 NAME = "hil_prox"
 PRIMARY = "hil_prox_cases"
-DEFAULT_THRESHOLD = 230.0
-"""The reference's best threshold on its 8-bit HIL images (Sec. 2.4, Figure 8)."""
 MAX_THRESHOLDS = 1000
 MAX_KERNEL = 1001
 _CHUNK = 8            # thresholds per blobber batch (bounds memory: 8 float32 frames)

@@ -17,7 +17,6 @@ reproducibility, not a cryptographic hash.
 
 
 import numpy as np
-import taichi as ti   # importing does not start Taichi; kernels are built on first use (kernels/_runtime.py)
 
 __all__ = ["splitmix64", "frame_digest", "patch_digest", "patch_digest_taichi", "to_int64"]
 
@@ -105,6 +104,8 @@ def patch_digest(values: np.ndarray, poff: np.ndarray, boxes: np.ndarray, patch_
 
 
 def _build_patch_sums(dtype):
+    import taichi as ti   # here, not at import: the CLI imports this module without any kernel to run
+
     is_float = np.dtype(dtype).kind == "f"
 
     @ti.kernel

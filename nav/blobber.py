@@ -30,7 +30,7 @@ Estimators (named, side by side):
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, Literal, get_args
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field
@@ -39,11 +39,7 @@ from dualsight.config import check_fields
 from dualsight.kernels.blobs import label_blobs
 from dualsight.nav.range import range_eq1, range_oblique
 
-Estimator = Literal["paper", "subpixel"]
-Target = Literal["largest", "all"]
-AreaCurve = Literal["min", "mean", "max", "median", "relopt"]
-ESTIMATORS = get_args(Estimator)
-TARGETS = get_args(Target)
+from dualsight.nav.blobber_names import ESTIMATORS, TARGETS, AreaCurve, Estimator, Target  # noqa: F401
 _DEFAULT_CURVE = {"paper": "mean", "subpixel": "relopt"}
 
 
