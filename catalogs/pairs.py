@@ -9,26 +9,69 @@ function that measures the observed pairs.
 Building (:func:`build_pair_catalog`) is O(N * band) rather than O(N^2): stars are sorted by
 declination, and a chunk of rows is only dotted with the stars whose declination is within
 ``max_angle`` of the chunk's (two stars closer than theta differ in declination by at most theta).
-Memory is bounded by ``max_block`` dot products per chunk.
+
+Memory is bounded whatever the catalog's size (``max_bytes``, default :data:`DEFAULT_MAX_BYTES` = 512 MiB:
+a V 9 catalog over a 28 deg diagonal has ~10^8-10^9 pairs, 16 bytes each).  The build is an external
+bucket sort:
+
+1. one pass over the declination chunks; each chunk's pairs (at most ``max_block`` dot products, from the
+   budget) are routed by angle into K angle buckets (edges equally spaced in 1 - cos(angle), i.e. about
+   equally many pairs each for a uniform sky) and appended to temporary binary files;
+2. each bucket, in angle order, is sorted in memory by (angle, i, j) and appended to the final arrays; a
+   bucket larger than the budget allows (a clustered sky) is first split again by angle, recursively;
+3. the arrays are ``.npy`` files (i int32, j int32, angle float64), written to temporary names and renamed.
+
+The result equals, element for element, the whole catalog sorted at once by (angle, i, j).
+
+:func:`load_pair_catalog` caches the arrays in the cache folder, keyed by the star catalog's content and
+the angle, and opens them with ``np.load(..., mmap_mode="r")``: a run reads the pages it touches, and
+several processes share one copy in the page cache.  The manifest ``pairs-v<FORMAT_VERSION>-<key>.json`` is
+written last; a missing, truncated or altered file (sizes, shapes, dtypes and a digest of sampled values
+are checked) is rebuilt with a one-line warning on stderr.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import math
+import os
+import shutil
+import sys
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
 
-from dualsight.catalogs.cache import read_parquet_or_none, resolve_cache_dir, short_hash, write_parquet_atomic
+from dualsight.catalogs.cache import resolve_cache_dir, short_hash
 from dualsight.errors import ConfigError
 from dualsight.scene.units import angle_between
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 """Bump when the build or the stored layout changes: old cache files are then ignored.
-(2: angles by ``scene.units.angle_between``; version 1's einsum sums could differ by an ulp.)"""
+(2: angles by ``scene.units.angle_between``; version 1's einsum sums could differ by an ulp.
+3: memory-mapped ``.npy`` arrays and a JSON manifest instead of one Parquet file.)"""
+
+DEFAULT_MAX_BYTES = 512 << 20
+"""Default memory budget of a build (bytes): 512 MiB."""
+
+CHUNK_BYTES_PER_DOT = 200
+"""Bytes a declination chunk needs per dot product when every one is a candidate pair (the dot, the
+candidate indices, both unit vectors, the angle's temporaries and the routed record); the chunks get half
+the budget: ``max_block = max_bytes / 2 / CHUNK_BYTES_PER_DOT``."""
+
+SORT_BYTES_PER_PAIR = 64
+"""Bytes per pair while a bucket is sorted (the 16-byte record, the sort's int64 order and scratch, the
+gathered output columns); a bucket holds at most ``max_bytes / SORT_BYTES_PER_PAIR`` pairs."""
+
+MAX_OPEN_BUCKETS = 256
+"""Most bucket files written at once (a larger catalog's buckets are split again when sorted)."""
+
+_REC = np.dtype([("angle", "<f8"), ("i", "<i4"), ("j", "<i4")])
+_COLUMNS = (("i", np.dtype("<i4")), ("j", np.dtype("<i4")), ("angle", np.dtype("<f8")))
+_WRITE_BUFFER = 1 << 16
 
 
 @dataclass(frozen=True, eq=False)
@@ -39,6 +82,8 @@ class PairCatalog:
     angle : (M,) float64 angular distance (rad), ascending (ties by i, then j).
     limit_rad : the maximum angle the catalog was built with (every ``angle < limit_rad``), or
         None when unknown (then :attr:`max_angle` is the largest angle present).
+
+    The arrays may be read-only memory maps (:func:`load_pair_catalog`).
     """
 
     i: np.ndarray
@@ -56,7 +101,7 @@ class PairCatalog:
 
     @property
     def nbytes(self) -> int:
-        """Memory of the arrays (bytes): 16 per pair (two int32 and one float64)."""
+        """Size of the arrays (bytes): 16 per pair (two int32 and one float64), mapped or in memory."""
         return int(self.i.nbytes + self.j.nbytes + self.angle.nbytes)
 
     @property
@@ -75,58 +120,286 @@ def _check_max_angle(max_angle_rad) -> float:
     return float(max_angle_rad)
 
 
-def build_pair_catalog(unit: np.ndarray, max_angle_rad: float, max_block: int = 1 << 22) -> PairCatalog:
-    """Every pair of stars closer than ``max_angle_rad``.
-
-    Parameters
-    ----------
-    unit : (N, 3) float64 unit vectors (the StarCatalog's ``unit``); row numbers become ``i``/``j``.
-    max_angle_rad : keep pairs with angle < max_angle_rad (rad), in (0, pi].
-    max_block : most dot products computed at once (memory ~ 9 bytes each); a tuning knob only.
-
-    Returns
-    -------
-    :class:`PairCatalog` with i < j, sorted by angle (ties by i, j).
-    """
-    theta = _check_max_angle(max_angle_rad)
-    u = np.ascontiguousarray(np.asarray(unit, dtype=np.float64).reshape(-1, 3))
+# ============================================================================================ pass 1: chunks
+def _chunk_pairs(u: np.ndarray, theta: float, max_block: int):
+    """Yield ``(i, j, angle)`` of every pair closer than ``theta``, one declination chunk at a time:
+    (k,) int64 rows i < j of ``u`` and float64 angles, in no particular order.  A chunk dots at most
+    ``max_block`` pairs of stars (at least one row's band)."""
     n = u.shape[0]
+    if n < 2:
+        return
     dec = np.arcsin(np.clip(u[:, 2], -1.0, 1.0))
     order = np.argsort(dec, kind="stable")
     us, ds = u[order], dec[order]
     # cheap prefilter on the dot product, loosened so that no pair with angle < theta is lost;
     # the exact test is on the atan2 angle below
     cos_cut = math.cos(theta) - 1e-9
-    rows = max(1, min(n, max_block // max(n, 1)))
-    ii, jj, aa = [], [], []
-    a = 0
+    a, width = 0, n
     while a < n:  # loop over chunks of rows, not over stars
-        b = min(n, a + rows)
-        hi = int(np.searchsorted(ds, ds[b - 1] + theta + 1e-9, side="right"))  # (b-a)(hi-a) <= max_block
-        dots = us[a:b] @ us[a:hi].T                                 # (b-a, hi-a)
+        b = min(n, a + max(1, max_block // max(width, 1)))
+        while True:                                                  # (b - a)(hi - a) <= max_block, or one row
+            hi = int(np.searchsorted(ds, ds[b - 1] + theta + 1e-9, side="right"))
+            if (b - a) * (hi - a) <= max_block or b - a == 1:
+                break
+            b = a + max(1, (b - a) // 2)
+        width = hi - a
+        dots = us[a:b] @ us[a:hi].T                                  # (b-a, hi-a)
         r, c = np.nonzero(dots >= cos_cut)
-        keep = c > r                                                # column index is j_s - a, row is i_s - a
+        del dots
+        keep = c > r                                                 # column index is j_s - a, row is i_s - a
         r, c = r[keep] + a, c[keep] + a
+        del keep
         ang = angle_between(us[r], us[c])
         ok = ang < theta
-        ii.append(order[r[ok]])
-        jj.append(order[c[ok]])
-        aa.append(ang[ok])
+        oi, oj = order[r[ok]], order[c[ok]]
+        res = (np.minimum(oi, oj), np.maximum(oi, oj), ang[ok])
+        del r, c, ang, ok, oi, oj                                    # not held while the consumer works
+        yield res
+        del res
         a = b
-    i = np.concatenate(ii) if ii else np.empty(0, np.int64)
-    j = np.concatenate(jj) if jj else np.empty(0, np.int64)
-    ang = np.concatenate(aa) if aa else np.empty(0, np.float64)
-    lo, hi_ = np.minimum(i, j), np.maximum(i, j)
-    s = np.lexsort((hi_, lo, ang))
-    return PairCatalog(i=lo[s].astype(np.int32), j=hi_[s].astype(np.int32), angle=ang[s], limit_rad=theta)
 
 
-_META_KEY = b"dualsight.pair_catalog"
+def _bucket_edges(n_buckets: int, theta: float) -> np.ndarray:
+    """(K - 1,) inner edges of K angle buckets, equally spaced in 1 - cos(angle) over [0, theta)."""
+    k = np.arange(1, n_buckets, dtype=np.float64)
+    return np.arccos(1.0 - k / n_buckets * (1.0 - math.cos(theta)))
+
+
+def _sort_order(rec: np.ndarray) -> np.ndarray:
+    """Order of records by (angle, i, j): ``np.lexsort((j, i, angle))``, computed as a sort by angle with
+    the (rare) runs of equal angles then sorted by (i, j)."""
+    s = np.argsort(rec["angle"])
+    a = rec["angle"][s]
+    tie = np.flatnonzero(a[1:] == a[:-1])
+    del a
+    if tie.size:
+        members = np.unique(np.concatenate([tie, tie + 1]))          # positions (in s) inside a run of ties
+        am = rec["angle"][s[members]]
+        run = np.cumsum(np.r_[True, (np.diff(members) > 1) | (am[1:] != am[:-1])])
+        sub = s[members]
+        s[members] = sub[np.lexsort((rec["j"][sub], rec["i"][sub], run))]
+    return s
+
+
+class _Builder:
+    """One build's buckets (temporary files in ``work``) and the three output files."""
+
+    def __init__(self, work: Path, theta: float, max_bytes: int, n_buckets: int | None, n_est: float):
+        self.work, self.theta = work, theta
+        self.cap = max(2, int(max_bytes) // SORT_BYTES_PER_PAIR)         # pairs a bucket may hold to be sorted
+        k = int(n_buckets) if n_buckets is not None else int(math.ceil(1.5 * n_est / self.cap))
+        self.k = min(max(1, k), MAX_OPEN_BUCKETS)
+        self.edges = _bucket_edges(self.k, theta)
+        self.counts = np.zeros(self.k, np.int64)
+        self._serial = 0
+        self.splits = 0
+
+    def _new_file(self) -> Path:
+        self._serial += 1
+        return self.work / f"b{self._serial:08d}.rec"
+
+    def route(self, chunks) -> list[tuple[Path, int]]:
+        """Pass 1: every chunk's pairs appended to the bucket files; returns the buckets in angle order."""
+        paths = [self._new_file() for _ in range(self.k)]
+        files = [None] * self.k
+        try:
+            for i, j, ang in chunks:
+                if ang.size == 0:
+                    continue
+                rec = np.empty(ang.size, _REC)
+                rec["angle"], rec["i"], rec["j"] = ang, i, j
+                del i, j, ang
+                _append_routed(rec, self.edges, paths, files, self.counts)
+        finally:
+            for f in files:
+                if f is not None:
+                    f.close()
+        return [(p, int(c)) for p, c in zip(paths, self.counts)]
+
+    def emit(self, path: Path, count: int, outs) -> None:
+        """Pass 2: the bucket sorted by (angle, i, j) and appended to ``outs`` (i, j, angle files), split
+        again by angle first when it holds more than ``cap`` pairs."""
+        if count == 0:
+            path.unlink(missing_ok=True)
+            return
+        if count > self.cap:
+            children = self._split(path, count)
+            if children is not None:
+                path.unlink()
+                for p, c in children:
+                    self.emit(p, c, outs)
+                return
+        rec = np.fromfile(path, dtype=_REC)
+        path.unlink()
+        if rec.size != count:
+            raise OSError(f"bucket file {path} holds {rec.size} pairs, expected {count}")
+        s = _sort_order(rec)
+        for (name, dt), f in zip(_COLUMNS, outs):
+            f.write(np.ascontiguousarray(rec[name][s], dtype=dt).data)
+
+    def _slices(self, path: Path, count: int):
+        step = max(1, self.cap // 2)
+        with open(path, "rb") as f:
+            for start in range(0, count, step):
+                yield np.fromfile(f, dtype=_REC, count=min(step, count - start))
+
+    def _split(self, path: Path, count: int):
+        """Route a too-large bucket into sub-buckets by angle (edges from a histogram of its angles), each
+        aimed at <= cap pairs; None when its angles are all equal (it is then sorted whole)."""
+        lo, hi = math.inf, -math.inf
+        for rec in self._slices(path, count):
+            lo, hi = min(lo, float(rec["angle"].min())), max(hi, float(rec["angle"].max()))
+        if not lo < hi:
+            return None
+        bins = 4096
+        grid = lo + (hi - lo) * np.arange(1, bins, dtype=np.float64) / bins
+        hist = np.zeros(bins, np.int64)
+        for rec in self._slices(path, count):
+            hist += np.bincount(np.searchsorted(grid, rec["angle"], side="right"), minlength=bins)
+        target = max(self.cap, -(-count // (MAX_OPEN_BUCKETS // 2)))   # greedy: <= 2 count / target + 1 files
+        cuts, run = [], 0
+        for b in range(bins):                                        # greedy: cut before a bin that overflows
+            if run and run + hist[b] > target:
+                cuts.append(grid[b - 1])
+                run = 0
+            run += hist[b]
+        edges = np.unique(np.array([e for e in cuts if lo < e <= hi] or [hi], np.float64))
+        paths = [self._new_file() for _ in range(edges.size + 1)]
+        files = [None] * len(paths)
+        counts = np.zeros(len(paths), np.int64)
+        try:
+            for rec in self._slices(path, count):
+                _append_routed(rec, edges, paths, files, counts)
+        finally:
+            for f in files:
+                if f is not None:
+                    f.close()
+        self.splits += 1
+        return [(p, int(c)) for p, c in zip(paths, counts)]
+
+
+def _append_routed(rec: np.ndarray, edges: np.ndarray, paths, files, counts) -> None:
+    """Append each record to the file of its angle bucket (bucket k: edges[k-1] <= angle < edges[k])."""
+    b = np.searchsorted(edges, rec["angle"], side="right")
+    s = np.argsort(b, kind="stable")
+    rec, b = rec[s], b[s]
+    starts = np.flatnonzero(np.r_[True, b[1:] != b[:-1]])
+    ends = np.r_[starts[1:], b.size]
+    for st, en in zip(starts, ends):
+        k = int(b[st])
+        if files[k] is None:
+            files[k] = open(paths[k], "ab", buffering=_WRITE_BUFFER)
+        files[k].write(rec[st:en].data)
+        counts[k] += en - st
+
+
+def _npy_header(f, dtype: np.dtype, n: int) -> None:
+    np.lib.format.write_array_header_1_0(f, {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
+                                             "shape": (int(n),)})
+
+
+def _write_arrays(u: np.ndarray, theta: float, targets: dict[str, Path], work: Path, max_bytes: int,
+                  max_block: int | None, n_buckets: int | None) -> dict:
+    """Build the catalog of ``u`` into the ``.npy`` files ``targets`` (name -> path; written to temporary
+    names and renamed); bucket files go to ``work``.  Returns build statistics."""
+    n = u.shape[0]
+    if max_block is None:
+        max_block = max(1024, int(max_bytes) // 2 // CHUNK_BYTES_PER_DOT)
+    n_est = n * (n - 1) / 2 * (1.0 - math.cos(theta)) / 2                 # pairs for a uniform sky
+    bld = _Builder(work, theta, max_bytes, n_buckets, n_est)
+    buckets = bld.route(_chunk_pairs(u, theta, int(max_block)))
+    total = sum(c for _, c in buckets)
+    tmps, outs = {}, []
+    try:
+        for name, dt in _COLUMNS:
+            fd, tmp = tempfile.mkstemp(prefix=f".{targets[name].name}.", suffix=".tmp", dir=targets[name].parent)
+            tmps[name] = Path(tmp)
+            f = os.fdopen(fd, "wb", buffering=_WRITE_BUFFER)
+            outs.append(f)
+            _npy_header(f, dt, total)
+        starts = [f.tell() for f in outs]
+        for p, c in buckets:
+            bld.emit(p, c, outs)
+        for (name, dt), f, st in zip(_COLUMNS, outs, starts):
+            if f.tell() - st != total * dt.itemsize:                 # every pair routed is written once
+                raise OSError(f"pair catalog build wrote {(f.tell() - st) // dt.itemsize} {name} values, "
+                              f"expected {total}")
+        for f in outs:
+            f.flush()
+            os.fsync(f.fileno())
+            f.close()
+        for name, _ in _COLUMNS:
+            os.replace(tmps[name], targets[name])
+    except BaseException:
+        for f in outs:
+            f.close()
+        for t in tmps.values():
+            t.unlink(missing_ok=True)
+        raise
+    return {"pairs": total, "buckets": bld.k, "splits": bld.splits, "max_block": int(max_block)}
+
+
+def build_pair_catalog(unit: np.ndarray, max_angle_rad: float, max_block: int | None = None, *,
+                       max_bytes: int = DEFAULT_MAX_BYTES, n_buckets: int | None = None,
+                       out: str | Path | None = None, work_dir: str | Path | None = None) -> PairCatalog:
+    """Every pair of stars closer than ``max_angle_rad`` (module docstring: an external bucket sort).
+
+    Parameters
+    ----------
+    unit : (N, 3) float64 unit vectors (the StarCatalog's ``unit``); row numbers become ``i``/``j``.
+    max_angle_rad : keep pairs with angle < max_angle_rad (rad), in (0, pi].
+    max_block : most dot products computed at once; None = from the budget
+        (``max_bytes / 2 / CHUNK_BYTES_PER_DOT``).  A tuning knob only: the result does not depend on it.
+    max_bytes : memory budget of the build (bytes; the pairs themselves live in files until sorted).
+    n_buckets : number of angle buckets of the first pass (None = from the budget and an estimate of the
+        pair count); a tuning knob only.
+    out : None = return the arrays in memory; a path stem = write ``<stem>.i.npy``, ``<stem>.j.npy``,
+        ``<stem>.angle.npy`` (atomically) and return them memory-mapped read-only.
+    work_dir : folder of the temporary bucket files (default: the folder of ``out``, else the cache
+        folder, :func:`dualsight.catalogs.cache.resolve_cache_dir`); they are removed when done.
+
+    Returns
+    -------
+    :class:`PairCatalog` with i < j, sorted by angle (ties by i, j).
+    """
+    theta = _check_max_angle(max_angle_rad)
+    if not (isinstance(max_bytes, (int, np.integer)) and max_bytes > 0):
+        raise ValueError(f"max_bytes must be a positive integer, got {max_bytes!r}")
+    u = np.ascontiguousarray(np.asarray(unit, dtype=np.float64).reshape(-1, 3))
+    if out is not None:
+        stem = Path(out)
+        stem.parent.mkdir(parents=True, exist_ok=True)
+        base = Path(work_dir) if work_dir is not None else stem.parent
+    else:
+        stem = None
+        base = Path(work_dir) if work_dir is not None else resolve_cache_dir(None)
+    base.mkdir(parents=True, exist_ok=True)
+    prefix = f".{stem.name}.build-" if stem is not None else ".pairs-build-"
+    with tempfile.TemporaryDirectory(prefix=prefix, dir=base) as tmp:
+        work = Path(tmp)
+        targets = {name: (_column_path(stem, name) if stem is not None else work / f"out.{name}.npy")
+                   for name, _ in _COLUMNS}
+        _write_arrays(u, theta, targets, work, int(max_bytes), max_block, n_buckets)
+        arrays = {name: np.load(targets[name], mmap_mode="r" if stem is not None else None) for name, _ in _COLUMNS}
+    return PairCatalog(i=arrays["i"], j=arrays["j"], angle=arrays["angle"], limit_rad=theta)
+
+
+# ============================================================================================ cache
+def _column_path(stem: Path, name: str) -> Path:
+    return stem.with_name(f"{stem.name}.{name}.npy")
 
 
 def pair_cache_path(star_catalog, max_angle_rad: float, cache_dir: str | Path | None = None) -> Path:
-    """``<cache>/pairs-v<FORMAT_VERSION>-<key>.parquet``, keyed by the star catalog's content and the angle."""
-    return resolve_cache_dir(cache_dir) / f"pairs-v{FORMAT_VERSION}-{_pair_key(star_catalog, max_angle_rad)}.parquet"
+    """The cache manifest ``<cache>/pairs-v<FORMAT_VERSION>-<key>.json``, keyed by the star catalog's content
+    and the angle; the arrays are ``pairs-v<FORMAT_VERSION>-<key>.{i,j,angle}.npy`` beside it."""
+    return resolve_cache_dir(cache_dir) / f"pairs-v{FORMAT_VERSION}-{_pair_key(star_catalog, max_angle_rad)}.json"
+
+
+def pair_cache_files(star_catalog, max_angle_rad: float, cache_dir: str | Path | None = None) -> list[Path]:
+    """Every file of a cache entry: the three arrays, then the manifest."""
+    man = pair_cache_path(star_catalog, max_angle_rad, cache_dir)
+    stem = man.with_suffix("")
+    return [_column_path(stem, name) for name, _ in _COLUMNS] + [man]
 
 
 def _pair_key(star_catalog, max_angle_rad: float) -> str:
@@ -134,24 +407,131 @@ def _pair_key(star_catalog, max_angle_rad: float) -> str:
                        "max_angle_rad": repr(float(max_angle_rad))})
 
 
-def load_pair_catalog(star_catalog, max_angle_rad: float, cache_dir: str | Path | None = None) -> PairCatalog:
-    """Pair catalog of a :class:`~dualsight.catalogs.stars.StarCatalog`, cached as Parquet.
+def _sample_digest(arrays: dict[str, np.ndarray]) -> str:
+    """SHA-256 (16 hex) of 257 evenly spaced values of each array (the ends included).  Memory-mapped
+    arrays are read with ``pread`` from their files, not through the map: touching a mapped page maps its
+    whole (possibly large) folio into the process, ~1 MiB per sample on this machine."""
+    h = hashlib.sha256()
+    for name, _ in _COLUMNS:
+        a = arrays[name]
+        if not a.size:
+            continue
+        k = np.unique(np.linspace(0, a.size - 1, min(a.size, 257)).astype(np.int64))
+        fn = getattr(a, "filename", None)
+        if isinstance(a, np.memmap) and fn is not None and a.base is not None and a.flags.c_contiguous:
+            size = a.dtype.itemsize
+            fd = os.open(fn, os.O_RDONLY)
+            try:
+                whole = os.fstat(fd).st_size == a.offset + a.nbytes       # the whole file's array, not a slice
+                raw = b"".join(os.pread(fd, size, a.offset + int(x) * size) for x in k) if whole else None
+            finally:
+                os.close(fd)
+            if raw is not None and len(raw) == size * k.size:
+                h.update(np.frombuffer(raw, dtype=a.dtype).tobytes())
+                continue
+        h.update(np.ascontiguousarray(a[k]).tobytes())
+    return h.hexdigest()[:16]
+
+
+def _open_cached(stem: Path, meta: dict) -> tuple[dict | None, str | None]:
+    """The memory-mapped arrays of a cache entry, or (None, reason) when missing or damaged
+    (reason None: simply absent, or a manifest of another build)."""
+    man = stem.with_suffix(".json")
+    if not man.is_file():
+        partial = any(_column_path(stem, name).exists() for name, _ in _COLUMNS)
+        return None, ("incomplete: arrays without their manifest" if partial else None)
+    try:
+        stored = json.loads(man.read_text())
+    except (OSError, ValueError):
+        return None, "unreadable manifest"
+    if not isinstance(stored, dict) or any(stored.get(k) != v for k, v in meta.items()):
+        return None, None
+    arrays = {}
+    for name, dt in _COLUMNS:
+        p = _column_path(stem, name)
+        try:
+            a = np.load(p, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError, EOFError) as e:
+            return None, f"{p.name}: {type(e).__name__}: {str(e)[:80]}"
+        if a.dtype != dt or a.shape != (stored.get("pairs"),) or \
+                p.stat().st_size != a.offset + a.nbytes:
+            return None, f"{p.name}: {a.dtype} {a.shape}, {p.stat().st_size} bytes, expected {dt} " \
+                         f"({stored.get('pairs')},)"
+        arrays[name] = a
+    if _sample_digest(arrays) != stored.get("digest"):
+        return None, "sampled values differ from the manifest's digest"
+    return arrays, None
+
+
+def _remove_stale(stem: Path) -> None:
+    """Remove what a killed build of this entry left (its bucket folder, temporary arrays), called while
+    holding the entry's lock, so that no live build of it can own them."""
+    for p in stem.parent.glob(f".{stem.name}.*"):
+        if p.name.startswith(f".{stem.name}.build-") and p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        elif p.name.endswith(".tmp") and p.is_file():
+            p.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def _build_lock(stem: Path):
+    """An exclusive lock on ``<stem>.lock`` (POSIX ``flock``; none elsewhere): one process builds an
+    entry while the others wait, then read it."""
+    try:
+        import fcntl
+    except ImportError:                                              # pragma: no cover (Windows)
+        yield
+        return
+    with open(stem.with_suffix(".lock"), "a+b") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def load_pair_catalog(star_catalog, max_angle_rad: float, cache_dir: str | Path | None = None, *,
+                      max_bytes: int = DEFAULT_MAX_BYTES) -> PairCatalog:
+    """Pair catalog of a :class:`~dualsight.catalogs.stars.StarCatalog`, cached as memory-mapped ``.npy``.
 
     The cache key is the star catalog's content fingerprint (HIP numbers and unit vectors) plus
-    ``max_angle_rad`` and :data:`FORMAT_VERSION`, so any change in the stars rebuilds the pairs.
+    ``max_angle_rad`` and :data:`FORMAT_VERSION`, so any change in the stars rebuilds the pairs.  The
+    arrays come back read-only memory maps (``np.load(..., mmap_mode="r")``).  A damaged entry (a file
+    missing, truncated, of another size or shape, or whose sampled values differ from the manifest's
+    digest) is rebuilt with a one-line warning on stderr.  The build holds ``<stem>.lock`` so that
+    processes starting together build it once; it needs ``max_bytes`` of memory at most.
     """
     theta = _check_max_angle(max_angle_rad)
-    key = _pair_key(star_catalog, theta)
-    path = pair_cache_path(star_catalog, theta, cache_dir)
-    meta = json.dumps({"key": key, "format": FORMAT_VERSION, "max_angle_rad": theta,
-                       "n_stars": len(star_catalog)}, sort_keys=True).encode()
-    table = read_parquet_or_none(path, _META_KEY, meta)
-    if table is not None:
-        return PairCatalog(i=np.ascontiguousarray(table.column("i").to_numpy(), dtype=np.int32),
-                           j=np.ascontiguousarray(table.column("j").to_numpy(), dtype=np.int32),
-                           angle=np.ascontiguousarray(table.column("angle").to_numpy(), dtype=np.float64),
-                           limit_rad=theta)
-    cat = build_pair_catalog(star_catalog.unit, theta)
-    t = pa.table({"i": cat.i, "j": cat.j, "angle": cat.angle}).replace_schema_metadata({_META_KEY: meta})
-    write_parquet_atomic(t, path)
-    return cat
+    man = pair_cache_path(star_catalog, theta, cache_dir)
+    stem = man.with_suffix("")
+    meta = {"key": _pair_key(star_catalog, theta), "format": FORMAT_VERSION, "max_angle_rad": theta,
+            "n_stars": len(star_catalog)}
+    arrays, why = _open_cached(stem, meta)
+    if arrays is None:
+        with _build_lock(stem):
+            arrays, why = _open_cached(stem, meta)                   # another process may have built it
+            if arrays is None:
+                if why is not None:
+                    print(f"dualsight: warning: pair catalog cache {man.name} is damaged ({why}); rebuilding",
+                          file=sys.stderr)
+                man.unlink(missing_ok=True)                          # the manifest goes first, comes back last
+                _remove_stale(stem)
+                cat = build_pair_catalog(star_catalog.unit, theta, max_bytes=max_bytes, out=stem)
+                arrays = {"i": cat.i, "j": cat.j, "angle": cat.angle}
+                doc = {**meta, "pairs": len(cat), "digest": _sample_digest(arrays),
+                       "files": {name: _column_path(stem, name).name for name, _ in _COLUMNS}}
+                fd, tmp = tempfile.mkstemp(prefix=f".{man.name}.", suffix=".tmp", dir=man.parent)
+                try:
+                    with os.fdopen(fd, "w") as f:
+                        json.dump(doc, f, sort_keys=True, indent=1)
+                        f.flush()
+                        os.fsync(f.fileno())
+                    os.replace(tmp, man)
+                except BaseException:
+                    Path(tmp).unlink(missing_ok=True)
+                    raise
+    return PairCatalog(i=arrays["i"], j=arrays["j"], angle=arrays["angle"], limit_rad=theta)
+
+
+__all__ = ["FORMAT_VERSION", "DEFAULT_MAX_BYTES", "PairCatalog", "build_pair_catalog", "load_pair_catalog",
+           "pair_cache_path", "pair_cache_files"]

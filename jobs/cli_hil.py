@@ -82,7 +82,9 @@ def add_star_parser(hsub) -> argparse.ArgumentParser:
                    help="voting method (default robust: VotingConfig.robust(); paper: the reference's); "
                         "the other one runs beside it unless --no-compare")
     s.add_argument("--no-compare", action="store_true", help="do not run the other voting method")
-    s.add_argument("--mag-limit", type=float, default=7.0, help="catalog magnitude limit, Johnson V (default 7.0)")
+    s.add_argument("--mag-limit", type=float, default=None,
+                   help="catalog magnitude limit, Johnson V (default: auto, from the camera's field: about 35 "
+                        "catalog stars per field on average, at most V 8; catalogs/auto_limit.py)")
     s.add_argument("--epoch", type=float, default=None,
                    help="catalog epoch, Julian year, to which proper motion moves the stars (default: the "
                         "images' date from --time or their file names, to 0.1 yr; else 2000.0)")

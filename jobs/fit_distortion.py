@@ -166,7 +166,7 @@ def solve_pass(pix: FramePixels, camera, catalog, pairs, voting, radius_px: floa
     for s in range(0, F, batch_size):
         b = slice(s, min(F, s + batch_size))
         obs = Observations(vec[b], valid[b], pix.x[b], pix.y[b])
-        ident = identify(obs, catalog.unit, pairs, voting)
+        ident = identify(obs, catalog.unit, pairs, voting, cat_vmag=catalog.vmag)
         sol = solve(obs, ident, catalog.unit, None)
         ok = sol.ok & (ident.T > 0)
         A[b], solved[b], T[b] = np.where(ok[:, None, None], sol.A_est, np.nan), ok, ident.T

@@ -18,6 +18,7 @@ from dualsight.errors import ConfigError
 from dualsight.jobs.config import dataclass_from_table, dataclass_to_table, validate
 from dualsight.jobs.hil_common import Frozen, ImageEntry, fixed_point
 from dualsight.kernels.detect import DetectConfig
+from dualsight.kernels.detect_local import LocalDetectConfig
 from dualsight.nav.errors import ARCSEC
 from dualsight.nav.starid import VotingConfig
 from dualsight.scene.camera import Camera
@@ -39,7 +40,10 @@ class StarSettings(Frozen):
     method: Literal["robust", "paper"] = "robust"
     compare: bool = True
     catalog: dict[str, Any] = Field(default_factory=dict)
-    detect: dict[str, Any] = Field(default_factory=dict)
+    detector: Literal["local", "global"] = "local"                # kernels.detect_local / kernels.detect
+    detect: dict[str, Any] = Field(default_factory=dict)              # DetectConfig (detector "global")
+    detect_local: dict[str, Any] = Field(default_factory=dict)        # LocalDetectConfig (detector "local")
+    centroid_floor_px: float | None = Field(default=0.1, ge=0, le=100)  # attitude weights; None = equal
     voting: dict[str, Any] = Field(default_factory=dict)
     alt_voting: dict[str, Any] | None = None
     background_block_px: int = 32
@@ -131,11 +135,19 @@ class HilStarSpec(Frozen):
 _NO_TRUTH = StarTruth()
 
 
-def normalise_settings(s: StarSettings, *, source: str, section: str | None = None, mag_limit: float = 7.0,
-                       epoch_jyear: float = 2000.0, tolerance_arcsec: float = 20.0, max_stars: int = 25,
-                       k_sigma: float = 5.0, min_pixels: int = 3) -> StarSettings:
+def normalise_settings(s: StarSettings, *, source: str, section: str | None = None,
+                       mag_limit: float | str | None = 7.0, epoch_jyear: float = 2000.0, tolerance_arcsec: float = 20.0,
+                       max_stars: int = 25, k_sigma: float = 5.0, min_pixels: int = 3,
+                       camera: Camera | None = None) -> StarSettings:
     """Settings with every table complete: the tables' keys over bases made from the flags (the
-    method's voting with ``tolerance_arcsec``, ``max_stars`` and :data:`MAX_VOTE_CELLS`)."""
+    method's voting with ``tolerance_arcsec``, ``max_stars`` and :data:`MAX_VOTE_CELLS`).
+
+    ``mag_limit`` (the flag) or the catalog table's ``mag_limit`` = "auto" (or None): the limit follows
+    ``camera`` (:func:`dualsight.catalogs.auto_limit.auto_mag_limit` with
+    :data:`~dualsight.catalogs.auto_limit.HIL_TARGET_PER_FIELD` stars per field), resolved to a number
+    here; without a camera it stays "auto" until :func:`spec_from_dict` (which has the camera) resolves it,
+    so a stored spec always holds the number."""
+    from dualsight.catalogs.auto_limit import HIL_TARGET_PER_FIELD, auto_mag_limit, is_auto
     def sec(name):
         return f"{section}.{name}" if section else name
 
@@ -147,12 +159,22 @@ def normalise_settings(s: StarSettings, *, source: str, section: str | None = No
         except (ValueError, TypeError) as e:
             raise ConfigError(str(e), source=source, field=sec(name)) from None
 
-    catalog = dataclass_from_table(StarCatalogConfig, s.catalog, source=source, section=sec("catalog"),
+    cat_table, deferred = dict(s.catalog), False
+    if is_auto(cat_table.get("mag_limit", mag_limit)):             # "auto": a number from the camera's field
+        cat_table.pop("mag_limit", None)
+        deferred = camera is None
+        mag_limit = 7.0 if deferred else auto_mag_limit(camera, target_per_field=HIL_TARGET_PER_FIELD)
+    elif is_auto(mag_limit):
+        mag_limit = 7.0                                              # the table's number wins
+    catalog = dataclass_from_table(StarCatalogConfig, cat_table, source=source, section=sec("catalog"),
                                    base=checked(lambda: StarCatalogConfig(mag_limit=mag_limit,
                                                                           epoch_jyear=epoch_jyear), "catalog"))
     detect = dataclass_from_table(DetectConfig, s.detect, source=source, section=sec("detect"),
                                   base=checked(lambda: DetectConfig(k_sigma=k_sigma, min_pixels=min_pixels),
                                                "detect"))
+    detect_local = dataclass_from_table(LocalDetectConfig, s.detect_local, source=source, section=sec("detect_local"),
+                                        base=checked(lambda: LocalDetectConfig(k_sigma=max(k_sigma, 1.0)),
+                                                     "detect_local"))
     common = dict(max_stars=max_stars, max_vote_cells=MAX_VOTE_CELLS)
     base = checked(lambda: _METHOD_CONFIG[s.method](tolerance_arcsec * ARCSEC, **common), "voting")
     voting = dataclass_from_table(VotingConfig, s.voting, source=source, section=sec("voting"), base=base)
@@ -161,7 +183,9 @@ def normalise_settings(s: StarSettings, *, source: str, section: str | None = No
         alt_base = checked(lambda: _METHOD_CONFIG[s.alt_method](voting.tolerance_rad, **common), "alt_voting")
         alt = dataclass_to_table(dataclass_from_table(VotingConfig, s.alt_voting, source=source,
                                                       section=sec("alt_voting"), base=alt_base))
-    return s.model_copy(update={"catalog": dataclass_to_table(catalog), "detect": dataclass_to_table(detect),
+    catalog = {**dataclass_to_table(catalog), **({"mag_limit": "auto"} if deferred else {})}
+    return s.model_copy(update={"catalog": catalog, "detect": dataclass_to_table(detect),
+                                "detect_local": dataclass_to_table(detect_local),
                                 "voting": dataclass_to_table(voting), "alt_voting": alt})
 
 
@@ -169,9 +193,11 @@ def settings_from_table(table: dict | None, *, source: str = "hil star", method:
                         compare: bool = True, background_block_px: int = 32, max_obs: int = 100,
                         batch_size: int = 16, limit_arcsec: float | None = None, **bases) -> StarSettings:
     """Settings from command-line values and an optional TOML table (keys ``method``, ``compare``,
-    ``background_block_px``, ``max_obs``, ``batch_size``, ``limit_arcsec`` and tables ``catalog``,
-    ``detect``, ``voting``, ``alt_voting``); the table's values win.  ``bases``: see
-    :func:`normalise_settings`.  Errors name ``source`` and the key."""
+    ``background_block_px``, ``max_obs``, ``batch_size``, ``limit_arcsec``, ``detector``,
+    ``centroid_floor_px`` and tables ``catalog``, ``detect``, ``detect_local``, ``voting``, ``alt_voting``); the
+    table's values win.  ``bases``: see
+    :func:`normalise_settings` (``mag_limit="auto"`` or None: from ``camera=``, else resolved by
+    :func:`spec_from_dict`).  Errors name ``source`` and the key."""
     top = {"method": method or "robust", "compare": compare, "background_block_px": background_block_px,
            "max_obs": max_obs, "batch_size": batch_size, "limit_arcsec": limit_arcsec}
     top.update(table or {})
@@ -187,5 +213,6 @@ def spec_from_dict(d: dict, source: str = "spec") -> HilStarSpec:
     if m.truths and len(m.truths) != len(m.images):
         raise ConfigError(f"must be empty or have one entry per image ({len(m.images)}), got {len(m.truths)}",
                           source=source, field="truths")
-    settings = normalise_settings(m.settings, source=source, section="settings")
+    settings = normalise_settings(m.settings, source=source, section="settings",
+                                  camera=Camera.from_dict(cam, source=source))
     return m.model_copy(update={"camera": cam, "settings": settings})

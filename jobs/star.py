@@ -73,6 +73,35 @@ PRESETS = {
 }
 PRESETS["noisy"] = {**PRESETS["paper"], "sensor": {"shot_noise": True, "read_noise_e": 10.0,
                                                    "sky_background_e": 50.0, "dark_current_e_per_s": 20.0}}
+# Sensor presets on the reference's camera (kernels/starfield.py SensorConfig; "paper" above: ideal images,
+# slight defocus, 12-bit ADC that saturates the brightest stars at 20 ke-).
+# "ideal": the paper's sensor without saturation (full well never reached, 16-bit ADC): optics and algorithms only.
+PRESETS["ideal"] = {**PRESETS["paper"], "sensor": {"full_well_e": 1e12, "bit_depth": 16}}
+# "realistic": a small-satellite CMOS star camera (examples/star/realistic_sensor.toml has the same numbers).
+PRESETS["realistic"] = {
+    **PRESETS["paper"], "batch_size": 16,        # full frames are rendered: 16 x 1024 x 768 per batch
+    "sensor": {
+        # PSF: star trackers defocus so a star covers ~3x3 to 5x5 px for sub-pixel centroids (Liebe 2002,
+        # IEEE TAES 38(2) 587): a 1.5 px radius disk blurred by a 0.5 px Gaussian (lens, charge diffusion).
+        "psf_model": "defocus", "defocus_radius_px": 1.5, "defocus_gaussian": True, "psf_sigma_px": 0.5,
+        "psf_window_sigma": 5.0,
+        "exposure_s": 0.1,                       # typical star-tracker exposures: 50-200 ms
+        # Detector: CMOSIS (ams) CMV4000 datasheet, a CMOS sensor flown in CubeSat star trackers: full well
+        # 13.5 ke-, dark (read) noise 13 e- rms, dark current 125 e-/s at 25 C, 12-bit ADC.
+        "full_well_e": 13500.0, "read_noise_e": 13.0, "dark_current_e_per_s": 125.0, "bit_depth": 12,
+        "gain_e_per_adu": 3.3,                   # full well / 4095 ADU: the ADC spans the well
+        "bias_adu": 32.0,                        # black level: > 8 sigma of the read noise (3.9 ADU) above 0
+        "shot_noise": True,
+        # Sky: zodiacal + diffuse galactic light ~V 22 mag/arcsec^2 (Leinert et al. 1998, A&AS 127, 1) over a
+        # 56 arcsec pixel (4.65 um / 17 mm) = V 13.2 per pixel: 0.8 e- in 0.1 s at the default zero point.
+        "sky_background_e": 0.8,
+        # Hot pixels: assumed order of magnitude for a CMOS sensor after ~1 year in LEO (1e-4 of the pixels,
+        # 20 ke-/s each), one fixed map (a property of the sensor).
+        "hot_pixel_fraction": 1e-4, "hot_pixel_e": 2000.0, "hot_pixel_seed": 1,
+    },
+    "detect": {"k_sigma": 5.0, "min_pixels": 3},
+    "voting": {"tolerance_arcsec": 20.0},        # noisy centroids: as examples/star/noisy_sensor.toml
+}
 
 
 @dataclass(frozen=True)
@@ -269,24 +298,36 @@ class Rendered:
     digest: np.ndarray
 
 
-def psf_margin_px(sensor: SensorConfig) -> float:
-    """How far outside the frame (px) a star still puts light into it: the PSF's render window."""
-    return float(sensor.psf_window_sigma * sensor.psf_sigma_px + 1.0)
+def psf_margin_px(sensor: SensorConfig, camera: Camera | None = None) -> float:
+    """How far outside the frame (px) a star still puts light into it: the PSF's reach
+    (``SensorConfig.psf_reach_px``: Gaussian window, defocus disk or PSF image) plus, with an angular rate
+    and a camera, the longest smear over the field, ``|w| t (f (1 + (r/f)^2) + r)`` with r the half
+    diagonal (the image motion of a star at radius r under a rate w about any axis, small-angle)."""
+    reach = float(sensor.psf_reach_px())
+    rate = getattr(sensor, "rate_deg_s", None)
+    if rate is not None and camera is not None and any(rate):
+        w = math.radians(math.hypot(*rate))
+        f = max(camera.fx, camera.fy)
+        r = 0.5 * math.hypot(camera.width, camera.height)
+        reach += w * sensor.exposure_s * (f * (1.0 + (r / f) ** 2) + r)
+    return reach
 
 
 def render_and_detect(field_: FieldStars, noise_seeds: np.ndarray, camera: Camera, sensor: SensorConfig,
-                      detect_cfg: DetectConfig, keep_images: bool = False) -> Rendered:
+                      detect_cfg: DetectConfig, keep_images: bool = False, attitude: np.ndarray | None = None
+                      ) -> Rendered:
     """Render the batch's star fields and detect/centroid the stars (Taichi kernels).
 
-    Noise-free frames that need not be kept take the sparse path (render and label only the windows
-    around stars: the same blobs as full frames)."""
+    attitude : (B, 3, 3) true attitudes (inertial -> camera), for the effects that need them (motion
+    smear, bright objects: kernels/psf_models.py).  Noise-free frames that need not be kept take the
+    sparse path (render and label only the windows around stars: the same blobs as full frames)."""
     t0 = time.perf_counter_ns()
     if sensor.is_ideal and not keep_images:
         det, digest = kdetect.render_and_detect_ideal(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
                                                       camera.height, sensor, detect_cfg, noise_seeds, digest=True)
         return Rendered(det, None, time.perf_counter_ns() - t0, None, digest)
     images = kstar.render_star_fields(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
-                                      camera.height, sensor, noise_seeds)
+                                      camera.height, sensor, noise_seeds, camera=camera, attitude=attitude)
     digest = frame_digest(images, np.asarray(sensor.empty_pixel_adu()).astype(images.dtype))
     t1 = time.perf_counter_ns()
     det = kdetect.detect_stars(images, detect_cfg)
@@ -305,15 +346,16 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
     draw = draw_cases(spec, case_ids)
     cat = ctx.catalog
     flux = kstar.flux_from_magnitude(cat.vmag.astype(np.float64), spec.sensor)
-    field_ = stars_in_field(draw["A_true"], cat.unit, flux, spec.camera, psf_margin_px(spec.sensor))
+    field_ = stars_in_field(draw["A_true"], cat.unit, flux, spec.camera, psf_margin_px(spec.sensor, spec.camera))
     t["sample"] = time.perf_counter_ns() - t0
 
-    r = render_and_detect(field_, draw["noise_seed"], spec.camera, spec.sensor, spec.detect, keep_images=keep_images)
+    r = render_and_detect(field_, draw["noise_seed"], spec.camera, spec.sensor, spec.detect, keep_images=keep_images,
+                          attitude=draw["A_true"])
     t["render"], t["detect"] = r.t_render_ns, r.t_detect_ns
 
     t1 = time.perf_counter_ns()
     obs = observations(r.detections, B, spec.camera)
-    ident = identify(obs, cat.unit, ctx.pairs, spec.voting)
+    ident = identify(obs, cat.unit, ctx.pairs, spec.voting, cat_vmag=cat.vmag)
     t["identify"] = time.perf_counter_ns() - t1
 
     t2 = time.perf_counter_ns()
@@ -323,7 +365,7 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
     alt = None
     if spec.robust is not None:   # dualsight's method beside the reference's, on the same detections
         t3 = time.perf_counter_ns()
-        ident_r = identify(obs, cat.unit, ctx.pairs, spec.robust)
+        ident_r = identify(obs, cat.unit, ctx.pairs, spec.robust, cat_vmag=cat.vmag)
         alt = (ident_r, solve(obs, ident_r, cat.unit, draw["A_true"], spec.error_frame))
         t["robust"] = time.perf_counter_ns() - t3
 
@@ -353,7 +395,7 @@ CASES_SCHEMA = pa.schema([
     ("err_total_rad", pa.float64()), ("status", pa.string()),
     ("T_robust", pa.int32()), ("n_identified_robust", pa.int32()), ("id_correct_robust", pa.bool_()),
     ("err_x_robust_rad", pa.float64()), ("err_y_robust_rad", pa.float64()), ("err_z_robust_rad", pa.float64()),
-    ("err_total_robust_rad", pa.float64()), ("status_robust", pa.string()),
+    ("err_total_robust_rad", pa.float64()), ("status_robust", pa.string()), ("p_chance", pa.float64()),
     ("t_sample_ns", pa.int64()), ("t_render_ns", pa.int64()), ("t_detect_ns", pa.int64()),
     ("t_identify_ns", pa.int64()), ("t_attitude_ns", pa.int64()), ("t_robust_ns", pa.int64()),
     ("t_total_ns", pa.int64()),
@@ -384,11 +426,11 @@ def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, al
                   "id_correct_robust": truth.id_correct(ident_r),
                   "err_x_robust_rad": sol_r.axis_err[:, 0], "err_y_robust_rad": sol_r.axis_err[:, 1],
                   "err_z_robust_rad": sol_r.axis_err[:, 2], "err_total_robust_rad": sol_r.total_err,
-                  "status_robust": names[sol_r.status]}
+                  "status_robust": names[sol_r.status], "p_chance": ident_r.p_chance}
     else:
         robust = {k: [None] * B for k in ("T_robust", "n_identified_robust", "id_correct_robust", "err_x_robust_rad",
                                           "err_y_robust_rad", "err_z_robust_rad", "err_total_robust_rad",
-                                          "status_robust")}
+                                          "status_robust", "p_chance")}
     cols = {
         "case_id": np.asarray(case_ids, dtype=np.int64), "seed": np.full(B, spec.seed, dtype=np.int64),
         "attitude_model": np.full(B, spec.attitudes, dtype=object),

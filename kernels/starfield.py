@@ -6,7 +6,9 @@ top-left *corner*; pixel (r, c) covers [c, c+1) x [r, r+1) and has its centre at
 Signal model (electrons, per pixel (r, c) of case b)::
 
     S      = sum_s  F_s * [Phi((c+1-x_s)/sigma) - Phi((c-x_s)/sigma)] * [Phi((r+1-y_s)/sigma) - Phi((r-y_s)/sigma)]
+             (or the PSF model, smear and bright objects of :mod:`dualsight.kernels.psf_models`)
     e      = S + dark_current * exposure + sky_background  (+ hot_pixel_e on hot pixels)
+             + max(0, e0 + gx (c + 0.5 - W/2) + gy (r + 0.5 - H/2))      (stray light, stray_light_e = [e0, gx, gy])
     e      = Poisson(e)                       if shot_noise
     e      = min(e, full_well)
     e      = e + read_noise * N(0, 1)
@@ -38,16 +40,18 @@ Taichi is initialised lazily (``dualsight.kernels._runtime.ensure_init``) on the
 """
 
 
+import functools
 import math
 import threading
 from dataclasses import dataclass, fields
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 import taichi as ti
-from pydantic import Field
+from pydantic import ConfigDict, Field
+from typing_extensions import TypedDict
 
-from dualsight.kernels import rng, star_psf
+from dualsight.kernels import psf_models, rng, star_psf
 from dualsight.config import check_fields
 from dualsight.kernels._runtime import KernelCache
 
@@ -56,6 +60,8 @@ __all__ = ["SensorConfig", "flux_from_magnitude", "render_star_fields", "false_s
 
 MAX_CHUNK_PIXELS = 1 << 26  # pixels per kernel call: 256 MB float32 scratch at most, indices fit in int32
 _QUANT_EPS = 1e-9  # ADU; keeps exact multiples of the gain from flooring one count low
+_FRAC_DRAW = 4095  # STREAM_SHOT draw of the stray light's sub-grid Poisson part (PTRS uses draws < 2000)
+MAX_STRAY_TABLE_ENTRIES = 1 << 21  # Poisson CDF entries tabulated for stray light (24 MB at most)
 
 
 # ============================================================================ configuration
@@ -66,10 +72,29 @@ MAX_ADU = 2 ** 24
 """Largest ADU magnitude of any ADU field: the full scale of the deepest ADC allowed (``bit_depth`` 24)."""
 
 _Charge = Annotated[float, Field(ge=0, le=MAX_CHARGE_E)]
+_Gradient = Annotated[float, Field(ge=-1e9, le=1e9)]  # e-/px: 1e9 e- across a 65536 px frame is ~MAX_CHARGE_E
+_Rate = Annotated[float, Field(ge=-100.0, le=100.0)]  # deg/s: beyond any tumbling rate a star camera could use
 _SENSOR_UNITS = {"psf_sigma_px": "px", "exposure_s": "s", "gain_e_per_adu": "e-/ADU", "full_well_e": "e-",
                  "bit_depth": "bits", "bias_adu": "ADU", "zero_mag_rate_e_per_s": "e-/s", "psf_window_sigma": "sigma",
                  "read_noise_e": "e- rms", "dark_current_e_per_s": "e-/s/px", "sky_background_e": "e-/px",
-                 "hot_pixel_e": "e-", "false_star_flux_min_e": "e-", "false_star_flux_max_e": "e-"}
+                 "hot_pixel_e": "e-", "false_star_flux_min_e": "e-", "false_star_flux_max_e": "e-",
+                 "defocus_radius_px": "px", "rate_deg_s": "deg/s", "stray_light_e": "e-, e-/px"}
+MAX_BRIGHT_OBJECTS = 64
+
+
+class BrightObject(TypedDict):
+    """One bright object in the sky (``[sensor] bright_objects = [{ra_deg, dec_deg, vmag, radius_px}, ...]``).
+
+    ra_deg in [0, 360), dec_deg in [-90, 90] (ICRS); vmag in [-30, 30] (Sun -26.7, full Moon -12.7, Venus
+    down to -4.9); radius_px in [0, 4096]: 0 = a point (rendered with the star PSF), > 0 = a uniform disk
+    of that radius (the Moon: its angular radius (~0.26 deg) times the focal length in px).
+    """
+
+    __pydantic_config__ = ConfigDict(extra="forbid")
+    ra_deg: Annotated[float, Field(ge=0.0, lt=360.0)]
+    dec_deg: Annotated[float, Field(ge=-90.0, le=90.0)]
+    vmag: Annotated[float, Field(ge=-30.0, le=30.0)]
+    radius_px: Annotated[float, Field(ge=0.0, le=4096.0)]
 
 
 @dataclass(frozen=True)
@@ -112,7 +137,31 @@ class SensorConfig:
     false_stars_per_frame : number of spurious point sources (glints, debris, planets) added to every
         frame at uniform random positions, an integer in [0, 10000] (bounds the star lists); 0 = off.
     false_star_flux_min_e, false_star_flux_max_e : their flux is log-uniform in this range (e-), each in
-        (0, 1e12], and max >= min (the one cross-field rule, checked in ``__post_init__``).
+        (0, 1e12], and max >= min (a cross-field rule, checked in ``__post_init__``).
+    psf_model : "gaussian" (default: the pixel-integrated Gaussian of ``psf_sigma_px``), "defocus" (a uniform
+        disk of ``defocus_radius_px``, exact pixel areas; convolved with the Gaussian when
+        ``defocus_gaussian``) or "image" (the measured PSF of ``psf_image``); see
+        :mod:`dualsight.kernels.psf_models`.
+    defocus_radius_px : radius of the defocus disk (px), in [0.1, 50] (used by psf_model "defocus").
+    defocus_gaussian : convolve the defocus disk with the Gaussian of ``psf_sigma_px`` (lens blur,
+        diffraction, charge diffusion).
+    psf_image : path of the measured PSF (psf_model "image", and only then): a ``.npy`` array or a PNG,
+        TIFF or FITS image, 2-D, odd sides <= 64 px, finite, >= 0, sampled on the sensor's pixels (1 to
+        4096 characters; relative to the working directory).  Read and checked when the config is built.
+    rate_deg_s : body rate [wx, wy, wz] of the camera frame during the exposure (deg/s), each in [-100, 100];
+        stars smear along their path (straight segments, see :mod:`dualsight.kernels.psf_models`).  Needs
+        the camera model at render time.  [0, 0, 0] = off.
+    stray_light_e : [e0, gx, gy]: stray light of e0 electrons (in [0, 1e12]) at the frame centre with
+        gradients gx, gy (e-/px along columns and rows, each in [-1e9, 1e9]), clipped at 0 e- where the
+        plane goes negative; added to the charge before shot noise.  [0, 0, 0] = off.
+    bright_objects : up to 64 planets or the Moon (:class:`BrightObject`: ra_deg, dec_deg, vmag,
+        radius_px), projected with each case's attitude and the camera; they saturate like stars (full
+        well, then the ADC).  Needs the camera and attitudes at render time.  () = none.
+
+    The sparse noise-free detector (``dualsight.kernels.detect.render_and_detect_ideal``) renders only
+    Gaussian star windows over a constant sky: every effect beyond that (pixel noise, another PSF
+    model, smear, stray light, bright objects) makes :attr:`has_pixel_noise` True and :attr:`is_ideal`
+    False, so those frames are rendered whole.
     """
 
     psf_sigma_px: Annotated[float, Field(ge=0.05, le=50.0)] = 0.8
@@ -134,12 +183,32 @@ class SensorConfig:
     false_stars_per_frame: Annotated[int, Field(ge=0, le=10_000)] = 0
     false_star_flux_min_e: Annotated[float, Field(gt=0, le=MAX_CHARGE_E)] = 500.0
     false_star_flux_max_e: Annotated[float, Field(gt=0, le=MAX_CHARGE_E)] = 20000.0
+    psf_model: Literal["gaussian", "defocus", "image"] = "gaussian"
+    defocus_radius_px: Annotated[float, Field(ge=0.1, le=50.0)] = 1.5
+    defocus_gaussian: bool = False
+    psf_image: Annotated[str, Field(min_length=1, max_length=4096)] | None = None
+    rate_deg_s: Annotated[tuple[_Rate, _Rate, _Rate], Field(min_length=3, max_length=3)] = (0.0, 0.0, 0.0)
+    stray_light_e: Annotated[tuple[_Charge, _Gradient, _Gradient], Field(min_length=3, max_length=3)] = (0.0, 0.0, 0.0)
+    bright_objects: Annotated[tuple[BrightObject, ...], Field(max_length=MAX_BRIGHT_OBJECTS)] = ()
 
     def __post_init__(self):
         check_fields(self, units=_SENSOR_UNITS)
         if self.false_star_flux_max_e < self.false_star_flux_min_e:
             raise ValueError(f"SensorConfig.false_star_flux_max_e must be >= false_star_flux_min_e "
                              f"({self.false_star_flux_min_e!r}), got {self.false_star_flux_max_e!r}")
+        for name in ("rate_deg_s", "stray_light_e"):  # numbers as floats (ints are allowed in a table)
+            object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
+        object.__setattr__(self, "bright_objects", tuple({k: float(o[k]) for k in BrightObject.__annotations__}
+                                                         for o in self.bright_objects))
+        if (self.psf_model == "image") != (self.psf_image is not None):
+            raise ValueError("SensorConfig.psf_image must be given with psf_model = \"image\" and only then "
+                             f"(psf_model {self.psf_model!r}, psf_image {self.psf_image!r})")
+        if self.psf_image is not None:
+            psf_models.load_psf_image(self.psf_image)  # read and checked now (cached: once per process)
+
+    def __hash__(self):  # bright_objects holds dicts (plain JSON in to_dict)
+        return hash(tuple((k, tuple(tuple(sorted(o.items())) for o in v) if k == "bright_objects" else v)
+                          for k, v in self.to_dict().items()))
 
     # ------------------------------------------------------------------ derived
     @property
@@ -153,19 +222,57 @@ class SensorConfig:
         return self.dark_current_e_per_s * self.exposure_s + self.sky_background_e
 
     @property
-    def has_pixel_noise(self) -> bool:
+    def has_random_pixels(self) -> bool:
         """True if any per-pixel random effect is on (shot, read or hot pixels)."""
         return self.shot_noise or self.read_noise_e > 0 or self.hot_pixel_fraction > 0
 
     @property
+    def has_smear(self) -> bool:
+        return any(v != 0.0 for v in self.rate_deg_s)
+
+    @property
+    def has_stray_light(self) -> bool:
+        return any(v != 0.0 for v in self.stray_light_e)
+
+    @property
+    def gaussian_windows_only(self) -> bool:
+        """True if all light is Gaussian star windows over a constant sky (what the sparse path renders):
+        Gaussian PSF, no smear, no stray light, no bright objects."""
+        return (self.psf_model == "gaussian" and not self.has_smear and not self.has_stray_light
+                and not self.bright_objects)
+
+    @property
+    def has_pixel_noise(self) -> bool:
+        """True if some pixel is more than the sparse path's Gaussian windows over a constant sky: a per-pixel
+        random effect (shot, read or hot pixels) or light elsewhere or otherwise shaped (PSF model
+        "defocus"/"image", smear, stray light, bright objects).  The sparse detector refuses such sensors."""
+        return self.has_random_pixels or not self.gaussian_windows_only
+
+    @property
     def needs_seeds(self) -> bool:
         """True if rendering draws random numbers (pixel noise or false stars)."""
-        return self.has_pixel_noise or self.false_stars_per_frame > 0
+        return self.has_random_pixels or self.false_stars_per_frame > 0
 
     @property
     def is_ideal(self) -> bool:
-        """No random effect at all (the image is a deterministic function of the star list)."""
-        return not self.needs_seeds
+        """No random effect and nothing but Gaussian star windows over a constant sky (the sparse
+        noise-free path reproduces the frame exactly)."""
+        return not self.needs_seeds and self.gaussian_windows_only
+
+    @property
+    def needs_camera(self) -> bool:
+        """True if rendering needs the camera model (smear) or also the attitudes (bright objects)."""
+        return self.has_smear or bool(self.bright_objects)
+
+    def psf_reach_px(self) -> float:
+        """How far (px) from a star's (mid-exposure) position its PSF puts light, smear excluded."""
+        g = self.psf_window_sigma * self.psf_sigma_px + 1.0
+        if self.psf_model == "defocus":
+            return self.defocus_radius_px + (g if self.defocus_gaussian else 1.0)
+        if self.psf_model == "image":
+            img = psf_models.load_psf_image(self.psf_image)
+            return max(img.shape) // 2 + 1.0
+        return g
 
     def to_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -199,6 +306,68 @@ def ideal_adu(s, base_e, full_well, gain, bias, max_adu, quantize):
     return ti.min(ti.max(adu, ti.f64(0.0)), max_adu)
 
 
+@ti.func
+def _table_sample(u, cdf: ti.template(), guide: ti.template(), o0, o1):
+    """Poisson sample by inversion of the tabulated CDF cdf[o0:o1] with its guide table guide[o0:o1] (local
+    indices, as :func:`dualsight.kernels.rng.poisson_table`); -1.0 beyond the table's last entry."""
+    K = ti.cast(o1 - o0, ti.i32)
+    j = ti.min(ti.cast(u * ti.cast(K, ti.f64), ti.i32), K - 1)
+    k = guide[o0 + j]
+    while k < K and cdf[o0 + k] < u:
+        k += 1
+    res = ti.f64(-1.0)
+    if k < K:
+        res = ti.cast(k, ti.f64)
+    return res
+
+
+@ti.func
+def _small_poisson(lam, u):
+    """Poisson(lam) for 0 <= lam < 1 by sequential inversion of the uniform u."""
+    p = ti.exp(-lam)
+    cum = p
+    n = 0
+    while u > cum and n < 60:
+        n += 1
+        p *= lam / ti.cast(n, ti.f64)
+        cum += p
+    return ti.cast(n, ti.f64)
+
+
+@functools.lru_cache(maxsize=8)
+def _stray_tables_for(base_e: float, m0: int, m1: int, step: float):
+    parts = [rng.poisson_table_np(base_e + m * step) for m in range(m0, m1 + 1)]  # per grid value, not per pixel
+    off = np.zeros(len(parts) + 1, np.int64)
+    np.cumsum([len(c) for c, _ in parts], out=off[1:])
+    return (np.ascontiguousarray(np.concatenate([c for c, _ in parts])),
+            np.ascontiguousarray(np.concatenate([g for _, g in parts])), off)
+
+
+def _stray_tables(cfg: SensorConfig, W: int, H: int):
+    """Poisson CDF tables of the sky pixels' lambdas under stray light, on a grid: (cdf, guide, offsets, m0,
+    1 / step) for lambda = base_e + m * step, m = m0 .. floor(max stray / step) over the stray plane's range
+    in the frame.  The step is the finest of 1/16, 1/4, 1 e- whose tables hold at most
+    MAX_STRAY_TABLE_ENTRIES entries (finer grids cost more in cache misses than they save: measured on 1024 x
+    768 frames, 1/16 e- adds ~3 ms/frame to the plain sky's table sampler, 1/64 and 1 e- ~35); none (one
+    dummy entry) when shot noise or stray light is off or even 1 e- is too fine (then every pixel takes the
+    PTRS sampler)."""
+    none = (np.ones(1), np.zeros(1, np.int32), np.zeros(1, np.int64), 0, 1.0)
+    if not (cfg.shot_noise and cfg.has_stray_light):
+        return none
+    e0, gx, gy = cfg.stray_light_e
+    corners = [max(0.0, e0 + gx * (cx - 0.5 * W) + gy * (ry - 0.5 * H)) for cx in (0.5, W - 0.5) for ry in (0.5, H - 0.5)]
+    lam_hi = cfg.base_e + max(corners) + 1.0
+    per_table = lam_hi + 12.0 * math.sqrt(lam_hi) + 31.0
+    if lam_hi > 1e6:
+        return none
+    for inv_step in (16, 4, 1):
+        m0, m1 = math.floor(min(corners) * inv_step), math.floor(max(corners) * inv_step)
+        if (m1 - m0 + 1) * per_table <= MAX_STRAY_TABLE_ENTRIES:
+            cdf, guide, off = _stray_tables_for(float(cfg.base_e), int(m0), int(m1), 1.0 / inv_step)
+            return cdf, guide, off, int(m0), float(inv_step)
+    return none
+
+
 # ============================================================================ kernels (built lazily)
 _KERNELS = KernelCache()      # builders registered at the end of the module
 
@@ -217,7 +386,9 @@ def _build_finalize(dtype):
                  base_e: ti.f64, full_well: ti.f64, gain: ti.f64, bias: ti.f64, max_adu: ti.f64,
                  quantize: ti.i32, shot: ti.i32, read_e: ti.f64, hot_frac: ti.f64, hot_e: ti.f64,
                  cdf: ti.types.ndarray(dtype=ti.f64, ndim=1), guide: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                 use_table: ti.i32):
+                 use_table: ti.i32, stray: ti.i32, stray_e0: ti.f64, stray_gx: ti.f64, stray_gy: ti.f64,
+                 tcdf: ti.types.ndarray(dtype=ti.f64, ndim=1), tguide: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                 toff: ti.types.ndarray(dtype=ti.i64, ndim=1), tm0: ti.i32, tinv: ti.f64):
         # flat (B*H*W,) arrays: 3-D external-array stores cost ~2x more in Taichi 1.7 CPU code
         for b, r in ti.ndrange(B, H):  # (frame, row) outer loop, columns serial
             seed = seeds[b]
@@ -228,9 +399,14 @@ def _build_finalize(dtype):
             k_read = rng.stream_key(seed, rng.STREAM_READ, 0)
             k_shot0 = rng.stream_key(seed, rng.STREAM_SHOT, 0)
             k_shot1 = rng.stream_key(seed, rng.STREAM_SHOT, 1)
+            k_frac = rng.stream_key(seed, rng.STREAM_SHOT, _FRAC_DRAW)
+            ntab = toff.shape[0] - 1
             row0 = ti.cast(r, ti.u64) * ti.cast(W, ti.u64)
             p0 = (b * H + r) * W
-            if shot == 0 and read_e <= ti.f64(0.0) and hot_frac <= ti.f64(0.0):
+            # stray light of this row at column c: max(0, stray_row + stray_gx * (c + 0.5 - W/2))
+            stray_row = stray_e0 + stray_gy * (ti.cast(r, ti.f64) + ti.f64(0.5) - ti.f64(0.5) * ti.cast(H, ti.f64))
+            stray_x0 = ti.f64(0.5) - ti.f64(0.5) * ti.cast(W, ti.f64)
+            if shot == 0 and read_e <= ti.f64(0.0) and hot_frac <= ti.f64(0.0) and stray == 0:
                 # noise-free: empty pixels (most of a star field) take the precomputed sky value and
                 # leave the scratch untouched; others go through the same ideal_adu arithmetic
                 sky = ti.cast(ideal_adu(ti.f32(0.0), base_e, full_well, gain, bias, max_adu, quantize), tdt)
@@ -251,13 +427,35 @@ def _build_finalize(dtype):
                         buf[p0 + c] = ti.f32(0.0)
                     idx = row0 + ti.cast(c, ti.u64)
                     e = ti.cast(s, ti.f64) + base_e
+                    st = ti.f64(0.0)
+                    sky_px = 0  # 1: only sky, dark current and stray light (for the stray tables)
+                    if s == ti.f32(0.0):
+                        sky_px = 1
+                    if stray != 0:
+                        st = ti.max(stray_row + stray_gx * (ti.cast(c, ti.f64) + stray_x0), ti.f64(0.0))
+                        e += st
                     if hot_frac > ti.f64(0.0):
                         if rng.u01_key(k_hot, idx) < hot_frac:
                             e += hot_e
+                            sky_px = 0
                     if shot != 0:
                         k = ti.f64(-1.0)
                         if use_table != 0 and e == base_e:  # the sky's lambda: tabulated CDF
                             k = rng.poisson_table(rng.u01_key(k_shot0, idx), cdf, guide)
+                        if k < ti.f64(0.0) and stray != 0 and sky_px != 0 and ntab > 0:
+                            # stray light: Poisson(base + st) = Poisson(base + q step) (tabulated CDF of that
+                            # grid value, q = floor(st / step)) + Poisson(st - q step) (inversion, its own draw;
+                            # independent).  The remainder is < step (<= 1/16 e-): u <= 1 - d <= exp(-d) means 0
+                            # without computing exp(-d), the same result as the full inversion.
+                            q = ti.floor(st * tinv)
+                            ti_ = ti.cast(q, ti.i32) - tm0
+                            if ti_ >= 0 and ti_ < ntab:
+                                k = _table_sample(rng.u01_key(k_shot0, idx), tcdf, tguide, toff[ti_], toff[ti_ + 1])
+                                d = st - q / tinv
+                                if k >= ti.f64(0.0) and d > ti.f64(0.0):
+                                    u2 = rng.u01_key(k_frac, idx)
+                                    if u2 > ti.f64(1.0) - d:
+                                        k += _small_poisson(d, u2)
                         if k < ti.f64(0.0):
                             if e != lam_c:
                                 lam_c = e
@@ -389,7 +587,8 @@ def prepare_stars(x, y, flux_e, valid, width, height, cfg, seeds):
 
 # ============================================================================ public API
 def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: SensorConfig = SensorConfig(),
-                       seeds=None, *, dtype=np.uint16, out: np.ndarray | None = None) -> np.ndarray:
+                       seeds=None, *, dtype=np.uint16, out: np.ndarray | None = None, camera=None,
+                       attitude=None) -> np.ndarray:
     """Render a batch of star-field frames (dense, full frame, all sensor effects).
 
     Parameters
@@ -403,13 +602,20 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
     seeds : (B,) uint64 per-case seeds; required when any random effect is on (else ignored).
     dtype : np.uint16 (default) or np.float32 output; both hold ADU (integers when cfg.quantize).
     out : optional preallocated (B, H, W) C-contiguous array of ``dtype`` to write into.
+    camera : ``dualsight.scene.camera.Camera`` of the frames; needed when ``cfg.rate_deg_s`` (smear) or
+        ``cfg.bright_objects`` is set (``cfg.needs_camera``), else ignored.
+    attitude : (B, 3, 3) inertial -> camera rotation of each case; needed for ``cfg.bright_objects``.
 
     Returns
     -------
     (B, H, W) images in ADU (see the module docstring for the pixel model).
 
     Cost: one serial-per-case splat of each star's window plus one (frame, row) pass over every pixel
-    (1024 x 768, one core: ~1 ms/frame noise-free, ~10-15 ms/frame with shot or read noise).  For
+    (1024 x 768, one core: ~1 ms/frame noise-free, ~10-15 ms/frame with shot or read noise).  Another PSF
+    model or smear renders each star as several sub-sources (:mod:`dualsight.kernels.psf_models`), each
+    within its own window: the defocus quadrature of the "realistic" preset (255 Gaussians per star) adds
+    ~3 ms per frame of 13 stars, a smear multiplies that part by ~5 L (L px long).  Stray light is computed
+    per pixel inside the same pass, its shot noise from tabulated CDFs (~3 ms/frame more).  For
     noise-free frames prefer ``dualsight.kernels.detect.render_and_detect_ideal``, which never touches
     the empty sky.  Memory: a process-wide float32 scratch of up to 2^26 pixels (256 MB) is kept zeroed
     between calls (batches are processed in chunks of that size); :func:`release_scratch` frees it.
@@ -432,7 +638,12 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
     hot_seed = cfg.hot_pixel_seed
     # Poisson CDF table of the sky level (dark + background), shared by most pixels; exact inversion
     use_table = cfg.shot_noise and 0.0 < cfg.base_e <= 1e6
+    tcdf, tguide, toff, tm0, tinv = _stray_tables(cfg, W, H)
     cdf, guide = rng.poisson_table_np(cfg.base_e) if use_table else (np.ones(1), np.zeros(1, np.int32))
+    src = None
+    if cfg.psf_model != "gaussian" or cfg.needs_camera:  # sub-sources (psf_models); else the plain Gaussian splat
+        src = psf_models.prepare_sources(x, y, f, ok, cfg, camera, attitude)
+    stray = (int(cfg.has_stray_light),) + tuple(float(v) for v in cfg.stray_light_e)
     chunk = max(1, min(B, MAX_CHUNK_PIXELS // (H * W)))  # frames per kernel call (bounded scratch, i32 indices)
     with _scratch.lock:
         try:
@@ -440,13 +651,16 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
                 sl = slice(b0, min(B, b0 + chunk))
                 n = sl.stop - sl.start
                 buf = _scratch.get(n * H * W)
-                star_psf.splat_stars(x[sl], y[sl], f[sl], ok[sl], buf.reshape(n, H, W), cfg.psf_sigma_px,
-                                     cfg.psf_window_sigma)
+                if src is None:
+                    star_psf.splat_stars(x[sl], y[sl], f[sl], ok[sl], buf.reshape(n, H, W), cfg.psf_sigma_px,
+                                         cfg.psf_window_sigma)
+                else:
+                    psf_models.splat_sources(src, sl, buf.reshape(n, H, W), cfg.psf_sigma_px)
                 fin(buf, out[sl].reshape(-1), n, H, W, seeds[sl], np.uint64(hot_seed or 0),
                     int(hot_seed is not None), float(cfg.base_e), float(cfg.full_well_e), float(cfg.gain_e_per_adu),
                     float(cfg.bias_adu), float(cfg.max_adu), int(cfg.quantize), int(cfg.shot_noise),
                     float(cfg.read_noise_e), float(cfg.hot_pixel_fraction), float(cfg.hot_pixel_e), cdf, guide,
-                    int(use_table))
+                    int(use_table), *stray, tcdf, tguide, toff, tm0, tinv)
         except BaseException:
             _scratch.drop()  # the zero invariant may be broken
             raise

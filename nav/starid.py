@@ -18,6 +18,12 @@ stage (module)                          what it does
 :mod:`~dualsight.nav.attitude_check`    (option) SVD attitude from the accepted stars must land
                                         ``min_verified`` observed stars on catalog stars;
                                         re-identification from that attitude
+:mod:`~dualsight.nav.residual_check`    (option) blended doubles out; iterated residual test
+                                        against the other stars' scatter, re-solved
+:mod:`~dualsight.nav.widen`             (option) a failing case votes again with the next block
+                                        of stars in brightness order (only those cases)
+:mod:`~dualsight.nav.chance`            every answer's chance-match probability ``p_chance``
+                                        (and, option, rejection of improbable answers)
 =====================================  ==========================================================
 
 Stages 1-5 run as Taichi kernels (:mod:`dualsight.kernels.voting`, ``engine="taichi"``, the default)
@@ -39,9 +45,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import widen
+from .attitude import solve_identified
 from .attitude_check import confirm_by_attitude
 from .candidates import assign_identities, assign_identities_taichi
+from .chance import catalog_density, chance_probability, pair_hypotheses
 from .pair_index import VotingIndex, pair_arrays, voting_index
+from .residual_check import drop_blends, residual_check
 from .verify import accept, verify, verify_accept_taichi
 from .votes import observed_pairs, vote, vote_taichi
 from .voting_config import ACCEPT_RULES, VotingConfig
@@ -65,14 +75,24 @@ class Identification:
         ``vote_ids`` unless the attitude check re-identified the stars (``reidentify``).
     accepted : (B, S) bool, stars whose identity is confirmed (to pass to the attitude solver).
     T : (B,) int32 match threshold: the most verification votes of any star in the case
-        (reference definition); set to 0 when the case was rejected by ``min_accepted`` or the
-        attitude check.  ``T <= 0`` = no confident solution.
+        (reference definition); set to 0 when the case was rejected by ``min_accepted``, the
+        attitude check, the residual test or ``max_p_chance``.  ``T <= 0`` = no confident solution.
     vote_ids : (B, S) int32 identity assigned by step 2 (with ``candidates_per_star`` > 1 the
-        tie-aware choice), -1 = none (tie, no vote, duplicate, invalid or beyond ``max_stars``).
+        tie-aware choice), -1 = none (tie, no vote, duplicate, invalid or not a voter).
     votes : (B, S) int32 voting-round vote count of ``vote_ids`` (0 where none).
     verify_votes : (B, S) int32 verification votes (number of other identified stars consistent).
     rejected : (B,) bool, the verification round gave T > 0 but the case was rejected.
-    n_attitude_matches : (B,) int32 observed stars matched by the attitude check (-1 = check not run).
+    n_attitude_matches : (B,) int32 observed stars matched by the attitude check, after the residual
+        test (-1 = check not run).
+    p_chance : (B,) float64 probability that observed directions unrelated to the catalog verify as
+        well as the answer (:func:`dualsight.nav.chance.chance_probability`); NaN where no answer.
+    n_rounds : (B,) int32 voting rounds run (1 without widening, :mod:`dualsight.nav.widen`).
+    answer_round : (B,) int32 the round whose answer (or, without one, whose outputs) is reported.
+    n_residual_rejected : (B,) int32 stars taken out by the blend and residual tests in the reported
+        round (:mod:`dualsight.nav.residual_check`).
+
+    The per-star and per-case fields other than ``p_chance`` and ``n_rounds`` are those of the
+    reported round (the one with the most verified stars; round 0 when no round answers).
     """
 
     ids: np.ndarray
@@ -83,11 +103,19 @@ class Identification:
     verify_votes: np.ndarray
     rejected: np.ndarray
     n_attitude_matches: np.ndarray
+    p_chance: np.ndarray
+    n_rounds: np.ndarray
+    answer_round: np.ndarray
+    n_residual_rejected: np.ndarray
 
+
+_ROUND_FIELDS = ("ids", "accepted", "T", "vote_ids", "votes", "verify_votes", "rejected", "n_attitude_matches",
+                 "n_residual_rejected")
 
 
 def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, pair_j=None,
-             pair_angle=None, cfg: VotingConfig = VotingConfig(), engine: str = "taichi") -> Identification:
+             pair_angle=None, cfg: VotingConfig = VotingConfig(), engine: str = "taichi",
+             cat_vmag: np.ndarray | None = None) -> Identification:
     """Identify observed stars by geometric voting (Kolomenkin et al. 2008), all cases at once.
 
     Parameters
@@ -100,9 +128,12 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
         :class:`VotingIndex` (what is derived from the catalog once; for arrays or an object,
         :func:`voting_index` keeps the last few, keyed by the arrays' identity).
     cfg : :class:`VotingConfig` (angles in rad).
+    cat_vmag : optional (N,) catalog V magnitudes, for the blend test (``cfg.reject_blends``): with them
+        only doubles of similar brightness are ambiguous (:func:`~dualsight.nav.residual_check.drop_blends`).
     engine : :data:`ENGINES`: ``"taichi"`` (Taichi CPU kernels for the vote counting, candidate
         selection and verification, parallel over cases and observed stars) or ``"numpy"`` (the
-        reference stages).  Both give the same outputs bit for bit; the attitude check is numpy in both.
+        reference stages).  Both give the same outputs bit for bit; the attitude check, the residual
+        test and the chance probability are numpy in both.
 
     Returns
     -------
@@ -112,10 +143,13 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
     -----
     Each case is computed independently: a batch gives the same result as each case alone.
     Invalid or non-finite entries of ``obs`` are ignored (they may hold NaN).  Only the first
-    ``cfg.max_stars`` valid stars of a case vote.
+    ``cfg.max_stars`` valid stars of a case vote; with widening (``cfg.max_stars_total``) the cases
+    that fail vote again with the next blocks (:mod:`dualsight.nav.widen`), each round the whole chain
+    below on those cases only.
     Cost: O(observed pairs x candidates per pair) for the voting round plus O(B x max_stars x N)
     for the dense vote tables (at most ``cfg.max_vote_cells`` cells at a time); the later steps
-    are O(B x max_stars^2) (x ``candidates_per_star``^2), the attitude check O(B x (N + S x 40)).
+    are O(B x max_stars^2) (x ``candidates_per_star``^2), the attitude check O(B x (N + S x 40));
+    times the rounds run (at most ``len(cfg.widen_schedule)``).
     The first call on a pair catalog also builds its :class:`VotingIndex` (O(M log M), once).
     """
     if engine not in ENGINES:
@@ -134,10 +168,63 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
         raise ValueError(f"pair catalog rows must be in [0, {N}) (the star catalog's rows)")
     valid = valid & np.all(np.isfinite(obs), axis=-1)
 
-    # the voting stars: the first max_stars valid ones of each case, in K slots
-    K = min(int(cfg.max_stars), int(valid.sum(axis=1).max(initial=0)))   # padding beyond is never used
-    cols = np.argsort(~valid, axis=1, kind="stable")[:, :K]             # valid columns first, in order
-    use = np.take_along_axis(valid, cols, axis=1)
+    # round 0: the first max_stars valid stars vote (the reference's method)
+    res = _round(obs, valid, valid, cat_unit, index, cfg, engine, cat_vmag)
+    res = {k: np.array(v, copy=True) for k, v in res.items()}          # no two fields share memory
+    hyp = res.pop("hypotheses")
+    n_rounds = np.ones(B, np.int64)
+    answer_round = np.zeros(B, np.int64)
+    n_valid = valid.sum(axis=1)
+    for r, (start, stop) in enumerate(cfg.widen_schedule[1:], start=1):   # widening: a handful of rounds
+        todo = widen.needs_widening(res["T"], res["accepted"].sum(axis=1), cfg) & (n_valid >= start + 2)
+        if cfg.max_p_chance < 1.0:                                      # an improbable answer: widen too
+            todo |= (res["T"] > 0) & ~(_chance(obs, valid, res, hyp, cat_unit, cfg) <= cfg.max_p_chance) \
+                & (n_valid >= start + 2)
+        idx = np.flatnonzero(todo)
+        if idx.size == 0:
+            break
+        voters = widen.block_voters(valid[idx], start, stop)
+        new = _round(obs[idx], valid[idx], voters, cat_unit, index, cfg, engine, cat_vmag)
+        hyp[idx] += new.pop("hypotheses")
+        n_rounds[idx] += 1
+        take = widen.better_answer(new["T"], new["accepted"].sum(axis=1), res["T"][idx],
+                                   res["accepted"][idx].sum(axis=1))
+        for f in _ROUND_FIELDS:
+            res[f][idx[take]] = new[f][take]
+        answer_round[idx[take]] = r
+
+    p = _chance(obs, valid, res, hyp, cat_unit, cfg)
+    if cfg.max_p_chance < 1.0:                                          # improbable answers are rejected
+        drop = (res["T"] > 0) & ~(p <= cfg.max_p_chance)
+        res["rejected"] = res["rejected"] | drop
+        res["T"] = np.where(drop, 0, res["T"])
+        res["accepted"] = res["accepted"] & ~drop[:, None]
+    p = np.where(res["T"] > 0, p, np.nan)
+    return Identification(
+        ids=res["ids"].astype(np.int32), accepted=res["accepted"], T=res["T"].astype(np.int32),
+        vote_ids=res["vote_ids"].astype(np.int32), votes=res["votes"].astype(np.int32),
+        verify_votes=res["verify_votes"].astype(np.int32), rejected=res["rejected"],
+        n_attitude_matches=res["n_attitude_matches"].astype(np.int32), p_chance=p.astype(np.float64),
+        n_rounds=n_rounds.astype(np.int32), answer_round=answer_round.astype(np.int32),
+        n_residual_rejected=res["n_residual_rejected"].astype(np.int32))
+
+
+def _round(obs: np.ndarray, valid: np.ndarray, voters: np.ndarray, cat_unit: np.ndarray, index: VotingIndex,
+           cfg: VotingConfig, engine: str, cat_vmag: np.ndarray | None = None) -> dict:
+    """One identification round: steps 1-5 with the first ``cfg.max_stars`` stars of ``voters``, the
+    attitude check and re-identification over every ``valid`` star, the residual test.
+
+    obs : (B, S, 3); valid, voters : (B, S) bool (voters within valid).  Returns a dict of the round's
+    (B, S) ``ids``, ``accepted``, ``vote_ids``, ``votes``, ``verify_votes`` and (B,) ``T`` (0 =
+    rejected), ``rejected``, ``n_attitude_matches``, ``n_residual_rejected`` and ``hypotheses``
+    (float64, :func:`dualsight.nav.chance.pair_hypotheses` of the round's voting pairs).
+    """
+    B, S, _ = obs.shape
+    N = cat_unit.shape[0]
+    # the voting stars: the first max_stars voters of each case, in K slots
+    K = min(int(cfg.max_stars), int(voters.sum(axis=1).max(initial=0)))   # padding beyond is never used
+    cols = np.argsort(~voters, axis=1, kind="stable")[:, :K]            # voter columns first, in order
+    use = np.take_along_axis(voters, cols, axis=1)
     obs_k = np.where(use[..., None], np.take_along_axis(obs, cols[..., None], axis=1), 0.0)
 
     pairs = observed_pairs(obs_k, use)
@@ -160,7 +247,43 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
     vote_ids_s = scatter(vote_ids, -1)
     ids_s, acc_s, reject, n_att = confirm_by_attitude(obs, valid, vote_ids_s, scatter(acc_k & ~reject[:, None], False),
                                                       T, reject, cat_unit, cfg)
-    return Identification(
-        ids=ids_s.astype(np.int32), accepted=acc_s, T=np.where(reject, 0, T).astype(np.int32),
-        vote_ids=vote_ids_s.astype(np.int32), votes=scatter(top, 0).astype(np.int32),
-        verify_votes=scatter(vv, 0).astype(np.int32), rejected=reject, n_attitude_matches=n_att.astype(np.int32))
+    n_res = np.zeros(B, np.int64)
+    if cfg.reject_blends:                                              # unresolvable doubles
+        radius = 2.0 * (cfg.attitude_tol if cfg.verify_attitude else cfg.verify_tol)
+        acc_s, n_res = drop_blends(ids_s, acc_s, index.i, index.j, index.angle, N, radius, vmag=cat_vmag,
+                                   max_dmag=cfg.blend_max_dmag)
+    acc_s, n_out = residual_check(obs, ids_s, acc_s, cat_unit, cfg)
+    n_res = n_res + n_out
+    if cfg.residual_k > 0 or cfg.reject_blends:                       # too few stars left: no answer
+        fail = (T > 0) & ~reject & (n_res > 0) & (acc_s.sum(axis=1) < cfg.min_answer)
+        reject = reject | fail
+        acc_s &= ~reject[:, None]
+        n_att = np.where(n_att >= 0, n_att - n_res, n_att)
+    return dict(ids=ids_s, accepted=acc_s, T=np.where(reject, 0, T), vote_ids=vote_ids_s, votes=scatter(top, 0),
+                verify_votes=scatter(vv, 0), rejected=reject, n_attitude_matches=n_att, n_residual_rejected=n_res,
+                hypotheses=pair_hypotheses(pairs.angle, pairs.case, B, index.angle, cfg.verify_tol))
+
+
+def _chance(obs: np.ndarray, valid: np.ndarray, res: dict, hyp: np.ndarray, cat_unit: np.ndarray,
+            cfg: VotingConfig) -> np.ndarray:
+    """(B,) chance-match probability of each case's answer (:mod:`dualsight.nav.chance`; NaN = none):
+    n = the accepted stars; tested = every valid star with the attitude check, else the voters; match
+    radius ``attitude_tol`` with the attitude check, else ``verify_tol``; density in the cap around the
+    answer's boresight that holds the case's detections."""
+    B = obs.shape[0]
+    p = np.full(B, np.nan)
+    ans = np.flatnonzero(res["T"] > 0)
+    if ans.size == 0:
+        return p
+    acc = res["accepted"][ans]
+    ids = res["ids"][ans]
+    v = valid[ans]
+    A, ok = solve_identified(obs[ans], ids, acc, cat_unit)
+    bore = np.where(ok[:, None], A[:, 2, :] if A.size else np.zeros((0, 3)), np.nan)   # camera z in ICRS
+    off = np.where(v, np.arccos(np.clip(np.where(v, obs[ans][..., 2], 1.0), -1.0, 1.0)), 0.0)
+    radius = np.maximum(off.max(axis=1, initial=0.0), 1e-3)
+    rho = catalog_density(cat_unit, bore, radius, block=cfg.max_vote_cells)
+    tested = v.sum(axis=1) if cfg.verify_attitude else np.minimum(v.sum(axis=1), int(cfg.max_stars))
+    radius_match = cfg.attitude_tol if cfg.verify_attitude else cfg.verify_tol
+    p[ans] = chance_probability(acc.sum(axis=1), tested, hyp[ans], rho, radius_match)
+    return p

@@ -17,7 +17,14 @@ are broken or which verification counts are "high"; those choices are the fields
   attitude from the accepted stars must place at least ``min_verified`` (4) observed stars within
   ``attitude_tolerance_rad`` of a catalog star, and then every observed star is re-identified from
   that attitude.  A confident but wrong answer needs four observed stars that all land on catalog
-  stars under a wrong attitude.
+  stars under a wrong attitude.  Then identities of blended doubles are dropped and a 5-sigma residual
+  test against the other stars' scatter rejects a wrong identity inside the match radius
+  (:mod:`dualsight.nav.residual_check`); a case that fails votes again with the next 20 stars in
+  brightness order, up to the 60 brightest (widening, :mod:`dualsight.nav.widen`), so bright false stars
+  cannot crowd the true ones out of the vote.
+
+Every answer of either preset carries ``p_chance``, the probability that it is a chance match
+(:mod:`dualsight.nav.chance`); ``max_p_chance`` < 1 rejects improbable answers (off in both presets).
 
 All angles are in radians (convert at the edge with :data:`dualsight.scene.units.ARCSEC`).
 """
@@ -52,7 +59,9 @@ detections (``max_obs``), and the voting, verification and consistent-set steps 
 _Tol = Annotated[float, Field(gt=0, le=MAX_TOLERANCE_RAD)]
 _Count = Annotated[int, Field(ge=2, le=MAX_STARS)]
 _UNITS = {"tolerance_rad": "rad", "verify_tolerance_rad": "rad", "attitude_tolerance_rad": "rad",
-          "max_stars": "stars", "min_accepted": "stars", "min_verified": "stars", "max_vote_cells": "cells"}
+          "max_stars": "stars", "min_accepted": "stars", "min_verified": "stars", "max_vote_cells": "cells",
+          "max_stars_total": "stars", "widen_step": "stars", "widen_min_verified": "stars",
+          "residual_k": "sigma", "residual_floor_rad": "rad"}
 
 
 @dataclass(frozen=True)
@@ -114,6 +123,34 @@ class VotingConfig:
         table holds at most this many int64 cells (tables are of max(1, min(max_vote_cells, 262144) // W)
         observed stars, W = N + 1 rounded up to 64), at most this many catalog stars are expanded at
         once (with 262144, or one tile), and the later steps work on blocks of cases of about this size.
+    max_stars_total : widening (:mod:`dualsight.nav.widen`), None or an integer in [2, 1000]: a case
+        whose answer fails verification (no answer, or fewer than ``widen_min_verified`` verified
+        stars) votes again with the next block of ``max_stars`` stars in brightness order (valid ranks
+        ``[r * widen_step, r * widen_step + max_stars)`` in round r, cut at ``max_stars_total``), and
+        keeps the answer with the most verified stars.  None (the paper method) or <= ``max_stars`` =
+        one round, the reference's.  Work bound: at most ``widen_rounds`` rounds of one block each.
+    widen_step : ranks between the first stars of two rounds' blocks, None (= ``max_stars``: disjoint
+        blocks) or an integer in [1, 1000]; smaller = overlapping blocks, more rounds.
+    widen_min_verified : a round's answer with fewer verified stars than this (None = ``min_verified``
+        with the attitude check, else ``min_accepted``) sends the case to the next round (the answer is
+        kept unless a later round verifies more stars); an integer in [2, 1000].
+    residual_k : residual test (:mod:`dualsight.nav.residual_check`) after the attitude, in [0, 100]
+        (0 = off, the paper method): the accepted star with the largest residual is rejected while that
+        residual exceeds ``residual_k`` x sigma, sigma = the others' robust scatter (median residual /
+        sqrt(2 ln 2), the Rayleigh median) floored at ``residual_floor``; the attitude is re-solved
+        after each rejection.  5 = a star with Gaussian centroid errors is rejected with probability
+        exp(-12.5) = 3.7e-6.
+    residual_floor_rad : floor (rad) of that sigma, None (= ``tolerance_rad / 10``: the tolerance
+        covers several sigma of a pair angle's error) or in (0, pi/180].
+    reject_blends : after the attitude check, un-accept the identities whose catalog star has another
+        catalog star closer than twice the match radius (a double merged into one detection: its
+        identity is either star; :func:`dualsight.nav.residual_check.drop_blends`).  Off in the paper
+        method.
+    blend_max_dmag : with catalog magnitudes given to identify, a double whose stars differ by less than
+        this (mag, in [0, 30]) is ambiguous for both; otherwise only its fainter star is (the brighter
+        dominates the merged centroid).
+    max_p_chance : an answer whose chance-match probability (:mod:`dualsight.nav.chance`) exceeds this
+        is rejected (and widening tries the next block), in (0, 1]; 1 = never (the paper method).
     """
 
     tolerance_rad: _Tol = 1.5e-4
@@ -130,6 +167,14 @@ class VotingConfig:
     min_verified: _Count = 4
     reidentify: bool = True
     max_vote_cells: Annotated[int, Field(ge=1, le=2 ** 28)] = 250_000
+    max_stars_total: _Count | None = None
+    widen_step: Annotated[int, Field(ge=1, le=MAX_STARS)] | None = None
+    widen_min_verified: _Count | None = None
+    residual_k: Annotated[float, Field(ge=0.0, le=100.0)] = 0.0
+    residual_floor_rad: _Tol | None = None
+    reject_blends: bool = False
+    blend_max_dmag: Annotated[float, Field(ge=0.0, le=30.0)] = 1.0
+    max_p_chance: Annotated[float, Field(gt=0.0, le=1.0)] = 1.0
 
     def __post_init__(self):
         check_fields(self, lambda name, msg: ConfigError(msg, field=f"voting.{name}"), _UNITS)
@@ -144,6 +189,31 @@ class VotingConfig:
         """Effective match radius (rad) of the attitude check."""
         return 2.0 * self.tolerance_rad if self.attitude_tolerance_rad is None else self.attitude_tolerance_rad
 
+    @property
+    def residual_floor(self) -> float:
+        """Effective floor (rad) of the residual test's sigma."""
+        return self.tolerance_rad / 10.0 if self.residual_floor_rad is None else self.residual_floor_rad
+
+    @property
+    def min_answer(self) -> int:
+        """Fewest verified stars of an answer: ``min_verified`` with the attitude check, else ``min_accepted``."""
+        return int(self.min_verified if self.verify_attitude else self.min_accepted)
+
+    @property
+    def widen_schedule(self) -> tuple[tuple[int, int], ...]:
+        """The voting blocks of the widening rounds, ``((start, stop), ...)`` valid-star ranks (brightest
+        = 0): round 0 is ``(0, max_stars)``; one round only without widening."""
+        K = int(self.max_stars)
+        total = K if self.max_stars_total is None else max(K, int(self.max_stars_total))
+        step = K if self.widen_step is None else int(self.widen_step)
+        out, start = [(0, K)], step
+        while total > K and start + 1 < total:                         # a block needs two stars
+            out.append((start, min(start + K, total)))
+            if start + K >= total:
+                break
+            start += step
+        return tuple(out)
+
     @classmethod
     def paper(cls, tolerance_rad: float = 1.5e-4, **kw) -> "VotingConfig":
         """Reference-faithful method: plain argmax, accept >= T/2, no attitude check."""
@@ -154,10 +224,12 @@ class VotingConfig:
 
     @classmethod
     def robust(cls, tolerance_rad: float = 1.5e-4, **kw) -> "VotingConfig":
-        """dualsight's method: unique maxima, consistent-set acceptance, >= 3 stars, attitude check."""
+        """dualsight's method: unique maxima, consistent-set acceptance, attitude check (>= 4 stars), blend and
+        5-sigma residual tests, widening to the 60 brightest stars in blocks of ``max_stars``."""
         base = dict(tolerance_rad=tolerance_rad, require_unique_max=True, vote_once_per_pair=True,
                     candidates_per_star=3, accept_rule="clique", min_accepted=2, verify_attitude=True,
-                    min_verified=4, reidentify=True)
+                    min_verified=4, reidentify=True, max_stars_total=60, residual_k=5.0,
+                    reject_blends=True)
         base.update(kw)
         return cls(**base)
 
