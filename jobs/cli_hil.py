@@ -173,6 +173,7 @@ def cmd_hil_star(args) -> int:
     from dualsight.jobs import hil_star as hs
     from dualsight.jobs import hil_star_report as rep
     from dualsight.jobs.hil_common import done_message, engine_lake, run_engine
+    from dualsight.scene.camera import Camera
     from dualsight.warehouse.query import connect, run_report
 
     if args.fit_distortion or args.output is not None or args.force:     # lens distortion from the sky
@@ -195,7 +196,8 @@ def cmd_hil_star(args) -> int:
                 print(f"dualsight: {j['error']}; skipped, the other images go on", file=sys.stderr)
             elif j.get("truth_note") and (args.truth is not None or args.lat is not None):
                 print(f"dualsight: {j['image']}: no truth ({j['truth_note']})", file=sys.stderr)
-        print(json.dumps(docs, indent=1) if args.json else rep.text_report(con, run_id, docs, spec.settings))
+        print(json.dumps(docs, indent=1) if args.json else
+              rep.text_report(con, run_id, docs, spec.settings, camera=Camera.from_dict(spec.camera)))
         cols, srows = run_report(con, "hil_star_summary", run=run_id)
         summary = dict(zip(cols, srows[0]))
         con.close()

@@ -124,13 +124,19 @@ def table6_text(rows: list[dict], max_rows: int | None = None) -> str:
     return format_table(cols, out)
 
 
-def text_report(con, run_id: str, docs: list[dict], settings) -> str:
-    """Header, per image its summary line and Table 6, then the per-image table (all from the SQL reports)."""
+def text_report(con, run_id: str, docs: list[dict], settings, camera=None) -> str:
+    """Header, per image its summary line and Table 6, then the per-image table (all from the SQL reports).
+    With ``camera`` the header says what the catalog depth gives that field (catalogs/auto_limit.py)."""
     from dualsight.warehouse.query import format_table, run_report
 
     st = settings
     tol = st.voting["tolerance_rad"] / ARCSEC
-    out = [f"catalog V <= {st.catalog['mag_limit']:g} at epoch {st.catalog['epoch_jyear']:g}, {st.method} voting "
+    depth = f"catalog V <= {st.catalog['mag_limit']:g}"
+    if camera is not None:
+        from dualsight.catalogs.auto_limit import describe_mag_limit
+
+        depth = describe_mag_limit(camera, float(st.catalog["mag_limit"]))
+    out = [f"{depth} at epoch {st.catalog['epoch_jyear']:g}, {st.method} voting "
            f"(tolerance {tol:.0f} arcsec, {st.voting['max_stars']} brightest vote)"
            + (f"; {st.alt_method} beside it" if st.alt_method else ""), ""]
     cols, rows = run_report(con, "hil_star_table6", run=run_id)

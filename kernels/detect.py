@@ -29,6 +29,7 @@ sample (every ``background_step``-th row and column): bg = median, sigma = stand
 sample within 4 * 1.4826 * MAD of the median (robust to the few star pixels; 0 when MAD = 0).
 """
 
+import logging
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
@@ -42,6 +43,8 @@ from dualsight.config import check_fields
 from dualsight.kernels._runtime import KernelCache
 from dualsight.kernels.digest import patch_digest_taichi
 from dualsight.kernels.labelling import Components, find, label_frames, label_segments, union
+
+log = logging.getLogger(__name__)
 
 __all__ = ["DetectConfig", "Detections", "detect_stars", "render_and_detect_ideal", "estimate_background"]
 
@@ -110,6 +113,8 @@ class Detections:
     sigma_px : optional (K,) float64 centroid uncertainty per axis (px), None when the detector states none
         (:func:`dualsight.kernels.detect_local.detect_real`: the Cramér-Rao bound of its PSF fit).
     saturated : optional (K,) bool, the blob has saturated pixels (None when the detector does not check).
+    blobs_dropped : optional (B,) int64 blobs per frame beyond ``max_blobs_per_frame`` (the faintest), not
+        returned; logged as a warning (None when the detector does not count).
     """
 
     case: np.ndarray
@@ -122,6 +127,7 @@ class Detections:
     threshold_adu: np.ndarray
     sigma_px: np.ndarray | None = None
     saturated: np.ndarray | None = None
+    blobs_dropped: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -276,6 +282,10 @@ def _assemble(case, sw, sx, sy, npx, B, cfg: DetectConfig, bg, thr) -> Detection
     case, x, y, sw, npx = case[order], x[order], y[order], sw[order], npx[order]
     counts = np.bincount(case, minlength=B)
     start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    dropped = np.maximum(counts - cfg.max_blobs_per_frame, 0).astype(np.int64)
+    if dropped.any():       # no silent cap: counted per frame (a row field) and logged
+        log.warning("%d blobs beyond max_blobs_per_frame = %d dropped (the faintest) in %d of %d frames",
+                    int(dropped.sum()), cfg.max_blobs_per_frame, int((dropped > 0).sum()), B)
     if counts.size and counts.max() > cfg.max_blobs_per_frame:
         rank = np.arange(case.size) - start[case]
         keep = rank < cfg.max_blobs_per_frame
@@ -285,7 +295,8 @@ def _assemble(case, sw, sx, sy, npx, B, cfg: DetectConfig, bg, thr) -> Detection
     np.cumsum(counts, out=offsets[1:])
     return Detections(case=case.astype(np.int32), x=x.astype(np.float64), y=y.astype(np.float64),
                       flux=sw.astype(np.float64), npix=npx.astype(np.int32), offsets=offsets,
-                      background_adu=np.asarray(bg, np.float64), threshold_adu=np.asarray(thr, np.float64))
+                      background_adu=np.asarray(bg, np.float64), threshold_adu=np.asarray(thr, np.float64),
+                      blobs_dropped=dropped)
 
 
 def _from_components(comp: Components, case_of_seg, B, cfg: DetectConfig, bg, thr) -> Detections:
@@ -304,7 +315,9 @@ def _concat(parts: list) -> Detections:
     return Detections(case=np.concatenate([p.case + np.int32(f0) for p, f0 in zip(parts, first)]).astype(np.int32),
                       x=cat("x"), y=cat("y"), flux=cat("flux"), npix=cat("npix"),
                       offsets=np.concatenate([[0]] + [p.offsets[1:] + o for p, o in zip(parts, offs)]).astype(np.int64),
-                      background_adu=cat("background_adu"), threshold_adu=cat("threshold_adu"))
+                      background_adu=cat("background_adu"), threshold_adu=cat("threshold_adu"),
+                      blobs_dropped=(cat("blobs_dropped") if all(p.blobs_dropped is not None for p in parts)
+                                     else None))
 
 
 def _empty(B, cfg, bg, thr) -> Detections:

@@ -221,3 +221,26 @@ def test_cli_default_is_auto():
     args = p.parse_args(["star", "x.tiff", "--camera", "c.toml"])
     assert args.mag_limit is None
     assert p.parse_args(["star", "x.tiff", "--camera", "c.toml", "--mag-limit", "6.5"]).mag_limit == 6.5
+
+
+def test_hil_star_header_states_the_automatic_depth(tmp_path):
+    """`hil star` without --mag-limit uses the camera's automatic limit and says so in its header."""
+    import contextlib
+    import io
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import test_hil_star as th
+
+    from dualsight.jobs.cli import main
+
+    if not th.ESA.is_dir():
+        pytest.skip(f"real ESA frames not found in {th.ESA}")
+    frame = sorted(th.ESA.glob("*.tiff"))[0]
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        rc = main(["hil", "star", str(frame), "--camera", str(ROOT / "examples" / "cameras" / "esa_tetra3.toml"),
+                   "--no-lake", "--no-compare"])
+    head = out.getvalue().splitlines()[0]
+    want = al.auto_mag_limit(ESA, target_per_field=al.HIL_TARGET_PER_FIELD)
+    assert rc == 0 and head.startswith(f"catalog to V {want:.1f} (auto: "), head

@@ -483,3 +483,20 @@ def test_against_sep_on_the_star_jobs_noisy_frames():
     assert c_l >= c_s - 0.005, (c_l, c_s, th)
     assert rms_l <= rms_s, (rms_l, rms_s)
     assert bright.sum() > 50 and rb_l <= 0.9 * rb_s, (rb_l, rb_s)
+
+
+def test_the_global_detectors_cap_is_counted_and_logged(caplog):
+    """No silent cap in kernels/detect.py either: a 16 x 16 grid of isolated lit pixels (256 blobs) with
+    max_blobs_per_frame = 100 returns 100 and counts 156 dropped, with a warning; the other frame none."""
+    import logging
+
+    from dualsight.kernels.detect import DetectConfig, detect_stars
+
+    img = np.zeros((2, 64, 64), np.float32)
+    img[0, ::4, ::4] = 100.0
+    img[1, 10, 10] = 100.0
+    cfg = DetectConfig(threshold_adu=10, k_sigma=0, background_adu=0, min_pixels=1, max_blobs_per_frame=100)
+    with caplog.at_level(logging.WARNING, logger="dualsight.kernels.detect"):
+        d = detect_stars(img, cfg)
+    assert d.counts.tolist() == [100, 1] and d.blobs_dropped.tolist() == [156, 0]
+    assert "156 blobs beyond max_blobs_per_frame = 100" in caplog.text
