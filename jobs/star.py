@@ -44,7 +44,7 @@ from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.kernels.starfield import SensorConfig
 from dualsight.nav.errors import STATUS_NAMES
 from dualsight.nav.observations import observations, ragged_rank
-from dualsight.nav.star_solution import identify, solve
+from dualsight.nav.star_solution import centroid_weights, identify, solve
 from dualsight.nav.starid import VotingConfig
 from dualsight.nav.truth_match import match_truth
 from dualsight.scene.attitude import boresight_radec, euler123_to_dcm, quat_to_dcm, quaternions_from_uniforms
@@ -118,11 +118,12 @@ class StarSpec:
     batch_size: int = 64
     attitudes: Literal["euler123", "uniform"] = "euler123"
     error_frame: Literal["camera", "inertial"] = "camera"
+    detector: Literal["global", "local"] = "global"
     source: str = field(default="defaults", compare=False)
 
     def to_dict(self) -> dict:
         return {"seed": self.seed, "batch_size": self.batch_size, "attitudes": self.attitudes,
-                "error_frame": self.error_frame, "camera": self.camera.to_dict(),
+                "error_frame": self.error_frame, "detector": self.detector, "camera": self.camera.to_dict(),
                 "catalog": dataclass_to_table(self.catalog), "sensor": dataclass_to_table(self.sensor),
                 "detect": dataclass_to_table(self.detect), "voting": dataclass_to_table(self.voting),
                 "compare_robust": self.robust is not None,
@@ -139,6 +140,7 @@ class StarTable(BaseModel):
     batch_size: int = Field(64, ge=1, le=4096)
     attitudes: Literal["euler123", "uniform"] = "euler123"
     error_frame: Literal["camera", "inertial"] = "camera"
+    detector: Literal["global", "local"] = "global"
     compare_robust: bool = True
     preset: str | None = None
     camera: dict
@@ -164,7 +166,7 @@ def spec_from_dict(d: dict, source: str = "spec") -> StarSpec:
               if cmp_ else None)
     return StarSpec(camera=camera, catalog=catalog, sensor=sensor, detect=detect, voting=voting, robust=robust,
                     seed=int(seed),
-                    batch_size=int(bs), attitudes=att, error_frame=frame, source=source)
+                    batch_size=int(bs), attitudes=att, error_frame=frame, detector=top.detector, source=source)
 
 
 def resolve(preset: str | None, config: Path | None, *, seed: int | None = None,
@@ -313,16 +315,31 @@ def psf_margin_px(sensor: SensorConfig, camera: Camera | None = None) -> float:
     return reach
 
 
+def local_detect_config(sensor: SensorConfig, detect_cfg: DetectConfig):
+    """The real-sensor detector's settings for a simulated sensor: its threshold (``k_sigma``), the
+    Gaussian PSF width it was rendered with (measured per frame for other PSF models), its gain (for the
+    stars' own shot noise in the centroid uncertainty) and its ADC full scale (saturation)."""
+    from dualsight.kernels.detect_local import LocalDetectConfig
+
+    return LocalDetectConfig(k_sigma=max(1.0, detect_cfg.k_sigma),
+                             psf_sigma_px=(max(0.2, sensor.psf_sigma_px) if sensor.psf_model == "gaussian"
+                                           else None),
+                             gain_e_per_adu=sensor.gain_e_per_adu)
+
+
 def render_and_detect(field_: FieldStars, noise_seeds: np.ndarray, camera: Camera, sensor: SensorConfig,
-                      detect_cfg: DetectConfig, keep_images: bool = False, attitude: np.ndarray | None = None
-                      ) -> Rendered:
+                      detect_cfg: DetectConfig, keep_images: bool = False, attitude: np.ndarray | None = None,
+                      detector: str = "global") -> Rendered:
     """Render the batch's star fields and detect/centroid the stars (Taichi kernels).
 
     attitude : (B, 3, 3) true attitudes (inertial -> camera), for the effects that need them (motion
     smear, bright objects: kernels/psf_models.py).  Noise-free frames that need not be kept take the
-    sparse path (render and label only the windows around stars: the same blobs as full frames)."""
+    sparse path (render and label only the windows around stars: the same blobs as full frames).
+    detector : "global" (kernels/detect.py: one level per frame, the reference's thresholding) or "local"
+    (kernels/detect_local.py, as for real frames: tiled background, matched filter, PSF-fit centroids with
+    their uncertainty; always on full frames)."""
     t0 = time.perf_counter_ns()
-    if sensor.is_ideal and not keep_images:
+    if sensor.is_ideal and not keep_images and detector == "global":
         det, digest = kdetect.render_and_detect_ideal(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
                                                       camera.height, sensor, detect_cfg, noise_seeds, digest=True)
         return Rendered(det, None, time.perf_counter_ns() - t0, None, digest)
@@ -330,7 +347,12 @@ def render_and_detect(field_: FieldStars, noise_seeds: np.ndarray, camera: Camer
                                       camera.height, sensor, noise_seeds, camera=camera, attitude=attitude)
     digest = frame_digest(images, np.asarray(sensor.empty_pixel_adu()).astype(images.dtype))
     t1 = time.perf_counter_ns()
-    det = kdetect.detect_stars(images, detect_cfg)
+    if detector == "local":
+        from dualsight.kernels.detect_local import detect_real
+
+        det = detect_real(images, local_detect_config(sensor, detect_cfg), saturation_adu=float(sensor.max_adu))
+    else:
+        det = kdetect.detect_stars(images, detect_cfg)
     t2 = time.perf_counter_ns()
     return Rendered(det, images if keep_images else None, t1 - t0, t2 - t1, digest)
 
@@ -350,7 +372,7 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
     t["sample"] = time.perf_counter_ns() - t0
 
     r = render_and_detect(field_, draw["noise_seed"], spec.camera, spec.sensor, spec.detect, keep_images=keep_images,
-                          attitude=draw["A_true"])
+                          attitude=draw["A_true"], detector=spec.detector)
     t["render"], t["detect"] = r.t_render_ns, r.t_detect_ns
 
     t1 = time.perf_counter_ns()
@@ -359,14 +381,17 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
     t["identify"] = time.perf_counter_ns() - t1
 
     t2 = time.perf_counter_ns()
-    sol = solve(obs, ident, cat.unit, draw["A_true"], spec.error_frame)
+    # centroid uncertainties as attitude weights when the detector states them (local detector; a 0.02 px
+    # floor for the PSF model's own error), else equal weights
+    weights = centroid_weights(r.detections, obs, 0.02)
+    sol = solve(obs, ident, cat.unit, draw["A_true"], spec.error_frame, weights=weights)
     t["attitude"] = time.perf_counter_ns() - t2
 
     alt = None
     if spec.robust is not None:   # dualsight's method beside the reference's, on the same detections
         t3 = time.perf_counter_ns()
         ident_r = identify(obs, cat.unit, ctx.pairs, spec.robust, cat_vmag=cat.vmag)
-        alt = (ident_r, solve(obs, ident_r, cat.unit, draw["A_true"], spec.error_frame))
+        alt = (ident_r, solve(obs, ident_r, cat.unit, draw["A_true"], spec.error_frame, weights=weights))
         t["robust"] = time.perf_counter_ns() - t3
 
     truth = match_truth(r.detections, field_, obs, cat.hip)
@@ -387,7 +412,7 @@ CASES_SCHEMA = pa.schema([
     ("A_true", _MAT9), ("A_est", _MAT9),
     ("ra_true_rad", pa.float64()), ("dec_true_rad", pa.float64()),
     ("ra_est_rad", pa.float64()), ("dec_est_rad", pa.float64()),
-    ("noise_seed", pa.uint64()), ("image_digest", pa.int64()),
+    ("noise_seed", pa.uint64()), ("image_digest", pa.int64()), ("blobs_dropped", pa.int32()),
     ("n_generated", pa.int32()), ("n_observed", pa.int32()), ("n_used", pa.int32()),
     ("n_identified", pa.int32()), ("n_correct_ids", pa.int32()), ("n_wrong_ids", pa.int32()),
     ("id_correct", pa.bool_()), ("T", pa.int32()),
@@ -438,6 +463,7 @@ def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, al
         "A_true": _mat9(draw["A_true"]), "A_est": _mat9(sol.A_est),
         "ra_true_rad": ra_t, "dec_true_rad": dec_t, "ra_est_rad": ra_e, "dec_est_rad": dec_e,
         "noise_seed": draw["noise_seed"], "image_digest": to_int64(det_digest),
+        "blobs_dropped": (det.blobs_dropped.astype(np.int32) if det.blobs_dropped is not None else [None] * B),
         "n_generated": field_.n_generated.astype(np.int32), "n_observed": np.diff(det.offsets).astype(np.int32),
         "n_used": obs.valid.sum(1).astype(np.int32), "n_identified": ident.accepted.sum(1).astype(np.int32),
         "n_correct_ids": truth.n_correct(ident).astype(np.int32),
