@@ -71,7 +71,8 @@ from dualsight.kernels.detect import DetectConfig, detect_stars
 from dualsight.kernels.detect_local import LocalDetectConfig, detect_real, subtract_local_background
 from dualsight.nav import hil_score
 from dualsight.nav.observations import observations
-from dualsight.nav.star_solution import centroid_weights, identify, solve
+from dualsight.nav.star_solution import centroid_weights, solve
+from dualsight.nav.starid import identify as vote_identify
 from dualsight.nav.starid import VotingConfig
 from dualsight.scene.attitude import angle_between, unit_to_radec
 from dualsight.scene.background import subtract_background
@@ -228,6 +229,24 @@ def _base_row(k: int, entry: ImageEntry, rt: Runtime, truth: StarTruth) -> dict:
             "max_stars": rt.voting.max_stars, "alt_method": st.alt_method}
 
 
+def voting_engine() -> str:
+    """Engine of the voting (``nav.starid.identify``): ``"taichi"`` when Taichi already runs in this process,
+    else ``"numpy"``.  The two are bit-identical (rows do not depend on the choice); on one core the numpy
+    stages cost ~2-3 ms more per frame than the kernels but start at once, while starting Taichi and
+    building the voting kernels costs ~1-2 s per process (the AST transform runs in every process even
+    with the offline cache), i.e. the kernels pay off only after ~500+ frames in one process.  The local
+    detector uses no Taichi, so a ``hil star`` process normally never starts it."""
+    from dualsight.kernels._runtime import is_initialised
+
+    return "taichi" if is_initialised() else "numpy"
+
+
+def identify(obs, cat_unit, pairs, voting, cat_vmag=None, engine: str = "taichi"):
+    """``nav.star_solution.identify`` with the voting engine chosen (:func:`voting_engine`)."""
+    return vote_identify(obs.vec, obs.valid, cat_unit, pairs.i, pairs.j, pairs.angle, voting, cat_vmag=cat_vmag,
+                         engine=engine)
+
+
 def _run_batch(idx: list[int], spec: HilStarSpec, ctx: Context) -> list[ImageResult]:
     rt = ctx.rt
     results: dict[int, ImageResult] = {}
@@ -257,7 +276,8 @@ def _run_batch(idx: list[int], spec: HilStarSpec, ctx: Context) -> list[ImageRes
     t1 = time.perf_counter_ns()
     cat_unit = ctx.catalog.unit
     obs = observations(det, B, rt.camera, max_obs=rt.settings.max_obs)
-    ident = identify(obs, cat_unit, ctx.pairs, rt.voting, cat_vmag=ctx.catalog.vmag)
+    engine = voting_engine()
+    ident = identify(obs, cat_unit, ctx.pairs, rt.voting, cat_vmag=ctx.catalog.vmag, engine=engine)
     t2 = time.perf_counter_ns()
     floor = rt.settings.centroid_floor_px
     w = centroid_weights(det, obs, floor) if floor is not None else None
@@ -265,7 +285,7 @@ def _run_batch(idx: list[int], spec: HilStarSpec, ctx: Context) -> list[ImageRes
     t3 = time.perf_counter_ns()
     alt = None
     if rt.alt_voting is not None:
-        ident_a = identify(obs, cat_unit, ctx.pairs, rt.alt_voting, cat_vmag=ctx.catalog.vmag)
+        ident_a = identify(obs, cat_unit, ctx.pairs, rt.alt_voting, cat_vmag=ctx.catalog.vmag, engine=engine)
         alt = (ident_a, solve(obs, ident_a, cat_unit, None, weights=w))
     t4 = time.perf_counter_ns()
     share = {"t_detect_ns": (t1 - t0) // B, "t_identify_ns": (t2 - t1) // B, "t_attitude_ns": (t3 - t2) // B,

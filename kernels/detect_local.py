@@ -3,9 +3,9 @@ handling, PSF-fit centroids with their Cramér-Rao uncertainty.
 
 :func:`detect_real` returns the same :class:`~dualsight.kernels.detect.Detections` as
 :func:`dualsight.kernels.detect.detect_stars` (as :class:`LocalDetections`, a subclass that adds per-frame
-counters), so identification and attitude take either.  Every frame is processed on its own (numpy, OpenCV
-and the project's labeller, :mod:`dualsight.kernels.labelling`): its detections do not depend on the batch
-it is in.  Per frame:
+counters), so identification and attitude take either.  Every frame is processed on its own (numpy and
+OpenCV, no Taichi: a one-image process starts no kernels): its detections do not depend on the batch it is
+in, and a star's PSF fit does not depend on the other stars (each leaves the batched fit when it converges).  Per frame:
 
 1. **Local background and noise.**  The frame is cut into ``tile_px`` squares (mirrored at the far edges
    to whole tiles).  Each tile's pixels are sorted once; then, ``clip_iters`` times, the kept pixels are
@@ -33,7 +33,8 @@ it is in.  Per frame:
    this integrated SNR, not on the peak pixel's SNR: a pixel-centred 5-sigma star is found with
    probability ~0.5 (Z at each pixel is Gaussian with unit variance around its noise-free value;
    tests/test_detect_real.py checks the rate against that expectation), a 7-sigma star ~98 %.
-3. **Candidates.**  Foreground components (the labeller on Z) larger than ``max_blob_pixels`` are not
+3. **Candidates.**  Foreground components (OpenCV's connected components of Z > ``k_sigma``; the same
+   components as :mod:`dualsight.kernels.labelling`, tests/test_hil_speed.py) larger than ``max_blob_pixels`` are not
    stars (a glare, the Moon): they are counted (``large_blobs``), not centroided.  In each component the
    local maxima of Z (3 x 3) are candidates; a secondary maximum is a second star only when it is at
    least ``deblend_min_sep_px`` from every brighter maximum of the component and Z dips between them
@@ -73,7 +74,8 @@ for the final pass, else the initial width.
 
 Centroids use the continuous pixel convention (pixel (r, c) has its centre at (c + 0.5, r + 0.5)).
 Cost (1024 x 768, one core): ~15-25 ms per frame with a given PSF width, ~+30 % when it is measured
-(``benchmarks/bench_detect.py``).
+(``benchmarks/bench_detect.py``); ~37 ms CPU on the ESA frames (~250 stars each, width measured) on a loaded
+2-core machine (``benchmarks/bench_hil_speed.py frame``).
 """
 
 from __future__ import annotations
@@ -89,7 +91,6 @@ from pydantic import Field
 from dualsight.config import check_fields
 from dualsight.kernels import starfield as sf
 from dualsight.kernels.detect import Detections
-from dualsight.kernels.labelling import label_frames
 
 __all__ = ["LocalDetectConfig", "LocalDetections", "detect_real", "tile_background", "interpolate_tiles",
            "subtract_local_background", "psf_kernel_1d", "sharpness_limit", "crb_sigma_px"]
@@ -230,7 +231,9 @@ def _clipped_stats(s: np.ndarray, clip: float, iters: int):
 
     The kept pixels are always a contiguous run [lo, hi) of a sorted row: its bounds are counts of values
     below the window's ends and its sums one ``add.reduceat`` over all rows, on the values relative to the
-    row's median (float32 is exact enough: a window never includes the bright tail).
+    row's median (float32 is exact enough: a window never includes the bright tail).  For 8/16-bit frames
+    the counts are one ``searchsorted`` over all rows at once (row r's values offset by r x a power of two
+    beyond their range: exact in float64, the same counts as the float32 comparisons), else comparisons.
     Returns (level (T,), sigma (T,), kept fraction (T,)) float64."""
     T, N = s.shape
     rows = np.arange(T, dtype=np.int64)
@@ -242,13 +245,27 @@ def _clipped_stats(s: np.ndarray, clip: float, iters: int):
     np.subtract(s, med.astype(np.float32)[:, None], out=d[:, :N], casting="unsafe")
     dd = d * d
     flat, flat2 = d.ravel(), dd.ravel()
+    if s.dtype.kind == "u" and s.dtype.itemsize <= 2:      # s - med: half-integers, exact in float32 and float64
+        span = float(max((s[:, -1] - med).max(), (med - s[:, 0]).max()))
+        half = 2.0 ** math.ceil(math.log2(2.0 * span + 2.0))
+        base = rows * (2.0 * half)
+        keys = s.astype(np.float64)
+        keys += (base - med)[:, None]
+        keys = keys.ravel()
+        first = rows * N
+
+        def count(t, side):          # values of each row < t (side "left") or <= t ("right")
+            return np.searchsorted(keys, base + np.clip(t, -half, half), side) - first
+    else:
+        def count(t, side):
+            return (d[:, :N] < t[:, None]).sum(1) if side == "left" else (d[:, :N] <= t[:, None]).sum(1)
     corr = 1.0 / math.sqrt(_clip_var_factor(clip))
     centre = np.zeros(T)                             # relative to med
     lo, hi = np.zeros(T, np.int64), np.full(T, N, np.int64)
     idx = np.empty(2 * T, np.int64)
     for _ in range(iters):
-        lo = (d[:, :N] < (centre - clip * sig).astype(np.float32)[:, None]).sum(1)
-        hi = (d[:, :N] <= (centre + clip * sig).astype(np.float32)[:, None]).sum(1)
+        lo = count((centre - clip * sig).astype(np.float32), "left")
+        hi = count((centre + clip * sig).astype(np.float32), "right")
         idx[0::2] = rows * (N + 1) + lo
         idx[1::2] = rows * (N + 1) + hi
         n = hi - lo
@@ -408,56 +425,66 @@ def _fit(stamp, w0, r0, c0, x, y, s, noise, gain, fit_sigma=False, iters=10):
     b = np.zeros(K)
     npar = 5 if fit_sigma else 4
     lam = np.full(K, 1e-3)
-    xi, yi = x.copy(), y.copy()
 
-    def model(x, y, A, b, s):
-        px, dpx, spx = _profiles(x, c0, n, s)
-        py, dpy, spy = _profiles(y, r0, n, s)
+    def model(i, x, y, A, b, s):          # stars i (index array) at parameters (x, y, A, b, s) of those stars
+        px, dpx, spx = _profiles(x, c0[i], n, s)
+        py, dpy, spy = _profiles(y, r0[i], n, s)
         P = py[:, :, None] * px[:, None, :]
         mu = A[:, None, None] * P + b[:, None, None]
-        J = [A[:, None, None] * py[:, :, None] * dpx[:, None, :], A[:, None, None] * dpy[:, :, None] * px[:, None, :],
-             P, np.ones_like(P)]
+        k = len(i)
+        J = np.empty((k, n, n, npar))
+        Ay = A[:, None] * py
+        np.multiply(Ay[:, :, None], dpx[:, None, :], out=J[..., 0])
+        np.multiply((A[:, None] * dpy)[:, :, None], px[:, None, :], out=J[..., 1])
+        J[..., 2] = P
+        J[..., 3] = 1.0
         if fit_sigma:
-            J.append(A[:, None, None] * (spy[:, :, None] * px[:, None, :] + py[:, :, None] * spx[:, None, :]))
-        return mu, np.stack(J, -1).reshape(K, n * n, -1)
+            J[..., 4] = A[:, None, None] * (spy[:, :, None] * px[:, None, :] + py[:, :, None] * spx[:, None, :])
+        return mu, J.reshape(k, n * n, npar)
 
-    def weights(mu, b):
-        var = nv + (np.maximum(mu - b[:, None, None], 0.0) / gain if gain else 0.0)
-        return (w0 / var).reshape(K, -1)
+    def weights(i, mu, b):
+        var = nv[i] + (np.maximum(mu - b[:, None, None], 0.0) / gain if gain else 0.0)
+        return (w0[i] / var).reshape(len(i), -1)
 
-    mu, J = model(x, y, A, b, s)
-    W = weights(mu, b)
-    chi = (W * (d.reshape(K, -1) - mu.reshape(K, -1)) ** 2).sum(1)
-    for _ in range(iters):
-        r = (d - mu).reshape(K, -1)
-        JW = J * W[:, :, None]
-        H = JW.transpose(0, 2, 1) @ J
-        g = (JW * r[:, :, None]).sum(1)
+    everyone = np.arange(K)
+    dflat = d.reshape(K, -1)
+    mu, J = model(everyone, x, y, A, b, s)
+    W = weights(everyone, mu, b)
+    chi = (W * (dflat - mu.reshape(K, -1)) ** 2).sum(1)
+    eye = np.eye(npar)[None]
+    active = everyone
+    for _ in range(iters):          # Levenberg-Marquardt; a star leaves the loop when it has converged
+        if active.size == 0:
+            break
+        i = active
+        Ji, Wi = J[i], W[i]
+        r = dflat[i] - mu[i].reshape(len(i), -1)
+        JW = Ji * Wi[:, :, None]
+        H = JW.transpose(0, 2, 1) @ Ji
+        g = np.einsum("kpj,kp->kj", JW, r)
         diag = np.maximum(np.diagonal(H, axis1=1, axis2=2), 1e-12)
-        Hd = H + lam[:, None, None] * np.eye(npar)[None] * diag[:, :, None]          # Levenberg-Marquardt
+        Hd = H + lam[i, None, None] * eye * diag[:, :, None]
         try:
             step = np.linalg.solve(Hd, g[..., None])[..., 0]
         except np.linalg.LinAlgError:
             step = np.zeros_like(g)
-            for k in range(K):          # singular systems only (degenerate stamps); never per pixel
+            for k in range(len(i)):     # singular systems only (degenerate stamps); never per pixel
                 step[k] = np.linalg.lstsq(Hd[k], g[k], rcond=None)[0]
         step[:, :2] = np.clip(step[:, :2], -0.5, 0.5)
         if fit_sigma:
-            step[:, 4] = np.clip(step[:, 4], -0.3 * s, 0.3 * s)
-        xn, yn, An, bn = x + step[:, 0], y + step[:, 1], A + step[:, 2], b + step[:, 3]
-        sn = np.clip(s + step[:, 4], 0.2, 20.0) if fit_sigma else s
-        mun, Jn = model(xn, yn, An, bn, sn)
-        Wn = weights(mun, bn)
-        chin = (Wn * (d.reshape(K, -1) - mun.reshape(K, -1)) ** 2).sum(1)
-        better = np.isfinite(chin) & (chin <= chi)
-        x, y, A, b, s = (np.where(better, u, v) for u, v in ((xn, x), (yn, y), (An, A), (bn, b), (sn, s)))
-        mu = np.where(better[:, None, None], mun, mu)
-        J = np.where(better[:, None, None], Jn, J)
-        W = np.where(better[:, None], Wn, W)
-        chi = np.where(better, chin, chi)
-        lam = np.where(better, np.maximum(lam / 10, 1e-6), lam * 10)
-        if np.all((better & (np.abs(step[:, :2]).max(1) < 1e-4)) | (lam >= 1e4)):
-            break                                           # every star converged (or cannot improve)
+            step[:, 4] = np.clip(step[:, 4], -0.3 * s[i], 0.3 * s[i])
+        xn, yn, An, bn = x[i] + step[:, 0], y[i] + step[:, 1], A[i] + step[:, 2], b[i] + step[:, 3]
+        sn = np.clip(s[i] + step[:, 4], 0.2, 20.0) if fit_sigma else s[i]
+        mun, Jn = model(i, xn, yn, An, bn, sn)
+        Wn = weights(i, mun, bn)
+        chin = (Wn * (dflat[i] - mun.reshape(len(i), -1)) ** 2).sum(1)
+        better = np.isfinite(chin) & (chin <= chi[i])
+        u = i[better]
+        x[u], y[u], A[u], b[u], s[u] = xn[better], yn[better], An[better], bn[better], sn[better]
+        mu[u], J[u], W[u], chi[u] = mun[better], Jn[better], Wn[better], chin[better]
+        lam[i] = np.where(better, np.maximum(lam[i] / 10, 1e-6), lam[i] * 10)
+        done = (better & (np.abs(step[:, :2]).max(1) < 1e-4)) | (lam[i] >= 1e4)
+        active = i[~done]
     J4 = J[..., :4]
     H = (J4 * W[:, :, None]).transpose(0, 2, 1) @ J4
     ok = np.isfinite(H).all((1, 2)) & (np.abs(np.linalg.det(H)) > 0)
@@ -502,12 +529,12 @@ class _Frame:
     hot: int
 
 
-def _filter(R, sig_map, s, floor):
+def _filter(R, sig_map, s, floor, cache=None):
     """Matched-filtered SNR image Z (float32) of residual R with PSF sigma s, and the noise ratio sigma_F / sigma.
 
     Outside the frame R is 0 (its expectation), so near an edge F sums fewer pixels and its white-noise sigma
     is sigma sqrt(sum over the kernel's in-frame part of K^2): Z is normalised by that, exactly, per row and
-    column.  ``sig_map`` is overwritten."""
+    column.  ``sig_map`` is overwritten; ``cache`` (a dict) keeps R's sample noise between calls on the same R."""
     import cv2
 
     H, W = R.shape
@@ -515,7 +542,12 @@ def _filter(R, sig_map, s, floor):
     h = len(k) // 2
     F = cv2.sepFilter2D(R, cv2.CV_32F, k.astype(np.float32), k.astype(np.float32), borderType=cv2.BORDER_CONSTANT)
     inner = (slice(h, max(h + 1, H - h), 4), slice(h, max(h + 1, W - h), 4))
-    sa, sfv = _robust_std(R[inner]), _robust_std(F[inner])
+    sa = cache.get(h) if cache is not None else None       # R's noise at the sample: the same for both passes
+    if sa is None:
+        sa = _robust_std(R[inner])
+        if cache is not None:
+            cache[h] = sa
+    sfv = _robust_std(F[inner])
     k2 = k * k
     white = float(k2.sum())
     ratio = sfv / sa if sa > 0 and sfv > 0 else white
@@ -540,25 +572,27 @@ def _candidates(Z, cfg: LocalDetectConfig):
     """Local maxima of Z above the threshold, grouped into components and deblended.
 
     Returns (rows, cols, npix of their component) of the kept maxima, number of large components."""
+    import cv2
+
     H, W = Z.shape
-    comp = label_frames(Z[None], cfg.k_sigma, connectivity=cfg.connectivity)
-    if len(comp) == 0:
+    # foreground Z > k_sigma (float32 compare equal to the float64 one: kernels.labelling.native_threshold)
+    t = np.float32(cfg.k_sigma)
+    if float(t) > cfg.k_sigma:
+        t = np.nextafter(t, np.float32(-np.inf))
+    fg = Z > t
+    n_lab, lab = cv2.connectedComponents(fg.view(np.uint8), connectivity=cfg.connectivity, ltype=cv2.CV_32S)
+    if n_lab <= 1:
         e = np.zeros(0, np.int64)
         return e, e, e, 0
-    # every foreground pixel (from the runs), then the 3 x 3 local maxima among them
-    lens = (comp.run_c1 - comp.run_c0).astype(np.int64)
-    first = np.cumsum(lens) - lens
-    pr = np.repeat(comp.run_row.astype(np.int64), lens)
-    pc = np.repeat(comp.run_c0.astype(np.int64), lens) + (np.arange(int(lens.sum())) - np.repeat(first, lens))
-    cid = np.repeat(comp.run_label.astype(np.int64), lens)
-    z = Z[pr, pc]
-    peak = np.ones(pr.size, bool)
-    for dr in (-1, 0, 1):
-        for dc in (-1, 0, 1):
-            if dr or dc:
-                peak &= z >= Z[np.clip(pr + dr, 0, H - 1), np.clip(pc + dc, 0, W - 1)]
-    pr, pc, cid = pr[peak], pc[peak], cid[peak]
-    large = comp.npix > cfg.max_blob_pixels
+    f = np.flatnonzero(fg)                       # the foreground pixels (a few thousand): work on them only
+    lab_f = lab.ravel()[f]
+    npix_c = np.bincount(lab_f, minlength=n_lab)[1:].astype(np.int64)
+    # the 3 x 3 local maxima among the foreground pixels (outside the frame ignored, as clipped indices do)
+    peak = Z.ravel()[f] >= cv2.dilate(Z, np.ones((3, 3), np.uint8)).ravel()[f]
+    f = f[peak]
+    pr, pc = np.divmod(f.astype(np.int64), W)
+    cid = lab_f[peak].astype(np.int64) - 1
+    large = npix_c > cfg.max_blob_pixels
     n_large = int(large.sum())
     keep = ~large[cid]
     pr, pc, cid = pr[keep], pc[keep], cid[keep]
@@ -586,7 +620,7 @@ def _candidates(Z, cfg: LocalDetectConfig):
         bad = np.zeros(len(cid), bool)
         np.logical_or.at(bad, j, ~sep)
         accept[multi] = ~bad[multi]
-    return pr[accept], pc[accept], comp.npix[cid[accept]].astype(np.int64), n_large
+    return pr[accept], pc[accept], npix_c[cid[accept]], n_large
 
 
 def _measure(img, R, sig_map, Z, ratio, s, cfg, sat, fit_sigma=False):
@@ -712,7 +746,8 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
     R = img.astype(np.float32) - bg
     floor = np.float32(max(cfg.noise_floor_adu, 1e-6))
     s = cfg.psf_sigma_px if cfg.psf_sigma_px is not None else cfg.psf_sigma_init_px
-    Z, ratio = _filter(R, sig_map.copy(), s, floor)
+    rcache = {}
+    Z, ratio = _filter(R, sig_map.copy(), s, floor, rcache)
     if cfg.psf_sigma_px is None:     # measure the PSF width on bright, unsaturated, isolated stars
         m = _measure(img, R, sig_map, Z, ratio, s, cfg, sat, fit_sigma=True)
         use = np.flatnonzero(m["ok"] & ~m["saturated"] & (m["snr"] > 30))
@@ -721,7 +756,7 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
             s_new = float(np.clip(np.median(m["s"][use]), 0.2, 20.0))
             if abs(s_new - s) > 0.02 * s:
                 s = s_new
-                Z, ratio = _filter(R, sig_map.copy(), s, floor)
+                Z, ratio = _filter(R, sig_map.copy(), s, floor, rcache)
     m = _measure(img, R, sig_map, Z, ratio, s, cfg, sat)
     med_sig = float(np.median(sig))
     return _Frame(x=m["x"], y=m["y"], flux=m["flux"], npix=m["npix"], sigma_px=m["sigma_px"],

@@ -1,0 +1,273 @@
+"""Benchmark: speed of the star HIL chain on real frames (issue 13, point 4), one command per target.
+
+  frame    ms per frame on ONE core (DUALSIGHT_TI_THREADS = OMP / OPENBLAS / MKL threads = 1, cv2 one thread),
+           median over the ESA tetra3 frames (1024 x 768 16-bit), warm (each frame processed once before the
+           timed repeats), per stage: decode (read_frame: TIFF decode, stat, ADC shift), background (tile
+           statistics + interpolation), filter (matched filter and noise normalisation), labelling
+           (foreground components, local maxima, deblending), centroid fit (hot-pixel test, PSF fits: the
+           rest of the detector, including the PSF-width pass), observations (back-projection), voting
+           (identify, robust method; the numpy and the Taichi engine), attitude (weighted SVD solve).
+           Target: <= 5 ms end to end without decoding (for a 1024 x 1024 frame with ~20 stars; the ESA
+           frames have ~370 detections each).
+  process  the whole ``dualsight hil star ONE.tiff --camera ... --no-lake`` process, median of 5 warm runs
+           (one unmeasured run first), plus ``python -X importtime`` (the slowest top-level imports) and a
+           cProfile summary of one in-process run.  Target: <= 1.5 s.
+  batch    frames/s of ``dualsight hil star DIR --no-lake --workers N`` over the 8 ESA frames repeated to
+           ~200 images (symlinks in a temporary folder), decode included, N = 1 and 2; steady state =
+           (images(200) - images(8)) / (time(200) - time(8)), i.e. without the fixed cost of the process,
+           the workers' start and the report.  Target: >= 100 frames/s on 2 cores.
+
+Usage:  python benchmarks/bench_hil_speed.py [frame|process|batch|all] [--repeats 5] [--images 200]
+Prints the machine's cores and load average (``uptime``) with the numbers.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("DUALSIGHT_TI_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse
+import cProfile
+import io
+import pstats
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CAMERA = ROOT / "examples" / "cameras" / "esa_tetra3.toml"
+ESA = Path(os.environ.get("DUALSIGHT_SHARED", ROOT.parent / "shared")) / "data" / "real" / "esa_tetra3"
+PY = sys.executable
+DUALSIGHT = [PY, "-m", "dualsight"]
+
+
+def conditions() -> str:
+    up = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    return f"cores {os.cpu_count()}, python {sys.version.split()[0]}, {up}"
+
+
+def frames() -> list[Path]:
+    return sorted(ESA.glob("*.tiff"))
+
+
+# ============================================================================================ frame
+class Timers:
+    """Wrap module functions to accumulate their CPU time of this process (``time.process_time``: with every
+    library on one thread this is the one core's work, and it does not count the time other processes take
+    the core away on a loaded machine), exclusive of nested timed calls."""
+
+    clock = staticmethod(time.process_time)
+
+    def __init__(self):
+        self.t: dict[str, float] = {}
+        self._stack: list[list] = []
+
+    def wrap(self, mod, name, label):
+        f = getattr(mod, name)
+
+        def w(*a, **k):
+            t0 = self.clock()
+            self._stack.append([0.0])
+            try:
+                return f(*a, **k)
+            finally:
+                dt = self.clock() - t0
+                inner = self._stack.pop()[0]
+                self.t[label] = self.t.get(label, 0.0) + dt - inner
+                if self._stack:
+                    self._stack[-1][0] += dt
+        setattr(mod, name, w)
+        return f
+
+    @contextmanager
+    def stage(self, label):
+        t0 = self.clock()
+        self._stack.append([0.0])
+        try:
+            yield
+        finally:
+            dt = self.clock() - t0
+            inner = self._stack.pop()[0]
+            self.t[label] = self.t.get(label, 0.0) + dt - inner
+            if self._stack:
+                self._stack[-1][0] += dt
+
+
+def bench_frame(repeats: int) -> dict:
+    import cv2
+    import numpy as np
+
+    cv2.setNumThreads(1)
+    from dualsight.jobs import hil_star as hs
+    from dualsight.jobs.cli import main  # noqa: F401  (the package's normal import state)
+    from dualsight.jobs.hil_common import ImageEntry  # noqa: F401
+    from dualsight.kernels import detect_local as dl
+    from dualsight.nav import star_solution as ss
+    from dualsight.nav.observations import observations
+    from dualsight.scene.camera import Camera
+
+    paths = frames()
+    cam = Camera.from_toml(CAMERA)
+    from dualsight.jobs.cli import build_parser
+    from dualsight.jobs.cli_hil import star_spec_from_args
+    args = build_parser().parse_args(hil_cmd(paths, "--no-compare")[3:])
+    spec = star_spec_from_args(args)                       # the CLI's own spec (robust voting, no comparison)
+    ctx = hs.make_context(spec)
+    rt = ctx.rt
+    sat = float(2 ** rt.camera.bit_depth - 1)
+    T = Timers()
+    T.wrap(dl, "tile_background", "background")
+    T.wrap(dl, "interpolate_tiles", "background")
+    T.wrap(dl, "_filter", "filter")
+    T.wrap(dl, "_candidates", "labelling")
+    T.wrap(dl, "_measure", "centroid fit")
+    results = {}
+    for engine in ("numpy", "taichi"):
+        per = {}
+        for rep in range(repeats + 1):                     # repeat 0 warms up (kernels, caches)
+            for k, p in enumerate(paths):
+                T.t.clear()
+                w0 = time.perf_counter()
+                with T.stage("decode"):
+                    px, _ = hs.read_frame(spec.images[k], cam)
+                with T.stage("detector other"):
+                    det = dl.detect_real(px[None], hs.validate(dl.LocalDetectConfig, rt.settings.detect_local,
+                                                                source="spec", section="settings.detect_local"),
+                                         saturation_adu=sat)
+                with T.stage("observations"):
+                    obs = observations(det, 1, cam, max_obs=rt.settings.max_obs)
+                with T.stage("voting"):
+                    ident = ss.vote_identify(obs.vec, obs.valid, ctx.catalog.unit, ctx.pairs.i, ctx.pairs.j,
+                                             ctx.pairs.angle, rt.voting, cat_vmag=ctx.catalog.vmag, engine=engine)
+                with T.stage("attitude"):
+                    w = ss.centroid_weights(det, obs, rt.settings.centroid_floor_px)
+                    sol = ss.solve(obs, ident, ctx.catalog.unit, None, weights=w)
+                wall = time.perf_counter() - w0
+                if rep:
+                    per.setdefault("wall", []).append(wall)
+                    for s, v in T.t.items():
+                        per.setdefault(s, []).append(v)
+                    per.setdefault("n_det", []).append(int(det.counts[0]))
+                    per.setdefault("solved", []).append(bool(sol.ok[0]))
+        results[engine] = per
+    order = ["decode", "background", "filter", "labelling", "centroid fit", "detector other", "observations",
+             "voting", "attitude"]
+    print(f"frame: CPU ms per frame, one core, median over {len(paths)} frames x {repeats} repeats "
+          f"(ESA 1024 x 768, ~{int(np.median(results['numpy']['n_det']))} detections)")
+    for engine, per in results.items():
+        med = {s: 1e3 * statistics.median(per[s]) for s in order if s in per}
+        total = sum(v for s, v in med.items() if s != "decode")
+        print(f"  voting engine {engine}: " + ", ".join(f"{s} {v:.2f}" for s, v in med.items())
+              + f" | end to end without decode {total:.2f} ms, with {total + med['decode']:.2f} ms"
+              f" (wall with decode {1e3 * statistics.median(per['wall']):.2f} ms);"
+              f" solved {sum(per['solved'])}/{len(per['solved'])}")
+    return results
+
+
+# ============================================================================================ process
+def hil_cmd(images, *extra) -> list[str]:
+    return [*DUALSIGHT, "hil", "star", *map(str, images), "--camera", str(CAMERA), "--no-lake", "--no-progress",
+            *extra]
+
+
+def bench_process(repeats: int) -> None:
+    one = frames()[0]
+    env = dict(os.environ)
+    for v in ("DUALSIGHT_TI_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        env.pop(v, None)                         # the process as a user runs it
+    subprocess.run(hil_cmd([one]), capture_output=True, env=env, check=True)   # warm: caches, kernel cache
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        subprocess.run(hil_cmd([one]), capture_output=True, env=env, check=True)
+        ts.append(time.perf_counter() - t0)
+    print(f"process: `dualsight hil star ONE.tiff --no-lake` median of {repeats} warm runs "
+          f"{statistics.median(ts):.2f} s (min {min(ts):.2f}, max {max(ts):.2f})")
+    r = subprocess.run([PY, "-X", "importtime", "-m", "dualsight", *hil_cmd([one])[3:]], capture_output=True,
+                       text=True, env=env)
+    rows = []
+    for line in r.stderr.splitlines():
+        if line.startswith("import time:") and "|" in line:
+            parts = line[len("import time:"):].split("|")
+            try:
+                cum = int(parts[1])
+            except ValueError:
+                continue
+            name = parts[2]
+            if len(name) - len(name.lstrip()) <= 3:          # top-level imports only
+                rows.append((cum, name.strip()))
+    rows.sort(reverse=True)
+    print("  -X importtime, top-level imports by cumulative time: "
+          + ", ".join(f"{n} {c / 1e3:.0f} ms" for c, n in rows[:10]))
+    prof = subprocess.run([PY, "-c", (
+        "import cProfile, pstats, sys, io\n"
+        "from dualsight.jobs.cli import main\n"
+        "pr = cProfile.Profile(); pr.enable()\n"
+        f"main({hil_cmd([one])[3:]!r})\n"
+        "pr.disable(); s = io.StringIO(); pstats.Stats(pr, stream=s).sort_stats('cumulative').print_stats(45)\n"
+        "sys.stderr.write(s.getvalue())\n")], capture_output=True, text=True, env=env)
+    print("  cProfile (in-process run after imports; cumulative):")
+    keep = [ln for ln in prof.stderr.splitlines() if ln.strip() and ("{" in ln or "/" in ln or "ncalls" in ln)]
+    for ln in keep[:46]:
+        print("   ", ln[:150])
+
+
+# ============================================================================================ batch
+def bench_batch(n_images: int, workers_list=(1, 2)) -> None:
+    src = frames()
+    env = dict(os.environ)
+    tmp = Path(tempfile.mkdtemp(prefix="bench_hil_"))
+    try:
+        small, big = tmp / "small", tmp / "big"
+        small.mkdir()
+        big.mkdir()
+        for i in range(n_images):
+            p = src[i % len(src)]
+            (big / f"{i:04d}_{p.name}").symlink_to(p)
+        for p in src:
+            (small / p.name).symlink_to(p)
+        for workers in workers_list:
+            env_w = dict(env)
+            env_w["DUALSIGHT_TI_THREADS"] = "1"
+            t = {}
+            for name, folder, n in (("small", small, len(src)), ("big", big, n_images)):
+                subprocess.run(hil_cmd([folder], "--workers", str(workers)), capture_output=True, env=env_w)
+                t0 = time.perf_counter()
+                r = subprocess.run(hil_cmd([folder], "--workers", str(workers)), capture_output=True, env=env_w,
+                                   text=True)
+                t[name] = time.perf_counter() - t0
+                if r.returncode:
+                    print(f"batch: --workers {workers}, {n} images FAILED: {r.stderr.strip()[-600:]}")
+                    t[name] = float("nan")
+            rate = (n_images - len(src)) / max(t["big"] - t["small"], 1e-9)
+            print(f"batch: --workers {workers}: {n_images} images {t['big']:.2f} s ({n_images / t['big']:.1f} "
+                  f"frames/s whole process), {len(src)} images {t['small']:.2f} s; steady state {rate:.1f} frames/s")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("what", nargs="?", default="all", choices=["frame", "process", "batch", "all"])
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--images", type=int, default=200)
+    a = ap.parse_args()
+    print(conditions())
+    if a.what in ("frame", "all"):
+        bench_frame(max(1, a.repeats // 2))
+    if a.what in ("process", "all"):
+        bench_process(a.repeats)
+    if a.what in ("batch", "all"):
+        bench_batch(a.images)
+    print(conditions())
+
+
+if __name__ == "__main__":
+    main()
