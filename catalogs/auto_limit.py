@@ -42,6 +42,8 @@ import functools
 import math
 from dataclasses import dataclass
 
+from pathlib import Path
+
 import numpy as np
 
 __all__ = ["HIPPARCOS_COMPLETE_V", "GRID_MAG", "DEFAULT_TARGET", "HIL_TARGET_PER_FIELD", "AutoLimit", "is_auto",
@@ -120,11 +122,36 @@ def field_size_deg(camera) -> tuple[float, float]:
 def hipparcos_vmag(path: str | None = None) -> np.ndarray:
     """(117955,) float64 Johnson V of every hip2 star, ascending (the catalog's whole-sky counts:
     ``N(<= V) = searchsorted(vmag, V, "right")``).  The V of :func:`dualsight.catalogs.stars.johnson_v`,
-    the very values the star catalog is cut on; ~0.6 s to parse, kept per process."""
-    from dualsight.catalogs.stars import johnson_v, read_hip2
+    the very values the star catalog is cut on.  Parsing hip2.dat takes ~0.5 s, so the array is kept per
+    process and cached as ``<cache>/hip2-vmag-<key>.npy``, keyed by the file's path, size and mtime (a
+    damaged cache file is rebuilt)."""
+    import os
 
-    v, _ = johnson_v(read_hip2(path))
-    out = np.sort(v)
+    from dualsight.catalogs.cache import resolve_cache_dir, short_hash
+    from dualsight.catalogs.stars import hip2_path, johnson_v, read_hip2
+
+    src = hip2_path() if path is None else Path(path)
+    st = src.stat()
+    key = short_hash({"file": str(src.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns, "v": 1})
+    cache = resolve_cache_dir(None) / f"hip2-vmag-{key}.npy"
+    out = None
+    try:
+        out = np.load(cache)
+        if out.ndim != 1 or out.dtype != np.float64 or not np.all(np.isfinite(out)) or np.any(np.diff(out) < 0):
+            out = None
+    except (OSError, ValueError):
+        out = None
+    if out is None:
+        v, _ = johnson_v(read_hip2(src))
+        out = np.sort(v)
+        try:
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            tmp = cache.with_name(f".{cache.name}.{os.getpid()}.tmp")
+            with open(tmp, "wb") as f:
+                np.save(f, out)
+            os.replace(tmp, cache)
+        except OSError:
+            pass                # a read-only cache only costs the parse next time
     out.flags.writeable = False
     return out
 

@@ -244,3 +244,19 @@ def test_hil_star_header_states_the_automatic_depth(tmp_path):
     head = out.getvalue().splitlines()[0]
     want = al.auto_mag_limit(ESA, target_per_field=al.HIL_TARGET_PER_FIELD)
     assert rc == 0 and head.startswith(f"catalog to V {want:.1f} (auto: "), head
+
+
+def test_whole_sky_magnitudes_are_cached_and_a_damaged_cache_is_rebuilt(tmp_path, monkeypatch):
+    monkeypatch.setenv("DUALSIGHT_CACHE", str(tmp_path))
+    want = np.sort(johnson_v(read_hip2())[0])
+    al.hipparcos_vmag.cache_clear()
+    try:
+        got = al.hipparcos_vmag()
+        files = list(tmp_path.glob("hip2-vmag-*.npy"))
+        assert np.array_equal(got, want) and len(files) == 1
+        files[0].write_bytes(b"not an array")
+        al.hipparcos_vmag.cache_clear()
+        assert np.array_equal(al.hipparcos_vmag(), want)
+        assert np.array_equal(np.load(files[0]), want)               # rewritten
+    finally:
+        al.hipparcos_vmag.cache_clear()
