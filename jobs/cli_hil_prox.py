@@ -43,6 +43,7 @@ import time
 from pathlib import Path
 
 _FLAGS = {"thresholds": "--threshold", "open_px": "--open", "close_px": "--close", "border_px": "--border",
+          "roi_px": "--roi",
           "estimator": "--estimator", "blob": "--blob", "area_curve": "--area-curve", "min_pixels": "--min-pixels",
           "table_samples": "--table-samples", "bin_width": "--bin-width"}
 
@@ -72,6 +73,9 @@ def add_parser(hsub) -> argparse.ArgumentParser:
                    help="closing with a K x K square, px (0: off); applied after the opening")
     g.add_argument("--border", type=int, default=0, dest="border_px",
                    help="force the outer PX pixels of the frame to background (default 0)")
+    g.add_argument("--roi", default=None, metavar="X0,Y0,X1,Y1", dest="roi_px",
+                   help="region of interest, pixels (columns X0..X1-1, rows Y0..Y1-1): everything outside is "
+                        "background, so the target is not lost to a larger blob elsewhere (the Earth beside the Moon)")
     g.add_argument("--undistort", action="store_true",
                    help="remap each image to the ideal pinhole (same fx, fy, cx, cy) before thresholding")
     b = p.add_argument_group("blobber")
@@ -97,6 +101,21 @@ def add_parser(hsub) -> argparse.ArgumentParser:
     return p
 
 
+def _roi(text):
+    """``"X0,Y0,X1,Y1"`` -> four ints (None stays None); a malformed value is a one-line error."""
+    if text is None:
+        return None
+    from dualsight.errors import InputError
+
+    try:
+        v = [int(x) for x in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != 4:
+        raise InputError(f"must be four integers X0,Y0,X1,Y1 (pixels), got {text!r}", source="--roi")
+    return v
+
+
 def settings_from_args(args):
     """Validated ``ProxSettings`` of the command line; errors name the flag."""
     from dualsight.errors import ConfigError
@@ -105,7 +124,7 @@ def settings_from_args(args):
     ths = hp.parse_sweep(args.sweep) if args.sweep is not None else (
         args.threshold if args.threshold is not None else hp.DEFAULT_THRESHOLD,)
     d = {"thresholds": list(ths), "invert": args.invert, "open_px": args.open_px, "close_px": args.close_px,
-         "border_px": args.border_px, "undistort": args.undistort, "estimator": args.estimator, "blob": args.blob,
+         "border_px": args.border_px, "roi_px": _roi(args.roi_px), "undistort": args.undistort, "estimator": args.estimator, "blob": args.blob,
          "area_curve": args.area_curve, "min_pixels": args.min_pixels, "table_samples": args.table_samples}
     try:
         return hp.settings_from_dict(d, source="hil prox")

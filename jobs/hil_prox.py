@@ -57,7 +57,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import pyarrow as pa
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from dualsight.jobs.hil_defaults import DEFAULT_THRESHOLD
 from dualsight.kernels.digest import frame_digest, to_int64
@@ -87,6 +87,7 @@ class ProxSettings(Frozen):
     open_px: int = Field(default=0, ge=0, le=MAX_KERNEL)
     close_px: int = Field(default=0, ge=0, le=MAX_KERNEL)
     border_px: int = Field(default=0, ge=0, le=10_000)
+    roi_px: tuple[int, int, int, int] | None = None
     undistort: bool = False
     estimator: Literal[ESTIMATORS] = "paper"            # type: ignore[valid-type]
     blob: Literal[TARGETS] = "largest"                  # type: ignore[valid-type]
@@ -95,6 +96,14 @@ class ProxSettings(Frozen):
     min_pixels: int = Field(default=1, ge=1)
     table_samples: int = Field(default=20000, ge=100, le=10_000_000)
     bin_width: float = Field(default=0.05, gt=0, le=1)
+
+    @field_validator("roi_px")
+    @classmethod
+    def _roi(cls, v):
+        if v is not None and not (0 <= v[0] < v[2] <= 65536 and 0 <= v[1] < v[3] <= 65536):
+            raise ValueError(f"must be x0,y0,x1,y1 pixels with 0 <= x0 < x1 <= 65536 and 0 <= y0 < y1 <= 65536, got "
+                             f"{','.join(map(str, v))}")
+        return v
 
     def blobber_config(self) -> BlobberConfig:
         """The blobber's settings: binary input (1.0 / 0.0) thresholded at 0.5."""
@@ -296,6 +305,11 @@ def process_image(k: int, image: ImageEntry | str | Path, camera: Camera, target
     if settings.undistort:
         pix, cam = undistort_image(pix, camera, fill=full if settings.invert else 0.0)
     score = score_image(pix, invert=settings.invert, full_scale=full)
+    if settings.roi_px is not None:          # region of interest: everything outside is background
+        x0, y0, x1, y1 = settings.roi_px
+        inside = np.zeros(score.shape, bool)
+        inside[y0:y1, x0:x1] = True
+        score[~inside] = -np.inf
     shape = dict(width=img.width, height=img.height, channels=img.channels, bit_depth=img.bit_depth, full_scale=full)
     case.update(shape, t_read_ns=t1 - t0, image_digest=int(to_int64(frame_digest(img.pixels[None]))[0]))
     base.update(shape, t_read_ns=t1 - t0)

@@ -541,3 +541,33 @@ def test_cross_validated_error_by_hand():
     # leave 2 out: over 0,1 = (.15, .025) -> t2 -> image 2 error 1.0
     assert cross_validated_error(_sweep_rows(est, truth, th)) == pytest.approx(100 * (0.10 + 0.20 + 1.0) / 3)
     assert cross_validated_error(_sweep_rows(est, np.array([10.0, np.nan, np.nan]), th)) is None
+
+
+def test_roi_picks_the_target_over_a_larger_blob(tmp_path, capsys):
+    """Issue 11.8: the largest blob wins (the Earth beside the Moon); --roi keeps the blob inside the region.
+    Two dark discs on a bright background, radii 250 and 60 px: the ROI around the small one gives its centre
+    and the analytic sphere range fx * r / R; a malformed or impossible ROI is a one-line error."""
+    target = tmp_path / "sphere.toml"
+    target.write_text('name = "ball"\nframes = 1\n[camera]\nwidth = 2048\nheight = 1536\npixel_pitch_um = 2.9475\n'
+                      'focal_length_mm = 4.356\nlight_direction = [0.0, 0.0, -1.0]\n[body]\nposition = [0.0, 0.0, 1.0]\n'
+                      '[[component]]\nshape = "sphere"\nsize = [0.3]\n')
+    img = np.full((1536, 2048), 230, np.uint8)
+    cv2.circle(img, (700, 768), 250, 20, -1)                 # the "Earth"
+    cv2.circle(img, (1700, 400), 60, 20, -1)                 # the target
+    photo = tmp_path / "two.png"
+    cv2.imwrite(str(photo), img)
+    cam = Path(__file__).parents[1] / "examples" / "cameras" / "paper_hil_prox.toml"
+    base = ["hil", "prox", str(photo), "--camera", str(cam), "--target", str(target), "--invert", "--no-lake",
+            "--json"]
+    rc, out, err = run_cli(base)
+    big = json.loads(out)["images"][0]["results"][0]
+    rc2, out2, err2 = run_cli(base + ["--roi", "1500,200,1900,600"])
+    assert rc == 0 and rc2 == 0, (err, err2)
+    small = json.loads(out2)["images"][0]["results"][0]
+    assert big["cob_px"][0] == pytest.approx(700.5, abs=0.5)
+    assert small["cob_px"] == pytest.approx([1700.5, 400.5], abs=0.5)
+    fx = Camera.from_toml(cam).fx
+    assert small["range_m"] == pytest.approx(fx * 0.15 / 60, rel=0.02)
+    for bad in ("1,2,3", "10,10,5,20", "a,b,c,d"):
+        rc3, _, err3 = run_cli(base + ["--roi", bad])
+        assert rc3 == 2 and "--roi" in err3 and len(err3.strip().splitlines()) == 1, err3
