@@ -36,6 +36,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from dualsight.catalogs.pairs import load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 from dualsight.errors import InputError
+from dualsight.jobs import star_summaries
 from dualsight.jobs.config import dataclass_from_table, dataclass_to_table, preset_and_config, validate
 from dualsight.kernels import detect as kdetect
 from dualsight.kernels import starfield as kstar
@@ -248,13 +249,16 @@ def draw_cases(spec: StarSpec, case_ids: np.ndarray) -> dict:
 
 
 def compute_shard(spec: StarSpec, case_ids: np.ndarray, ctx: StarContext) -> dict[str, pa.Table]:
-    """The engine's contract: rows of ``case_ids`` (int64, ascending) in kernel batches of ``spec.batch_size``."""
-    parts = {d: [] for d in SCHEMAS}
+    """The engine's contract: rows of ``case_ids`` (int64, ascending) in kernel batches of ``spec.batch_size``,
+    and the shard's exact partial aggregates for the report (``star_summaries``, :mod:`dualsight.jobs.star_summaries`)."""
+    parts = {d: [] for d in ("star_cases", "star_detections")}
     for s in range(0, len(case_ids), spec.batch_size):
         out = compute_batch(spec, ctx, case_ids[s: s + spec.batch_size])["tables"]
-        for d in SCHEMAS:
+        for d in parts:
             parts[d].append(out[d])
-    return {d: pa.concat_tables(parts[d]) if parts[d] else SCHEMAS[d].empty_table() for d in SCHEMAS}
+    tables = {d: pa.concat_tables(parts[d]) if parts[d] else SCHEMAS[d].empty_table() for d in parts}
+    tables[star_summaries.DATASET] = star_summaries.summarize(tables["star_cases"])
+    return tables
 
 
 def catalog_bytes(mag_limit: float, pair_angle_rad: float) -> int:
@@ -435,7 +439,8 @@ DETECTIONS_SCHEMA = pa.schema([
 ])
 
 
-SCHEMAS = {"star_cases": CASES_SCHEMA, "star_detections": DETECTIONS_SCHEMA}
+SCHEMAS = {"star_cases": CASES_SCHEMA, "star_detections": DETECTIONS_SCHEMA,
+           star_summaries.DATASET: star_summaries.SCHEMA}
 
 
 def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, alt=None, det_digest=None) -> pa.Table:
