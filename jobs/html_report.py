@@ -74,10 +74,12 @@ def _gallery(items: list[tuple[bytes, str]], lake: Lake, run_id: str) -> str:
 def _star(lake, con, m, run_id):
     from dualsight.jobs import star, star_report
 
-    rep = star_report.build(lake, run_id)
-    secs = [("Reliability (reference section 3.3)", _report_table(con, "star_summary", run_id)),
-            ("Table 5: stars and errors of the successful cases", _report_table(con, "star_table5", run_id)),
-            ("Reference method beside dualsight's robust voting", _report_table(con, "star_robust", run_id)),
+    rep = star_report.build(lake, run_id)      # per-shard summaries when the run has them, else a full scan
+    t = rep["tables"]
+    summ = rep["summary"]
+    secs = [("Reliability (reference section 3.3)", H.table(list(summ), [list(summ.values())])),
+            ("Table 5: stars and errors of the successful cases", H.table(*t["star_table5"])),
+            ("Reference method beside dualsight's robust voting", H.table(*t["star_robust"])),
             ("Figures 9 and 10: error against stars observed",
              H.figure(_png(lambda p: star_report.plot(rep, p)), "fig9-10", "Mean error per axis and RSS error "
                       "against the number of stars observed"))]
@@ -94,7 +96,7 @@ def _star(lake, con, m, run_id):
             items.append((_thumb(img), f"case {r[0]}: {r[1]}, T={r[2]}, {r[3]} stars observed, "
                                        f"error {H.fmt(r[4])} arcsec"))
     secs.append(("Worst cases (failures first, then largest attitude error)", _gallery(items, lake, run_id)))
-    secs.append(("Time per case by stage", _report_table(con, "star_stage_times", run_id)))
+    secs.append(("Time per case by stage", H.table(*t["star_stage_times"])))
     return secs
 
 
