@@ -175,8 +175,10 @@ def text_report(con, run_id: str, data: dict, settings) -> str:
         if best:
             line = f"chosen threshold {best['threshold']:g} (without the truth: where the range changes least)"
             if best.get("avg_rel_error_pct") is not None:
+                w = best.get("within_min_max_pct")
                 line += (f": average residual {best['avg_abs_error_m']:.4g} m ({best['avg_rel_error_pct']:.2f} %), "
-                         f"true range inside [min, max] for {best['within_min_max_pct']:.0f} % of the images")
+                         + (f"true range inside [min, max] for {w:.0f} % of the images" if w is not None else
+                            "[min, max] is a point (the target's area does not depend on its orientation)"))
             out.append(line)
         if oracle:
             out.append(f"oracle threshold {oracle['threshold']:g} (chosen WITH the truth, optimistic): "

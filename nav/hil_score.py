@@ -138,13 +138,18 @@ def residual_stats(resid: np.ndarray) -> dict:
 
 def score_range(found: bool, range_m: float | None, range_min_m: float | None, range_max_m: float | None,
                 truth_m: float | None) -> dict:
-    """Range errors of one blob against a true range (module docstring); all None without truth."""
+    """Range errors of one blob against a true range (module docstring); all None without truth.
+
+    ``within_min_max`` (truth inside the orientation interval [min, max]) is None, undefined, when the
+    interval is a point: a target whose projected area does not depend on its orientation (a sphere) has
+    min = max, and "the truth lies in a point" would always be false; no blob counts as outside."""
     row = {"range_error_m": None, "abs_error_m": None, "rel_error": None, "within_min_max": None}
     if truth_m is None:
         return row
     row["within_min_max"] = False
     if found and range_m is not None:
         e = range_m - truth_m
+        degenerate = range_min_m is None or range_max_m is None or range_max_m - range_min_m <= 1e-9 * abs(range_m)
         row.update(range_error_m=e, abs_error_m=abs(e), rel_error=abs(e) / truth_m,
-                   within_min_max=bool(range_min_m <= truth_m <= range_max_m))
+                   within_min_max=None if degenerate else bool(range_min_m <= truth_m <= range_max_m))
     return row

@@ -497,6 +497,16 @@ def test_sphere_target_gives_the_analytic_range(tmp_path):
     res = json.loads(out)["images"][0]["results"][0]
     fx = Camera.from_toml(cam).fx
     assert res["found"] and res["range_m"] == pytest.approx(fx * 0.15 / R, rel=5e-3)
+    # a sphere's [min, max] is a point: "truth inside [min, max]" is undefined (None), not always false
+    assert res["range_min_m"] == pytest.approx(res["range_max_m"], rel=1e-9)
+    rc, out, err = run_cli(["hil", "prox", str(photo), "--camera", str(cam), "--target", str(target), "--invert",
+                            "--no-lake", "--json", "--range-truth", str(fx * 0.15 / R)])
+    doc = json.loads(out)
+    assert rc == 0 and doc["images"][0]["results"][0]["within_min_max"] is None
+    assert doc["sweep"][0]["within_min_max_pct"] is None
+    rc, out, err = run_cli(["hil", "prox", str(photo), "--camera", str(cam), "--target", str(target), "--invert",
+                            "--no-lake", "--range-truth", str(fx * 0.15 / R)])
+    assert rc == 0, err
 
 
 # ------------------------------------------------------------------ issue 11.8: a threshold chosen without truth

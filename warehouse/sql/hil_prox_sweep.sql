@@ -4,7 +4,8 @@
 --   avg_range_min/max_m  mean of the min / max ranges (the error bars)
 --   avg_abs_error_m      mean |estimate - truth| (the reference's "average residual"), images with a blob
 --   avg_rel_error_pct    mean |estimate - truth| / truth, in %
---   within_min_max_pct   share of the images WITH a truth whose truth lies in [min, max] (no blob = outside)
+--   within_min_max_pct   share of the images WITH a truth whose truth lies in [min, max] (no blob = outside;
+--                        null when [min, max] is a point for every image: a sphere's area has no orientation spread)
 SELECT
     threshold,
     count(*)                                                            AS images,
@@ -18,7 +19,7 @@ SELECT
     100 * avg(rel_error)                                                AS avg_rel_error_pct,
     100 * median(rel_error)                                             AS median_rel_error_pct,
     100.0 * count(*) FILTER (WHERE within_min_max)
-          / nullif(count(truth_range_m), 0)                             AS within_min_max_pct,
+          / nullif(count(within_min_max), 0)                            AS within_min_max_pct,
     avg(n_pixels) FILTER (WHERE found)                                  AS avg_n_pixels,
     avg(axis_ratio) FILTER (WHERE found)                                AS avg_axis_ratio,
     count(*) FILTER (WHERE touches_edge)                                AS touching_edge
