@@ -46,6 +46,7 @@ STREAM_SHOT = 1
 STREAM_READ = 2
 STREAM_HOT = 3
 STREAM_FALSE_STAR = 4
+STREAM_SKY_ADU = 5     # a sky pixel's ADU value in one draw (shot + read noise + ADC, kernels/starfield.sky_adu_table)
 STREAM_PROX_READ = 0   # proximity renderer's read noise (Box-Muller pairs; kept at 0 for bit-identical replays)
 STREAM_TEST = 99
 
@@ -111,7 +112,8 @@ def hash_key(key, index):
 def u01_key(key, index):
     """Uniform f64 in the open interval (0, 1): 53 random bits + 1/2 ulp."""
     h = hash_key(key, index)
-    return (ti.cast(ti.bit_shr(h, 11), ti.f64) + ti.f64(0.5)) * ti.f64(_INV_2_53)
+    # via i64: the 53-bit value converts exactly either way, and x86-64 has no single u64 -> f64 instruction
+    return (ti.cast(ti.cast(ti.bit_shr(h, 11), ti.i64), ti.f64) + ti.f64(0.5)) * ti.f64(_INV_2_53)
 
 
 @ti.func
@@ -311,6 +313,26 @@ def poisson_table(u, cdf: ti.template(), guide: ti.template()):
     return res
 
 
+@ti.func
+def inverse_table(u, cdf: ti.template(), guide: ti.template()):
+    """Index of the smallest cdf entry >= u (f64 u in (0, 1)), -1 beyond the last entry: inversion of a
+    tabulated discrete CDF through the direct guide table of :func:`inverse_table_np` (M cells, a power of
+    two, so the cell floor(u M) is exact).  A cell that holds no CDF step gives its answer in one load; the
+    others (one in ~16) start their search there."""
+    K = cdf.shape[0]
+    M = guide.shape[0]
+    g = guide[ti.min(ti.cast(u * ti.cast(M, ti.f64), ti.i32), M - 1)]
+    res = g
+    if g < 0:
+        k = -g - 1
+        while k < K and cdf[k] < u:
+            k += 1
+        res = k
+        if k >= K:
+            res = -1
+    return res
+
+
 # ----------------------------------------------------------------------------- numpy twins
 _U = np.uint64
 
@@ -386,3 +408,17 @@ def poisson_table_np(lam: float) -> tuple[np.ndarray, np.ndarray]:
     cdf = np.cumsum(np.exp(logp))
     guide = np.searchsorted(cdf, np.arange(K, dtype=np.float64) / K, side="left").astype(np.int32)
     return np.ascontiguousarray(cdf), np.ascontiguousarray(np.minimum(guide, K - 1))
+
+
+def inverse_table_np(cdf: np.ndarray, cells_per_entry: int = 16) -> np.ndarray:
+    """Direct guide table of a discrete CDF for :func:`inverse_table`: (M,) int32, M the power of two >=
+    max(1024, cells_per_entry * len(cdf)).  Cell j covers u in [j / M, (j + 1) / M); g = the smallest k with
+    cdf[k] >= j / M; the entry is g when cdf[g] >= (j + 1) / M (every u of the cell inverts to g), else
+    -(g + 1) (search from g)."""
+    cdf = np.asarray(cdf, dtype=np.float64)
+    K = cdf.size
+    M = 1 << max(10, int(math.ceil(math.log2(max(1, cells_per_entry * K)))))
+    j = np.arange(M, dtype=np.float64)
+    g = np.minimum(np.searchsorted(cdf, j / M, side="left"), K - 1)
+    resolved = cdf[g] >= (j + 1.0) / M
+    return np.ascontiguousarray(np.where(resolved, g, -(g + 1)).astype(np.int32))

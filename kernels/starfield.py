@@ -22,10 +22,14 @@ holds the sensor model (:class:`SensorConfig`), stage 2 (the ``finalize`` kernel
 
 Random numbers come from :mod:`dualsight.kernels.rng` (a counter-based hash of (case seed, stream,
 pixel index)), never from ``ti.random``: a case renders bit-identically whatever batch, position or
-thread computes it.  Shot noise is exact Poisson: inversion of a tabulated CDF for pixels at the sky level
-(most of a star field), otherwise sequential inversion below 10 e- and PTRS rejection (Hörmann 1993) above.
-Read noise is N(0, 1) by inversion (Wichura's AS241).  Without shot noise, dark current and sky
-background are their means only.
+thread computes it.  Sky pixels (no star light, not hot, no stray light: most of a star field) with
+quantised ADU draw their final value in one uniform, by inversion of the tabulated exact CDF of shot noise +
+read noise + ADC (:func:`sky_adu_table`, through a direct guide table: no transcendental call per pixel).
+Other pixels: shot noise is exact Poisson, by inversion of a tabulated CDF for pixels at the sky level,
+otherwise sequential inversion below 10 e- and PTRS rejection (Hörmann 1993) above; read noise is N(0, 1) by
+inversion (Wichura's AS241).  Without shot noise, dark current and sky background are their means only.
+Hot pixels (fraction p <= HOT_GEOMETRIC_MAX) are drawn along each row by the geometric gaps of their
+Bernoulli process (one draw per hot pixel), above that by one draw per pixel.
 
 Magnitudes: ``flux_from_magnitude`` uses ``F = zero_mag_rate_e_per_s * 10^(-0.4 m) * exposure_s``.  The
 default zero point, 1.5e6 e-/s for a V = 0 star, is a round figure for a ~1 cm^2 clear aperture
@@ -62,6 +66,9 @@ MAX_CHUNK_PIXELS = 1 << 26  # pixels per kernel call: 256 MB float32 scratch at 
 _QUANT_EPS = 1e-9  # ADU; keeps exact multiples of the gain from flooring one count low
 _FRAC_DRAW = 4095  # STREAM_SHOT draw of the stray light's sub-grid Poisson part (PTRS uses draws < 2000)
 MAX_STRAY_TABLE_ENTRIES = 1 << 21  # Poisson CDF entries tabulated for stray light (24 MB at most)
+HOT_GEOMETRIC_MAX = 0.02  # hot-pixel fractions up to this are drawn by geometric gaps (one draw per hot pixel)
+MAX_SKY_ADU_WORK = 1 << 19  # (Poisson terms) x (ADU values) evaluated for the sky's ADU table (~0.1 s, once)
+_SKY_ADU_SIGMAS = 12.0  # the sky ADU table spans the charge range +- 12 read-noise sigmas (Phi(-12) = 1.8e-33)
 
 
 # ============================================================================ configuration
@@ -322,6 +329,17 @@ def _table_sample(u, cdf: ti.template(), guide: ti.template(), o0, o1):
 
 
 @ti.func
+def _next_hot(c, W, log1m, u):
+    """Column of the next hot pixel after column c (W: none in the row): c + 1 + G, G = floor(ln u / ln(1 - p))
+    the geometric number of cool pixels before it, P(G >= g) = (1 - p)^g (log1m = ln(1 - p) < 0)."""
+    g = ti.floor(ti.log(u) / log1m)
+    nxt = W
+    if g < ti.cast(W - c - 1, ti.f64):
+        nxt = c + 1 + ti.cast(g, ti.i32)
+    return nxt
+
+
+@ti.func
 def _small_poisson(lam, u):
     """Poisson(lam) for 0 <= lam < 1 by sequential inversion of the uniform u."""
     p = ti.exp(-lam)
@@ -368,6 +386,68 @@ def _stray_tables(cfg: SensorConfig, W: int, H: int):
     return none
 
 
+_erfc = np.frompyfunc(math.erfc, 1, 1)
+
+
+@functools.lru_cache(maxsize=8)
+def _sky_adu_table_for(base_e: float, shot: bool, read_e: float, full_well: float, gain: float, bias: float,
+                       max_adu: float):
+    """(cdf, guide, a0) of the ADU value of a sky pixel, or None when too costly; see :func:`sky_adu_table`."""
+    if shot and base_e > 0.0:
+        K = int(base_e + 12.0 * math.sqrt(base_e) + 30.0)   # as rng.poisson_table_np: tail beyond < 1e-20
+        k = np.arange(K, dtype=np.float64)
+        logp = -base_e + np.concatenate([[0.0], np.cumsum(math.log(base_e) - np.log(k[1:]))])
+        p = np.exp(logp)
+        keep = p > 0.0
+        k, p = k[keep], p[keep]
+    else:
+        k, p = np.array([base_e if not shot else 0.0]), np.ones(1)
+    e = np.minimum(k, full_well)                              # the kernel: e = min(e, full_well)
+    if read_e <= 0.0:   # ADU a function of the charge: the kernel's own f64 arithmetic
+        adu = np.minimum(np.maximum(np.floor(e / gain + bias + _QUANT_EPS), 0.0), max_adu)
+        a0 = float(adu.min())
+        pa = np.bincount((adu - a0).astype(np.int64), weights=p)
+        cdf = np.cumsum(pa)
+    else:
+        half = _SKY_ADU_SIGMAS * read_e / gain
+        lo = max(0.0, math.floor(e.min() / gain + bias - half) - 1.0)
+        hi = min(max_adu, math.ceil(e.max() / gain + bias + half) + 1.0)
+        if lo > hi or (hi - lo + 1) * k.size > MAX_SKY_ADU_WORK:
+            return None
+        a = np.arange(lo, hi + 1.0)
+        # P(ADU <= a) = P(e + R z < (a + 1 - bias - eps) g) = sum_k p_k Phi(((a + 1 - bias - eps) g - e_k) / R)
+        # for a < max_adu (the clip at 0 ADU is included: every y < 1 floors to <= 0); 1 at max_adu
+        zc = (e[None, :] - (a[:, None] + 1.0 - bias - _QUANT_EPS) * gain) / (read_e * math.sqrt(2.0))
+        cdf = (0.5 * _erfc(zc).astype(np.float64)) @ p         # Phi(x) = erfc(-x / sqrt 2) / 2
+        cdf[a >= max_adu] = 1.0
+        a0 = float(lo)
+    # a direct guide table (Chen & Asau 1974) of >= 16 cells per entry: ~94 % of the cells hold no CDF step
+    # and give the ADU in one load (rng.inverse_table)
+    return np.ascontiguousarray(cdf), rng.inverse_table_np(cdf), a0
+
+
+def sky_adu_table(cfg: SensorConfig):
+    """Tabulated CDF of the final ADU value of a sky pixel (no star light, not hot, no stray light):
+    (cdf (A,) float64, guide (A,) int32, a0) with cdf[j] = P(ADU <= a0 + j), or None (no table: the pixel goes
+    through the per-effect samplers).
+
+    The pixel model of the module docstring with S = 0: e = min(Poisson(base_e), full_well) (base_e itself
+    without shot noise), e + read_noise * N(0, 1), ADU = clip(floor(e / gain + bias + 1e-9), 0, max_adu).  Its
+    distribution is exactly P(ADU <= a) = sum_k P(e = k) Phi(((a + 1 - bias - 1e-9) gain - k) / read_noise)
+    (read noise on), or the ADU of each charge by the kernel's own arithmetic (read noise off): one uniform
+    inverted through this table replaces the Poisson and the normal draw of every sky pixel (most of a star
+    field), with no transcendental call per pixel.  The table spans the charges' range +- 12 read-noise
+    sigmas (the mass beyond, Phi(-12) ~ 2e-33, is below the resolution of the 53-bit uniforms).  Only for
+    quantised ADU (continuous ADU have no finite table) and when the table costs at most
+    MAX_SKY_ADU_WORK normal-CDF evaluations; built once per sensor (cached).
+    """
+    if not cfg.quantize or not (cfg.shot_noise or cfg.read_noise_e > 0.0) or cfg.base_e > 1e6:
+        return None
+    return _sky_adu_table_for(float(cfg.base_e), bool(cfg.shot_noise), float(cfg.read_noise_e),
+                              float(cfg.full_well_e), float(cfg.gain_e_per_adu), float(cfg.bias_adu),
+                              float(cfg.max_adu))
+
+
 # ============================================================================ kernels (built lazily)
 _KERNELS = KernelCache()      # builders registered at the end of the module
 
@@ -388,7 +468,9 @@ def _build_finalize(dtype):
                  cdf: ti.types.ndarray(dtype=ti.f64, ndim=1), guide: ti.types.ndarray(dtype=ti.i32, ndim=1),
                  use_table: ti.i32, stray: ti.i32, stray_e0: ti.f64, stray_gx: ti.f64, stray_gy: ti.f64,
                  tcdf: ti.types.ndarray(dtype=ti.f64, ndim=1), tguide: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                 toff: ti.types.ndarray(dtype=ti.i64, ndim=1), tm0: ti.i32, tinv: ti.f64):
+                 toff: ti.types.ndarray(dtype=ti.i64, ndim=1), tm0: ti.i32, tinv: ti.f64,
+                 acdf: ti.types.ndarray(dtype=ti.f64, ndim=1), aguide: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                 use_adu: ti.i32, adu0: ti.f64, hot_log1m: ti.f64):
         # flat (B*H*W,) arrays: 3-D external-array stores cost ~2x more in Taichi 1.7 CPU code
         for b, r in ti.ndrange(B, H):  # (frame, row) outer loop, columns serial
             seed = seeds[b]
@@ -400,6 +482,8 @@ def _build_finalize(dtype):
             k_shot0 = rng.stream_key(seed, rng.STREAM_SHOT, 0)
             k_shot1 = rng.stream_key(seed, rng.STREAM_SHOT, 1)
             k_frac = rng.stream_key(seed, rng.STREAM_SHOT, _FRAC_DRAW)
+            k_sky = rng.stream_key(seed, rng.STREAM_SKY_ADU, 0)
+            k_geo = rng.stream_key(hseed, rng.STREAM_HOT, 1)
             ntab = toff.shape[0] - 1
             row0 = ti.cast(r, ti.u64) * ti.cast(W, ti.u64)
             p0 = (b * H + r) * W
@@ -421,11 +505,35 @@ def _build_finalize(dtype):
             else:
                 lam_c = base_e  # Poisson constants cached for the last lambda (the sky's, mostly)
                 cst = rng.poisson_consts(lam_c)
+                # sparse hot pixels (hot_log1m < 0): the row's hot columns as a Bernoulli process drawn by its
+                # geometric gaps, one draw per hot pixel (+ one per row) instead of one per pixel
+                rkey = ti.cast(r, ti.u64) << ti.u64(32)
+                n_hot = 0
+                next_hot = W
+                if hot_log1m < ti.f64(0.0):
+                    next_hot = _next_hot(-1, W, hot_log1m, rng.u01_key(k_geo, rkey))
                 for c in range(W):
                     s = buf[p0 + c]
                     if s != ti.f32(0.0):
                         buf[p0 + c] = ti.f32(0.0)
                     idx = row0 + ti.cast(c, ti.u64)
+                    hot = 0
+                    if hot_log1m < ti.f64(0.0):
+                        if c == next_hot:
+                            hot = 1
+                            n_hot += 1
+                            next_hot = _next_hot(c, W, hot_log1m, rng.u01_key(k_geo, rkey | ti.cast(n_hot, ti.u64)))
+                    elif hot_frac > ti.f64(0.0):
+                        if rng.u01_key(k_hot, idx) < hot_frac:
+                            hot = 1
+                    j = -1
+                    if use_adu != 0 and s == ti.f32(0.0) and hot == 0:
+                        # a sky pixel (no star light, not hot; use_adu implies no stray light): its ADU value
+                        # by inversion of the tabulated CDF of shot + read noise + ADC (sky_adu_table)
+                        j = rng.inverse_table(rng.u01_key(k_sky, idx), acdf, aguide)
+                    if j >= 0:
+                        out[p0 + c] = ti.cast(adu0 + ti.cast(j, ti.f64), tdt)
+                        continue
                     e = ti.cast(s, ti.f64) + base_e
                     st = ti.f64(0.0)
                     sky_px = 0  # 1: only sky, dark current and stray light (for the stray tables)
@@ -434,10 +542,9 @@ def _build_finalize(dtype):
                     if stray != 0:
                         st = ti.max(stray_row + stray_gx * (ti.cast(c, ti.f64) + stray_x0), ti.f64(0.0))
                         e += st
-                    if hot_frac > ti.f64(0.0):
-                        if rng.u01_key(k_hot, idx) < hot_frac:
-                            e += hot_e
-                            sky_px = 0
+                    if hot != 0:
+                        e += hot_e
+                        sky_px = 0
                     if shot != 0:
                         k = ti.f64(-1.0)
                         if use_table != 0 and e == base_e:  # the sky's lambda: tabulated CDF
@@ -611,7 +718,8 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
     (B, H, W) images in ADU (see the module docstring for the pixel model).
 
     Cost: one serial-per-case splat of each star's window plus one (frame, row) pass over every pixel
-    (1024 x 768, one core: ~1 ms/frame noise-free, ~10-15 ms/frame with shot or read noise).  Another PSF
+    (1024 x 768, one core: ~1 ms/frame noise-free, ~3-4 ms/frame with shot and read noise and hot pixels on
+    the tabulated sky path, ~18 ms/frame with continuous ADU (``quantize=False``: per-effect samplers)).  Another PSF
     model or smear renders each star as several sub-sources (:mod:`dualsight.kernels.psf_models`), each
     within its own window: the defocus quadrature of the "realistic" preset (255 Gaussians per star) adds
     ~3 ms per frame of 13 stars, a smear multiplies that part by ~5 L (L px long).  Stray light is computed
@@ -640,6 +748,11 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
     use_table = cfg.shot_noise and 0.0 < cfg.base_e <= 1e6
     tcdf, tguide, toff, tm0, tinv = _stray_tables(cfg, W, H)
     cdf, guide = rng.poisson_table_np(cfg.base_e) if use_table else (np.ones(1), np.zeros(1, np.int32))
+    sky = None if cfg.has_stray_light else sky_adu_table(cfg)   # the sky pixels' ADU in one draw
+    # hot pixels up to HOT_GEOMETRIC_MAX: by their geometric gaps along each row; above, one draw per pixel
+    p_hot = cfg.hot_pixel_fraction
+    hot_log1m = math.log1p(-p_hot) if 0.0 < p_hot <= HOT_GEOMETRIC_MAX else 0.0
+    acdf, aguide, adu0 = sky if sky is not None else (np.ones(1), np.zeros(1, np.int32), 0.0)
     src = None
     if cfg.psf_model != "gaussian" or cfg.needs_camera:  # sub-sources (psf_models); else the plain Gaussian splat
         src = psf_models.prepare_sources(x, y, f, ok, cfg, camera, attitude)
@@ -660,7 +773,8 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
                     int(hot_seed is not None), float(cfg.base_e), float(cfg.full_well_e), float(cfg.gain_e_per_adu),
                     float(cfg.bias_adu), float(cfg.max_adu), int(cfg.quantize), int(cfg.shot_noise),
                     float(cfg.read_noise_e), float(cfg.hot_pixel_fraction), float(cfg.hot_pixel_e), cdf, guide,
-                    int(use_table), *stray, tcdf, tguide, toff, tm0, tinv)
+                    int(use_table), *stray, tcdf, tguide, toff, tm0, tinv, acdf, aguide, int(sky is not None),
+                    float(adu0), hot_log1m)
         except BaseException:
             _scratch.drop()  # the zero invariant may be broken
             raise
