@@ -25,7 +25,8 @@ from dualsight.scene.attitude import angle_between
 __all__ = ["identify", "Solution", "solve", "centroid_weights"]
 
 
-def identify(obs: Observations, cat_unit: np.ndarray, pairs, voting, cat_vmag: np.ndarray | None = None):
+def identify(obs: Observations, cat_unit: np.ndarray, pairs, voting, cat_vmag: np.ndarray | None = None,
+             chance: bool = True):
     """Identities of the observed stars by geometric voting: ``nav.starid.identify``.
 
     cat_unit : (N, 3) ICRS unit vectors of the catalog; pairs : the pair catalog (``catalogs.pairs``:
@@ -33,8 +34,10 @@ def identify(obs: Observations, cat_unit: np.ndarray, pairs, voting, cat_vmag: n
     Returns ``nav.starid.Identification`` ((B, S) ``ids``, ``accepted``, ``votes``, ``verify_votes``; (B,) ``T``
     and ``p_chance``, the answer's chance-match probability, ``nav.chance``).  cat_vmag : optional (N,) V
     magnitudes of the catalog, for the blend test (only doubles of similar brightness are ambiguous).
+    chance : compute ``p_chance`` (False skips it: NaN).
     """
-    return vote_identify(obs.vec, obs.valid, cat_unit, pairs.i, pairs.j, pairs.angle, voting, cat_vmag=cat_vmag)
+    return vote_identify(obs.vec, obs.valid, cat_unit, pairs.i, pairs.j, pairs.angle, voting, cat_vmag=cat_vmag,
+                         chance=chance)
 
 
 @dataclass(frozen=True)

@@ -115,7 +115,7 @@ _ROUND_FIELDS = ("ids", "accepted", "T", "vote_ids", "votes", "verify_votes", "r
 
 def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, pair_j=None,
              pair_angle=None, cfg: VotingConfig = VotingConfig(), engine: str = "taichi",
-             cat_vmag: np.ndarray | None = None) -> Identification:
+             cat_vmag: np.ndarray | None = None, chance: bool = True) -> Identification:
     """Identify observed stars by geometric voting (Kolomenkin et al. 2008), all cases at once.
 
     Parameters
@@ -128,6 +128,8 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
         :class:`VotingIndex` (what is derived from the catalog once; for arrays or an object,
         :func:`voting_index` keeps the last few, keyed by the arrays' identity).
     cfg : :class:`VotingConfig` (angles in rad).
+    chance : compute ``p_chance`` (False: NaN, and the hypothesis count is skipped; only when
+        ``cfg.max_p_chance`` does not need it).
     cat_vmag : optional (N,) catalog V magnitudes, for the blend test (``cfg.reject_blends``): with them
         only doubles of similar brightness are ambiguous (:func:`~dualsight.nav.residual_check.drop_blends`).
     engine : :data:`ENGINES`: ``"taichi"`` (Taichi CPU kernels for the vote counting, candidate
@@ -169,7 +171,8 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
     valid = valid & np.all(np.isfinite(obs), axis=-1)
 
     # round 0: the first max_stars valid stars vote (the reference's method)
-    res = _round(obs, valid, valid, cat_unit, index, cfg, engine, cat_vmag)
+    chance = chance or cfg.max_p_chance < 1.0
+    res = _round(obs, valid, valid, cat_unit, index, cfg, engine, cat_vmag, chance)
     res = {k: np.array(v, copy=True) for k, v in res.items()}          # no two fields share memory
     hyp = res.pop("hypotheses")
     n_rounds = np.ones(B, np.int64)
@@ -184,7 +187,7 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
         if idx.size == 0:
             break
         voters = widen.block_voters(valid[idx], start, stop)
-        new = _round(obs[idx], valid[idx], voters, cat_unit, index, cfg, engine, cat_vmag)
+        new = _round(obs[idx], valid[idx], voters, cat_unit, index, cfg, engine, cat_vmag, chance)
         hyp[idx] += new.pop("hypotheses")
         n_rounds[idx] += 1
         take = widen.better_answer(new["T"], new["accepted"].sum(axis=1), res["T"][idx],
@@ -193,7 +196,7 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
             res[f][idx[take]] = new[f][take]
         answer_round[idx[take]] = r
 
-    p = _chance(obs, valid, res, hyp, cat_unit, cfg)
+    p = _chance(obs, valid, res, hyp, cat_unit, cfg) if chance else np.full(B, np.nan)
     if cfg.max_p_chance < 1.0:                                          # improbable answers are rejected
         drop = (res["T"] > 0) & ~(p <= cfg.max_p_chance)
         res["rejected"] = res["rejected"] | drop
@@ -210,7 +213,7 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
 
 
 def _round(obs: np.ndarray, valid: np.ndarray, voters: np.ndarray, cat_unit: np.ndarray, index: VotingIndex,
-           cfg: VotingConfig, engine: str, cat_vmag: np.ndarray | None = None) -> dict:
+           cfg: VotingConfig, engine: str, cat_vmag: np.ndarray | None = None, chance: bool = True) -> dict:
     """One identification round: steps 1-5 with the first ``cfg.max_stars`` stars of ``voters``, the
     attitude check and re-identification over every ``valid`` star, the residual test.
 
@@ -261,7 +264,8 @@ def _round(obs: np.ndarray, valid: np.ndarray, voters: np.ndarray, cat_unit: np.
         n_att = np.where(n_att >= 0, n_att - n_res, n_att)
     return dict(ids=ids_s, accepted=acc_s, T=np.where(reject, 0, T), vote_ids=vote_ids_s, votes=scatter(top, 0),
                 verify_votes=scatter(vv, 0), rejected=reject, n_attitude_matches=n_att, n_residual_rejected=n_res,
-                hypotheses=pair_hypotheses(pairs.angle, pairs.case, B, index.angle, cfg.verify_tol))
+                hypotheses=(pair_hypotheses(pairs.angle, pairs.case, B, index.angle, cfg.verify_tol) if chance
+                            else np.zeros(B)))
 
 
 def _chance(obs: np.ndarray, valid: np.ndarray, res: dict, hyp: np.ndarray, cat_unit: np.ndarray,

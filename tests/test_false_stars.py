@@ -374,3 +374,25 @@ def test_blend_test_keeps_the_brighter_of_an_unequal_double():
     # the fainter star given the lower row (catalog rows are not assumed to be in brightness order)
     kept, _ = drop_blends(ids, acc, pj_, pi_, ang, 6, 40 * ARCSEC, vmag=vmag, max_dmag=1.0)
     assert kept.tolist() == [[True, False, False, False, True, True]]
+
+
+def test_row_nanmedian_equals_numpys():
+    """The residual test's row median (one sort) against np.nanmedian, NaN-only rows included."""
+    import warnings
+
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+    from hypothesis.extra.numpy import arrays
+
+    from dualsight.nav.residual_check import row_nanmedian
+
+    @settings(max_examples=200, deadline=None)
+    @given(arrays(np.float64, st.tuples(st.integers(1, 6), st.integers(1, 9)),
+                  elements=st.one_of(st.floats(-1e6, 1e6), st.just(np.nan))))
+    def check(x):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            want = np.nanmedian(x, axis=1)
+        assert np.array_equal(row_nanmedian(x), want, equal_nan=True)
+
+    check()
