@@ -63,7 +63,8 @@ class StarSettings(Frozen):
         return next(m for m in METHODS if m != self.method) if self.compare else None
 
 
-def _rotation(v):
+def check_rotation(v):
+    """A row-major 3x3 rotation matrix given as 9 numbers (None passes); ValueError otherwise."""
     if v is None:
         return v
     if len(v) != 9:
@@ -107,7 +108,7 @@ class StarTruth(Frozen):
     @field_validator("A", "altaz_A")
     @classmethod
     def _check_rotation(cls, v):
-        return _rotation(v)
+        return check_rotation(v)
 
     @model_validator(mode="after")
     def _consistent(self):

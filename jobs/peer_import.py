@@ -103,14 +103,9 @@ class PeerFrame(Frozen):
     @field_validator("A")
     @classmethod
     def _rotation(cls, v):
-        if v is None:
-            return v
-        if len(v) != 9:
-            raise ValueError(f"must be 9 numbers (a 3x3 rotation matrix, row-major), got {len(v)}")
-        R = np.asarray(v, np.float64).reshape(3, 3)
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-            raise ValueError("must be a 3x3 rotation matrix (row-major), orthonormal with determinant +1")
-        return v
+        from dualsight.jobs.hil_star_spec import check_rotation
+
+        return check_rotation(v)
 
     @model_validator(mode="after")
     def _consistent(self):
