@@ -1,0 +1,172 @@
+"""Background stage of the real-sensor detector (:mod:`dualsight.kernels.detect_local`): a tiled,
+sigma-clipped sky level and noise per frame, median-filtered over the tile grid and interpolated between tile
+centres; plus the normal-distribution helpers the clipping corrections use.  Pure numpy/OpenCV functions
+over arrays."""
+
+import math
+
+import numpy as np
+
+
+# ============================================================================ normal distribution
+_SQRT2 = math.sqrt(2.0)
+
+
+def _erf(x):
+    """erf (Abramowitz & Stegun 7.1.26, |error| <= 1.5e-7), vectorised."""
+    x = np.asarray(x, np.float64)
+    s = np.sign(x)
+    a = np.abs(x)
+    t = 1.0 / (1.0 + 0.3275911 * a)
+    y = 1.0 - (((((1.061405429 * t - 1.453152027) * t) + 1.421413741) * t - 0.284496736) * t
+               + 0.254829592) * t * np.exp(-a * a)
+    return s * y
+
+
+def _Phi(z):
+    return 0.5 * (1.0 + _erf(np.asarray(z, np.float64) / _SQRT2))
+
+
+def _phi(z):
+    z = np.asarray(z, np.float64)
+    return np.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+
+
+def _clip_var_factor(c: float) -> float:
+    """Variance of a standard normal truncated to [-c, c]."""
+    p = math.erf(c / _SQRT2)
+    return 1.0 - 2.0 * c * math.exp(-0.5 * c * c) / math.sqrt(2.0 * math.pi) / p
+
+
+# ============================================================================ background
+def _sorted_mad(s: np.ndarray, med: np.ndarray) -> np.ndarray:
+    """Exact median absolute deviation from ``med`` of each row of sorted ``s`` (T, N): the k-th smallest
+    |s - med| (k = ceil(N / 2)) is min over windows [i, i + k) of max(med - s[i], s[i + k - 1] - med); the
+    window's two ends move in opposite directions, so the best start is found by bisection (one gather per
+    row and step)."""
+    T, N = s.shape
+    rows = np.arange(T)
+    k = max((N + 1) // 2, 1)
+    a, b = np.zeros(T, np.int64), np.full(T, N - k, np.int64)          # candidate starts [a, b]
+    for _ in range(int(math.ceil(math.log2(N + 1))) + 1):
+        m = (a + b) // 2
+        g = (s[rows, m + k - 1] - med) - (med - s[rows, m])
+        go = (g < 0) & (m < b)
+        a = np.where(go, m + 1, a)
+        b = np.where(go, b, m)
+    ip = np.maximum(a - 1, 0)
+    d1 = np.maximum(med - s[rows, a], s[rows, a + k - 1] - med)
+    d0 = np.maximum(med - s[rows, ip], s[rows, ip + k - 1] - med)
+    return np.minimum(d0, d1).astype(np.float64)
+
+
+def _clipped_stats(s: np.ndarray, clip: float, iters: int):
+    """Sigma-clipped level and noise of each row of sorted values ``s`` (T, N) (module docstring, step 1).
+
+    The kept pixels are always a contiguous run [lo, hi) of a sorted row: its bounds are counts of values
+    below the window's ends and its sums one ``add.reduceat`` over all rows, on the values relative to the
+    row's median (float32 is exact enough: a window never includes the bright tail).  For 8/16-bit frames
+    the counts are one ``searchsorted`` over all rows at once (row r's values offset by r x a power of two
+    beyond their range: exact in float64, the same counts as the float32 comparisons), else comparisons.
+    Returns (level (T,), sigma (T,), kept fraction (T,)) float64."""
+    T, N = s.shape
+    rows = np.arange(T, dtype=np.int64)
+    med = 0.5 * (s[:, (N - 1) // 2].astype(np.float64) + s[:, N // 2])
+    sig = 1.4826 * _sorted_mad(s, med)
+    if iters <= 0:
+        return med, sig, np.ones(T)
+    d = np.zeros((T, N + 1), np.float32)            # a zero column ends every row: windows never run past it
+    np.subtract(s, med.astype(np.float32)[:, None], out=d[:, :N], casting="unsafe")
+    dd = d * d
+    flat, flat2 = d.ravel(), dd.ravel()
+    if s.dtype.kind == "u" and s.dtype.itemsize <= 2:      # s - med: half-integers, exact in float32 and float64
+        span = float(max((s[:, -1] - med).max(), (med - s[:, 0]).max()))
+        half = 2.0 ** math.ceil(math.log2(2.0 * span + 2.0))
+        base = rows * (2.0 * half)
+        keys = s.astype(np.float64)
+        keys += (base - med)[:, None]
+        keys = keys.ravel()
+        first = rows * N
+
+        def count(t, side):          # values of each row < t (side "left") or <= t ("right")
+            return np.searchsorted(keys, base + np.clip(t, -half, half), side) - first
+    else:
+        def count(t, side):
+            return (d[:, :N] < t[:, None]).sum(1) if side == "left" else (d[:, :N] <= t[:, None]).sum(1)
+    corr = 1.0 / math.sqrt(_clip_var_factor(clip))
+    centre = np.zeros(T)                             # relative to med
+    lo, hi = np.zeros(T, np.int64), np.full(T, N, np.int64)
+    idx = np.empty(2 * T, np.int64)
+    for _ in range(iters):
+        lo = count((centre - clip * sig).astype(np.float32), "left")
+        hi = count((centre + clip * sig).astype(np.float32), "right")
+        idx[0::2] = rows * (N + 1) + lo
+        idx[1::2] = rows * (N + 1) + hi
+        n = hi - lo
+        good = n > 0
+        m = np.maximum(n, 1)
+        mean = np.add.reduceat(flat, idx)[0::2].astype(np.float64) / m
+        var = np.maximum(np.add.reduceat(flat2, idx)[0::2].astype(np.float64) / m - mean * mean, 0.0)
+        centre = np.where(good, mean, centre)
+        sig = np.where(good & (sig > 0), np.sqrt(var) * corr, sig)
+    return med + centre, sig, (hi - lo) / N
+
+
+def _robust_std(v: np.ndarray, clip: float = 3.0, iters: int = 3) -> float:
+    """Sigma-clipped standard deviation (truncation-corrected) of a 1-D sample: median and 1.4826 MAD for the
+    first window, then the clipped mean and standard deviation (0 for an empty or constant sample)."""
+    v = np.asarray(v, np.float64).ravel()
+    if v.size < 8:
+        return 0.0
+    c = float(np.median(v))
+    sd = 1.4826 * float(np.median(np.abs(v - c)))
+    if sd <= 0:
+        return 0.0
+    corr = 1.0 / math.sqrt(_clip_var_factor(clip))
+    for _ in range(iters):
+        w = v[np.abs(v - c) <= clip * sd]
+        if w.size < 8:
+            break
+        c, sd = float(w.mean()), float(w.std()) * corr
+    return sd
+
+
+def tile_background(img: np.ndarray, tile: int = 32, clip: float = 3.0, iters: int = 3, mesh: int = 3):
+    """Level and noise sigma of every ``tile`` x ``tile`` square of one (H, W) frame (module docstring, step 1).
+
+    Returns (level (ny, nx) float32, sigma (ny, nx) float32), ny = ceil(H / tile), nx = ceil(W / tile)."""
+    import cv2
+
+    H, W = img.shape
+    ny, nx = -(-H // tile), -(-W // tile)
+    a = img
+    if a.dtype.kind == "u" and a.dtype.itemsize <= 2:
+        kind = "stable"                     # radix sort for 8/16-bit integers: ~4x faster than quicksort
+    else:
+        a = a.astype(np.float32, copy=False)
+        kind = "quicksort"
+    if (ny * tile, nx * tile) != (H, W):
+        a = np.pad(a, ((0, ny * tile - H), (0, nx * tile - W)), mode="symmetric")
+    t = np.ascontiguousarray(a.reshape(ny, tile, nx, tile).transpose(0, 2, 1, 3)).reshape(ny * nx, tile * tile)
+    s = np.sort(t, axis=1, kind=kind)
+    level, sig, kept = _clipped_stats(s, clip, iters)
+    bad = kept < 0.5
+    if bad.any() and not bad.all():
+        level[bad] = np.median(level[~bad])
+        sig[bad] = np.median(sig[~bad])
+    level = level.reshape(ny, nx).astype(np.float32)
+    sig = sig.reshape(ny, nx).astype(np.float32)
+    if mesh > 1 and ny * nx > 1:
+        level = cv2.medianBlur(level, mesh)
+        sig = cv2.medianBlur(sig, mesh)
+    return level, sig
+
+
+def interpolate_tiles(grid: np.ndarray, tile: int, H: int, W: int) -> np.ndarray:
+    """(H, W) float32 bilinear interpolation of a tile grid between the tiles' centres (pixel (r, c) at
+    grid coordinate ((r + 0.5) / tile - 0.5, (c + 0.5) / tile - 0.5); constant beyond the outer centres)."""
+    import cv2
+
+    ny, nx = grid.shape
+    return cv2.resize(np.ascontiguousarray(grid, np.float32), (nx * tile, ny * tile),
+                      interpolation=cv2.INTER_LINEAR)[:H, :W]
