@@ -52,6 +52,7 @@ import numpy as np
 
 from dualsight.errors import ImageError, InputError
 from dualsight.nav import distortion_fit as dfit
+from dualsight.nav.distortion_bootstrap import bootstrap_plan
 from dualsight.scene.units import ARCSEC
 
 __all__ = ["MIN_STARS", "FULL_ITERATIONS", "FOCAL_SEARCH", "FramePixels", "SolvePass", "FitReport", "check_output",
@@ -289,7 +290,7 @@ def fit_from_spec(spec, log=None, warn=None) -> FitReport:
 
     cam = cam0
     if not cam0.has_distortion:
-        plan = dfit.bootstrap_plan(0.5 * math.hypot(cam0.width, cam0.height), 0.5 * (cam0.fx + cam0.fy),
+        plan = bootstrap_plan(0.5 * math.hypot(cam0.width, cam0.height), 0.5 * (cam0.fx + cam0.fy),
                                    len(cat.unit), voting.tolerance_rad)
         boot = _with_tolerance(voting, plan.tolerance_rad)
         say(f"bootstrap: the camera file has no distortion; central passes vote with "
