@@ -202,7 +202,7 @@ def cmd_star_run(args) -> int:
     lake = _lake(args)
     info = star.catalog_info(spec_dict)
     print(f"catalog: {info['stars']} stars to V {info['mag_limit']}, {info['pairs']:,} pairs closer than "
-          f"{info['pair_max_angle_deg']:.2f} deg ({info['pair_catalog_bytes'] / 2**20:.2f} MiB in memory)",
+          f"{info['pair_max_angle_deg']:.2f} deg ({info['pair_catalog_bytes'] / 2**20:.2f} MiB, memory-mapped)",
           file=sys.stderr)
     manifest = run_job(COMMAND_KINDS[("star", "run")], spec_dict, n_cases=n_cases, lake=lake, run_id=run_id, workers=args.workers,
                        scheduler=args.scheduler, shard_size=args.shard_size, progress=not args.no_progress,

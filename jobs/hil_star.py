@@ -71,8 +71,7 @@ from dualsight.kernels.detect import DetectConfig, detect_stars
 from dualsight.kernels.detect_local import LocalDetectConfig, detect_real, subtract_local_background
 from dualsight.nav import hil_score
 from dualsight.nav.observations import observations
-from dualsight.nav.star_solution import centroid_weights, solve
-from dualsight.nav.starid import identify as vote_identify
+from dualsight.nav.star_solution import centroid_weights, identify, solve
 from dualsight.nav.starid import VotingConfig
 from dualsight.scene.attitude import angle_between, unit_to_radec
 from dualsight.scene.background import subtract_background
@@ -239,12 +238,6 @@ def voting_engine() -> str:
     from dualsight.kernels._runtime import is_initialised
 
     return "taichi" if is_initialised() else "numpy"
-
-
-def identify(obs, cat_unit, pairs, voting, cat_vmag=None, engine: str = "taichi"):
-    """``nav.star_solution.identify`` with the voting engine chosen (:func:`voting_engine`)."""
-    return vote_identify(obs.vec, obs.valid, cat_unit, pairs.i, pairs.j, pairs.angle, voting, cat_vmag=cat_vmag,
-                         engine=engine)
 
 
 def _run_batch(idx: list[int], spec: HilStarSpec, ctx: Context) -> list[ImageResult]:

@@ -26,7 +26,7 @@ __all__ = ["identify", "Solution", "solve", "centroid_weights"]
 
 
 def identify(obs: Observations, cat_unit: np.ndarray, pairs, voting, cat_vmag: np.ndarray | None = None,
-             chance: bool = True):
+             chance: bool = True, engine: str = "taichi"):
     """Identities of the observed stars by geometric voting: ``nav.starid.identify``.
 
     cat_unit : (N, 3) ICRS unit vectors of the catalog; pairs : the pair catalog (``catalogs.pairs``:
@@ -34,10 +34,10 @@ def identify(obs: Observations, cat_unit: np.ndarray, pairs, voting, cat_vmag: n
     Returns ``nav.starid.Identification`` ((B, S) ``ids``, ``accepted``, ``votes``, ``verify_votes``; (B,) ``T``
     and ``p_chance``, the answer's chance-match probability, ``nav.chance``).  cat_vmag : optional (N,) V
     magnitudes of the catalog, for the blend test (only doubles of similar brightness are ambiguous).
-    chance : compute ``p_chance`` (False skips it: NaN).
+    chance : compute ``p_chance`` (False skips it: NaN).  engine : "taichi" or "numpy" (bit-identical).
     """
     return vote_identify(obs.vec, obs.valid, cat_unit, pairs.i, pairs.j, pairs.angle, voting, cat_vmag=cat_vmag,
-                         chance=chance)
+                         chance=chance, engine=engine)
 
 
 @dataclass(frozen=True)
