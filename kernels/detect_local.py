@@ -64,7 +64,10 @@ in, and a star's PSF fit does not depend on the other stars (each leaves the bat
    the camera's 2^bits - 1) get weight 0: a saturated star is fitted on its unsaturated rim (stamp grown
    by the plateau's radius); with fewer than 6 rim pixels, or a rim fit that does not converge, its
    centroid is the plateau's centre (mean of the saturated pixels' centres).  Such stars are flagged
-   (``Detections.saturated``).
+   (``Detections.saturated``).  A saturated plateau wider than pi (6 s)^2 pixels (in the (6h + 1)^2 window
+   around the candidate) is not a star but an extended object (the Moon, a planet's disk, the Earth's limb):
+   a star's plateau radius is s sqrt(2 ln(F / (2 pi s^2 full well))), 6 s only at F = 4e8 full wells.  It is
+   counted in ``large_blobs``, not returned.
 7. **No silent caps.**  At most ``max_blobs_per_frame`` stars per frame (the highest fitted flux) are
    returned; the others are counted in ``blobs_dropped`` and a warning is logged, as for ``large_blobs``.
 
@@ -164,7 +167,8 @@ class LocalDetections(Detections):
     """:class:`~dualsight.kernels.detect.Detections` plus what :func:`detect_real` counted per frame.
 
     blobs_dropped : (B,) int64 stars beyond ``max_blobs_per_frame`` (the faintest), not returned.
-    large_blobs : (B,) int64 foreground components over ``max_blob_pixels`` (not stars), not returned.
+    large_blobs : (B,) int64 extended objects, not stars, not returned: foreground components over
+        ``max_blob_pixels`` and saturated plateaus wider than pi (6 s)^2 px (module docstring, 6.).
     hot_pixels : (B,) int64 candidates rejected as hot pixels / cosmic rays.
     n_saturated : (B,) int64 returned stars with saturated pixels.
     noise_adu : (B,) float64 median local pixel noise sigma.
@@ -231,7 +235,7 @@ def _measure(img, R, sig_map, Z, ratio, s, cfg, sat, fit_sigma=False):
             d = np.hypot(pr[top, None] - pr[None, :], pc[top, None] - pc[None, :]).astype(np.float64)
             d[np.arange(top.size), top] = np.inf
             top = top[d.min(1) > 3 * max(2, math.ceil(2.5 * s))]
-        top = top[np.argsort(-z[top], kind="stable")][:25]
+        top = top[np.argsort(-z[top], kind="stable")]     # the 25 brightest after the hot-pixel test below
         pr, pc, npix = pr[top], pc[top], npix[top]
         K = pr.size
         if K == 0:
@@ -261,6 +265,9 @@ def _measure(img, R, sig_map, Z, ratio, s, cfg, sat, fit_sigma=False):
         z_wo = Z[r0, c0] - (peak - m4) * k00 / (noise * ratio)        # Z at the spike without its excess
         keep = ~hot_px | (z_wo > cfg.k_sigma)
         n_hot = int((hot_px & ~keep).sum())
+    if fit_sigma:    # the width only from candidates without a spike: clusters of hot pixels (or a cosmic
+        # ray's track) keep Z above the threshold without their brightest pixel and fit a width of ~0.2 px
+        keep = ~hot_px & (np.cumsum(~hot_px) <= 25)
     pr, pc, r0, c0, npix, noise, hot_px, is_sat = (a[keep] for a in (pr, pc, r0, c0, npix, noise, hot_px, is_sat))
     K = pr.size
     valid = ~satmask
@@ -276,10 +283,22 @@ def _measure(img, R, sig_map, Z, ratio, s, cfg, sat, fit_sigma=False):
     if sat is not None and K:
         st_s, inside, _, _ = _stamps(satmask, None, r0, c0, h)
         sat_any = (st_s & (inside > 0)).reshape(K, -1).any(1)
-    groups = [(~sat_any, h, False)]
     if sat_any.any():
         nsat = np.array([satmask[max(0, a - 3 * h):a + 3 * h + 1, max(0, b - 3 * h):b + 3 * h + 1].sum()
                          for a, b in zip(r0[sat_any], c0[sat_any])])   # one window per saturated star
+        ext = nsat > math.pi * (6.0 * s) ** 2      # extended: no star's plateau is that wide (docstring, 6.)
+        if ext.any():
+            n_large += int(ext.sum())
+            gone = np.flatnonzero(sat_any)[ext]
+            keep2 = np.ones(K, bool)
+            keep2[gone] = False
+            pr, pc, r0, c0, npix, noise, hot_px, is_sat, sat_any = (
+                a[keep2] for a in (pr, pc, r0, c0, npix, noise, hot_px, is_sat, sat_any))
+            nsat = nsat[~ext]
+            K = pr.size
+            x, y, A, cov, ok, sfit = x[keep2], y[keep2], A[keep2], cov[keep2], ok[keep2], sfit[keep2]
+    groups = [(~sat_any, h, False)]
+    if sat_any.any():
         hs = h + int(math.ceil(math.sqrt(max(nsat.max(), 1) / math.pi))) + 1
         groups.append((sat_any, hs, True))
     frac3 = float((_Phi(1.5 / s) - _Phi(-1.5 / s)) ** 2)       # PSF fraction in a centred 3 x 3 box
@@ -394,8 +413,8 @@ def detect_real(images: np.ndarray, cfg: LocalDetectConfig = LocalDetectConfig()
         log.warning("frame %d: %d stars beyond max_blobs_per_frame=%d dropped (the faintest)", b, dropped[b], cap)
     large = np.array([f.large for f in frames], np.int64) if frames else np.zeros(B, np.int64)
     for b in np.flatnonzero(large):
-        log.warning("frame %d: %d foreground regions over max_blob_pixels=%d px not centroided", b, large[b],
-                    cfg.max_blob_pixels)
+        log.warning("frame %d: %d extended objects not centroided (foreground regions over max_blob_pixels=%d px"
+                    " or saturated plateaus wider than a star's)", b, large[b], cfg.max_blob_pixels)
     cat = lambda name, dt: (np.concatenate([getattr(f, name)[o] for f, o in zip(frames, parts)]).astype(dt)
                             if frames else np.zeros(0, dt))
     counts = np.array([o.size for o in parts], np.int64) if frames else np.zeros(B, np.int64)
