@@ -106,6 +106,7 @@ PRESETS["realistic"] = {
     },
     "detect": {"k_sigma": 5.0, "min_pixels": 3},
     "voting": {"tolerance_arcsec": 20.0},        # noisy centroids: as examples/star/noisy_sensor.toml
+    "detector": "local",                         # what `hil star` runs on real frames: SIL predicts HIL
 }
 
 
@@ -177,15 +178,14 @@ def spec_from_dict(d: dict, source: str = "spec") -> StarSpec:
 def auto_detector(sensor: SensorConfig) -> Literal["global", "local"]:
     """The detector that ``detector = "auto"`` (the default) resolves to, stored in the spec.
 
-    "global" (the reference's one threshold per frame, kernels/detect.py) where its assumption holds: a
-    uniform background over the frame and no spikes, i.e. the ideal, paper and noisy presets; "local"
-    (kernels/detect_local.py, what ``hil star`` uses on real frames) when the frame has what one level
-    cannot handle: stray-light gradients (measured on the realistic preset plus 200 e- of stray light
-    rising to ~450 e- at a corner: the global detector finds 12 % of the stars with SNR >= 10, the local one 99 %),
-    bright objects (the Moon's glare lifts one level), hot pixels (single-pixel spikes pass a global
-    threshold as stars) or a non-Gaussian PSF (the global detector's blob centroid assumes none)."""
-    real = (sensor.has_stray_light or bool(sensor.bright_objects) or sensor.hot_pixel_fraction > 0
-            or sensor.psf_model != "gaussian")
+    "global" (the reference's one threshold per frame, kernels/detect.py) where its assumption holds: one
+    background level over the frame (the ideal, paper and noisy presets; its 3-pixel minimum blob size drops
+    hot pixels and pairs of them); "local" (kernels/detect_local.py, what ``hil star`` uses on real frames)
+    when the background varies over the frame: stray-light gradients (measured on the realistic preset plus
+    200 e- of stray light rising to ~430 e- at a corner: the global detector finds 12 % of the stars with
+    SNR >= 10, the local one 99 %) or bright objects (the Moon).  The ``realistic`` preset asks for "local"
+    itself, so that SIL frames go through the detector HIL uses."""
+    real = sensor.has_stray_light or bool(sensor.bright_objects)
     return "local" if real else "global"
 
 

@@ -168,8 +168,7 @@ def psf_file(tmp_path_factory):
 def test_detection_and_identification_rates_with_default_settings(name, psf_file):
     over = VARIANTS[name]
     spec = _spec(over, psf_path=psf_file, moons_for=np.arange(N_CASES) if name == "moon" else None)
-    # the default detector follows the sensor: every variant of the realistic camera is a real-sensor frame
-    assert spec.detector == "local"
+    assert spec.detector == "local"          # the realistic preset's: what `hil star` runs on real frames
     r = _run(spec)
     print(name, {k: v for k, v in r.items() if k not in ("spec", "large")})
     assert r["eligible"] >= 0.9 * N_CASES and r["n_stars"] >= 8 * N_CASES      # ~11 stars of V <= 5.5 per field
@@ -193,6 +192,13 @@ def test_global_threshold_fails_under_stray_light_so_auto_picks_local():
     assert glob["completeness"] < 0.5
     for preset, want in (("paper", "global"), ("noisy", "global"), ("ideal", "global"), ("realistic", "local")):
         assert star.resolve(preset, None)[0].detector == want, preset
+    for sensor, want in (({"stray_light_e": [5.0, 0.0, 0.0]}, "local"), ({"hot_pixel_fraction": 1e-3}, "global"),
+                         ({"bright_objects": [{"ra_deg": 1.0, "dec_deg": 2.0, "vmag": -4.0, "radius_px": 0.0}]},
+                          "local")):
+        d, _ = star.resolve_spec("paper", None)
+        d["sensor"].update(sensor)
+        d["detector"] = "auto"                                  # a spec's dict holds the resolved choice
+        assert star.spec_from_dict(d).detector == want, sensor
     d, _ = star.resolve_spec("realistic", None)
     d["detector"] = "global"                                   # an explicit choice is kept
     assert star.spec_from_dict(d).detector == "global"
