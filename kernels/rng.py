@@ -51,6 +51,7 @@ STREAM_PROX_READ = 0   # proximity renderer's read noise (Box-Muller pairs; kept
 STREAM_TEST = 99
 
 _INV_2_53 = 1.0 / 9007199254740992.0  # 2^-53
+_INV_2_32 = 1.0 / 4294967296.0  # 2^-32
 _TWO_PI_F32 = float(np.float32(2.0 * math.pi))  # 6.2831854820251465
 
 
@@ -327,6 +328,33 @@ def inverse_table(u, cdf: ti.template(), guide: ti.template()):
         k = -g - 1
         while k < K and cdf[k] < u:
             k += 1
+        res = k
+        if k >= K:
+            res = -1
+    return res
+
+
+@ti.func
+def inverse_table_bits(h, nbits: ti.template(), key, index, cdf: ti.template(), guide: ti.template()):
+    """:func:`inverse_table` of u = (h + v) 2^-nbits from ``nbits`` random bits h (an integer < 2^nbits in a u64)
+    and, only when a CDF step falls inside h's cell [h, h + 1) 2^-nbits (probability <= K 2^-nbits, K the table's
+    entries), a further uniform v = :func:`u01_key` (key, index): exactly the distribution of inversion with a
+    53-bit uniform, at a fraction of the hashing cost when one 64-bit hash serves 64 / nbits pixels
+    (kernels/starfield.py).  Needs the guide table's cells M <= 2^nbits (each h cell inside one guide cell)."""
+    K = cdf.shape[0]
+    M = guide.shape[0]
+    w = ti.f64(1.0 / (1 << nbits))
+    ulo = ti.cast(ti.cast(h, ti.i64), ti.f64) * w
+    g = guide[ti.min(ti.cast(ulo * ti.cast(M, ti.f64), ti.i32), M - 1)]
+    res = g
+    if g < 0:
+        k = -g - 1
+        while k < K and cdf[k] < ulo:
+            k += 1
+        if k < K and cdf[k] < ulo + w:    # a step inside h's cell: more bits decide
+            u = ulo + u01_key(key, index) * w
+            while k < K and cdf[k] < u:
+                k += 1
         res = k
         if k >= K:
             res = -1

@@ -52,6 +52,11 @@ def _stray_tables(cfg: SensorConfig, W: int, H: int):
 _erfc = np.frompyfunc(math.erfc, 1, 1)
 
 
+SKY_U_CELLS = 1 << 16
+"""The finalize kernel draws a sky pixel's uniform 16 bits at a time (kernels/starfield.py, rng.inverse_table_bits):
+its guide table may have at most 2^16 cells, so a table has at most 2^16 entries (else no table)."""
+
+
 @functools.lru_cache(maxsize=8)
 def _sky_adu_table_for(base_e: float, shot: bool, read_e: float, full_well: float, gain: float, bias: float,
                        max_adu: float):
@@ -84,9 +89,11 @@ def _sky_adu_table_for(base_e: float, shot: bool, read_e: float, full_well: floa
         cdf = (0.5 * _erfc(zc).astype(np.float64)) @ p         # Phi(x) = erfc(-x / sqrt 2) / 2
         cdf[a >= max_adu] = 1.0
         a0 = float(lo)
-    # a direct guide table (Chen & Asau 1974) of >= 16 cells per entry: ~94 % of the cells hold no CDF step
-    # and give the ADU in one load (rng.inverse_table)
-    return np.ascontiguousarray(cdf), rng.inverse_table_np(cdf), a0
+    # a direct guide table (Chen & Asau 1974) of 16 cells per entry: ~94 % of the cells hold no CDF step and give
+    # the ADU in one load (rng.inverse_table_bits); at most 2^16 cells, as the kernel draws 16-bit uniforms
+    if cdf.size > SKY_U_CELLS:
+        return None
+    return np.ascontiguousarray(cdf), rng.inverse_table_np(cdf, min(16, SKY_U_CELLS // cdf.size)), a0
 
 
 def sky_adu_table(cfg: SensorConfig):

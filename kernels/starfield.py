@@ -24,7 +24,10 @@ Random numbers come from :mod:`dualsight.kernels.rng` (a counter-based hash of (
 pixel index)), never from ``ti.random``: a case renders bit-identically whatever batch, position or
 thread computes it.  Sky pixels (no star light, not hot, no stray light: most of a star field) with
 quantised ADU draw their final value in one uniform, by inversion of the tabulated exact CDF of shot noise +
-read noise + ADC (:func:`sky_adu_table`, through a direct guide table: no transcendental call per pixel).
+read noise + ADC (:func:`sky_adu_table`, through a direct guide table: no transcendental call per pixel); one
+64-bit hash serves 4 neighbouring pixels, 16 bits each, and a pixel whose 2^-16 cell holds a CDF step draws
+53 more bits (``rng.inverse_table_bits``: the same distribution as a 53-bit uniform; 7-10 % of the noisy
+preset's time per case, measured with benchmarks/bench_noise_path.py).
 Other pixels: shot noise is exact Poisson, by inversion of a tabulated CDF for pixels at the sky level,
 otherwise sequential inversion below 10 e- and PTRS rejection (Hörmann 1993) above; read noise is N(0, 1) by
 inversion (Wichura's AS241).  Without shot noise, dark current and sky background are their means only.
@@ -150,6 +153,7 @@ def _build_finalize(dtype):
             k_shot1 = rng.stream_key(seed, rng.STREAM_SHOT, 1)
             k_frac = rng.stream_key(seed, rng.STREAM_SHOT, _FRAC_DRAW)
             k_sky = rng.stream_key(seed, rng.STREAM_SKY_ADU, 0)
+            k_sky2 = rng.stream_key(seed, rng.STREAM_SKY_ADU, 1)
             k_geo = rng.stream_key(hseed, rng.STREAM_HOT, 1)
             ntab = toff.shape[0] - 1
             row0 = ti.cast(r, ti.u64) * ti.cast(W, ti.u64)
@@ -177,6 +181,8 @@ def _build_finalize(dtype):
                 rkey = ti.cast(r, ti.u64) << ti.u64(32)
                 n_hot = 0
                 next_hot = W
+                h_pair = ti.u64(0)            # the sky's 64-bit word of pixels 2m and 2m + 1 (frame index)
+                m_pair = ti.u64(0xFFFFFFFFFFFFFFFF)
                 if hot_log1m < ti.f64(0.0):
                     next_hot = _next_hot(-1, W, hot_log1m, rng.u01_key(k_geo, rkey))
                 for c in range(W):
@@ -197,7 +203,15 @@ def _build_finalize(dtype):
                     if use_adu != 0 and s == ti.f32(0.0) and hot == 0:
                         # a sky pixel (no star light, not hot; use_adu implies no stray light): its ADU value
                         # by inversion of the tabulated CDF of shot + read noise + ADC (sky_adu_table)
-                        j = rng.inverse_table(rng.u01_key(k_sky, idx), acdf, aguide)
+                        # one 64-bit hash per 4 pixels (frame index 4m .. 4m + 3), 16 bits each, high bits first
+                        # (rng.inverse_table_bits draws more bits in the rare cells a CDF step crosses)
+                        m = idx >> ti.u64(2)
+                        if m != m_pair:
+                            m_pair = m
+                            h_pair = rng.hash_key(k_sky, m)
+                        sh = ti.u64(48) - ti.u64(16) * (idx & ti.u64(3))
+                        h16 = (h_pair >> sh) & ti.u64(0xFFFF)
+                        j = rng.inverse_table_bits(h16, 16, k_sky2, idx, acdf, aguide)
                     if j >= 0:
                         out[p0 + c] = ti.cast(adu0 + ti.cast(j, ti.f64), tdt)
                         continue

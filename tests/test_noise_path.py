@@ -234,3 +234,35 @@ def test_inverse_table_is_exact_inversion():
         want = np.searchsorted(cdf, u, side="left")
         want[want >= cdf.size] = -1
         np.testing.assert_array_equal(out, want)
+
+
+def test_sixteen_bit_draws_invert_like_the_composite_uniform():
+    """``rng.inverse_table_bits`` with 16 bits h and the refinement v = u01_key(key, index): the index of the
+    smallest cdf >= u for u = (h + v) / 2^16 (numpy.searchsorted), for every h of CDFs whose steps fall inside
+    16-bit cells (steps 1e-20 and 1e-12 apart, a 2^-16 cell holding several steps), and its tail (-1)."""
+    ti = __import__("dualsight.kernels._runtime", fromlist=["ensure_init"]).ensure_init()
+
+    @ti.kernel
+    def inv(h: ti.types.ndarray(dtype=ti.u64, ndim=1), key: ti.u64, cdf: ti.types.ndarray(dtype=ti.f64, ndim=1),
+            guide: ti.types.ndarray(dtype=ti.i32, ndim=1), out: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+        for i in range(h.shape[0]):
+            out[i] = krng.inverse_table_bits(h[i], 16, key, ti.cast(i, ti.u64), cdf, guide)
+
+    rs = np.random.default_rng(5)
+    key = np.uint64(0x9E3779B97F4A7C15)
+    for p in (rs.dirichlet(np.full(40, 0.3)), np.array([1e-20, 0.5, 1e-12, 0.3, 0.2 - 1e-12]),
+              np.concatenate([np.full(30, 1e-6), [1.0 - 30e-6]]), rs.dirichlet(np.full(3000, 0.5))):
+        cdf = np.cumsum(p)
+        cdf[-1] = min(cdf[-1], 1.0)
+        if p.size == 40:
+            cdf[-1] = 1.0 - 3e-6              # a table that stops short: its tail gives -1
+        guide = krng.inverse_table_np(cdf, min(16, 65536 // cdf.size))
+        assert guide.size <= 65536
+        h = np.tile(np.arange(65536, dtype=np.uint64), 3)
+        out = np.empty(h.size, np.int32)
+        inv(h, key, cdf, guide, out)
+        v = krng.u01_key_np(key, np.arange(h.size, dtype=np.uint64))
+        u = (h.astype(np.float64) + v) / 65536.0
+        want = np.searchsorted(cdf, u, side="left")
+        want[want >= cdf.size] = -1
+        np.testing.assert_array_equal(out, want)
