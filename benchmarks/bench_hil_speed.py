@@ -190,6 +190,15 @@ def bench_process(repeats: int) -> None:
         ts.append(time.perf_counter() - t0)
     print(f"process: `dualsight hil star ONE.tiff --no-lake` median of {repeats} warm runs "
           f"{statistics.median(ts):.2f} s (min {min(ts):.2f}, max {max(ts):.2f})")
+    tl = []
+    for _ in range(repeats):                     # the same with its rows written: a fresh lake each time
+        with tempfile.TemporaryDirectory(prefix="bench-hil-lake-") as lake:
+            cmd = [c for c in hil_cmd([one]) if c != "--no-lake"] + ["--lake", lake]
+            t0 = time.perf_counter()
+            subprocess.run(cmd, capture_output=True, env=env, check=True)
+            tl.append(time.perf_counter() - t0)
+    print(f"process: `dualsight hil star ONE.tiff --lake NEW` median of {repeats} warm runs "
+          f"{statistics.median(tl):.2f} s (min {min(tl):.2f}, max {max(tl):.2f})")
     r = subprocess.run([PY, "-X", "importtime", "-m", "dualsight", *hil_cmd([one])[3:]], capture_output=True,
                        text=True, env=env)
     rows = []
