@@ -128,8 +128,11 @@ def bench_frame(repeats: int) -> dict:
     T.wrap(dl, "_filter", "filter")
     T.wrap(dl, "_candidates", "labelling")
     T.wrap(dl, "_measure", "centroid fit")
+    from dualsight.kernels import detect as kd
+    T.wrap(hs, "subtract_background", "background")
+    T.wrap(kd, "detect_stars", "labelling")
     results = {}
-    for engine in ("numpy", "taichi"):
+    for detector, engine in (("local", "numpy"), ("local", "taichi"), ("global", "numpy"), ("global", "taichi")):
         per = {}
         for rep in range(repeats + 1):                     # repeat 0 warms up (kernels, caches)
             for k, p in enumerate(paths):
@@ -138,9 +141,13 @@ def bench_frame(repeats: int) -> dict:
                 with T.stage("decode"):
                     px, _ = hs.read_frame(spec.images[k], cam)
                 with T.stage("detector other"):
-                    det = dl.detect_real(px[None], hs.validate(dl.LocalDetectConfig, rt.settings.detect_local,
-                                                                source="spec", section="settings.detect_local"),
-                                         saturation_adu=sat)
+                    if detector == "local":
+                        det = dl.detect_real(px[None], hs.validate(dl.LocalDetectConfig, rt.settings.detect_local,
+                                                                    source="spec", section="settings.detect_local"),
+                                             saturation_adu=sat)
+                    else:     # the HIL's global path: smooth background, one threshold, Taichi labelling
+                        resid, _ = hs.subtract_background(px[None], rt.settings.background_block_px)
+                        det = kd.detect_stars(resid, rt.detect)
                 with T.stage("observations"):
                     obs = observations(det, 1, cam, max_obs=rt.settings.max_obs)
                 with T.stage("voting"):
@@ -156,15 +163,16 @@ def bench_frame(repeats: int) -> dict:
                         per.setdefault(s, []).append(v)
                     per.setdefault("n_det", []).append(int(det.counts[0]))
                     per.setdefault("solved", []).append(bool(sol.ok[0]))
-        results[engine] = per
+        results[(detector, engine)] = per
     order = ["decode", "background", "filter", "labelling", "centroid fit", "detector other", "observations",
              "voting", "attitude"]
     print(f"frame: CPU ms per frame, one core, median over {len(paths)} frames x {repeats} repeats "
-          f"(ESA 1024 x 768, ~{int(np.median(results['numpy']['n_det']))} detections)")
-    for engine, per in results.items():
+          f"(ESA 1024 x 768; median detections: local {int(np.median(results[('local', 'numpy')]['n_det']))}, "
+          f"global {int(np.median(results[('global', 'numpy')]['n_det']))})")
+    for (detector, engine), per in results.items():
         med = {s: 1e3 * statistics.median(per[s]) for s in order if s in per}
         total = sum(v for s, v in med.items() if s != "decode")
-        print(f"  voting engine {engine}: " + ", ".join(f"{s} {v:.2f}" for s, v in med.items())
+        print(f"  detector {detector}, voting engine {engine}: " + ", ".join(f"{s} {v:.2f}" for s, v in med.items())
               + f" | end to end without decode {total:.2f} ms, with {total + med['decode']:.2f} ms"
               f" (wall with decode {1e3 * statistics.median(per['wall']):.2f} ms);"
               f" solved {sum(per['solved'])}/{len(per['solved'])}")
