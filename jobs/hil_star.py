@@ -359,7 +359,11 @@ def _fill(res: ImageResult, b: int, det, obs, ident, sol, alt, truth: StarTruth,
     if alt is not None:
         ident_a, sol_a = alt
         ok_a = bool(sol_a.ok[b]) and int(ident_a.T[b]) > 0 and int(ident_a.accepted[b].sum()) >= MIN_IDENTIFIED_STARS
-        r.update(alt_identified=ok_a, alt_T=int(ident_a.T[b]), alt_stars_identified=int(ident_a.accepted[b].sum()))
+        r.update(alt_identified=ok_a, alt_T=int(ident_a.T[b]), alt_stars_identified=int(ident_a.accepted[b].sum()),
+                 alt_status=hil_score.score_star_frame(
+                     sol_a.A_est[b] if ok_a else None, int(ident_a.T[b]), A_true, truth_source=truth.source,
+                     limit_arcsec=rt.settings.limit_arcsec, radec_true_deg=radec,
+                     altaz_A=truth.matrix("altaz_A"))["status"])
         if ok_a:
             ra_ = sol_a.residual[b][ident_a.accepted[b] & (ident_a.ids[b] >= 0)]
             r["alt_residual_median_rad"] = float(np.median(ra_)) if ra_.size else None
@@ -392,7 +396,7 @@ IMAGES_SCHEMA = pa.schema([
     ("truth_stars", pa.int32()), ("truth_stars_found", pa.int32()), ("truth_ids_agree", pa.int32()),
     ("truth_ids_disagree", pa.int32()),
     ("altaz_ra_rad", pa.float64()), ("altaz_dec_rad", pa.float64()), ("altaz_error_rad", pa.float64()),
-    ("alt_method", pa.string()), ("alt_identified", pa.bool_()), ("alt_T", pa.int32()),
+    ("alt_method", pa.string()), ("alt_status", pa.string()), ("alt_identified", pa.bool_()), ("alt_T", pa.int32()),
     ("alt_stars_identified", pa.int32()), ("alt_boresight_error_rad", pa.float64()),
     ("alt_residual_median_rad", pa.float64()),
     ("camera_fx_px", pa.float64()), ("camera_width", pa.int32()), ("camera_height", pa.int32()),

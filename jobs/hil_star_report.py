@@ -74,7 +74,8 @@ def to_json(r: dict, stars: list[dict], overlay: str | None = None) -> dict:
         "overlay": overlay,
     }
     if r.get("alt_method"):
-        out["alt"] = {"method": r["alt_method"], "identified": r.get("alt_identified"), "T": r.get("alt_T"),
+        out["alt"] = {"method": r["alt_method"], "status": r.get("alt_status"), "identified": r.get("alt_identified"),
+                      "T": r.get("alt_T"),
                       "stars_identified": r.get("alt_stars_identified"),
                       "boresight_error_arcsec": _as(r.get("alt_boresight_error_rad")),
                       "residual_median_arcsec": _as(r.get("alt_residual_median_rad"))}

@@ -47,7 +47,8 @@ in, and a star's PSF fit does not depend on the other stars (each leaves the bat
    spike is rejected when t > ``hot_pixel_k`` * sigma * sqrt(1 + r_max^2 / 4) (sigma: local noise; the
    standard deviation of t), i.e. spikes above ~8 sigma at s = 0.9 px, ~17 sigma at s = 0.5 px: fainter
    spikes cannot be told from faint sharp stars by one frame.  If the
-   candidate is still above ``k_sigma`` without the spike's excess it is kept (a star under a hot pixel)
+   candidate is still above ``k_sigma`` without the spike's excess (Z's own noise at that pixel, the frame
+   edges included; on an edge the mean is over the in-frame neighbours) it is kept (a star under a hot pixel)
    and the spike gets weight 0 in the fit; otherwise it is dropped and counted (``hot_pixels``).
 5. **Centroid and uncertainty.**  A weighted least-squares fit (Gauss-Newton) of the pixel-integrated
    Gaussian PSF plus a constant, mu_i = A P_i(x, y) + b, to R on a (2h + 1)^2 stamp around p,
@@ -214,8 +215,8 @@ class _Frame:
     hot: int
 
 
-def _measure(img, R, sig_map, Z, ratio, s, cfg, sat, fit_sigma=False):
-    """Hot-pixel test, saturation and PSF fit of the candidates of one frame."""
+def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False):
+    """Hot-pixel test, saturation and PSF fit of the candidates of one frame (``sig_f``: Z's noise map)."""
     H, W = R.shape
     pr, pc, npix, n_large = _candidates(Z, cfg)
     K = pr.size
@@ -249,7 +250,9 @@ def _measure(img, R, sig_map, Z, ratio, s, cfg, sat, fit_sigma=False):
     r0, c0 = pr + off[best, 0], pc + off[best, 1]
     at = lambda dr, dc: R[np.clip(r0 + dr, 0, H - 1), np.clip(c0 + dc, 0, W - 1)].astype(np.float64)
     peak = at(0, 0)
-    m4 = (at(-1, 0) + at(1, 0) + at(0, -1) + at(0, 1)) / 4.0
+    # mean of the in-frame 4-neighbours (at an edge the clipped index would be the spike itself)
+    n4 = ((r0 > 0).astype(np.float64) + (r0 < H - 1) + (c0 > 0) + (c0 < W - 1))
+    m4 = (at(-1, 0) * (r0 > 0) + at(1, 0) * (r0 < H - 1) + at(0, -1) * (c0 > 0) + at(0, 1) * (c0 < W - 1)) / n4
     noise = np.maximum(sig_map[r0, c0].astype(np.float64), cfg.noise_floor_adu)
     satmask = img >= sat if sat is not None else np.zeros((H, W), bool)
     is_sat = satmask[r0, c0]
@@ -262,7 +265,7 @@ def _measure(img, R, sig_map, Z, ratio, s, cfg, sat, fit_sigma=False):
         hot_px = (stat > cfg.hot_pixel_k * noise * math.sqrt(1.0 + rmax * rmax / 4.0)) & ~is_sat
         k0 = psf_kernel_1d(s)
         k00 = float(k0[len(k0) // 2] ** 2)
-        z_wo = Z[r0, c0] - (peak - m4) * k00 / (noise * ratio)        # Z at the spike without its excess
+        z_wo = Z[r0, c0] - (peak - m4) * k00 / sig_f[r0, c0]          # Z at the spike without its excess
         keep = ~hot_px | (z_wo > cfg.k_sigma)
         n_hot = int((hot_px & ~keep).sum())
     if fit_sigma:    # the width only from candidates without a spike: clusters of hot pixels (or a cosmic
@@ -353,17 +356,19 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
     floor = np.float32(max(cfg.noise_floor_adu, 1e-6))
     s = cfg.psf_sigma_px if cfg.psf_sigma_px is not None else cfg.psf_sigma_init_px
     rcache = {}
-    Z, ratio = _filter(R, sig_map.copy(), s, floor, rcache)
+    sig_f = sig_map.copy()           # becomes the filtered image's noise (edges included): Z = F / sig_f
+    Z, ratio = _filter(R, sig_f, s, floor, rcache)
     if cfg.psf_sigma_px is None:     # measure the PSF width on bright, unsaturated, isolated stars
-        m = _measure(img, R, sig_map, Z, ratio, s, cfg, sat, fit_sigma=True)
+        m = _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=True)
         use = np.flatnonzero(m["ok"] & ~m["saturated"] & (m["snr"] > 30))
         use = use[np.argsort(-m["snr"][use])][:25]
         if use.size >= 3:
             s_new = float(np.clip(np.median(m["s"][use]), 0.2, 20.0))
             if abs(s_new - s) > 0.02 * s:
                 s = s_new
-                Z, ratio = _filter(R, sig_map.copy(), s, floor, rcache)
-    m = _measure(img, R, sig_map, Z, ratio, s, cfg, sat)
+                sig_f = sig_map.copy()
+                Z, ratio = _filter(R, sig_f, s, floor, rcache)
+    m = _measure(img, R, sig_map, Z, sig_f, s, cfg, sat)
     med_sig = float(np.median(sig))
     return _Frame(x=m["x"], y=m["y"], flux=m["flux"], npix=m["npix"], sigma_px=m["sigma_px"],
                   saturated=m["saturated"], level=float(np.median(level)),

@@ -279,6 +279,23 @@ def test_hot_pixels_and_cosmic_rays_are_rejected_and_counted_stars_are_kept():
     assert (~det_ok).sum() <= B
 
 
+def test_hot_pixels_on_the_frame_edges_are_rejected():
+    """A spike on the first or last row or column (corners included) has only 2-3 neighbours in the frame: the
+    hot-pixel test averages those (not the spike itself, as clipped indices would) and takes Z's noise at the edge,
+    where the matched filter sums fewer pixels.  Measured before the fix: a 1018 ADU hot pixel on row 767 of a
+    noisy_sensor frame was returned as a star."""
+    rng = np.random.default_rng(8)
+    noise = 10.0
+    img = (100.0 + noise * rng.standard_normal((1, H, W))).astype(np.float32)
+    spots = [(0, 40), (H - 1, 77), (50, 0), (90, W - 1), (0, 0), (H - 1, W - 1), (0, W - 1), (H - 1, 0), (1, 60),
+             (H - 2, 30)]
+    for r, c in spots:
+        img[0, r, c] += 100 * noise
+    det = detect_real(img, LocalDetectConfig(psf_sigma_px=0.9))
+    assert int(det.counts[0]) == 0, np.c_[det.x, det.y]
+    assert int(det.hot_pixels[0]) == len(spots)
+
+
 def test_saturated_stars_are_flagged_and_centred_on_their_rim():
     """Stars up to ~60x the full well: flagged, centroid within 0.006 px rms (fit to the unsaturated rim; 0.002
     measured, 0.022 when the saturated pixels are fitted too); unsaturated stars not flagged."""

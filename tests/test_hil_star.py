@@ -9,6 +9,7 @@ synthetic frame rendered at a known attitude (runs without the real data).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import math
@@ -497,3 +498,36 @@ def test_an_image_changed_after_planning_gives_an_error_row(tmp_path):
     os.utime(frame, ns=(frame.stat().st_atime_ns, frame.stat().st_mtime_ns + 10**9))
     row = hs.compute_shard(spec, np.arange(1), ctx)["hil_star"].to_pylist()[0]
     assert row["status"] == "error" and "changed since the run was planned" in row["error"] and not row["identified"]
+
+
+@needs_esa
+def test_an_answer_from_two_identified_stars_is_not_identified(monkeypatch):
+    """Issue 11.8: the paper method reported "identified" from 2 stars with a 285,338 arcsec error and its JSON had
+    no status.  Two stars fit any catalog pair at their separation, so an answer needs a third star that checks it
+    (``MIN_IDENTIFIED_STARS``).  Here the identification of a real ESA frame (which solves with ~20 stars) is cut
+    to its first two accepted stars, as a 2-star answer from the voting would be: the attitude solver still gets
+    an attitude from them, but the row and the JSON say not identified, with a status, for both methods."""
+    one = ESA / "2019-07-29T204726_Alt60_Azi-45_Try1.tiff"
+    real_identify = hs.identify
+
+    def two_only(*a, **k):
+        ident = real_identify(*a, **k)
+        acc = ident.accepted.copy()
+        keep = np.cumsum(acc, axis=1) <= 2
+        return dataclasses.replace(ident, accepted=acc & keep)
+
+    rc, out, err = run_cli(["hil", "star", str(one), "--camera", str(CAMERA), "--truth", str(TRUTH), "--no-lake",
+                            "--json"])
+    assert rc == 0, err
+    full = json.loads(out)[0]
+    assert full["identified"] and full["stars_identified"] >= 10 and full["status"] == "success"
+    monkeypatch.setattr(hs, "identify", two_only)
+    rc, out, err = run_cli(["hil", "star", str(one), "--camera", str(CAMERA), "--truth", str(TRUTH), "--no-lake",
+                            "--json"])
+    assert rc == 0, err
+    r = json.loads(out)[0]
+    assert r["stars_identified"] == 2 and r["T"] > 0            # the voting's answer, cut to two stars
+    assert r["identified"] is False and r["status"] not in (None, "success")
+    assert r["ra_deg"] is None and r["boresight_error_arcsec"] is None
+    assert r["alt"]["identified"] is False and r["alt"]["stars_identified"] == 2
+    assert r["alt"]["status"] not in (None, "success") and full["alt"]["status"] == "success"
