@@ -335,19 +335,19 @@ def inverse_table(u, cdf: ti.template(), guide: ti.template()):
 
 
 @ti.func
-def inverse_table_bits(h, nbits: ti.template(), key, index, cdf: ti.template(), guide: ti.template()):
+def inverse_table_bits(h, nbits: ti.template(), gshift, key, index, cdf: ti.template(), guide: ti.template()):
     """:func:`inverse_table` of u = (h + v) 2^-nbits from ``nbits`` random bits h (an integer < 2^nbits in a u64)
     and, only when a CDF step falls inside h's cell [h, h + 1) 2^-nbits (probability <= K 2^-nbits, K the table's
     entries), a further uniform v = :func:`u01_key` (key, index): exactly the distribution of inversion with a
     53-bit uniform, at a fraction of the hashing cost when one 64-bit hash serves 64 / nbits pixels
-    (kernels/starfield.py).  Needs the guide table's cells M <= 2^nbits (each h cell inside one guide cell)."""
+    (kernels/starfield.py).  Needs the guide table's cells M = 2^(nbits - gshift) <= 2^nbits (each h cell inside
+    one guide cell, found by a shift)."""
     K = cdf.shape[0]
-    M = guide.shape[0]
     w = ti.f64(1.0 / (1 << nbits))
-    ulo = ti.cast(ti.cast(h, ti.i64), ti.f64) * w
-    g = guide[ti.min(ti.cast(ulo * ti.cast(M, ti.f64), ti.i32), M - 1)]
+    g = guide[ti.cast(h >> ti.cast(gshift, ti.u64), ti.i32)]    # cell floor(h / 2^gshift) = floor(u M), exact
     res = g
     if g < 0:
+        ulo = ti.cast(ti.cast(h, ti.i64), ti.f64) * w
         k = -g - 1
         while k < K and cdf[k] < ulo:
             k += 1

@@ -154,6 +154,9 @@ def _build_finalize(dtype):
             k_frac = rng.stream_key(seed, rng.STREAM_SHOT, _FRAC_DRAW)
             k_sky = rng.stream_key(seed, rng.STREAM_SKY_ADU, 0)
             k_sky2 = rng.stream_key(seed, rng.STREAM_SKY_ADU, 1)
+            gshift = 16                       # the guide table has 2^(16 - gshift) cells (a power of two)
+            while (1 << (16 - gshift)) < aguide.shape[0]:
+                gshift -= 1
             k_geo = rng.stream_key(hseed, rng.STREAM_HOT, 1)
             ntab = toff.shape[0] - 1
             row0 = ti.cast(r, ti.u64) * ti.cast(W, ti.u64)
@@ -211,7 +214,7 @@ def _build_finalize(dtype):
                             h_pair = rng.hash_key(k_sky, m)
                         sh = ti.u64(48) - ti.u64(16) * (idx & ti.u64(3))
                         h16 = (h_pair >> sh) & ti.u64(0xFFFF)
-                        j = rng.inverse_table_bits(h16, 16, k_sky2, idx, acdf, aguide)
+                        j = rng.inverse_table_bits(h16, 16, gshift, k_sky2, idx, acdf, aguide)
                     if j >= 0:
                         out[p0 + c] = ti.cast(adu0 + ti.cast(j, ti.f64), tdt)
                         continue

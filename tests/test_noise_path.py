@@ -246,7 +246,10 @@ def test_sixteen_bit_draws_invert_like_the_composite_uniform():
     def inv(h: ti.types.ndarray(dtype=ti.u64, ndim=1), key: ti.u64, cdf: ti.types.ndarray(dtype=ti.f64, ndim=1),
             guide: ti.types.ndarray(dtype=ti.i32, ndim=1), out: ti.types.ndarray(dtype=ti.i32, ndim=1)):
         for i in range(h.shape[0]):
-            out[i] = krng.inverse_table_bits(h[i], 16, key, ti.cast(i, ti.u64), cdf, guide)
+            gshift = 16
+            while (1 << (16 - gshift)) < guide.shape[0]:
+                gshift -= 1
+            out[i] = krng.inverse_table_bits(h[i], 16, gshift, key, ti.cast(i, ti.u64), cdf, guide)
 
     rs = np.random.default_rng(5)
     key = np.uint64(0x9E3779B97F4A7C15)
