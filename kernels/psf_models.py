@@ -90,6 +90,16 @@ _psf_cache: dict = {}
 _psf_lock = threading.Lock()
 
 
+def psf_image_sha256(a: np.ndarray) -> str:
+    """SHA-256 (hex) of a loaded PSF (:func:`load_psf_image`: unit-sum float64): its shape and little-endian values.
+    Stored in the sensor spec, so a run's identity covers the PSF's content, not only its file name."""
+    import hashlib
+
+    h = hashlib.sha256(f"{a.shape[0]}x{a.shape[1]}:".encode())
+    h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
+    return h.hexdigest()
+
+
 def load_psf_image(path: str, key: str = "SensorConfig.psf_image") -> np.ndarray:
     """The measured PSF of ``path`` as a read-only (ny, nx) float64 array of unit sum (cached per process).
 

@@ -100,6 +100,9 @@ class SensorConfig:
     psf_image : path of the measured PSF (psf_model "image", and only then): a ``.npy`` array or a PNG,
         TIFF or FITS image, 2-D, odd sides <= 64 px, finite, >= 0, sampled on the sensor's pixels (1 to
         4096 characters; relative to the working directory).  Read and checked when the config is built.
+    psf_image_sha256 : SHA-256 of the PSF's content (``psf_models.psf_image_sha256``), filled in when the config
+        is built and kept in the spec, so a run's identity covers the file's content: a spec that states it
+        (a stored run being resumed or replayed) fails in one line if the file has changed since.
     rate_deg_s : body rate [wx, wy, wz] of the camera frame during the exposure (deg/s), each in [-100, 100];
         stars smear along their path (straight segments, see :mod:`dualsight.kernels.psf_models`).  Needs
         the camera model at render time.  [0, 0, 0] = off.
@@ -139,6 +142,7 @@ class SensorConfig:
     defocus_radius_px: Annotated[float, Field(ge=0.1, le=50.0)] = 1.5
     defocus_gaussian: bool = False
     psf_image: Annotated[str, Field(min_length=1, max_length=4096)] | None = None
+    psf_image_sha256: Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")] | None = None
     rate_deg_s: Annotated[tuple[_Rate, _Rate, _Rate], Field(min_length=3, max_length=3)] = (0.0, 0.0, 0.0)
     stray_light_e: Annotated[tuple[_Charge, _Gradient, _Gradient], Field(min_length=3, max_length=3)] = (0.0, 0.0, 0.0)
     bright_objects: Annotated[tuple[BrightObject, ...], Field(max_length=MAX_BRIGHT_OBJECTS)] = ()
@@ -155,8 +159,16 @@ class SensorConfig:
         if (self.psf_model == "image") != (self.psf_image is not None):
             raise ValueError("SensorConfig.psf_image must be given with psf_model = \"image\" and only then "
                              f"(psf_model {self.psf_model!r}, psf_image {self.psf_image!r})")
-        if self.psf_image is not None:
-            psf_models.load_psf_image(self.psf_image)  # read and checked now (cached: once per process)
+        if self.psf_image is not None:            # read and checked now (cached: once per process)
+            got = psf_models.psf_image_sha256(psf_models.load_psf_image(self.psf_image))
+            if self.psf_image_sha256 is None:     # the content is part of the spec (and of a run's hash)
+                object.__setattr__(self, "psf_image_sha256", got)
+            elif self.psf_image_sha256 != got:
+                raise ValueError(f"SensorConfig.psf_image_sha256: the PSF file {self.psf_image!r} is not the one "
+                                 f"this spec was made with (content sha256 {got[:12]}..., the spec says "
+                                 f"{self.psf_image_sha256[:12]}...); restore the file or start a new run")
+        elif self.psf_image_sha256 is not None:
+            raise ValueError("SensorConfig.psf_image_sha256 is only allowed with psf_image")
 
     def __hash__(self):  # bright_objects holds dicts (plain JSON in to_dict)
         return hash(tuple((k, tuple(tuple(sorted(o.items())) for o in v) if k == "bright_objects" else v)

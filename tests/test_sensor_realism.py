@@ -490,3 +490,35 @@ def test_a_star_job_smears_its_stars_by_its_rate():
     assert len(grew) >= 2
     for gx, gy in grew:      # quantisation of the faint smeared pixels and the field angle: 10 %
         assert gx == pytest.approx(L ** 2 / 12, rel=0.1) and abs(gy) < 0.05 * L ** 2 / 12, (gx, gy, L)
+
+
+def test_a_runs_identity_covers_the_psf_images_content(tmp_path):
+    """The spec stores the measured PSF's content hash (``psf_image_sha256``), not only its path: the same path with
+    other content is another run (another spec hash), and a stored spec (a run being resumed or replayed) whose
+    file has changed since fails in one line naming the file, before the lake is touched."""
+    from dualsight.errors import ConfigError as CfgErr
+    from dualsight.errors import InputError
+    from dualsight.jobs import star
+    from dualsight.jobs.runner import run_job, spec_hash
+    from dualsight.warehouse.lake import Lake
+
+    path = tmp_path / "psf.npy"
+    np.save(path, _measured_psf())
+    d, _ = star.resolve_spec("ideal", None, cases=4)
+    d["sensor"].update(psf_model="image", psf_image=str(path))
+    d["batch_size"] = 4
+    first = star.spec_from_dict(d).to_dict()
+    assert len(first["sensor"]["psf_image_sha256"]) == 64
+    lake = Lake(tmp_path / "lake")
+    run_job("star", first, n_cases=4, lake=lake, run_id="psf", progress=False)
+    files = lambda: sorted((p.name, p.stat().st_size) for p in (tmp_path / "lake").rglob("*") if p.is_file())
+    before = files()
+    np.save(path, _measured_psf()[::-1].copy())                 # the same file name, another PSF
+    second = star.spec_from_dict(d).to_dict()                    # the TOML again: a new content hash
+    assert second["sensor"]["psf_image_sha256"] != first["sensor"]["psf_image_sha256"]
+    assert spec_hash("star", second, 4) != spec_hash("star", first, 4)
+    with pytest.raises(CfgErr, match="psf_image_sha256.*psf.npy.*not the one"):
+        run_job("star", first, n_cases=8, lake=lake, run_id="psf", progress=False)    # resume the stored spec
+    with pytest.raises(InputError, match=r"other settings \(spec keys sensor\)"):
+        run_job("star", second, n_cases=4, lake=lake, run_id="psf", progress=False)   # not mixed into that run
+    assert files() == before                                     # the lake untouched by either refusal
