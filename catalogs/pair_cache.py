@@ -1,6 +1,8 @@
 """The pair catalog's cache (:mod:`dualsight.catalogs.pairs` builds it): memory-mapped ``.npy`` columns and a
 JSON manifest per (star catalog, maximum angle), keyed by their content; damaged or partial files are detected
-(sizes, a sampled digest) and rebuilt under a lock, written to temporary names and renamed."""
+(sizes, a sampled digest) and rebuilt under a lock, written to temporary names and renamed.  The voting's derived
+arrays of an entry live beside it (``<stem>.vstars.npy``, ``<stem>.vprev.npy``: :mod:`dualsight.catalogs.pair_voting_cache`),
+checked against the pairs whenever they are mapped."""
 
 from __future__ import annotations
 

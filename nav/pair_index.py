@@ -88,23 +88,33 @@ class VotingIndex:
         ``[2 lo: 2 hi]``, and 0 is the vote tables' column of ignored stars.
     prev : (2M,) for each of those entries, the previous pair holding the same star (-1 = none);
         built on first use (by ``VotingConfig.vote_once_per_pair``; ~0.2 s for 2M pairs).
+    For a cached, memory-mapped catalog both come from files beside it, built once with bounded memory
+    (:mod:`dualsight.catalogs.pair_voting_cache`) and mapped read-only by every process.
     tile_dtype : integer type of both (int32 unless the catalog has ~500M pairs).
 
     The pair arrays must not be modified while the index is in use.
     """
 
     def __init__(self, pair_i, pair_j=None, pair_angle=None):
+        raw_i = pair_i.i if pair_j is None and pair_angle is None else pair_i
         i, j, ang = pair_arrays(pair_i, pair_j, pair_angle)
         self.i, self.j, self.angle = i, j, ang
         self.star_range = (int(min(i.min(), j.min())), int(max(i.max(), j.max()))) if i.size else (0, -1)
         M2 = 2 * ang.size
         self.tile_dtype = np.int32 if M2 + PAD < np.iinfo(np.int32).max // 2 else np.int64
+        self._prev_padded = None
+        # a cached (memory-mapped) catalog: both derived arrays from files beside it (catalogs/pair_voting_cache.py)
+        from dualsight.catalogs.pair_voting_cache import load_or_build
+
+        mapped = load_or_build(raw_i, i, j, self.tile_dtype, PAD)
+        if mapped is not None:
+            self.stars_plus_one, self._prev_padded = mapped
+            return
         s = np.zeros(M2 + PAD, self.tile_dtype)
         s[0:M2:2] = i
         s[1:M2:2] = j
         s[:M2] += 1
         self.stars_plus_one = s
-        self._prev_padded = None
 
     def __len__(self) -> int:
         return int(self.angle.size)
