@@ -130,10 +130,19 @@ class StarSpec:
     def to_dict(self) -> dict:
         return {"seed": self.seed, "batch_size": self.batch_size, "attitudes": self.attitudes,
                 "error_frame": self.error_frame, "detector": self.detector, "camera": self.camera.to_dict(),
-                "catalog": dataclass_to_table(self.catalog), "sensor": dataclass_to_table(self.sensor),
+                "catalog": dataclass_to_table(self.catalog), "sensor": _sensor_table(self.sensor),
                 "detect": dataclass_to_table(self.detect), "voting": dataclass_to_table(self.voting),
                 "compare_robust": self.robust is not None,
                 "robust": dataclass_to_table(self.robust) if self.robust is not None else {}}
+
+
+def _sensor_table(sensor: SensorConfig) -> dict:
+    """The sensor's spec table; ``psf_image_sha256`` only with a PSF image, so the canonical spec of every other
+    sensor (and the nightly's comparison of specs) is what it was before that key existed."""
+    t = dataclass_to_table(sensor)
+    if t.get("psf_image_sha256") is None:
+        t.pop("psf_image_sha256", None)
+    return t
 
 
 class StarTable(BaseModel):
