@@ -14,11 +14,15 @@ Spec (TOML; every table optional, defaults = preset ``paper``)::
     batch_size = 64               # frames per kernel batch
     attitudes = "euler123"        # reference: 3 angles uniform in [-180, 180) deg, 1-2-3; or "uniform" (SO(3))
     error_frame = "camera"        # axes of Eqs. 4-7: "camera" (x, y across the boresight, z roll) or "inertial"
+    detector = "auto"             # "global" (the reference's one threshold), "local" (kernels/detect_local.py,
+                                  # as hil star), "auto": local when the sensor has stray light or bright objects
+    compare_robust = true         # dualsight's robust identification beside the reference's on every case
     [camera]   ... (scene/camera.py)
     [catalog]  mag_limit = 5.5, epoch_jyear = 2000.0
     [sensor]   ... (kernels/starfield.py SensorConfig)
     [detect]   ... (kernels/detect.py DetectConfig)
     [voting]   ... (nav/starid.py VotingConfig; angles as *_arcsec)
+    [robust]   ... (the same keys, for the robust method)
 """
 
 from __future__ import annotations
