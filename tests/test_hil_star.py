@@ -341,6 +341,12 @@ def test_subtract_background_removes_a_gradient_and_keeps_stars():
     assert 120 < level[0] < 160
     r0, _ = subtract_background(f, 0)
     assert np.array_equal(r0, f)
+    # integer frames are partitioned in their own type: the same medians (exact) and residuals as float32
+    for blk in (16, 15):                                  # even and odd block areas
+        fu = np.round(f).astype(np.uint16)
+        ru, lu = subtract_background(fu, blk)
+        rf, lf = subtract_background(fu.astype(np.float32), blk)
+        assert ru.dtype == np.float32 and np.array_equal(ru, rf) and np.array_equal(lu, lf)
 
 
 def test_roll_convention():
