@@ -62,7 +62,9 @@ def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, al
                   "id_correct_robust": truth.id_correct(ident_r),
                   "err_x_robust_rad": sol_r.axis_err[:, 0], "err_y_robust_rad": sol_r.axis_err[:, 1],
                   "err_z_robust_rad": sol_r.axis_err[:, 2], "err_total_robust_rad": sol_r.total_err,
-                  "status_robust": names[sol_r.status], "p_chance": ident_r.p_chance}
+                  "status_robust": names[sol_r.status],
+                  # null (not NaN) without an answer, so that SQL aggregates over the column skip those cases
+                  "p_chance": pa.array(ident_r.p_chance, pa.float64(), mask=~np.isfinite(ident_r.p_chance))}
     else:
         robust = {k: [None] * B for k in ("T_robust", "n_identified_robust", "id_correct_robust", "err_x_robust_rad",
                                           "err_y_robust_rad", "err_z_robust_rad", "err_total_robust_rad",
@@ -87,7 +89,8 @@ def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, al
         "t_identify_ns": t["identify"], "t_attitude_ns": t["attitude"],
         "t_robust_ns": t["robust"] if t.get("robust") is not None else [None] * B, "t_total_ns": total,
     }
-    return pa.table({k: pa.array(v, type=CASES_SCHEMA.field(k).type) if k not in ("A_true", "A_est") else v
+    return pa.table({k: pa.array(v, type=CASES_SCHEMA.field(k).type)
+                     if k not in ("A_true", "A_est") and not isinstance(v, pa.Array) else v
                      for k, v in cols.items()}, schema=CASES_SCHEMA)
 
 

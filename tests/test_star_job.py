@@ -53,6 +53,19 @@ def test_detections_consistent_with_cases(small_run):
     assert rows == []
 
 
+def test_p_chance_is_null_without_an_answer(small_run):
+    """p_chance is stated for every robust answer (T_robust > 0) and null otherwise (not NaN: an aggregate over the
+    column would be NaN), so SQL aggregates over it are finite."""
+    _, rows = run_sql(small_run, """
+        SELECT count(*) FILTER (WHERE T_robust > 0 AND p_chance IS NULL),
+               count(*) FILTER (WHERE T_robust = 0 AND p_chance IS NOT NULL),
+               count(*) FILTER (WHERE isnan(p_chance)), count(*) FILTER (WHERE T_robust = 0), max(p_chance)
+        FROM star_cases WHERE run = 'small'""")
+    bad_null, bad_value, nans, unanswered, top = rows[0]
+    assert (bad_null, bad_value, nans) == (0, 0, 0) and unanswered >= 1
+    assert top is not None and 0.0 <= top < 1e-3
+
+
 def _raw_cases(lake: Path, run: str) -> dict:
     """Every star_cases column of a run read straight from its Parquet files (pyarrow, no SQL)."""
     import pyarrow as pa
