@@ -10,6 +10,7 @@ a half-written file and two processes building the same entry at once both end w
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -47,6 +48,23 @@ def short_hash(payload: dict | str | bytes, n: int = 16) -> str:
     if isinstance(payload, str):
         payload = payload.encode()
     return hashlib.sha256(payload).hexdigest()[:n]
+
+
+@contextlib.contextmanager
+def atomic_file(path: str | os.PathLike, mode: str = "wb"):
+    """Open a temporary file ``.<name>.*.tmp`` beside ``path`` for writing; on a clean exit flush, fsync and rename
+    it to ``path`` (a reader sees the old file or the new one, never half), else remove it and re-raise."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def write_parquet_atomic(table: pa.Table, path: str | os.PathLike) -> Path:

@@ -12,12 +12,11 @@ import json
 import os
 import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from dualsight.catalogs.cache import resolve_cache_dir, short_hash
+from dualsight.catalogs.cache import atomic_file, resolve_cache_dir, short_hash
 from dualsight.catalogs import pairs as _pairs
 from dualsight.catalogs.pairs import (_COLUMNS, DEFAULT_MAX_BYTES, FORMAT_VERSION, PairCatalog, _check_max_angle,
                                       _column_path)
@@ -155,14 +154,6 @@ def load_pair_catalog(star_catalog, max_angle_rad: float, cache_dir: str | Path 
                 arrays = {"i": cat.i, "j": cat.j, "angle": cat.angle}
                 doc = {**meta, "pairs": len(cat), "digest": _sample_digest(arrays),
                        "files": {name: _column_path(stem, name).name for name, _ in _COLUMNS}}
-                fd, tmp = tempfile.mkstemp(prefix=f".{man.name}.", suffix=".tmp", dir=man.parent)
-                try:
-                    with os.fdopen(fd, "w") as f:
-                        json.dump(doc, f, sort_keys=True, indent=1)
-                        f.flush()
-                        os.fsync(f.fileno())
-                    os.replace(tmp, man)
-                except BaseException:
-                    Path(tmp).unlink(missing_ok=True)
-                    raise
+                with atomic_file(man, "w") as f:
+                    json.dump(doc, f, sort_keys=True, indent=1)
     return PairCatalog(i=arrays["i"], j=arrays["j"], angle=arrays["angle"], limit_rad=theta)

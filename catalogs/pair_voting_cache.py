@@ -21,11 +21,11 @@ the final name; a file whose shape, dtype or sampled stars disagree with the pai
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from dualsight.catalogs.cache import atomic_file
 
 __all__ = ["CHUNK_PAIRS", "derived_paths", "load_or_build", "write_stars_plus_one", "write_prev"]
 
@@ -45,21 +45,13 @@ def derived_paths(i_array) -> tuple[Path, Path] | None:
 
 def _atomic_npy(path: Path, dtype: np.dtype, n: int, fill) -> None:
     """Write ``n`` values of ``dtype`` to ``path`` through ``fill(f)`` (which writes the raw values), atomically."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.lib.format.write_array_header_1_0(f, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
-                                                     "fortran_order": False, "shape": (int(n),)})
-            start = f.tell()
-            fill(f)
-            if f.tell() - start != n * np.dtype(dtype).itemsize:
-                raise OSError(f"{path}: wrote {(f.tell() - start) // np.dtype(dtype).itemsize} values, expected {n}")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_file(path) as f:
+        np.lib.format.write_array_header_1_0(f, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
+                                                 "fortran_order": False, "shape": (int(n),)})
+        start = f.tell()
+        fill(f)
+        if f.tell() - start != n * np.dtype(dtype).itemsize:
+            raise OSError(f"{path}: wrote {(f.tell() - start) // np.dtype(dtype).itemsize} values, expected {n}")
 
 
 def write_stars_plus_one(path: Path, i: np.ndarray, j: np.ndarray, dtype, pad: int,
