@@ -1,17 +1,24 @@
-"""Does Taichi's CPU backend use more than one core in one process on this machine?
+"""Does Taichi's CPU backend use more than one core in one process on this machine, and for which loops?
 
     .venv/bin/python benchmarks/bench_taichi_threads.py [--threads 1 2 4] [--work 2000000]
 
-For each ``cpu_max_num_threads`` (one child process each: Taichi starts once per process) it runs one kernel,
-a range-for of 256 independent iterations of pure arithmetic (no memory traffic), and reads every thread's
-CPU time from ``/proc/self/task/*/stat`` before and after: the number of threads that did the work, the wall
-time and the process CPU time.  A second check runs two Python threads of numpy sorts in the same process, to
-tell a machine limit (cgroup, affinity) from Taichi's own scheduling.
+For each ``cpu_max_num_threads`` (one child process each: Taichi starts once per process) it runs two
+kernels doing the same 256 independent work items of pure arithmetic (no memory traffic), and reads every
+thread's CPU time from ``/proc/self/task/*/stat`` around each: the number of threads that did the work, the
+wall time and the process CPU time.
 
-Measured on this project's 2-core VM (taichi 1.7.4, Linux): every setting ran the kernel on ONE thread
-(CPU time = wall time, one worker thread busy), while the two numpy threads used both cores (CPU ~2x wall).
-So in-process Taichi kernels give no parallel speed-up here; dualsight's parallelism is its worker
-processes (``--workers``: 2 workers = 2.0x one on the paper preset, 2.4x on the noise path).
+* ``plain``: ``for i in range(256)``.
+* ``spread``: ``for t in range(256 * TASK_ITEMS)``, working where ``t % TASK_ITEMS == 0`` (the form
+  :data:`dualsight.kernels._runtime.TASK_ITEMS` documents; the vote kernel's per-thread slots use it).
+
+A last check runs two Python threads of numpy sorts in one process, to tell a machine limit (cgroup,
+affinity) from Taichi's own scheduling.
+
+Measured on this project's 2-core VM (taichi 1.7.4, Linux, 2026-11-24): ``plain`` runs on ONE thread at
+every setting (Taichi hands a range-for out in tasks of >= 512 iterations, so 256 iterations are one
+task; ``loop_config(block_dim=...)`` and ``cpu_block_dim_adaptive=False`` do not change it), while
+``spread`` with 2 threads runs on two threads at half the wall time (cpu/wall ~2).  Loops over >= 1024
+iterations (pixels, large batches) are split without help.
 """
 
 from __future__ import annotations
@@ -24,21 +31,33 @@ import subprocess
 import sys
 import tempfile
 
+from dualsight.kernels._runtime import TASK_ITEMS
+
 CHILD = r"""
 import json, os, sys, time
 os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
 import taichi as ti
-n_threads, work = int(sys.argv[1]), int(sys.argv[2])
+n_threads, work, S = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 ti.init(arch=ti.cpu, cpu_max_num_threads=n_threads, offline_cache=False, log_level=ti.WARN)
 x = ti.field(ti.f64, shape=256)
 
+@ti.func
+def item(i, w):
+    acc = ti.cast(0.0, ti.f64)
+    for j in range(w):
+        acc = acc * 0.999999 + ti.cast((j ^ i) & 7, ti.f64)
+    x[i] = acc
+
 @ti.kernel
-def k(w: ti.i32):
+def plain(w: ti.i32):
     for i in range(256):
-        acc = 0.0
-        for j in range(w):
-            acc = acc * 0.999999 + ti.cast((j ^ i) & 7, ti.f64)
-        x[i] = acc
+        item(i, w)
+
+@ti.kernel
+def spread(w: ti.i32):
+    for t in range(256 * S):
+        if t % S == 0:
+            item(t // S, w)
 
 def per_thread():
     out = {}
@@ -47,12 +66,17 @@ def per_thread():
         out[t] = (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
     return out
 
-k(16)
-a, t0, c0 = per_thread(), time.perf_counter(), time.process_time()
-k(work)
-wall, cpu, b = time.perf_counter() - t0, time.process_time() - c0, per_thread()
-busy = sorted((round(b[t] - a.get(t, 0.0), 2) for t in b if b[t] - a.get(t, 0.0) > 0.05 * wall), reverse=True)
-print(json.dumps({"threads": n_threads, "wall_s": round(wall, 3), "cpu_s": round(cpu, 3), "busy_threads": busy}))
+res = []
+for name, k in (("plain", plain), ("spread", spread)):
+    k(16)
+    a, t0, c0 = per_thread(), time.perf_counter(), time.process_time()
+    k(work)
+    wall, cpu, b = time.perf_counter() - t0, time.process_time() - c0, per_thread()
+    busy = sorted((round(b[t] - a.get(t, 0.0), 2) for t in b if b[t] - a.get(t, 0.0) > 0.05 * wall),
+                  reverse=True)
+    res.append({"loop": name, "threads": n_threads, "wall_s": round(wall, 3), "cpu_s": round(cpu, 3),
+                "busy_threads": busy})
+print(json.dumps(res))
 """
 
 NUMPY = r"""
@@ -79,14 +103,15 @@ def main() -> int:
     with open(child, "w") as f:
         f.write(CHILD)
     for n in args.threads:
-        r = subprocess.run([sys.executable, child, str(n), str(args.work)], capture_output=True, text=True)
+        r = subprocess.run([sys.executable, child, str(n), str(args.work), str(TASK_ITEMS)],
+                           capture_output=True, text=True)
         if r.returncode != 0:
             print(f"threads {n}: failed: {r.stderr.strip().splitlines()[-1] if r.stderr.strip() else r.returncode}")
             continue
-        d = json.loads(r.stdout.strip().splitlines()[-1])
-        print(f"taichi cpu_max_num_threads {n}: wall {d['wall_s']:.2f} s, cpu {d['cpu_s']:.2f} s "
-              f"(cpu/wall {d['cpu_s'] / max(d['wall_s'], 1e-9):.2f}), threads doing the work: "
-              f"{len(d['busy_threads'])} {d['busy_threads']}")
+        for d in json.loads(r.stdout.strip().splitlines()[-1]):
+            print(f"taichi cpu_max_num_threads {n}, {d['loop']:6s} loop: wall {d['wall_s']:.2f} s, "
+                  f"cpu {d['cpu_s']:.2f} s (cpu/wall {d['cpu_s'] / max(d['wall_s'], 1e-9):.2f}), "
+                  f"threads doing the work: {len(d['busy_threads'])} {d['busy_threads']}")
     shutil.rmtree(tmp, ignore_errors=True)
     r = subprocess.run([sys.executable, "-c", NUMPY], capture_output=True, text=True)
     wall, cpu = map(float, r.stdout.split())

@@ -18,6 +18,14 @@ import os
 import threading
 from pathlib import Path
 
+#: Taichi 1.7's CPU backend hands a range-for to its thread pool in tasks of at least 512 consecutive
+#: iterations (its adaptive block size, min(1024, max(512, n / (32 threads))); ``loop_config(block_dim=)``
+#: does not lower it), so a loop of fewer than 1024 iterations runs on ONE thread.  A loop that must
+#: spread a few long work items (e.g. one per thread) over the cores runs ``range(items * TASK_ITEMS)``
+#: and works only where ``t % TASK_ITEMS == 0``: one item per task.  Measured in
+#: ``benchmarks/bench_taichi_threads.py``.
+TASK_ITEMS = 512
+
 _lock = threading.Lock()
 _initialised = False
 

@@ -37,7 +37,7 @@ b cases (the caller's blocks); verification ``(B, K, K)`` int8.  Nothing grows w
 import numpy as np
 import taichi as ti
 
-from dualsight.kernels._runtime import KernelCache, ensure_init
+from dualsight.kernels._runtime import TASK_ITEMS, KernelCache, ensure_init
 
 __all__ = ["vote_top_k", "bucket_starts", "n_threads"]
 
@@ -140,8 +140,10 @@ def _build_vote(k: int, once: bool):
         K = win.shape[1]
         N = table.shape[1]
         R = B * K
-        ti.loop_config(block_dim=1)
-        for sl in range(table.shape[0]):
+        for t in range(table.shape[0] * TASK_ITEMS):          # slot t // TASK_ITEMS, one per Taichi task
+            if t % TASK_ITEMS != 0:
+                continue
+            sl = t // TASK_ITEMS
             while True:
                 r = ti.atomic_add(counter[0], 1)
                 if r >= R:
