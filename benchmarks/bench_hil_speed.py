@@ -29,9 +29,6 @@ for _v in ("DUALSIGHT_TI_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "M
     os.environ.setdefault(_v, "1")
 
 import argparse
-import cProfile
-import io
-import pstats
 import shutil
 import statistics
 import subprocess
@@ -100,7 +97,7 @@ class Timers:
                 self._stack[-1][0] += dt
 
 
-def bench_frame(repeats: int) -> dict:
+def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "global")) -> dict:
     import cv2
     import numpy as np
 
@@ -117,7 +114,7 @@ def bench_frame(repeats: int) -> dict:
     cam = Camera.from_toml(CAMERA)
     from dualsight.jobs.cli import build_parser
     from dualsight.jobs.cli_hil import star_spec_from_args
-    args = build_parser().parse_args(hil_cmd(paths, "--no-compare")[3:])
+    args = build_parser().parse_args(hil_cmd(paths, "--no-compare", *extra)[3:])
     spec = star_spec_from_args(args)                       # the CLI's own spec (robust voting, no comparison)
     ctx = hs.make_context(spec)
     rt = ctx.rt
@@ -132,7 +129,7 @@ def bench_frame(repeats: int) -> dict:
     T.wrap(hs, "subtract_background", "background")
     T.wrap(kd, "detect_stars", "labelling")
     results = {}
-    for detector, engine in (("local", "numpy"), ("local", "taichi"), ("global", "numpy"), ("global", "taichi")):
+    for detector, engine in ((d, e) for d in detectors for e in ("numpy", "taichi")):
         per = {}
         for rep in range(repeats + 1):                     # repeat 0 warms up (kernels, caches)
             for k, p in enumerate(paths):
@@ -167,8 +164,9 @@ def bench_frame(repeats: int) -> dict:
     order = ["decode", "background", "filter", "labelling", "centroid fit", "detector other", "observations",
              "voting", "attitude"]
     print(f"frame: CPU ms per frame, one core, median over {len(paths)} frames x {repeats} repeats "
-          f"(ESA 1024 x 768; median detections: local {int(np.median(results[('local', 'numpy')]['n_det']))}, "
-          f"global {int(np.median(results[('global', 'numpy')]['n_det']))})")
+          "(ESA 1024 x 768; median detections: "
+          + ", ".join(f"{d} {int(np.median(results[(d, 'numpy')]['n_det']))}" for d in detectors)
+          + (f"; hil star options {' '.join(extra)}" if extra else "") + ")")
     for (detector, engine), per in results.items():
         med = {s: 1e3 * statistics.median(per[s]) for s in order if s in per}
         total = sum(v for s, v in med.items() if s != "decode")
@@ -237,7 +235,7 @@ def bench_process(repeats: int) -> None:
 
 
 # ============================================================================================ batch
-def bench_batch(n_images: int, workers_list=(1, 2)) -> None:
+def bench_batch(n_images: int, workers_list=(1, 2), extra: tuple[str, ...] = ()) -> None:
     src = frames()
     env = dict(os.environ)
     tmp = Path(tempfile.mkdtemp(prefix="bench_hil_"))
@@ -255,16 +253,16 @@ def bench_batch(n_images: int, workers_list=(1, 2)) -> None:
             env_w["DUALSIGHT_TI_THREADS"] = "1"
             t = {}
             for name, folder, n in (("small", small, len(src)), ("big", big, n_images)):
-                subprocess.run(hil_cmd([folder], "--workers", str(workers)), capture_output=True, env=env_w)
+                subprocess.run(hil_cmd([folder], "--workers", str(workers), *extra), capture_output=True, env=env_w)
                 t0 = time.perf_counter()
-                r = subprocess.run(hil_cmd([folder], "--workers", str(workers)), capture_output=True, env=env_w,
-                                   text=True)
+                r = subprocess.run(hil_cmd([folder], "--workers", str(workers), *extra), capture_output=True,
+                                   env=env_w, text=True)
                 t[name] = time.perf_counter() - t0
                 if r.returncode:
                     print(f"batch: --workers {workers}, {n} images FAILED: {r.stderr.strip()[-600:]}")
                     t[name] = float("nan")
             rate = (n_images - len(src)) / max(t["big"] - t["small"], 1e-9)
-            print(f"batch: --workers {workers}: {n_images} images {t['big']:.2f} s ({n_images / t['big']:.1f} "
+            print(f"batch: --workers {workers} {' '.join(extra)}: {n_images} images {t['big']:.2f} s ({n_images / t['big']:.1f} "
                   f"frames/s whole process), {len(src)} images {t['small']:.2f} s; steady state {rate:.1f} frames/s")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -275,14 +273,17 @@ def main() -> None:
     ap.add_argument("what", nargs="?", default="all", choices=["frame", "process", "batch", "all"])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--images", type=int, default=200)
+    ap.add_argument("--hil-args", default="", help="extra `hil star` options for the frame and batch benches, e.g. "
+                    "'--max-stars 12' (one string)")
+    ap.add_argument("--detectors", nargs="+", default=["local", "global"], choices=["local", "global"])
     a = ap.parse_args()
     print(conditions())
     if a.what in ("frame", "all"):
-        bench_frame(max(1, a.repeats // 2))
+        bench_frame(max(1, a.repeats // 2), tuple(a.hil_args.split()), tuple(a.detectors))
     if a.what in ("process", "all"):
         bench_process(a.repeats)
     if a.what in ("batch", "all"):
-        bench_batch(a.images)
+        bench_batch(a.images, extra=tuple(a.hil_args.split()))
     print(conditions())
 
 

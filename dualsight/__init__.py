@@ -7,3 +7,7 @@ only the root package itself.
 """
 
 __version__ = "0.1.0"
+
+from dualsight import allocator as _allocator
+
+_allocator.tune()

@@ -82,6 +82,10 @@ def add_star_parser(hsub) -> argparse.ArgumentParser:
                    help="voting method (default robust: VotingConfig.robust(); paper: the reference's); "
                         "the other one runs beside it unless --no-compare")
     s.add_argument("--no-compare", action="store_true", help="do not run the other voting method")
+    s.add_argument("--detector", choices=["local", "global"], default=None,
+                   help="star detector (default local: tiled background, matched filter, hot-pixel test, PSF-fit "
+                        "centroids; global: smooth background, one threshold, moment centroids: ~3x faster, "
+                        "less accurate on faint stars)")
     s.add_argument("--mag-limit", type=float, default=None,
                    help="catalog magnitude limit, Johnson V (default: auto, from the camera's field: about 35 "
                         "catalog stars per field on average, at most V 8; catalogs/auto_limit.py)")
@@ -126,7 +130,7 @@ def settings_from_args(args, config: dict | None, epoch: float):
     from dualsight.jobs import hil_star as hs
 
     return hs.settings_from_table(config, source=str(args.config) if args.config else "hil star",
-                                  method=args.method, compare=not args.no_compare,
+                                  method=args.method, compare=not args.no_compare, detector=args.detector,
                                   background_block_px=args.background_block, limit_arcsec=args.limit_arcsec,
                                   mag_limit=args.mag_limit, epoch_jyear=epoch,
                                   tolerance_arcsec=args.tolerance_arcsec, max_stars=args.max_stars,
@@ -149,6 +153,9 @@ def star_spec_from_args(args):
     if args.method and config and "method" in config and config["method"] != args.method:
         raise InputError(f"--method {args.method} contradicts method = {config['method']!r} in {args.config}",
                          source="--method")
+    if args.detector and config and "detector" in config and config["detector"] != args.detector:
+        raise InputError(f"--detector {args.detector} contradicts detector = {config['detector']!r} in "
+                         f"{args.config}", source="--detector")
     paths = expand_inputs(args.images)
     if not paths:
         raise InputError("no image files given", source="IMAGES")

@@ -191,7 +191,8 @@ def normalise_settings(s: StarSettings, *, source: str, section: str | None = No
 
 
 def settings_from_table(table: dict | None, *, source: str = "hil star", method: str | None = None,
-                        compare: bool = True, background_block_px: int = 32, max_obs: int = 100,
+                        compare: bool = True, detector: str | None = None, background_block_px: int = 32,
+                        max_obs: int = 100,
                         batch_size: int = 16, limit_arcsec: float | None = None, **bases) -> StarSettings:
     """Settings from command-line values and an optional TOML table (keys ``method``, ``compare``,
     ``background_block_px``, ``max_obs``, ``batch_size``, ``limit_arcsec``, ``detector``,
@@ -199,8 +200,9 @@ def settings_from_table(table: dict | None, *, source: str = "hil star", method:
     table's values win.  ``bases``: see
     :func:`normalise_settings` (``mag_limit="auto"`` or None: from ``camera=``, else resolved by
     :func:`spec_from_dict`).  Errors name ``source`` and the key."""
-    top = {"method": method or "robust", "compare": compare, "background_block_px": background_block_px,
-           "max_obs": max_obs, "batch_size": batch_size, "limit_arcsec": limit_arcsec}
+    top = {"method": method or "robust", "compare": compare, "detector": detector or "local",
+           "background_block_px": background_block_px, "max_obs": max_obs, "batch_size": batch_size,
+           "limit_arcsec": limit_arcsec}
     top.update(table or {})
     return normalise_settings(validate(StarSettings, top, source=source), source=source, **bases)
 

@@ -2,9 +2,10 @@
 
 A real frame has a background that varies over the field (vignetting, sky glow: 103-182 ADU across one
 ESA tetra3 frame against a pixel noise of ~8 ADU), so a single global threshold either misses faint stars
-or floods the bright corners.  :func:`subtract_background` removes a smooth background first: the median
-of every ``block`` x ``block`` pixel square, interpolated bilinearly between the block centres.  The star
-detector then thresholds the residual at k times its robust noise sigma.
+or floods the bright corners.  :func:`subtract_background` removes a smooth background first: per
+``block`` x ``block`` pixel square, the median of its ``bin`` x ``bin`` pixel means (bin = 4 for blocks that
+are multiples of 4, else 2 or 1), interpolated bilinearly between the block centres.  The star detector
+then thresholds the residual at k times its robust noise sigma.
 
 numpy plus OpenCV (``resize``); no project import.
 """
@@ -13,50 +14,53 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["subtract_background"]
+__all__ = ["subtract_background", "bin_size"]
+
+
+def bin_size(block: int) -> int:
+    """Side (px) of the pixel bins whose means a ``block``-px square's median is taken over: 4 when
+    ``block`` is a multiple of 4, else 2 when even, else 1 (the pixels themselves)."""
+    return 4 if block % 4 == 0 else (2 if block % 2 == 0 else 1)
 
 
 def subtract_background(frames: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
-    """Remove a smooth sky background from (B, H, W) frames.
+    """Remove a smooth sky background from (B, H, W) frames (any real dtype; ADU).
 
-    The background is the median of every ``block`` x ``block`` pixel square (a frame whose size is not
-    a multiple of ``block`` is first extended by mirroring its last rows/columns, so edge blocks are
-    full), interpolated bilinearly between the block centres (OpenCV ``resize``, whose half-pixel
-    convention puts each block's value at its centre) and held constant beyond the outer centres.
-    Stars cover a few pixels of a block of 1024, so they do not move its median.  Cost ~6-10 ms per
-    1024 x 768 16-bit frame on one core (one partial sort per block, in the frames' own integer type).  ``block <= 0``: no subtraction (the frames as
+    The background of each ``block`` x ``block`` pixel square (a frame whose size is not a multiple of
+    ``block`` is first extended by mirroring its last rows/columns, so edge blocks are full) is the median
+    of its (block / b)^2 means of b x b pixels, b = :func:`bin_size` (OpenCV ``INTER_AREA``: exact means
+    for an integer factor), interpolated bilinearly between the block centres (OpenCV ``resize``, whose
+    half-pixel convention puts each block's value at its centre) and held constant beyond the outer
+    centres.  For white noise sigma the median of n = (block / b)^2 bin means has standard deviation
+    ~ sqrt(pi / 2) (sigma / b) / sqrt(n) = sqrt(pi / 2) sigma / block, the same as the median of all
+    block^2 pixels (0.039 sigma at block 32); a star or a hot pixel raises a few bins of a block's 64 and
+    does not move their median.  Cost ~1 ms per 1024 x 768 frame on one core (the medians of 4 x 4
+    means partition 16x fewer values than the pixels').  ``block <= 0``: no subtraction (the frames as
     float32, and their global medians).
 
-    Returns (residual float32 (B, H, W), median background level per frame (B,)).
+    Returns (residual float32 (B, H, W), median background level per frame (B,), ADU).
     """
     import cv2
 
-    f_in = np.asarray(frames)
-    if f_in.dtype not in (np.uint8, np.uint16, np.float32):
-        f_in = f_in.astype(np.float32)
-    B, H, W = f_in.shape
+    f32 = np.asarray(frames)
+    if f32.dtype != np.float32:
+        f32 = f32.astype(np.float32)
+    B, H, W = f32.shape
     if block <= 0:
-        f = f_in.astype(np.float32, copy=False)
-        return f, np.median(f.reshape(B, -1), axis=1)
-    # the blocks in the frames' own type (integer ADU: half the bytes to move and partition); medians are exact
-    nby, nbx = -(-H // block), -(-W // block)
-    ext = f_in
-    if (nby * block, nbx * block) != (H, W):
-        ext = np.pad(f_in, ((0, 0), (0, nby * block - H), (0, nbx * block - W)), mode="symmetric")
-    blocks = np.ascontiguousarray(ext.reshape(B, nby, block, nbx, block).transpose(0, 1, 3, 2, 4))
-    blocks = blocks.reshape(B, nby, nbx, block * block)
-    n = block * block
-    hi = n // 2
-    part = np.partition(blocks, hi if n % 2 else [hi - 1, hi], axis=-1)
-    upper = part[..., hi]
-    if n % 2:
-        med = upper.astype(np.float32)                                           # (B, nby, nbx)
-    elif f_in.dtype == np.float32:                                               # float32 arithmetic, as ever
-        med = 0.5 * (part[..., hi - 1] + upper)
-    else:                                                                        # integers: exact in float64
-        med = (0.5 * (part[..., hi - 1].astype(np.float64) + upper)).astype(np.float32)
+        return f32, np.median(f32.reshape(B, -1), axis=1)
+    b = bin_size(block)
+    nby, nbx, m = -(-H // block), -(-W // block), block // b
     out = np.empty((B, H, W), np.float32)
-    for b in range(B):                                                           # one resize per frame
-        bg = cv2.resize(med[b], (nbx * block, nby * block), interpolation=cv2.INTER_LINEAR)[:H, :W]
-        np.subtract(f_in[b], bg, out=out[b], dtype=np.float32)
-    return out, np.median(med.reshape(B, -1), axis=1)
+    levels = np.empty(B, np.float64)
+    for k in range(B):                                       # one frame at a time: OpenCV calls on 2-D images
+        ext = f32[k]
+        if (nby * block, nbx * block) != (H, W):
+            ext = np.pad(ext, ((0, nby * block - H), (0, nbx * block - W)), mode="symmetric")
+        means = ext if b == 1 else cv2.resize(ext, (nbx * block // b, nby * block // b),
+                                              interpolation=cv2.INTER_AREA)
+        cells = np.ascontiguousarray(means.reshape(nby, m, nbx, m).transpose(0, 2, 1, 3)).reshape(nby, nbx, m * m)
+        med = np.median(cells, axis=-1).astype(np.float32)   # (nby, nbx)
+        bg = cv2.resize(med, (nbx * block, nby * block), interpolation=cv2.INTER_LINEAR)[:H, :W]
+        np.subtract(f32[k], bg, out=out[k])
+        levels[k] = np.median(med)
+    return out, levels
