@@ -26,6 +26,13 @@ from pathlib import Path
 #: ``benchmarks/bench_taichi_threads.py``.
 TASK_ITEMS = 512
 
+
+def task_stride(n: int) -> int:
+    """Stride that spreads a kernel loop of ``n`` long work items over the thread pool: TASK_ITEMS when
+    n < 2 TASK_ITEMS (else one task would hold them all), 1 otherwise (the loop is split already).  The
+    kernel runs ``for t in range(n * stride)`` and works where ``t % stride == 0`` on item ``t // stride``."""
+    return TASK_ITEMS if 1 < n < 2 * TASK_ITEMS else 1
+
 _lock = threading.Lock()
 _initialised = False
 

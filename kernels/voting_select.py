@@ -18,7 +18,7 @@ Memory: candidate cliques ``(b, K m, K m)`` int8 for a block of b cases (the cal
 import numpy as np
 import taichi as ti
 
-from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels._runtime import KernelCache, task_stride
 
 __all__ = ["select_identities", "verify_accept"]
 
@@ -124,9 +124,12 @@ def _drop_duplicates(ids: ti.template(), top: ti.template(), work: ti.template()
 def _build_select(_dtype=None):
     @ti.kernel
     def select(cand: _I32x4, b0: ti.i32, m: ti.i32, unique: ti.i32, cos_cat: _F64x3, c_lo: _F64x3,
-               c_hi: _F64x3, cons: _I8x3, work: _I32x3, out: _I32x3):
+               c_hi: _F64x3, cons: _I8x3, work: _I32x3, out: _I32x3, stride: ti.i32):
         K = cand.shape[2]
-        for bl in range(cos_cat.shape[0]):           # one case of the block
+        for it in range(cos_cat.shape[0] * stride):  # one case of the block per ``stride`` (task_stride)
+            if it % stride != 0:
+                continue
+            bl = it // stride
             b = b0 + bl
             for x in range(K):
                 ok1 = 0
@@ -182,10 +185,13 @@ def _build_select(_dtype=None):
 def _build_verify_accept(_dtype=None):
     @ti.kernel
     def verify_accept(cons: _I8x3, top: _I32x2, clique: ti.i32, frac: ti.f64, min_acc: ti.i32, work: _I32x3,
-                      out_k: _I32x3, out_b: _I32x2):
+                      out_k: _I32x3, out_b: _I32x2, stride: ti.i32):
         B = cons.shape[0]
         K = cons.shape[1]
-        for b in range(B):                           # one case
+        for it in range(B * stride):                 # one case per ``stride`` (task_stride)
+            if it % stride != 0:
+                continue
+            b = it // stride
             t = 0
             for x in range(K):
                 c = 0
@@ -255,7 +261,7 @@ def select_identities(cand_ids, cand_votes, m: int, unique: bool, blocks=None):
         nb = cos_cat.shape[0]
         kern(cand, int(b0), int(m), int(bool(unique)), np.ascontiguousarray(cos_cat, np.float64),
              np.ascontiguousarray(c_lo, np.float64), np.ascontiguousarray(c_hi, np.float64),
-             np.empty((nb, n, n), np.int8), np.empty((nb, _NFIELD, max(n, K)), np.int32), out)
+             np.empty((nb, n, n), np.int8), np.empty((nb, _NFIELD, max(n, K)), np.int32), out, task_stride(nb))
     return out[0], out[1]
 
 
@@ -276,5 +282,5 @@ def verify_accept(cons, top, clique: bool, accept_fraction: float, min_accepted:
     if B and K:
         _KERNELS.get("verify_accept")(cons.view(np.int8), np.ascontiguousarray(top, np.int32), int(bool(clique)),
                                       float(accept_fraction), int(min_accepted),
-                                      np.empty((B, _NFIELD, K), np.int32), out_k, out_b)
+                                      np.empty((B, _NFIELD, K), np.int32), out_k, out_b, task_stride(B))
     return out_k[0], out_b[0], out_k[1].astype(bool), out_b[1].astype(bool)
