@@ -9,30 +9,59 @@ from dualsight.kernels.detect_background import _robust_std
 from dualsight.kernels.detect_psf import psf_kernel_1d
 
 
+NOISE_SAMPLE_STRIDE = 4
+"""Rows and columns between the pixels of the noise sample of :func:`_filter` (~48,000 pixels of a 1024 x 768
+frame: the ratio sigma_F / sigma to ~0.3 %)."""
+
+
+class FilteredNoise:
+    """Noise sigma_F of the matched-filtered image at given pixels, without the (H, W) map: at pixel (r, c) it is
+    max(sigma(r, c), floor) x ratio x e_row(r) x e_col(c), with e the edge factors of :func:`_filter`.
+
+    ``noise[r, c]`` (integer index arrays, or scalars) gives float32 values like the map would."""
+
+    def __init__(self, sig_map, floor, ratio, er, ec):
+        self.sig_map, self.floor, self.ratio = sig_map, np.float32(floor), np.float32(ratio)
+        H, W = sig_map.shape
+        self.row = np.ones(H, np.float32)
+        self.col = np.ones(W, np.float32)
+        for v, e in ((self.row, er), (self.col, ec)):
+            v[:e.size] *= e
+            v[v.size - e.size:] *= e[::-1]
+
+    def __getitem__(self, rc):
+        r, c = rc
+        return np.maximum(self.sig_map[r, c], self.floor) * self.ratio * self.row[r] * self.col[c]
+
+
 def _filter(R, sig_map, s, floor, cache=None):
-    """Matched-filtered SNR image Z (float32) of residual R with PSF sigma s, and the noise ratio sigma_F / sigma.
+    """Matched-filtered SNR image Z (float32), the noise ratio sigma_F / sigma, and Z's noise sigma_F (a
+    :class:`FilteredNoise`: evaluated at pixels on demand) of residual R with PSF sigma s.
 
     Outside the frame R is 0 (its expectation), so near an edge F sums fewer pixels and its white-noise sigma
     is sigma sqrt(sum over the kernel's in-frame part of K^2): Z is normalised by that, exactly, per row and
-    column.  ``sig_map`` is overwritten; ``cache`` (a dict) keeps R's sample noise between calls on the same R."""
+    column.  ``sig_map`` (the pixel noise, (H, W) float32) is not modified; ``cache`` (a dict, one per R) keeps
+    R's sample noise and 1 / max(sig_map, floor) between calls on the same R."""
     import cv2
 
     H, W = R.shape
+    cache = {} if cache is None else cache
     k = psf_kernel_1d(s)
     h = len(k) // 2
     F = cv2.sepFilter2D(R, cv2.CV_32F, k.astype(np.float32), k.astype(np.float32), borderType=cv2.BORDER_CONSTANT)
-    inner = (slice(h, max(h + 1, H - h), 4), slice(h, max(h + 1, W - h), 4))
-    sa = cache.get(h) if cache is not None else None       # R's noise at the sample: the same for both passes
+    st = NOISE_SAMPLE_STRIDE  # the sample: every st-th row and column, from e >= h px from the edges (whole taps)
+    e = 4 * -(-h // 4)
+    inner = (slice(e, max(e + 1, H - e), st), slice(e, max(e + 1, W - e), st))
+    sa = cache.get(e)         # R's noise at the sample: the same for both passes (unless their e differ)
     if sa is None:
-        sa = _robust_std(R[inner])
-        if cache is not None:
-            cache[h] = sa
+        sa = cache[e] = _robust_std(R[inner])
     sfv = _robust_std(F[inner])
     k2 = k * k
     white = float(k2.sum())
     ratio = sfv / sa if sa > 0 and sfv > 0 else white
-    np.maximum(sig_map, floor, out=sig_map)
-    sig_map *= np.float32(ratio)
+    inv = cache.get("inv")
+    if inv is None:
+        inv = cache["inv"] = 1.0 / np.maximum(sig_map, np.float32(floor))
     cum = np.concatenate([[0.0], np.cumsum(k2)])
 
     def edge(n):    # sqrt(in-frame sum of k_i^2 / sum k_i^2) for the first min(h, n) positions from an edge
@@ -40,12 +69,12 @@ def _filter(R, sig_map, s, floor, cache=None):
         return np.sqrt((cum[-1] - cum[np.maximum(h - i, 0)]) / cum[-1]).astype(np.float32)  # taps i - h .. h
 
     er, ec = edge(H), edge(W)
-    sig_map[:er.size] *= er[:, None]
-    sig_map[H - er.size:] *= er[::-1, None]
-    sig_map[:, :ec.size] *= ec[None, :]
-    sig_map[:, W - ec.size:] *= ec[None, ::-1]
-    np.divide(F, sig_map, out=F)
-    return F, ratio
+    Z = cv2.multiply(F, inv, dst=F, scale=1.0 / ratio)           # F / (max(sigma, floor) ratio)
+    Z[:er.size] /= er[:, None]
+    Z[H - er.size:] /= er[::-1, None]
+    Z[:, :ec.size] /= ec[None, :]
+    Z[:, W - ec.size:] /= ec[None, ::-1]
+    return Z, ratio, FilteredNoise(sig_map, floor, ratio, er, ec)
 
 
 def _candidates(Z, cfg):
@@ -67,10 +96,18 @@ def _candidates(Z, cfg):
     f = np.flatnonzero(fg)                       # the foreground pixels (a few thousand): work on them only
     lab_f = lab.ravel()[f]
     npix_c = np.bincount(lab_f, minlength=n_lab)[1:].astype(np.int64)
-    # the 3 x 3 local maxima among the foreground pixels (outside the frame ignored, as clipped indices do)
-    peak = Z.ravel()[f] >= cv2.dilate(Z, np.ones((3, 3), np.uint8)).ravel()[f]
+    # the 3 x 3 local maxima among the foreground pixels (outside the frame ignored: clipped indices repeat
+    # an in-frame pixel of the neighbourhood), from their 8 neighbours' values
+    fr, fc = np.divmod(f, W)
+    zf = Z.ravel()[f]
+    peak = np.ones(f.size, bool)
+    for dr in (-1, 0, 1):
+        rr = np.clip(fr + dr, 0, H - 1) * W
+        for dc in (-1, 0, 1):
+            if dr or dc:
+                peak &= zf >= Z.ravel()[rr + np.clip(fc + dc, 0, W - 1)]
     f = f[peak]
-    pr, pc = np.divmod(f.astype(np.int64), W)
+    pr, pc = fr[peak].astype(np.int64), fc[peak].astype(np.int64)
     cid = lab_f[peak].astype(np.int64) - 1
     large = npix_c > cfg.max_blob_pixels
     n_large = int(large.sum())

@@ -8,15 +8,18 @@ OpenCV, no Taichi: a one-image process starts no kernels): its detections do not
 in, and a star's PSF fit does not depend on the other stars (each leaves the batched fit when it converges).  Per frame:
 
 1. **Local background and noise.**  The frame is cut into ``tile_px`` squares (mirrored at the far edges
-   to whole tiles).  Each tile's pixels are sorted once; then, ``clip_iters`` times, the kept pixels are
-   the contiguous run of sorted values within ``clip_sigma`` standard deviations of the centre (3-sigma
-   clipping).  The first window is centred on the tile's median with sigma = 1.4826 MAD (computed
-   exactly on the sorted tile); the following ones on the clipped mean with the clipped standard
-   deviation corrected for the truncation (for a normal distribution clipped at +-c sigma the standard
-   deviation is sigma sqrt(1 - 2 c phi(c) / (2 Phi(c) - 1)): 0.98657 sigma at c = 3).  The tile's level is
-   the final clipped mean and its noise the corrected clipped standard deviation — not the median and
-   the MAD themselves, which on integer ADU with sigma ~2-3 ADU move in 0.5-ADU steps: a 0.5 ADU error
-   of the level is 0.65 sigma of the matched-filtered image at PSF sigma 0.9 px.  Tiles that keep less
+   to whole tiles).  ``clip_iters`` times, the kept pixels are those within ``clip_sigma`` standard
+   deviations of the centre (3-sigma clipping).  The first window is centred on the median with sigma =
+   1.4826 MAD; the following ones on the clipped mean with the clipped standard deviation corrected for the
+   truncation (for a normal distribution clipped at +-c sigma the standard deviation is
+   sigma sqrt(1 - 2 c phi(c) / (2 Phi(c) - 1)): 0.98657 sigma at c = 3).  The median, the MAD and all windows
+   but the last are computed on the tile's checkerboard half (pixels with r + c even; sorted once, each window
+   the contiguous run of sorted values), the last window on all of the tile's pixels (tiles of odd size, or
+   ``clip_iters`` 0: everything on all pixels): the level's error is then that of the all-pixel clipped mean
+   (~sigma / sqrt(T^2), 0.031 sigma for 32 px tiles; the half alone: 0.044 sigma; tests/test_detect_real.py).
+   The tile's level is the final clipped mean and its noise the corrected clipped standard deviation — not
+   the median and the MAD themselves, which on integer ADU with sigma ~2-3 ADU move in 0.5-ADU steps: a 0.5
+   ADU error of the level is 0.65 sigma of the matched-filtered image at PSF sigma 0.9 px.  Tiles that keep less
    than half of their pixels (a bright star, a glare) are replaced by the frame's median tile; a 3 x 3
    median filter over the tile grid (``mesh_filter``, as SExtractor's BACK_FILTERSIZE) removes the
    remaining outliers.  Level and noise are interpolated bilinearly between tile centres (tile (i, j)'s
@@ -24,9 +27,12 @@ in, and a star's PSF fit does not depend on the other stars (each leaves the bat
 2. **Matched filter.**  The background-subtracted frame R is correlated with the pixel-integrated
    Gaussian PSF of standard deviation ``psf_sigma_px`` (separable kernel k_i = Phi((i + 1/2)/s) -
    Phi((i - 1/2)/s), |i| <= ceil(3 s), normalised; R = 0 outside the frame).  The filtered image's own
-   noise is measured: the clipped standard deviation of a strided sample of the filtered image F divided
-   by that of R at the same pixels (for white noise sum_i k_i^2; a correlated noise gives more) scales the
-   local noise map; near the edges the kernel's missing taps are accounted for exactly.  Pixels of
+   noise is measured: the clipped standard deviation of a strided sample of the filtered image F (every 4th
+   row and column from 4 ceil(h / 4) px off the edges, h = ceil(3 s): ~48,000 pixels; median, MAD and the
+   first two windows on every 4th sample value, the last window on all) divided by that of R at the same
+   pixels (for white noise sum_i k_i^2; a correlated noise gives more) scales the local noise map (measured:
+   within ~0.3 % of the ratio over every pixel on the ESA frames); near the edges the kernel's missing taps
+   are accounted for exactly (Z's noise is evaluated at pixels on demand, not stored as a map).  Pixels of
    Z = F / sigma_F > ``k_sigma`` are foreground.  For a star of flux Fs with pixel fractions P_i on white
    noise sigma, Z at the star's pixel is (up to the pixel phase) the optimal, PSF-weighted integrated SNR
    Fs sqrt(sum_i P_i^2) / sigma ~= Fs / (sigma sqrt(4 pi (s^2 + 1/12))).  ``k_sigma`` is a threshold on
@@ -50,7 +56,9 @@ in, and a star's PSF fit does not depend on the other stars (each leaves the bat
    candidate is still above ``k_sigma`` without the spike's excess (Z's own noise at that pixel, the frame
    edges included; on an edge the mean is over the in-frame neighbours) it is kept (a star under a hot pixel)
    and the spike gets weight 0 in the fit; otherwise it is dropped and counted (``hot_pixels``).
-5. **Centroid and uncertainty.**  A weighted least-squares fit (Gauss-Newton) of the pixel-integrated
+5. **Centroid and uncertainty.**  A weighted least-squares fit (Levenberg-Marquardt, batched over the stars;
+   each star stops when its proposed position step is under 1e-3 px, i.e. within ~1e-3 px of its minimum,
+   or after 10 steps) of the pixel-integrated
    Gaussian PSF plus a constant, mu_i = A P_i(x, y) + b, to R on a (2h + 1)^2 stamp around p,
    h = max(2, ceil(2.5 s)).  Pixel variance: sigma^2 + max(mu_i - b, 0) / gain (``gain_e_per_adu``; None =
    background-limited, sigma^2).  The stated uncertainty is the Cramér-Rao bound at the fit: the inverse
@@ -79,9 +87,11 @@ for the final pass, else the initial width.  (Measured on the ESA frames: widths
 bright sky, which had fewer than 3 stars above SNR 30, now measures 0.60 px instead of keeping the initial 1.0.)
 
 Centroids use the continuous pixel convention (pixel (r, c) has its centre at (c + 0.5, r + 0.5)).
-Cost (1024 x 768, one core): ~15-25 ms per frame with a given PSF width, ~+30 % when it is measured
-(``benchmarks/bench_detect.py``); ~37 ms CPU on the ESA frames (~250 stars each, width measured) on a loaded
-2-core machine (``benchmarks/bench_hil_speed.py frame``).
+Cost (1024 x 768, one core, ``benchmarks/bench_hil_speed.py frame``): ~18-20 ms CPU per ESA frame (~250 stars
+each, width measured: two filter and candidate passes) on a loaded 2-core machine — background ~4.3, matched
+filter ~3.7 (both passes), candidates ~2.4, hot-pixel test and PSF fits ~7.5 (width pass included), other ~0.9
+(it was ~38-43 ms with every tile and noise-sample value sorted / partitioned, a dilation for the maxima and
+fits run to 1e-4 px).
 """
 
 from __future__ import annotations
@@ -229,10 +239,10 @@ def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False):
     if fit_sigma:     # the PSF width: from the brightest unsaturated candidates of SNR > 15 (the caller picks)
         z = Z[pr, pc]
         near_sat = np.zeros(K, bool)
-        if sat is not None:
-            for dr in range(-2, 3):
-                for dc in range(-2, 3):
-                    near_sat |= img[np.clip(pr + dr, 0, H - 1), np.clip(pc + dc, 0, W - 1)] >= sat
+        if sat is not None:      # a saturated pixel in the 5 x 5 square (clipped at the frame's edges)
+            o5 = np.arange(-2, 3)
+            near_sat = (img[np.clip(pr[:, None, None] + o5[None, :, None], 0, H - 1),
+                            np.clip(pc[:, None, None] + o5[None, None, :], 0, W - 1)] >= sat).any((1, 2))
         top = np.flatnonzero((z > 15) & ~near_sat)
         if top.size:      # isolated: no other candidate within 3 PSF half-widths
             d = np.hypot(pr[top, None] - pr[None, :], pc[top, None] - pc[None, :]).astype(np.float64)
@@ -256,8 +266,7 @@ def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False):
     n4 = ((r0 > 0).astype(np.float64) + (r0 < H - 1) + (c0 > 0) + (c0 < W - 1))
     m4 = (at(-1, 0) * (r0 > 0) + at(1, 0) * (r0 < H - 1) + at(0, -1) * (c0 > 0) + at(0, 1) * (c0 < W - 1)) / n4
     noise = np.maximum(sig_map[r0, c0].astype(np.float64), cfg.noise_floor_adu)
-    satmask = img >= sat if sat is not None else np.zeros((H, W), bool)
-    is_sat = satmask[r0, c0]
+    is_sat = img[r0, c0] >= sat if sat is not None else np.zeros(K, bool)     # saturation: at pixels, no map
     hot_px = np.zeros(K, bool)
     keep = np.ones(K, bool)
     n_hot = 0
@@ -275,7 +284,6 @@ def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False):
         keep = keep & (np.cumsum(keep) <= 25)
     pr, pc, r0, c0, npix, noise, hot_px, is_sat = (a[keep] for a in (pr, pc, r0, c0, npix, noise, hot_px, is_sat))
     K = pr.size
-    valid = ~satmask
     h = max(2, int(math.ceil(2.5 * s)))
     x = np.zeros(K)
     y = np.zeros(K)
@@ -286,10 +294,10 @@ def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False):
     # saturated candidates: stamp grown by the plateau radius
     sat_any = np.zeros(K, bool)
     if sat is not None and K:
-        st_s, inside, _, _ = _stamps(satmask, None, r0, c0, h)
-        sat_any = (st_s & (inside > 0)).reshape(K, -1).any(1)
+        st_s, inside, _, _ = _stamps(img, None, r0, c0, h)
+        sat_any = ((st_s >= sat) & (inside > 0)).reshape(K, -1).any(1)
     if sat_any.any():
-        nsat = np.array([satmask[max(0, a - 3 * h):a + 3 * h + 1, max(0, b - 3 * h):b + 3 * h + 1].sum()
+        nsat = np.array([(img[max(0, a - 3 * h):a + 3 * h + 1, max(0, b - 3 * h):b + 3 * h + 1] >= sat).sum()
                          for a, b in zip(r0[sat_any], c0[sat_any])])   # one window per saturated star
         ext = nsat > math.pi * (6.0 * s) ** 2      # extended: no star's plateau is that wide (docstring, 6.)
         if ext.any():
@@ -311,7 +319,7 @@ def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False):
         idx = np.flatnonzero(sel)
         if idx.size == 0:
             continue
-        st, w0, rr0, cc0 = _stamps(R, valid, r0[idx], c0[idx], hh)
+        st, w0, rr0, cc0 = _stamps(R, None, r0[idx], c0[idx], hh, img=img, sat=sat)
         if hot_px[idx].any():      # a kept star under a hot pixel: the spike gets weight 0
             w0[hot_px[idx], hh, hh] = 0.0
         # start: 3 x 3 intensity-weighted centroid of the positive residual
@@ -331,8 +339,8 @@ def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False):
             xf, yf = xf.copy(), yf.copy()
             xf[fb], yf[fb] = x0[fb], y0[fb]
             if saturated:
-                sm, inside, _, _ = _stamps(satmask, None, r0[idx], c0[idx], hh)
-                sm = sm & (inside > 0)
+                sm, inside, _, _ = _stamps(img, None, r0[idx], c0[idx], hh)
+                sm = (sm >= sat) & (inside > 0)
                 ns = sm.sum((1, 2))
                 gy, gx = np.mgrid[0:2 * hh + 1, 0:2 * hh + 1]
                 pcx = cc0[:, None, None] + gx[None] + 0.5
@@ -360,12 +368,11 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
     level, sig = tile_background(img, cfg.tile_px, cfg.clip_sigma, cfg.clip_iters, cfg.mesh_filter)
     bg = interpolate_tiles(level, cfg.tile_px, H, W)
     sig_map = interpolate_tiles(sig, cfg.tile_px, H, W)
-    R = img.astype(np.float32) - bg
+    R = np.subtract(img, bg, dtype=np.float32)
     floor = np.float32(max(cfg.noise_floor_adu, 1e-6))
     s = cfg.psf_sigma_px if cfg.psf_sigma_px is not None else cfg.psf_sigma_init_px
     rcache = {}
-    sig_f = sig_map.copy()           # becomes the filtered image's noise (edges included): Z = F / sig_f
-    Z, ratio = _filter(R, sig_f, s, floor, rcache)
+    Z, ratio, sig_f = _filter(R, sig_map, s, floor, rcache)      # sig_f: Z's noise, edges included (Z = F / sig_f)
     if cfg.psf_sigma_px is None:     # measure the PSF width on bright, unsaturated, isolated stars
         m = _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=True)
         # fitted widths under MIN_MEASURED_SIGMA_PX are not stars' (hot-pixel clusters, cosmic-ray tracks: ~0.2 px)
@@ -378,8 +385,7 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
             s_new = float(np.clip(np.median(m["s"][use]), 0.2, 20.0))
             if abs(s_new - s) > 0.02 * s:
                 s = s_new
-                sig_f = sig_map.copy()
-                Z, ratio = _filter(R, sig_f, s, floor, rcache)
+                Z, ratio, sig_f = _filter(R, sig_map, s, floor, rcache)
     m = _measure(img, R, sig_map, Z, sig_f, s, cfg, sat)
     med_sig = float(np.median(sig))
     return _Frame(x=m["x"], y=m["y"], flux=m["flux"], npix=m["npix"], sigma_px=m["sigma_px"],

@@ -2,6 +2,7 @@
 Gaussian PSF (1-D kernels, sharpness limit for the hot-pixel test), the Cramér-Rao centroid bound, and the
 batched weighted least-squares PSF fit of star stamps.  Pure numpy functions over arrays."""
 
+import functools
 import math
 
 import numpy as np
@@ -19,6 +20,7 @@ def psf_kernel_1d(sigma: float) -> np.ndarray:
     return k / k.sum()
 
 
+@functools.lru_cache(maxsize=256)
 def sharpness_limit(sigma: float) -> float:
     """Largest ratio of a pixel-integrated Gaussian star's brightest pixel to the mean of its 4 neighbours
     (over sub-pixel positions: the star centred on a pixel), a0 / a1 (module docstring, step 4)."""
@@ -57,106 +59,166 @@ def crb_sigma_px(flux_adu, noise_adu, psf_sigma_px, gain_e_per_adu=None) -> np.n
 
 
 # ============================================================================ PSF fit
-def _profiles(x, c0, n, s):
-    """1-D pixel fractions and their derivatives (d/dx, d/ds) of stamps starting at pixel c0: (K, n) each."""
-    c = c0[:, None] + np.arange(n)[None, :]
-    a = (c - x[:, None]) / s[:, None]
-    b = a + 1.0 / s[:, None]
-    Pa, Pb, pa, pb = _Phi(a), _Phi(b), _phi(a), _phi(b)
-    return Pb - Pa, -(pb - pa) / s[:, None], -(b * pb - a * pa) / s[:, None]
+def _Phi_phi(e):
+    """(Phi(e), phi(e)) of a float64 array, one exp for both: Phi with erf as in
+    :func:`~dualsight.kernels.detect_background._erf` (Abramowitz & Stegun 7.1.26, |error| <= 1.5e-7, written
+    for |e|: erfc(|e| / sqrt 2) = t poly(t) exp(-e^2 / 2)), phi = exp(-e^2 / 2) / sqrt(2 pi)."""
+    ex = e * e                                           # in place: small arrays, the calls dominate
+    ex *= -0.5
+    np.exp(ex, out=ex)
+    t = np.abs(e)
+    t *= 0.3275911 / math.sqrt(2.0)
+    t += 1.0
+    np.reciprocal(t, out=t)
+    q = t * 1.061405429
+    for c in (-1.453152027, 1.421413741, -0.284496736, 0.254829592):
+        q += c
+        q *= t
+    q *= ex
+    q *= 0.5                                             # Phi(-|e|)
+    ex *= 1.0 / math.sqrt(2.0 * math.pi)
+    return np.where(e >= 0, 1.0 - q, q), ex
 
 
-def _fit(stamp, w0, r0, c0, x, y, s, noise, gain, fit_sigma=False, iters=10):
+def _profiles(x, c0, n, s, ds=True):
+    """1-D pixel fractions and their derivatives (d/dx, d/ds; d/ds None unless ``ds``) of stamps starting at
+    pixel c0: (K, n) each.
+
+    Pixel j covers [c0 + j, c0 + j + 1): with edges e_j = (c0 + j - x) / s (j = 0..n, the n + 1 pixel edges,
+    each evaluated once), P_j = Phi(e_{j+1}) - Phi(e_j), dP_j/dx = -(phi(e_{j+1}) - phi(e_j)) / s and
+    dP_j/ds = -(e_{j+1} phi(e_{j+1}) - e_j phi(e_j)) / s."""
+    inv = 1.0 / s[:, None]
+    e = (c0[:, None] + np.arange(n + 1)[None, :] - x[:, None]) * inv
+    Pe, pe = _Phi_phi(e)
+    P, dP = Pe[:, 1:] - Pe[:, :-1], (pe[:, :-1] - pe[:, 1:]) * inv
+    if not ds:
+        return P, dP, None
+    ep = e * pe
+    return P, dP, (ep[:, :-1] - ep[:, 1:]) * inv
+
+
+def _fit(stamp, w0, r0, c0, x, y, s, noise, gain, fit_sigma=False, iters=10, tol_px=1e-3):
     """Weighted least-squares fit of A P(x, y; s) + b to (K, n, n) stamps whose top-left pixel is (r0, c0).
 
     w0 : (K, n, n) 1 = usable pixel, 0 = excluded (saturated, hot, outside the frame).  x, y, s : initial
-    values (K,).  Returns x, y, A, b, s, cov (K, 4, 4) of (x, y, A, b) (Fisher inverse), ok (K,)."""
+    values (K,).  Levenberg-Marquardt (Marquardt's diagonal scaling, lambda from 1e-3, / 10 (down to 1e-6)
+    after a step that does not raise chi^2, x 10 after one that does, which is then not taken; position steps
+    clipped to +-0.5 px, width steps to +-0.3 s).  A star stops when its proposed position step is under
+    ``tol_px`` on both axes (fitting the width: and its width step too), i.e. its parameters are within
+    ~``tol_px`` of the minimum, when lambda reaches 1e4, or after ``iters`` steps; its iterations depend on
+    its own stamp only (a batch equals the per-star fits: finished stars are frozen, then dropped).
+    Returns x, y, A, b, s, cov (K, 4, 4) of (x, y, A, b) (Fisher inverse at the final parameters), ok (K,)."""
     K, n, _ = stamp.shape
-    x, y, s = x.astype(np.float64).copy(), y.astype(np.float64).copy(), s.astype(np.float64).copy()
-    d = stamp.astype(np.float64)
-    nv = noise.astype(np.float64)[:, None, None] ** 2
-    px, _, _ = _profiles(x, c0, n, s)
-    py, _, _ = _profiles(y, r0, n, s)
-    P = py[:, :, None] * px[:, None, :]
-    A = np.maximum((w0 * d * P).sum((1, 2)) / np.maximum((w0 * P * P).sum((1, 2)), 1e-12), 1e-3)
-    b = np.zeros(K)
+    m = n * n
     npar = 5 if fit_sigma else 4
+    d = stamp.astype(np.float64).reshape(K, m)
+    wf = np.asarray(w0, np.float64).reshape(K, m)
+    nv = noise.astype(np.float64) ** 2
+    s_in = s.astype(np.float64)
+    p = np.empty((K, npar))                        # parameters x, y, A, b (, s)
+    p[:, 0], p[:, 1], p[:, 2], p[:, 3] = x, y, 1.0, 0.0
+    if fit_sigma:
+        p[:, 4] = s_in
+    out = p.copy()
+    H4 = np.empty((K, 4, 4))
+
+    def model(p, s2, st):               # A P (k, m) and J (k, npar, m) of k stars; st = [c0; r0], s2 = [s; s]
+        k = p.shape[0]
+        if fit_sigma:
+            s2 = np.concatenate([p[:, 4], p[:, 4]])
+        P1, D1, S1 = _profiles(p[:, :2].T.ravel(), st, n, s2, fit_sigma)
+        px, py, dpx, dpy = P1[:k], P1[k:], D1[:k], D1[k:]
+        J = np.empty((k, npar, n, n))      # parameter-major: each derivative image contiguous
+        A = p[:, 2:3]
+        np.multiply(py[:, :, None], px[:, None, :], out=J[:, 2])
+        np.multiply((A * py)[:, :, None], dpx[:, None, :], out=J[:, 0])
+        np.multiply((A * dpy)[:, :, None], px[:, None, :], out=J[:, 1])
+        J[:, 3] = 1.0
+        if fit_sigma:
+            J[:, 4] = A[:, :, None] * (S1[k:, :, None] * px[:, None, :] + py[:, :, None] * S1[:k, None, :])
+        J = J.reshape(k, npar, m)
+        return A * J[:, 2], J
+
+    def weights(AP, wf, nv):
+        return wf / (nv[:, None] + np.maximum(AP, 0.0) / gain) if gain else wf / nv[:, None]
+
+    st0 = np.concatenate([c0, r0])
+    s2 = np.concatenate([s_in, s_in])
+    P, J = model(p, s2, st0)
+    p[:, 2] = np.maximum((wf * d * P).sum(1) / np.maximum((wf * P * P).sum(1), 1e-12), 1e-3)   # A at b = 0
+    AP = p[:, 2:3] * P
+    W = weights(AP, wf, nv)
+    J[:, 0] *= p[:, 2:3]                  # J was evaluated with A = 1: its A-proportional rows rescaled
+    J[:, 1] *= p[:, 2:3]
+    if fit_sigma:
+        J[:, 4] *= p[:, 2:3]
+    r = d - AP                            # residual (b = 0)
+    chi = (W * r * r).sum(1)
     lam = np.full(K, 1e-3)
-
-    def model(i, x, y, A, b, s):          # stars i (index array) at parameters (x, y, A, b, s) of those stars
-        px, dpx, spx = _profiles(x, c0[i], n, s)
-        py, dpy, spy = _profiles(y, r0[i], n, s)
-        P = py[:, :, None] * px[:, None, :]
-        mu = A[:, None, None] * P + b[:, None, None]
-        k = len(i)
-        J = np.empty((k, n, n, npar))
-        Ay = A[:, None] * py
-        np.multiply(Ay[:, :, None], dpx[:, None, :], out=J[..., 0])
-        np.multiply((A[:, None] * dpy)[:, :, None], px[:, None, :], out=J[..., 1])
-        J[..., 2] = P
-        J[..., 3] = 1.0
-        if fit_sigma:
-            J[..., 4] = A[:, None, None] * (spy[:, :, None] * px[:, None, :] + py[:, :, None] * spx[:, None, :])
-        return mu, J.reshape(k, n * n, npar)
-
-    def weights(i, mu, b):
-        var = nv[i] + (np.maximum(mu - b[:, None, None], 0.0) / gain if gain else 0.0)
-        return (w0[i] / var).reshape(len(i), -1)
-
-    everyone = np.arange(K)
-    dflat = d.reshape(K, -1)
-    mu, J = model(everyone, x, y, A, b, s)
-    W = weights(everyone, mu, b)
-    chi = (W * (dflat - mu.reshape(K, -1)) ** 2).sum(1)
-    eye = np.eye(npar)[None]
-    active = everyone
-    for _ in range(iters):          # Levenberg-Marquardt; a star leaves the loop when it has converged
-        if active.size == 0:
-            break
-        i = active
-        Ji, Wi = J[i], W[i]
-        r = dflat[i] - mu[i].reshape(len(i), -1)
-        JW = Ji * Wi[:, :, None]
-        H = JW.transpose(0, 2, 1) @ Ji
-        g = np.einsum("kpj,kp->kj", JW, r)
-        diag = np.maximum(np.diagonal(H, axis1=1, axis2=2), 1e-12)
-        Hd = H + lam[i, None, None] * eye * diag[:, :, None]
-        try:
-            step = np.linalg.solve(Hd, g[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            step = np.zeros_like(g)
-            for k in range(len(i)):     # singular systems only (degenerate stamps); never per pixel
-                step[k] = np.linalg.lstsq(Hd[k], g[k], rcond=None)[0]
-        step[:, :2] = np.clip(step[:, :2], -0.5, 0.5)
-        if fit_sigma:
-            step[:, 4] = np.clip(step[:, 4], -0.3 * s[i], 0.3 * s[i])
-        xn, yn, An, bn = x[i] + step[:, 0], y[i] + step[:, 1], A[i] + step[:, 2], b[i] + step[:, 3]
-        sn = np.clip(s[i] + step[:, 4], 0.2, 20.0) if fit_sigma else s[i]
-        mun, Jn = model(i, xn, yn, An, bn, sn)
-        Wn = weights(i, mun, bn)
-        chin = (Wn * (dflat[i] - mun.reshape(len(i), -1)) ** 2).sum(1)
-        better = np.isfinite(chin) & (chin <= chi[i])
-        u = i[better]
-        x[u], y[u], A[u], b[u], s[u] = xn[better], yn[better], An[better], bn[better], sn[better]
-        mu[u], J[u], W[u], chi[u] = mun[better], Jn[better], Wn[better], chin[better]
-        lam[i] = np.where(better, np.maximum(lam[i] / 10, 1e-6), lam[i] * 10)
-        done = (better & (np.abs(step[:, :2]).max(1) < 1e-4)) | (lam[i] >= 1e4)
-        active = i[~done]
-    J4 = J[..., :4]
-    H = (J4 * W[:, :, None]).transpose(0, 2, 1) @ J4
-    ok = np.isfinite(H).all((1, 2)) & (np.abs(np.linalg.det(H)) > 0)
+    act = np.arange(K)                     # the stars still in the arrays (compressed now and then)
+    frozen = np.zeros(K, bool)             # finished: no longer updated, written out when dropped
+    for it in range(iters + 1):
+        if it < iters and not frozen.all():
+            JW = J * W[:, None, :]
+            Hd = JW @ J.transpose(0, 2, 1)
+            g = (JW @ r[:, :, None])[..., 0]
+            dg = Hd.reshape(-1, npar * npar)[:, ::npar + 1]         # the diagonal (a view)
+            dg += lam[:, None] * np.maximum(dg, 1e-12)
+            try:
+                step = np.linalg.solve(Hd, g[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                step = np.zeros_like(g)
+                for k in range(act.size):     # singular systems only (degenerate stamps); never per pixel
+                    step[k] = np.linalg.lstsq(Hd[k], g[k], rcond=None)[0]
+            np.clip(step[:, :2], -0.5, 0.5, out=step[:, :2])
+            small = np.abs(step[:, :2]).max(1) < tol_px
+            pn = p + step
+            if fit_sigma:
+                ds = np.clip(step[:, 4], -0.3 * p[:, 4], 0.3 * p[:, 4])
+                small &= np.abs(ds) < tol_px
+                pn[:, 4] = np.clip(p[:, 4] + ds, 0.2, 20.0)
+            APn, Jn = model(pn, s2, st0)
+            rn = d - APn
+            rn -= pn[:, 3:4]
+            Wn = weights(APn, wf, nv) if gain else W
+            chin = (Wn * rn * rn).sum(1)
+            better = np.isfinite(chin) & (chin <= chi) & ~frozen
+            bc = better[:, None]
+            p, r, chi = np.where(bc, pn, p), np.where(bc, rn, r), np.where(better, chin, chi)
+            J = np.where(bc[:, :, None], Jn, J)
+            if gain:
+                W = np.where(bc, Wn, W)
+            lam = np.where(better, np.maximum(lam * 0.1, 1e-6), lam * 10)
+            frozen |= small | (lam >= 1e4)
+        last = it == iters or frozen.all()
+        if last or frozen.sum() * 4 >= act.size:    # write the finished stars out (their state has not changed
+            u = np.ones(act.size, bool) if last else frozen          # since they finished) and drop them
+            out[act[u]] = p[u]
+            J4 = J[u][:, :4]
+            H4[act[u]] = (J4 * W[u][:, None, :]) @ J4.transpose(0, 2, 1)      # Fisher matrix of (x, y, A, b)
+            if last:
+                break
+            keep = ~frozen
+            act, p, r, J, W, chi, lam, d, wf, nv = (a[keep] for a in (act, p, r, J, W, chi, lam, d, wf, nv))
+            st0 = np.concatenate([c0[act], r0[act]])
+            s2 = np.concatenate([s_in[act], s_in[act]])
+            frozen = frozen[keep]
+    x, y, A, b = out[:, 0], out[:, 1], out[:, 2], out[:, 3]
+    s_out = out[:, 4] if fit_sigma else s_in.copy()
+    ok = np.isfinite(H4).all((1, 2)) & (np.abs(np.linalg.det(H4)) > 0)
     cov = np.full((K, 4, 4), np.nan)
     if ok.any():
-        cov[ok] = np.linalg.inv(H[ok])
+        cov[ok] = np.linalg.inv(H4[ok])
     half = n / 2.0
     ok &= (A > 0) & np.isfinite(x) & np.isfinite(y) & (np.abs(x - (c0 + half)) < half - 0.5) \
         & (np.abs(y - (r0 + half)) < half - 0.5) & (np.diagonal(cov, axis1=1, axis2=2)[:, :2] > 0).all(1)
-    return x, y, A, b, s, cov, ok
+    return x, y, A, b, s_out, cov, ok
 
 
-def _stamps(R, valid, r, c, h):
-    """(K, n, n) stamps of R and of the usable pixels (inside the frame and ``valid``, None = all) centred on
-    pixels (r, c), n = 2h + 1, and the stamps' first row and column."""
+def _stamps(R, valid, r, c, h, img=None, sat=None):
+    """(K, n, n) stamps of R and of the usable pixels (inside the frame, ``valid`` (None = all) and, with ``img``
+    and ``sat``, img < sat: not saturated) centred on pixels (r, c), n = 2h + 1, and the stamps' first row and
+    column."""
     H, W = R.shape
     n = 2 * h + 1
     rr = r[:, None] - h + np.arange(n)[None, :]
@@ -166,4 +228,6 @@ def _stamps(R, valid, r, c, h):
     st = R[rcl, ccl]
     if valid is not None:
         ok &= valid[rcl, ccl]
+    if img is not None and sat is not None:
+        ok &= img[rcl, ccl] < sat
     return st, ok.astype(np.float64), rr[:, 0], cc[:, 0]
