@@ -25,34 +25,27 @@ of those (the machine may be shared: a best-of is the least disturbed).  Every o
 engines is compared for bit equality (a difference stops the run).  ``ratio`` = numpy / taichi warm time.
 numpy is single-threaded whatever the setting.
 
-Measured (2-core AMD EPYC VM, taichi 1.7.4, numpy 2.4; ``python benchmarks/bench_voting.py``, 2 runs),
-warm ms per case, numpy -> taichi (ratio).  The machine was shared with other test runs throughout (load
-average 3.0-3.8 on 2 cores), so a process got about one core: absolute times vary up to ~2x between
-runs, and 2 Taichi threads could not show their gain; the ratios within one run are the figure to read.
-All outputs were bit-identical in every row.
+Measured (2-core AMD EPYC VM, taichi 1.7.4, numpy 2.4; ``python benchmarks/bench_voting.py``, 2026-11-24,
+load average 1.4-1.5 from other work), warm ms per case, numpy -> taichi (ratio).  All outputs were
+bit-identical in every row.  Since the vote kernel's per-thread slots and the select / verify kernels'
+small batches are spread one per Taichi task (``kernels/_runtime.py``: ``TASK_ITEMS``, ``task_stride``),
+2 Taichi threads run the V 7 voting 1.8x faster than 1 at batch 1024 (before: 1.0x, the slots' 2-iteration
+loop ran on one thread):
 
-=====  ======  =====  =======  ====================  ====================
-input  config  batch  threads  run 1                 run 2
-=====  ======  =====  =======  ====================  ====================
-v5.5   paper      64        1  0.146 -> 0.074 (2.0)  0.128 -> 0.061 (2.1)
-v5.5   paper    1024        1  0.086 -> 0.042 (2.1)  0.125 -> 0.060 (2.1)
-v5.5   robust     64        1  0.184 -> 0.125 (1.5)  0.681 -> 0.500 (1.4)
-v5.5   robust   1024        1  0.159 -> 0.103 (1.5)  0.439 -> 0.313 (1.4)
-v7.0   paper      64        1  2.00 -> 1.41 (1.4)    2.90 -> 1.76 (1.7)
-v7.0   paper    1024        1  2.09 -> 1.38 (1.5)    2.93 -> 2.17 (1.4)
-v7.0   robust     64        1  2.91 -> 2.29 (1.3)    5.61 -> 4.33 (1.3)
-v7.0   robust   1024        1  2.68 -> 2.17 (1.2)    4.03 -> 2.47 (1.6)
-v5.5   paper      64        2  0.146 -> 0.059 (2.5)  0.205 -> 0.094 (2.2)
-v5.5   paper    1024        2  0.086 -> 0.041 (2.1)  0.130 -> 0.060 (2.2)
-v5.5   robust     64        2  0.623 -> 0.436 (1.4)  0.739 -> 0.499 (1.5)
-v5.5   robust   1024        2  0.359 -> 0.281 (1.3)  0.478 -> 0.340 (1.4)
-v7.0   paper      64        2  1.89 -> 1.37 (1.4)    2.16 -> 1.49 (1.5)
-v7.0   paper    1024        2  1.91 -> 1.34 (1.4)    1.95 -> 1.49 (1.3)
-v7.0   robust     64        2  4.25 -> 3.50 (1.2)    4.44 -> 3.45 (1.3)
-v7.0   robust   1024        2  3.45 -> 2.55 (1.4)    3.56 -> 2.64 (1.4)
-=====  ======  =====  =======  ====================  ====================
+=====  ======  =====  ======================  ======================
+input  config  batch  1 thread                2 threads
+=====  ======  =====  ======================  ======================
+v5.5   paper      64  0.122 -> 0.085 (1.42)   0.112 -> 0.067 (1.67)
+v5.5   paper    1024  0.095 -> 0.060 (1.58)   0.088 -> 0.046 (1.92)
+v5.5   robust     64  0.215 -> 0.157 (1.37)   0.198 -> 0.119 (1.67)
+v5.5   robust   1024  0.176 -> 0.127 (1.39)   0.173 -> 0.120 (1.44)
+v7.0   paper      64  2.07 -> 1.55 (1.34)     2.16 -> 1.14 (1.90)
+v7.0   paper    1024  1.87 -> 1.46 (1.28)     1.90 -> 0.81 (2.34)
+v7.0   robust     64  3.13 -> 2.44 (1.28)     2.89 -> 1.71 (1.69)
+v7.0   robust   1024  2.73 -> 2.31 (1.18)     2.77 -> 1.27 (2.18)
+=====  ======  =====  ======================  ======================
 
-(Run 1 predates the whole-row scan of the vote kernel's second pass.)  ``hil7``,
+Earlier (one-thread kernels): ``hil7``,
 32 frames, 2 threads: paper 6.4 -> 2.0 (3.3), robust 8.6 -> 5.4 (1.6).  The robust config's ratio is
 capped by its attitude check (numpy in both engines, ~40 % of its time with the kernels).  Small
 batches: at B = 1 the kernels' launch costs make the Taichi engine ~0.1 ms per call slower (v5.5 paper
