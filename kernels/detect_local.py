@@ -83,8 +83,9 @@ in, and a star's PSF fit does not depend on the other stars (each leaves the bat
 With ``psf_sigma_px`` None the PSF width is measured per frame: a first pass at ``psf_sigma_init_px``
 fits the width of up to 25 bright (SNR > 30; SNR > 15 when fewer than 3 reach 30), unsaturated, isolated stars;
 their median (needs 3; fits under ``MIN_MEASURED_SIGMA_PX`` = 0.35 px are hot-pixel clusters, not stars) is used
-for the final pass, else the initial width.  (Measured on the ESA frames: widths 0.56-0.65 px; the frame with a
-bright sky, which had fewer than 3 stars above SNR 30, now measures 0.60 px instead of keeping the initial 1.0.)
+for the final pass, else the initial width.  (Measured on the 8 ESA frames, 2026-11-24: widths 0.636-0.705 px;
+the frame with a bright sky, which has fewer than 3 stars above SNR 30, is measured from the SNR > 15 stars
+instead of keeping the initial 1.0.)
 
 Centroids use the continuous pixel convention (pixel (r, c) has its centre at (c + 0.5, r + 0.5)).
 Cost (1024 x 768, one core, ``benchmarks/bench_hil_speed.py frame``): ~18-20 ms CPU per ESA frame (~250 stars
