@@ -78,10 +78,14 @@ def dataclass_from_table(cls, table: dict | None, *, source: str, section: str, 
 
 
 def dataclass_to_table(obj) -> dict:
-    """Plain dict of a (nested) frozen dataclass, suitable for TOML/JSON."""
+    """Plain dict of a (nested) frozen dataclass, suitable for TOML/JSON.  Fields whose metadata has
+    ``omit_if_default`` are left out while they hold their default (a run's stored spec, and so its
+    identity, does not change when such an option is added)."""
     out = {}
     for f in dataclasses.fields(obj):
         v = getattr(obj, f.name)
+        if f.metadata.get("omit_if_default") and v == f.default:
+            continue                       # a newer option left at its default: older tables stay the same
         if dataclasses.is_dataclass(v):
             v = dataclass_to_table(v)
         elif isinstance(v, tuple):

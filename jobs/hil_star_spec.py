@@ -30,7 +30,14 @@ METHODS = ("robust", "paper")
 MAX_VOTE_CELLS = 4_000_000
 """4M int64 cells = 32 MB per vote table chunk: with 15.6k catalog stars x 25 voters that is ten frames at
 a time, and 1M candidate pairs per expansion (the default 250k would vote one frame at a time)."""
-_METHOD_CONFIG = {"robust": VotingConfig.robust, "paper": VotingConfig.paper}
+HIL_FIRST_STARS = 12
+"""The robust method's cheaper first round in ``hil star`` (``VotingConfig.first_stars``): the 12 brightest
+detections vote first (about a quarter of the 25-star round's work) and a frame whose answer fails
+verification votes again with the 25 brightest, then widens.  On the 8 ESA frames every answer is the same
+as with 25 voters; on rendered frames with as many false stars as true ones, 12 voters alone identify 85 %
+against 94 % with 20, which the second round recovers (README)."""
+_METHOD_CONFIG = {"robust": lambda tol, **kw: VotingConfig.robust(tol, **{"first_stars": HIL_FIRST_STARS, **kw}),
+                  "paper": VotingConfig.paper}
 
 
 # ============================================================================================ spec

@@ -145,7 +145,8 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
     -----
     Each case is computed independently: a batch gives the same result as each case alone.
     Invalid or non-finite entries of ``obs`` are ignored (they may hold NaN).  Only the first
-    ``cfg.max_stars`` valid stars of a case vote; with widening (``cfg.max_stars_total``) the cases
+    ``cfg.max_stars`` valid stars of a case vote (with ``cfg.first_stars``, first only that many, and the
+    ``max_stars`` when that answer fails); with widening (``cfg.max_stars_total``) the cases
     that fail vote again with the next blocks (:mod:`dualsight.nav.widen`), each round the whole chain
     below on those cases only.
     Cost: O(observed pairs x candidates per pair) for the voting round plus O(B x max_stars x N)
@@ -172,17 +173,22 @@ def identify(obs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray, pair_i, p
 
     # round 0: the first max_stars valid stars vote (the reference's method)
     chance = chance or cfg.max_p_chance < 1.0
-    res = _round(obs, valid, valid, cat_unit, index, cfg, engine, cat_vmag, chance)
+    schedule = cfg.widen_schedule
+    first = schedule[0][1] if schedule[0][1] < int(cfg.max_stars) else None      # the cheaper first round
+    voters0 = widen.block_voters(valid, 0, first) if first else valid
+    res = _round(obs, valid, voters0, cat_unit, index, cfg, engine, cat_vmag, chance)
     res = {k: np.array(v, copy=True) for k, v in res.items()}          # no two fields share memory
     hyp = res.pop("hypotheses")
     n_rounds = np.ones(B, np.int64)
     answer_round = np.zeros(B, np.int64)
     n_valid = valid.sum(axis=1)
-    for r, (start, stop) in enumerate(cfg.widen_schedule[1:], start=1):   # widening: a handful of rounds
-        todo = widen.needs_widening(res["T"], res["accepted"].sum(axis=1), cfg) & (n_valid >= start + 2)
+    for r, (start, stop) in enumerate(schedule[1:], start=1):           # widening: a handful of rounds
+        # enough valid stars for a new block: two from ``start``, or (the full block after the first round)
+        # more than the first round had
+        more = n_valid >= start + 2 if start > 0 else n_valid > first
+        todo = widen.needs_widening(res["T"], res["accepted"].sum(axis=1), cfg) & more
         if cfg.max_p_chance < 1.0:                                      # an improbable answer: widen too
-            todo |= (res["T"] > 0) & ~(_chance(obs, valid, res, hyp, cat_unit, cfg) <= cfg.max_p_chance) \
-                & (n_valid >= start + 2)
+            todo |= (res["T"] > 0) & ~(_chance(obs, valid, res, hyp, cat_unit, cfg) <= cfg.max_p_chance) & more
         idx = np.flatnonzero(todo)
         if idx.size == 0:
             break

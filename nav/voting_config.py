@@ -32,7 +32,7 @@ All angles are in radians (convert at the edge with :data:`dualsight.scene.units
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, Literal, get_args
 
 from pydantic import Field
@@ -129,6 +129,13 @@ class VotingConfig:
         ``[r * widen_step, r * widen_step + max_stars)`` in round r, cut at ``max_stars_total``), and
         keeps the answer with the most verified stars.  None (the paper method) or <= ``max_stars`` =
         one round, the reference's.  Work bound: at most ``widen_rounds`` rounds of one block each.
+    first_stars : a cheaper first round, None (off) or an integer in [2, 1000] below ``max_stars``: round 0
+        votes with the ``first_stars`` brightest valid stars only (the voting's work grows with the square
+        of the voters: 12 of 25 is ~1/4), and a case whose answer fails verification (as for widening) votes
+        again with the ``max_stars`` brightest before any widening block (rounds ``(0, first_stars)``,
+        ``(0, max_stars)``, then the widening blocks).  A case with no more than ``first_stars`` valid stars
+        is not voted twice.  Omitted from the settings' table when None, so the runs of specs that do
+        not use it keep their identity.
     widen_step : ranks between the first stars of two rounds' blocks, None (= ``max_stars``: disjoint
         blocks) or an integer in [1, 1000]; smaller = overlapping blocks, more rounds.
     widen_min_verified : a round's answer with fewer verified stars than this (None = ``min_verified``
@@ -168,6 +175,7 @@ class VotingConfig:
     reidentify: bool = True
     max_vote_cells: Annotated[int, Field(ge=1, le=2 ** 28)] = 250_000
     max_stars_total: _Count | None = None
+    first_stars: _Count | None = field(default=None, metadata={"omit_if_default": True})
     widen_step: Annotated[int, Field(ge=1, le=MAX_STARS)] | None = None
     widen_min_verified: _Count | None = None
     residual_k: Annotated[float, Field(ge=0.0, le=100.0)] = 0.0
@@ -202,11 +210,13 @@ class VotingConfig:
     @property
     def widen_schedule(self) -> tuple[tuple[int, int], ...]:
         """The voting blocks of the widening rounds, ``((start, stop), ...)`` valid-star ranks (brightest
-        = 0): round 0 is ``(0, max_stars)``; one round only without widening."""
+        = 0): round 0 is ``(0, max_stars)`` (with ``first_stars`` < ``max_stars``: ``(0, first_stars)`` then
+        ``(0, max_stars)``); one round only without widening."""
         K = int(self.max_stars)
         total = K if self.max_stars_total is None else max(K, int(self.max_stars_total))
         step = K if self.widen_step is None else int(self.widen_step)
-        out, start = [(0, K)], step
+        first = [(0, int(self.first_stars))] if self.first_stars is not None and self.first_stars < K else []
+        out, start = first + [(0, K)], step
         while total > K and start + 1 < total:                         # a block needs two stars
             out.append((start, min(start + K, total)))
             if start + K >= total:

@@ -151,6 +151,43 @@ def test_crowded_equal_mix_needs_widening(crowded65):
             np.testing.assert_array_equal(getattr(one, f.name)[0], getattr(part["ident"], f.name)[b], err_msg=f.name)
 
 
+def test_a_cheaper_first_round_keeps_the_full_rounds_rate(equal55):
+    """``first_stars``: the 10 brightest vote first, a failing case votes again with the 20 brightest.
+    On the equal mix, 10 voters alone identify fewer cases than 20 (the false stars crowd them); the two
+    rounds identify as many as the 20-voter round, none wrong, and a case with no more than 10 valid
+    stars is never voted twice."""
+    cfg = equal55.spec.robust
+    assert cfg.max_stars == 20 and cfg.first_stars is None
+    two = dataclasses.replace(cfg, first_stars=10)
+    assert two.widen_schedule[:2] == ((0, 10), (0, 20)) and two.widen_schedule[2:] == cfg.widen_schedule[1:]
+    only10 = dataclasses.replace(cfg, max_stars=10, max_stars_total=None)
+    ctx = equal55.ctx
+
+    def ident_with(c):
+        return lambda p: identify(p["obs"], ctx.catalog.unit, ctx.pairs, c)
+
+    rate = {}
+    for name, c in (("full", cfg), ("first", two), ("only10", only10)):
+        ans, wrong, _, _ = _outcome(equal55.parts, ident_with(c))
+        rate[name] = (ans & ~wrong).mean()
+        assert wrong.mean() <= 0.01, (name, wrong.mean())
+    print(rate)
+    assert rate["only10"] < rate["full"] - 0.02                                 # 10 voters alone lose cases
+    assert rate["first"] >= rate["full"] - 0.01
+    part = equal55.parts[0]
+    idn = identify(part["obs"], ctx.catalog.unit, ctx.pairs, two)
+    r0 = (idn.T > 0) & (idn.answer_round == 0)
+    rank = widen.valid_rank(part["obs"].valid)
+    assert r0.sum() >= 10 and (idn.answer_round[idn.T > 0] == 1).sum() >= 1   # both rounds answer some
+    assert (idn.vote_ids[r0][rank[r0] >= 10] < 0).all()                         # round 0: only 10 voted
+    assert (idn.vote_ids[r0][(rank[r0] >= 0) & (rank[r0] < 10)] >= 0).any()
+    obs = part["obs"]                                   # the same frames cut to their 9 brightest detections
+    cut = type(obs)(obs.vec, obs.valid & (np.cumsum(obs.valid, axis=1) <= 9), obs.x, obs.y)
+    idn = identify(cut, ctx.catalog.unit, ctx.pairs, two)
+    assert (idn.T <= 0).sum() >= 5                      # failing cases exist (false stars among the 9) ...
+    assert (idn.n_rounds == 1).all()                    # ... and none voted again with the same 9 stars
+
+
 def test_ten_true_five_false(ten_five):
     """~11 true + 5 false stars (V 5.5).  Measured: 98.5 % identified, 0 wrong."""
     ident_rate, wrong_rate, *_ = _rates(ten_five)

@@ -496,6 +496,14 @@ def test_spec_round_trip_and_errors_name_the_field(tmp_path):
     assert hs.spec_from_dict(spec.to_dict()) == spec and hs.spec_from_dict(json.loads(json.dumps(spec.to_dict()))) == spec
     assert hs.n_cases(spec) == 2 and spec.images[1].bytes is None and spec.images[0].bytes == img.stat().st_size
     assert spec.settings.voting["tolerance_rad"] == pytest.approx(15 * ARCSEC) and spec.settings.alt_voting
+    # the robust method's cheaper first round is in the HIL spec; the paper method (alt) has none, and its
+    # table does not even hold the key (a newer option at its default leaves older tables unchanged)
+    from dualsight.jobs.hil_star_spec import HIL_FIRST_STARS
+    assert spec.settings.voting["first_stars"] == HIL_FIRST_STARS == 12
+    assert "first_stars" not in spec.settings.alt_voting
+    from dualsight.jobs import star
+    d_star, _ = star.resolve_spec("paper", None)
+    assert "first_stars" not in d_star["robust"] and "first_stars" not in d_star["voting"]
     for change, field, words in (({"settings": {"max_obs": 1}}, "settings.max_obs", "greater than or equal to 2"),
                                  ({"settings": {"batch_size": "3"}}, "settings.batch_size", "valid integer"),
                                  ({"settings": {"background_block_px": 2}}, "settings.background_block_px", "[4, 4096]"),
