@@ -113,7 +113,7 @@ def add_star_parser(hsub) -> argparse.ArgumentParser:
     w.add_argument("--sweep", action="append", default=None, metavar="KEY=V1,V2,...",
                    help="run every combination of these settings over the images as one job and rank them "
                         "(repeatable; keys: k-sigma, min-pixels, max-stars, tolerance-arcsec, mag-limit, "
-                        "background-block, method); with --truth by success rate, else by agreement")
+                        "background-block, method, detector); with --truth by success rate, else by agreement")
     f = p.add_argument_group("lens distortion from the sky (jobs/fit_distortion.py)")
     f.add_argument("--fit-distortion", action="store_true",
                    help="fit k1, k2 and the focal length (fx = fy) to the solved frames' identified stars and "

@@ -42,6 +42,7 @@ SWEEP_KEYS = {
     "mag-limit": ("mag_limit", float, "[-2, 12]"),
     "background-block": ("background_block", int, "0 or [4, 4096]"),
     "method": ("method", str, "robust | paper"),
+    "detector": ("detector", str, "local | global"),
 }
 """The keys ``--sweep`` takes: each is a ``hil star`` option (same name, same meaning and checks)."""
 

@@ -62,6 +62,7 @@ def test_agreement_and_ranking_by_hand():
 def test_sweep_keys_are_checked():
     assert sw.parse_sweeps(["k-sigma=3,4", "max-stars=10"]) == [("k-sigma", [3.0, 4.0]), ("max-stars", [10])]
     assert len(sw.grid(sw.parse_sweeps(["k-sigma=3,4", "max-stars=10,20,30"]))) == 6
+    assert sw.parse_sweeps(["detector=local,global"]) == [("detector", ["local", "global"])]
     for bad, msg in [("foo=1", "unknown key"), ("k-sigma=", "KEY=V1"), ("k-sigma=a", "floats"),
                      ("k-sigma=3,3", "repeated"), ("k-sigma=nan", "finite")]:
         with pytest.raises(Exception, match=msg):
@@ -106,3 +107,22 @@ def test_sweep_over_the_esa_frames_matches_single_runs_and_truth(tmp_path):
     # the same sweep again is the same run, resumed with nothing to do
     rc, out2, _ = _cli(["hil", "star", *frames, *common, "--sweep", "k-sigma=5,60", "--run", "sw", "--json"])
     assert rc == 0 and json.loads(out2) == summary
+
+
+def test_sweep_over_the_detectors_matches_single_runs(tmp_path):
+    """``--sweep detector=local,global``: each variant's row is the plain run's with ``--detector``."""
+    if not th.ESA.is_dir():
+        pytest.skip(f"real ESA frames not found in {th.ESA}")
+    frames = sorted(th.ESA.glob("*.tiff"))[:1]
+    lake = tmp_path / "lake"
+    common = ["--camera", CAMERA, "--no-compare", "--lake", lake, "--workers", "1"]
+    rc, _, err = _cli(["hil", "star", *frames, *common, "--sweep", "detector=local,global", "--run", "sd"])
+    assert rc == 0, err
+    _, rows = run_sql(lake, "SELECT variant, stars_detected, ra_rad, dec_rad FROM hil_sweep WHERE run = 'sd' "
+                            "ORDER BY variant")
+    assert len(rows) == 2 and rows[0][1] > 2 * rows[1][1]               # the local detector finds far more
+    for v, det in enumerate(("local", "global")):
+        rc, _, err = _cli(["hil", "star", *frames, *common, "--detector", det, "--run", f"d{v}"])
+        assert rc == 0, err
+        _, single = run_sql(lake, f"SELECT {v}, stars_detected, ra_rad, dec_rad FROM hil_star WHERE run = 'd{v}'")
+        assert [tuple(r) for r in single] == [tuple(rows[v])]
