@@ -14,7 +14,7 @@ per case (median over ``--repeats`` passes over ``--batches`` batches of ``--bat
   sample      draw_cases + stars_in_field (attitudes, projection)
   render      render_star_fields with every random effect off (PSF splat + the ADC pass over every pixel)
   noise       render_star_fields of the noisy sensor minus ``render`` (shot, read, hot pixels in the same pass)
-  digest      frame_digest of the frames (jobs/star.py, numpy, one pass per frame)
+  digest      frame_digest_taichi of the frames (jobs/star.py: one Taichi pass, parallel over rows)
   background  estimate_background (strided sample: median, MAD, clipped sigma)
   threshold   _levels + native_threshold (per-frame numbers)
   labelling   label_frames (run-length union-find: every pixel read once or twice)
@@ -85,7 +85,7 @@ def stage_times(batch: int, batches: int, repeats: int) -> dict:
     from dualsight.jobs import star
     from dualsight.kernels import detect as kd
     from dualsight.kernels import starfield as sf
-    from dualsight.kernels.digest import frame_digest
+    from dualsight.kernels.digest import frame_digest_taichi as frame_digest
     from dualsight.kernels.labelling import label_frames, native_threshold
     from dualsight.nav.observations import observations
     from dualsight.nav.star_solution import identify, solve

@@ -46,7 +46,7 @@ from dualsight.jobs.config import dataclass_from_table, dataclass_to_table, pres
 from dualsight.kernels import detect as kdetect
 from dualsight.kernels import starfield as kstar
 from dualsight.kernels.detect import DetectConfig
-from dualsight.kernels.digest import frame_digest
+from dualsight.kernels.digest import frame_digest_taichi
 from dualsight.kernels.starfield import SensorConfig
 from dualsight.nav.errors import STATUS_NAMES
 from dualsight.nav.observations import observations
@@ -381,7 +381,7 @@ def render_and_detect(field_: FieldStars, noise_seeds: np.ndarray, camera: Camer
         return Rendered(det, None, time.perf_counter_ns() - t0, None, digest)
     images = kstar.render_star_fields(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
                                       camera.height, sensor, noise_seeds, camera=camera, attitude=attitude)
-    digest = frame_digest(images, np.asarray(sensor.empty_pixel_adu()).astype(images.dtype))
+    digest = frame_digest_taichi(images, np.asarray(sensor.empty_pixel_adu()).astype(images.dtype))  # Taichi runs
     t1 = time.perf_counter_ns()
     if detector == "local":
         from dualsight.kernels.detect_local import detect_real

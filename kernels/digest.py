@@ -18,7 +18,7 @@ reproducibility, not a cryptographic hash.
 
 import numpy as np
 
-__all__ = ["splitmix64", "frame_digest", "patch_digest", "patch_digest_taichi", "to_int64"]
+__all__ = ["splitmix64", "frame_digest", "frame_digest_taichi", "patch_digest", "patch_digest_taichi", "to_int64"]
 
 _C1, _C2, _C3 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
 _WEIGHTS: dict[int, np.ndarray] = {}
@@ -133,6 +133,65 @@ def _build_patch_sums(dtype):
     return patch_sums
 
 
+def _unsigned_view(a: np.ndarray) -> np.ndarray:
+    """The array's unsigned bit patterns in their own width (no copy): what :func:`_bits` widens."""
+    if a.dtype.kind == "f":
+        return a.view(np.uint32 if a.dtype.itemsize == 4 else np.uint64)
+    if a.dtype.kind == "b":
+        return a.view(np.uint8)
+    if a.dtype.kind == "i":
+        return a.view(a.dtype.str.replace("i", "u"))
+    if a.dtype.kind != "u":
+        raise ValueError(f"cannot digest a frame of dtype {a.dtype}")
+    return a
+
+
+def _build_row_sums(dtype):
+    import taichi as ti
+
+    tt = {1: ti.u8, 2: ti.u16, 4: ti.u32, 8: ti.u64}[np.dtype(dtype).itemsize]
+
+    @ti.kernel
+    def row_sums(img: ti.types.ndarray(dtype=tt, ndim=3), sky_bits: ti.types.ndarray(dtype=ti.u64, ndim=1),
+                 out: ti.types.ndarray(dtype=ti.u64, ndim=2)):
+        n = img.shape[2]
+        for b, r in ti.ndrange(img.shape[0], img.shape[1]):   # one row per iteration: parallel over rows
+            acc = ti.u64(0)
+            base = ti.cast(r, ti.u64) * ti.cast(n, ti.u64)
+            for c in range(n):
+                z = (base + ti.cast(c, ti.u64)) * ti.u64(0x9E3779B97F4A7C15) + ti.u64(0x9E3779B97F4A7C15)
+                z = (z ^ (z >> ti.u64(30))) * ti.u64(0xBF58476D1CE4E5B9)
+                z = (z ^ (z >> ti.u64(27))) * ti.u64(0x94D049BB133111EB)
+                z = z ^ (z >> ti.u64(31))
+                acc += (ti.cast(img[b, r, c], ti.u64) - sky_bits[b]) * z
+            out[b, r] = acc
+
+    return row_sums
+
+
+def frame_digest_taichi(frames: np.ndarray, sky=0) -> np.ndarray:
+    """:func:`frame_digest` as a Taichi kernel: the same (B,) uint64 digests, bit for bit (integer sums
+    mod 2^64 do not depend on their order).  One pass over the pixels, parallel over rows, splitmix64
+    computed in registers (no (H W,) weight table read); the row sums are added by numpy.  For callers
+    whose process already runs Taichi (the star job); :func:`frame_digest` starts nothing."""
+    global _KERNELS
+    from dualsight.kernels._runtime import KernelCache
+
+    if _KERNELS is None:
+        _KERNELS = KernelCache({"patch_sums": _build_patch_sums, "row_sums": _build_row_sums})
+    frames = np.asarray(frames)
+    B = frames.shape[0]
+    if B == 0 or frames.size == 0:
+        return np.zeros(B, np.uint64)
+    u = np.ascontiguousarray(_unsigned_view(np.ascontiguousarray(frames)))
+    u = u.reshape(B, frames.shape[1], -1)                     # (B, H, W C): channels innermost, as p
+    sky_bits = np.ascontiguousarray(_bits(np.broadcast_to(np.asarray(sky, dtype=frames.dtype), (B,))))
+    rows = np.empty(u.shape[:2], np.uint64)
+    _KERNELS.get("row_sums", u.dtype)(u, sky_bits, rows)
+    with np.errstate(over="ignore"):
+        return rows.sum(axis=1, dtype=np.uint64)
+
+
 _KERNELS = None
 
 
@@ -147,7 +206,7 @@ def patch_digest_taichi(values_f32: np.ndarray, dtype, poff: np.ndarray, boxes: 
     from dualsight.kernels._runtime import KernelCache
 
     if _KERNELS is None:
-        _KERNELS = KernelCache({"patch_sums": _build_patch_sums})
+        _KERNELS = KernelCache({"patch_sums": _build_patch_sums, "row_sums": _build_row_sums})
     dt = np.dtype(dtype)
     boxes = np.ascontiguousarray(boxes, np.int32)
     sums = np.zeros(len(boxes), np.uint64)

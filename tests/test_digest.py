@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from dualsight.kernels.digest import frame_digest, patch_digest, splitmix64, to_int64
+from dualsight.kernels.digest import frame_digest, frame_digest_taichi, patch_digest, splitmix64, to_int64
 
 M64 = (1 << 64) - 1
 
@@ -24,7 +24,7 @@ def ref_splitmix(i: int) -> int:
 
 def ref_digest(frame: np.ndarray, sky) -> int:
     """The module docstring's formula, pixel by pixel with Python integers (tiny frames only)."""
-    bits = {2: np.uint16, 4: np.uint32, 1: np.uint8}[frame.dtype.itemsize]
+    bits = {2: np.uint16, 4: np.uint32, 1: np.uint8, 8: np.uint64}[frame.dtype.itemsize]
     u = frame.ravel().view(bits) if frame.dtype.kind == "f" else frame.ravel()
     s = int(np.asarray(sky, frame.dtype).reshape(1).view(bits)[0]) if frame.dtype.kind == "f" else int(sky)
     return sum(((int(v) - s) & M64) * ref_splitmix(p) for p, v in enumerate(u)) & M64
@@ -36,20 +36,34 @@ def test_splitmix64_gives_the_published_sequence():
                                                           0x06C45D188009454F]
 
 
+DIGESTS = pytest.mark.parametrize("digest", [frame_digest, frame_digest_taichi], ids=["numpy", "taichi"])
+
+
+@DIGESTS
 @settings(max_examples=40, deadline=None)
 @given(arrays(np.uint16, st.tuples(st.integers(1, 3), st.integers(1, 9), st.integers(1, 9))),
        st.integers(0, 65535))
-def test_digest_of_uint16_frames_matches_the_definition(frames, sky):
-    got = frame_digest(frames, np.uint16(sky))
+def test_digest_of_uint16_frames_matches_the_definition(digest, frames, sky):
+    got = digest(frames, np.uint16(sky))
     assert [int(v) for v in got] == [ref_digest(f, sky) for f in frames]
 
 
+@DIGESTS
 @settings(max_examples=25, deadline=None)
 @given(arrays(np.float32, st.tuples(st.just(2), st.integers(1, 7), st.integers(1, 7)),
               elements=st.floats(0, 4000, width=32)))
-def test_digest_of_float32_frames_matches_the_definition(frames):
-    got = frame_digest(frames, np.float32(100.0))
+def test_digest_of_float32_frames_matches_the_definition(digest, frames):
+    got = digest(frames, np.float32(100.0))
     assert [int(v) for v in got] == [ref_digest(f, np.float32(100.0)) for f in frames]
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.int16, np.uint32, np.float64])
+def test_taichi_digest_of_other_types_and_colour_frames_matches_the_definition(dtype):
+    rng = np.random.default_rng(3)
+    frames = rng.integers(0, 200, (2, 5, 6, 3)).astype(dtype)       # colour: channels innermost in p
+    sky = dtype(7)
+    assert [int(v) for v in frame_digest_taichi(frames, sky)] == [ref_digest(f, sky) for f in frames]
+    assert [int(v) for v in frame_digest_taichi(frames[..., 0], sky)] == [ref_digest(f, sky) for f in frames[..., 0]]
 
 
 def test_any_changed_or_moved_pixel_changes_the_digest():
