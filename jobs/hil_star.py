@@ -295,6 +295,14 @@ MIN_IDENTIFIED_STARS = 3
 """Fewest identified stars for an image to count as identified (two give an attitude but no check)."""
 
 
+def _voters(n_valid: int, rnd: int, schedule) -> int:
+    """Stars that voted in round ``rnd`` (the answer's round; 0 without an answer) of the voting schedule
+    (``VotingConfig.widen_schedule``: valid-star ranks ``[start, stop)`` per round) for a frame of
+    ``n_valid`` valid detections."""
+    start, stop = schedule[rnd]
+    return max(0, min(n_valid, stop) - start)
+
+
 def _fill(res: ImageResult, b: int, det, obs, ident, sol, alt, truth: StarTruth, ctx: Context):
     """Per-image numbers and per-star rows from the batch's stage outputs."""
     cam, cat, rt = ctx.rt.camera, ctx.catalog, ctx.rt
@@ -311,7 +319,8 @@ def _fill(res: ImageResult, b: int, det, obs, ident, sol, alt, truth: StarTruth,
         r[col] = float(v[b]) if v is not None else None
     r.update(stars_detected=n_det, threshold_adu=float(det.threshold_adu[b]),
              detect_background_adu=float(det.background_adu[b]),
-             stars_used=int(min(obs.valid[b].sum(), rt.voting.max_stars)),
+             stars_used=_voters(int(obs.valid[b].sum()), int(ident.answer_round[b]) if ident.T[b] > 0 else 0,
+                                rt.voting.widen_schedule),
              T=int(ident.T[b]), stars_identified=int(ident.accepted[b].sum()),
              p_chance=float(ident.p_chance[b]) if np.isfinite(ident.p_chance[b]) else None)
     A_true = truth.matrix("A")

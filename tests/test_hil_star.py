@@ -86,6 +86,14 @@ def test_all_eight_frames_identified_lost_in_space(esa):
             assert key in r
     # the reference's method ran beside it on the same detections, and also solves every frame
     assert all(r["alt"]["method"] == "paper" and r["alt"]["identified"] for r in res)
+    # every frame answered in the cheaper first round: its 12 brightest detections voted
+    assert [r["stars_used"] for r in res] == [12] * 8
+
+
+def test_stars_used_counts_the_answering_rounds_voters():
+    sched = ((0, 12), (0, 25), (25, 50))                 # first_stars 12, max_stars 25, widening to 50
+    assert [hs._voters(30, r, sched) for r in range(3)] == [12, 25, 5]
+    assert [hs._voters(8, r, sched) for r in range(3)] == [8, 8, 0]
 
 
 @needs_esa
