@@ -129,7 +129,8 @@ class VotingConfig:
         ``[r * widen_step, r * widen_step + max_stars)`` in round r, cut at ``max_stars_total``), and
         keeps the answer with the most verified stars.  None (the paper method) or <= ``max_stars`` =
         one round, the reference's.  Work bound: at most ``widen_rounds`` rounds of one block each.
-    first_stars : a cheaper first round, None (off) or an integer in [2, 1000] below ``max_stars``: round 0
+    first_stars : a cheaper first round, None (off) or an integer in [2, 1000] (at or above ``max_stars``: off,
+        so a preset's value stays valid when ``max_stars`` is lowered by a flag or a sweep): round 0
         votes with the ``first_stars`` brightest valid stars only (the voting's work grows with the square
         of the voters: 12 of 25 is ~1/4), and a case whose answer fails verification (as for widening) votes
         again with the ``max_stars`` brightest before any widening block (rounds ``(0, first_stars)``,
