@@ -277,7 +277,8 @@ def bench_batch(n_images: int, workers_list=(1, 2), extra: tuple[str, ...] = ())
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("what", nargs="?", default="all", choices=["frame", "process", "batch", "all"])
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=5, help="frame: timed passes over the frames (after one warm-up pass); "
+                    "process: warm runs (default 5)")
     ap.add_argument("--images", type=int, default=600)
     ap.add_argument("--hil-args", default="", help="extra `hil star` options for the frame and batch benches, e.g. "
                     "'--max-stars 12' (one string)")
@@ -285,7 +286,7 @@ def main() -> None:
     a = ap.parse_args()
     print(conditions())
     if a.what in ("frame", "all"):
-        bench_frame(max(1, a.repeats // 2), tuple(a.hil_args.split()), tuple(a.detectors))
+        bench_frame(max(1, a.repeats), tuple(a.hil_args.split()), tuple(a.detectors))
     if a.what in ("process", "all"):
         bench_process(a.repeats)
     if a.what in ("batch", "all"):
