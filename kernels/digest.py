@@ -43,18 +43,22 @@ def _weights(n: int) -> np.ndarray:
     return w
 
 
+def _unsigned_view(a: np.ndarray) -> np.ndarray:
+    """The array's unsigned bit patterns in their own width (no copy): what :func:`_bits` widens."""
+    if a.dtype.kind == "f":
+        return a.view(np.uint32 if a.dtype.itemsize == 4 else np.uint64)
+    if a.dtype.kind == "b":
+        return a.view(np.uint8)
+    if a.dtype.kind == "i":
+        return a.view(a.dtype.str.replace("i", "u"))
+    if a.dtype.kind != "u":
+        raise ValueError(f"cannot digest a frame of dtype {a.dtype}")
+    return a
+
+
 def _bits(a: np.ndarray) -> np.ndarray:
     """Unsigned bit patterns of an array's values, as uint64."""
-    a = np.asarray(a)
-    if a.dtype.kind == "f":
-        a = a.view(np.uint32 if a.dtype.itemsize == 4 else np.uint64)
-    elif a.dtype.kind == "b":
-        a = a.view(np.uint8)
-    elif a.dtype.kind == "i":
-        a = a.view(a.dtype.str.replace("i", "u"))
-    elif a.dtype.kind != "u":
-        raise ValueError(f"cannot digest a frame of dtype {a.dtype}")
-    return a.astype(np.uint64)
+    return _unsigned_view(np.asarray(a)).astype(np.uint64)
 
 
 def frame_digest(frames: np.ndarray, sky=0) -> np.ndarray:
@@ -133,19 +137,6 @@ def _build_patch_sums(dtype):
     return patch_sums
 
 
-def _unsigned_view(a: np.ndarray) -> np.ndarray:
-    """The array's unsigned bit patterns in their own width (no copy): what :func:`_bits` widens."""
-    if a.dtype.kind == "f":
-        return a.view(np.uint32 if a.dtype.itemsize == 4 else np.uint64)
-    if a.dtype.kind == "b":
-        return a.view(np.uint8)
-    if a.dtype.kind == "i":
-        return a.view(a.dtype.str.replace("i", "u"))
-    if a.dtype.kind != "u":
-        raise ValueError(f"cannot digest a frame of dtype {a.dtype}")
-    return a
-
-
 def _build_row_sums(dtype):
     import taichi as ti
 
@@ -174,25 +165,30 @@ def frame_digest_taichi(frames: np.ndarray, sky=0) -> np.ndarray:
     mod 2^64 do not depend on their order).  One pass over the pixels, parallel over rows, splitmix64
     computed in registers (no (H W,) weight table read); the row sums are added by numpy.  For callers
     whose process already runs Taichi (the star job); :func:`frame_digest` starts nothing."""
-    global _KERNELS
-    from dualsight.kernels._runtime import KernelCache
-
-    if _KERNELS is None:
-        _KERNELS = KernelCache({"patch_sums": _build_patch_sums, "row_sums": _build_row_sums})
     frames = np.asarray(frames)
     B = frames.shape[0]
     if B == 0 or frames.size == 0:
         return np.zeros(B, np.uint64)
-    u = np.ascontiguousarray(_unsigned_view(np.ascontiguousarray(frames)))
+    u = _unsigned_view(np.ascontiguousarray(frames))
     u = u.reshape(B, frames.shape[1], -1)                     # (B, H, W C): channels innermost, as p
     sky_bits = np.ascontiguousarray(_bits(np.broadcast_to(np.asarray(sky, dtype=frames.dtype), (B,))))
     rows = np.empty(u.shape[:2], np.uint64)
-    _KERNELS.get("row_sums", u.dtype)(u, sky_bits, rows)
+    _kernels().get("row_sums", u.dtype)(u, sky_bits, rows)
     with np.errstate(over="ignore"):
         return rows.sum(axis=1, dtype=np.uint64)
 
 
 _KERNELS = None
+
+
+def _kernels():
+    """The module's kernel cache (made on first use: the CLI imports this module without running a kernel)."""
+    global _KERNELS
+    if _KERNELS is None:
+        from dualsight.kernels._runtime import KernelCache
+
+        _KERNELS = KernelCache({"patch_sums": _build_patch_sums, "row_sums": _build_row_sums})
+    return _KERNELS
 
 
 def patch_digest_taichi(values_f32: np.ndarray, dtype, poff: np.ndarray, boxes: np.ndarray,
@@ -202,18 +198,13 @@ def patch_digest_taichi(values_f32: np.ndarray, dtype, poff: np.ndarray, boxes: 
     values_f32 : (P,) float32 pixel values holding the frames' ``dtype`` values (uint16 integers or
     float32); the other arguments as :func:`patch_digest`.  Returns (n_frames,) uint64, equal to it.
     """
-    global _KERNELS
-    from dualsight.kernels._runtime import KernelCache
-
-    if _KERNELS is None:
-        _KERNELS = KernelCache({"patch_sums": _build_patch_sums, "row_sums": _build_row_sums})
     dt = np.dtype(dtype)
     boxes = np.ascontiguousarray(boxes, np.int32)
     sums = np.zeros(len(boxes), np.uint64)
     out = np.zeros(n_frames, np.uint64)
     if len(boxes):
         sky_bits = int(_bits(np.asarray(sky, dtype=dt).reshape(1))[0])
-        _KERNELS.get("patch_sums", dt)(np.ascontiguousarray(values_f32, np.float32), np.asarray(poff, np.int64),
+        _kernels().get("patch_sums", dt)(np.ascontiguousarray(values_f32, np.float32), np.asarray(poff, np.int64),
                                        boxes, int(width), sky_bits, sums)
         with np.errstate(over="ignore"):
             np.add.at(out, np.asarray(patch_frame, np.int64), sums)
