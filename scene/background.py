@@ -59,7 +59,9 @@ def subtract_background(frames: np.ndarray, block: int) -> tuple[np.ndarray, np.
         means = ext if b == 1 else cv2.resize(ext, (nbx * block // b, nby * block // b),
                                               interpolation=cv2.INTER_AREA)
         cells = np.ascontiguousarray(means.reshape(nby, m, nbx, m).transpose(0, 2, 1, 3)).reshape(nby, nbx, m * m)
-        med = np.median(cells, axis=-1).astype(np.float32)   # (nby, nbx)
+        srt = np.sort(cells, axis=-1)                        # (a SIMD sort of a few dozen values beats a partition)
+        n = m * m
+        med = srt[..., n // 2] if n % 2 else np.float32(0.5) * (srt[..., n // 2 - 1] + srt[..., n // 2])
         bg = cv2.resize(med, (nbx * block, nby * block), interpolation=cv2.INTER_LINEAR)[:H, :W]
         np.subtract(f32[k], bg, out=out[k])
         levels[k] = np.median(med)
