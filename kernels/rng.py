@@ -51,7 +51,6 @@ STREAM_PROX_READ = 0   # proximity renderer's read noise (Box-Muller pairs; kept
 STREAM_TEST = 99
 
 _INV_2_53 = 1.0 / 9007199254740992.0  # 2^-53
-_INV_2_32 = 1.0 / 4294967296.0  # 2^-32
 _TWO_PI_F32 = float(np.float32(2.0 * math.pi))  # 6.2831854820251465
 
 

@@ -184,7 +184,7 @@ def _build_finalize(dtype):
                 rkey = ti.cast(r, ti.u64) << ti.u64(32)
                 n_hot = 0
                 next_hot = W
-                h_pair = ti.u64(0)            # the sky's 64-bit word of pixels 2m and 2m + 1 (frame index)
+                h_pair = ti.u64(0)            # the sky's 64-bit word of pixels 4m .. 4m + 3 (frame index)
                 m_pair = ti.u64(0xFFFFFFFFFFFFFFFF)
                 if hot_log1m < ti.f64(0.0):
                     next_hot = _next_hot(-1, W, hot_log1m, rng.u01_key(k_geo, rkey))
