@@ -159,9 +159,9 @@ def _build_vote(k: int, once: bool):
                         for e in range(2 * l, 2 * (l + c)):
                             # a plain load and store: the row is this thread's (``+=`` would be atomic)
                             s = stars1[e] - 1
-                            if ti.static(once):
-                                if prev[e] < l:              # the star's first pair in the window
-                                    table[sl, s] = table[sl, s] + 1
+                            if ti.static(once):              # + 1 where the star's first pair in the window:
+                                # branch-free (the test is ~random; a branch took ~1.4x the time)
+                                table[sl, s] = table[sl, s] + ti.cast(prev[e] < l, ti.i32)
                             else:
                                 table[sl, s] = table[sl, s] + 1
                 ids = ti.Vector([-1] * k, dt=ti.i32)

@@ -12,6 +12,7 @@ builds it once.
 
 from __future__ import annotations
 
+import functools
 import threading
 
 import numpy as np
@@ -144,9 +145,16 @@ def _fingerprint(arrays) -> tuple:
     out = []
     for a in arrays:
         a = np.asarray(a)
-        k = np.unique(np.linspace(0, a.size - 1, min(a.size, 64)).astype(np.int64))
-        out.append((a.shape, a.dtype.str, a.ravel()[k].tobytes()))
+        out.append((a.shape, a.dtype.str, a.ravel()[_sample_positions(a.size)].tobytes()))
     return tuple(out)
+
+
+@functools.lru_cache(maxsize=16)
+def _sample_positions(n: int) -> np.ndarray:
+    """(<= 64,) int64 evenly spaced distinct positions in [0, n) (one array per size, reused)."""
+    k = np.unique(np.linspace(0, n - 1, min(n, 64)).astype(np.int64))
+    k.flags.writeable = False
+    return k
 
 
 def voting_index(pair_i, pair_j=None, pair_angle=None) -> VotingIndex:

@@ -28,6 +28,7 @@ tested against bit for bit, ``tests/test_voting_kernel.py``).  Speed of both:
 
 from __future__ import annotations
 
+import functools
 import weakref
 from typing import NamedTuple
 
@@ -72,7 +73,7 @@ def observed_pairs(obs_k: np.ndarray, use: np.ndarray) -> ObservedPairs:
     Returns :class:`ObservedPairs` (E = the number of such pairs over all cases).
     """
     B, K = use.shape
-    tp, tq = np.triu_indices(K, 1)
+    tp, tq = _triu(K)
     case, pair = np.nonzero(use[:, tp] & use[:, tq])
     p, q = tp[pair], tq[pair]
     return ObservedPairs(case, pair, p, q, angle_between(obs_k[case, p], obs_k[case, q]), K)
@@ -82,10 +83,24 @@ def pair_slots(K: int) -> np.ndarray:
     """(K, K) int64: the index of pair (p, q) (or (q, p)) in ``np.triu_indices(K, 1)``; the diagonal
     holds P = K (K - 1) / 2, one past the last pair ("no pair"), so arrays of (B, P + 1) values per
     pair read as (B, K, K) matrices with ``values[:, pair_slots(K)]``."""
-    P = K * (K - 1) // 2
+    return _pair_slots(int(K))
+
+
+@functools.lru_cache(maxsize=64)
+def _triu(K: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.triu_indices(K, 1)``, made once per K (read-only)."""
     tp, tq = np.triu_indices(K, 1)
+    tp.flags.writeable = tq.flags.writeable = False
+    return tp, tq
+
+
+@functools.lru_cache(maxsize=64)
+def _pair_slots(K: int) -> np.ndarray:
+    P = K * (K - 1) // 2
+    tp, tq = _triu(K)
     pid = np.full((K, K), P, np.int64)
     pid[tp, tq] = pid[tq, tp] = np.arange(P)
+    pid.flags.writeable = False
     return pid
 
 
