@@ -8,7 +8,11 @@
            rest of the detector, including the PSF-width pass), observations (back-projection), voting
            (identify, robust method; the numpy and the Taichi engine), attitude (weighted SVD solve).
            Target: <= 5 ms end to end without decoding (for a 1024 x 1024 frame with ~20 stars; the ESA
-           frames have ~370 detections each).
+           frames have ~60 (global) to ~260 (local) detections each).  ``--rendered N`` runs the same on N
+           frames rendered as ``bench_peers.py --rendered`` makes them (1024 x 1024 12-bit in 16-bit PNGs,
+           20 deg, the noise of examples/star/noisy_sensor.toml) with the stars to ``--render-mag-limit``
+           (default 5.5: ~20 stars per frame), solved with the catalog to ``--mag-limit`` (default 6.0); the
+           boresight error against the render's truth is printed with it.
   process  the whole ``dualsight hil star ONE.tiff --camera ... --no-lake`` process, median of 5 warm runs
            (one unmeasured run first), plus ``python -X importtime`` (the slowest top-level imports) and a
            cProfile summary of one in-process run.  Target: <= 1.5 s.
@@ -20,6 +24,7 @@
            --no-compare", the throughput settings).  Target: >= 100 frames/s on 2 cores.
 
 Usage:  python benchmarks/bench_hil_speed.py [frame|process|batch|all] [--repeats 5] [--images 600] [--hil-args '...']
+        python benchmarks/bench_hil_speed.py frame --rendered 20 --detectors global     # the issue's frame
 Prints the machine's cores and load average (``uptime``) with the numbers.
 """
 
@@ -99,7 +104,8 @@ class Timers:
                 self._stack[-1][0] += dt
 
 
-def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "global")) -> dict:
+def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "global"), paths=None,
+                camera=CAMERA, label="ESA 1024 x 768") -> dict:
     import cv2
     import numpy as np
 
@@ -112,11 +118,13 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
     from dualsight.nav.observations import observations
     from dualsight.scene.camera import Camera
 
-    paths = frames()
-    cam = Camera.from_toml(CAMERA)
+    from dualsight.scene.units import angle_between
+
+    paths = frames() if paths is None else paths
+    cam = Camera.from_toml(camera)
     from dualsight.jobs.cli import build_parser
     from dualsight.jobs.cli_hil import star_spec_from_args
-    args = build_parser().parse_args(hil_cmd(paths, "--no-compare", *extra)[3:])
+    args = build_parser().parse_args(hil_cmd(paths, "--no-compare", *extra, camera=camera)[3:])
     spec = star_spec_from_args(args)                       # the CLI's own spec (robust voting, no comparison)
     ctx = hs.make_context(spec)
     rt = ctx.rt
@@ -162,11 +170,15 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
                         per.setdefault(s, []).append(v)
                     per.setdefault("n_det", []).append(int(det.counts[0]))
                     per.setdefault("solved", []).append(bool(sol.ok[0]))
+                    A_true = spec.truth(k).matrix("A")
+                    if A_true is not None and sol.ok[0]:
+                        err = float(angle_between(sol.A_est[0, 2], A_true[2]))
+                        per.setdefault("err_arcsec", []).append(err * 180 / np.pi * 3600)
         results[(detector, engine)] = per
     order = ["decode", "background", "filter", "labelling", "centroid fit", "detector other", "observations",
              "voting", "attitude"]
     print(f"frame: CPU ms per frame, one core, median over {len(paths)} frames x {repeats} repeats "
-          "(ESA 1024 x 768; median detections: "
+          f"({label}; median detections: "
           + ", ".join(f"{d} {int(np.median(results[(d, 'numpy')]['n_det']))}" for d in detectors)
           + (f"; hil star options {' '.join(extra)}" if extra else "") + ")")
     for (detector, engine), per in results.items():
@@ -175,14 +187,28 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
         print(f"  detector {detector}, voting engine {engine}: " + ", ".join(f"{s} {v:.2f}" for s, v in med.items())
               + f" | end to end without decode {total:.2f} ms, with {total + med['decode']:.2f} ms"
               f" (wall with decode {1e3 * statistics.median(per['wall']):.2f} ms);"
-              f" solved {sum(per['solved'])}/{len(per['solved'])}")
+              f" solved {sum(per['solved'])}/{len(per['solved'])}"
+              + (f", median boresight error {statistics.median(per['err_arcsec']):.1f} arcsec vs truth"
+                 if per.get("err_arcsec") else ""))
     return results
 
 
 # ============================================================================================ process
-def hil_cmd(images, *extra) -> list[str]:
-    return [*DUALSIGHT, "hil", "star", *map(str, images), "--camera", str(CAMERA), "--no-lake", "--no-progress",
+def hil_cmd(images, *extra, camera=CAMERA) -> list[str]:
+    return [*DUALSIGHT, "hil", "star", *map(str, images), "--camera", str(camera), "--no-lake", "--no-progress",
             *extra]
+
+
+def rendered_frames(n: int, mag_limit: float, seed: int = 1):
+    """(paths, camera file, truth file) of ``n`` frames rendered by ``bench_peers.render_inputs`` (cached in the system's
+    temporary folder, keyed by n, seed and depth)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_peers
+
+    out = Path(tempfile.gettempdir()) / f"dualsight-bench-frames-n{n}-s{seed}-v{mag_limit:g}"
+    paths, camera, truth, noise = bench_peers.render_inputs(n, seed, out, mag_limit)
+    print(f"rendered frames: {out} ({noise})")
+    return paths, camera, truth
 
 
 def bench_process(repeats: int) -> None:
@@ -283,10 +309,23 @@ def main() -> None:
     ap.add_argument("--hil-args", default="", help="extra `hil star` options for the frame and batch benches, e.g. "
                     "'--max-stars 12' (one string)")
     ap.add_argument("--detectors", nargs="+", default=["local", "global"], choices=["local", "global"])
+    ap.add_argument("--rendered", type=int, default=None, metavar="N",
+                    help="frame: N rendered 1024 x 1024 frames instead of the ESA frames (1..1000)")
+    ap.add_argument("--render-mag-limit", type=float, default=5.5, help="faintest rendered star, V (default 5.5)")
+    ap.add_argument("--mag-limit", type=float, default=6.0, help="catalog of the rendered frames' solve, V (default 6.0)")
     a = ap.parse_args()
+    if a.rendered is not None and not 1 <= a.rendered <= 1000:
+        ap.error("--rendered must be in [1, 1000]")
     print(conditions())
     if a.what in ("frame", "all"):
-        bench_frame(max(1, a.repeats), tuple(a.hil_args.split()), tuple(a.detectors))
+        if a.rendered:
+            paths, camera, truth = rendered_frames(a.rendered, a.render_mag_limit)
+            bench_frame(max(1, a.repeats), ("--mag-limit", str(a.mag_limit), "--truth", str(truth),
+                                            *a.hil_args.split()),
+                        tuple(a.detectors), paths=paths, camera=camera,
+                        label=f"rendered 1024 x 1024, stars to V {a.render_mag_limit:g}, catalog V {a.mag_limit:g}")
+        else:
+            bench_frame(max(1, a.repeats), tuple(a.hil_args.split()), tuple(a.detectors))
     if a.what in ("process", "all"):
         bench_process(a.repeats)
     if a.what in ("batch", "all"):
