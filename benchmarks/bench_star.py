@@ -95,12 +95,21 @@ def main():
                   f"({r['cases_per_s_compute']:.0f} compute), {r['wall_s']:.1f} s, peak RSS {r['peak_rss_mb']:.0f} MB, "
                   f"success {100 * r['success_rate']:.2f} %, confident-wrong {100 * r['confident_wrong_rate']:.2f} %")
             for stage, v in r["stages"].items():
+                if v["ms_per_case"] is None:              # a stage this run did not time (e.g. no comparison)
+                    print(f"    {stage:>14}: -")
+                    continue
                 print(f"    {stage:>14}: {v['ms_per_case']:.3f} ms/case/worker  ({100 * v['share']:.1f} %)")
     by = {(r["cases"], r["workers"]): r for r in results}
     for n in args.cases:
         if (n, 1) in by and (n, 2) in by:
             print(f"speed-up 2 workers / 1 worker at {n} cases: "
                   f"{by[(n, 2)]['cases_per_s_wall'] / by[(n, 1)]['cases_per_s_wall']:.2f}x")
+    for w in args.workers:                                 # steady state: start-up cancels in the difference
+        runs = sorted((r for r in results if r["workers"] == w), key=lambda r: r["cases"])
+        if len(runs) >= 2 and runs[-1]["wall_s"] > runs[0]["wall_s"]:
+            rate = (runs[-1]["cases"] - runs[0]["cases"]) / (runs[-1]["wall_s"] - runs[0]["wall_s"])
+            print(f"steady state, {w} worker(s): {rate:.0f} cases/s "
+                  f"(({runs[-1]['cases']} - {runs[0]['cases']}) cases / difference of the wall times)")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
 

@@ -23,6 +23,11 @@ of He, Chao & Suzuki 2008, "A run-based two-scan labeling algorithm", IEEE TIP 1
 5. ``sum_moments`` (on request, :meth:`Components.moments`): the moment sums of chosen components, their
    runs' sums added in raster order.
 
+Each kernel has a serial variant, used for small calls (a single frame: at most ``SERIAL_MAX_PIXELS`` pixels for
+the row kernels 1-2, ``SERIAL_MAX_RUNS`` runs for the segment kernels 3-5): a parallel loop's launch costs a
+round trip through Taichi's thread pool that outweighs the work there (:func:`_kernel`).  Both give the same
+output bit for bit.
+
 Only runs are stored: the cost is one or two reads of every pixel plus work proportional to the number of
 runs.  Sums are float64 with pixel centres at (col + 0.5, row + 0.5) (DESIGN.md), ``I = value - offset``
 (offset: the frame's background, 0 for none) and ``w`` the coverage (1 without a coverage buffer):
@@ -81,13 +86,14 @@ def _threshold_type(dtype):
     return ti.f64 if dt == np.float64 else (ti.f32 if dt == np.float32 else ti.i32)
 
 
-def _build_count_runs(dtype):
+def _build_count_runs(dtype, serial: bool = False):
     pdt = _PIXEL_TYPES[np.dtype(dtype).str]
     tdt = _threshold_type(dtype)
 
     @ti.kernel
     def count_runs(pix: ti.types.ndarray(dtype=pdt, ndim=1), thr: ti.types.ndarray(dtype=tdt, ndim=1),
                    seg_pix: _I32, seg_w: _I32, seg_frame: _I32, seg_row: _I32, row_seg: _I32, counts: _I32):
+        ti.loop_config(serialize=serial)
         for q in range(row_seg.shape[0]):
             s = row_seg[q]
             w = seg_w[s]
@@ -105,7 +111,7 @@ def _build_count_runs(dtype):
     return count_runs
 
 
-def _build_fill_runs(dtype):
+def _build_fill_runs(dtype, serial: bool = False):
     pdt = _PIXEL_TYPES[np.dtype(dtype).str]
     tdt = _threshold_type(dtype)
 
@@ -114,6 +120,7 @@ def _build_fill_runs(dtype):
                   thr: ti.types.ndarray(dtype=tdt, ndim=1), off: _F64, seg_pix: _I32, seg_w: _I32, seg_c0: _I32,
                   seg_r0: _I32, seg_frame: _I32, seg_row: _I32, row_seg: _I32, run_off: _I32, rs: _I32, re: _I32,
                   rrow: _I32, rseg: _I32, rsum: _F64x2):
+        ti.loop_config(serialize=serial)
         for q in range(row_seg.shape[0]):
             k = run_off[q]
             if run_off[q + 1] > k:  # only rows that have runs are read again
@@ -158,10 +165,10 @@ def _build_fill_runs(dtype):
     return fill_runs
 
 
-def _build_union_runs(_dtype=None):
+def _build_union_runs(_dtype=None, serial: bool = False):
     @ti.kernel
     def union_runs(seg_row: _I32, run_off: _I32, rs: _I32, re: _I32, conn8: ti.i32, parent: _I32, seg_ncomp: _I32):
-        ti.loop_config(block_dim=1)
+        ti.loop_config(block_dim=1, serialize=serial)
         for s in range(seg_row.shape[0] - 1):  # one thread per segment
             q0 = seg_row[s]
             q1 = seg_row[s + 1]
@@ -207,11 +214,11 @@ def _run_sums(rs: ti.template(), re: ti.template(), rrow: ti.template(), rsum: t
                       sw, swx, sw * yc, swxx, swx * yc, sw * yc * yc], dt=ti.f64)
 
 
-def _build_number_components(_dtype=None):
+def _build_number_components(_dtype=None, serial: bool = False):
     @ti.kernel
     def number_components(seg_run: _I32, rs: _I32, re: _I32, rrow: _I32, rsum: _F64x2, comp_off: _I32,
                           label: _I32, npix: _I32, box: _I32x2, comp_seg: _I32, seg_stats: _F64x2):
-        ti.loop_config(block_dim=1)
+        ti.loop_config(block_dim=1, serialize=serial)
         for s in range(seg_run.shape[0] - 1):  # one thread per segment; runs in raster order
             acc = ti.Vector.zero(ti.f64, NSTAT)
             cid = comp_off[s]
@@ -240,11 +247,11 @@ def _build_number_components(_dtype=None):
     return number_components
 
 
-def _build_sum_moments(_dtype=None):
+def _build_sum_moments(_dtype=None, serial: bool = False):
     @ti.kernel
     def sum_moments(seg_run: _I32, rs: _I32, re: _I32, rrow: _I32, rsum: _F64x2, label: _I32, slot: _I32,
                     out: _F64x2):
-        ti.loop_config(block_dim=1)
+        ti.loop_config(block_dim=1, serialize=serial)
         for s in range(seg_run.shape[0] - 1):  # one thread per segment (a component lies in one segment)
             for k in range(seg_run[s], seg_run[s + 1]):  # raster order: the same sums in the same order always
                 j = slot[label[k]]
@@ -258,6 +265,26 @@ def _build_sum_moments(_dtype=None):
 _KERNELS.builders.update({"count_runs": _build_count_runs, "fill_runs": _build_fill_runs,
                           "union_runs": _build_union_runs, "number_components": _build_number_components,
                           "sum_moments": _build_sum_moments})
+for _name in list(_KERNELS.builders):                                  # the serial variants
+    _KERNELS.builders[_name + "/serial"] = (lambda b: lambda dtype=None: b(dtype, serial=True))(
+        _KERNELS.builders[_name])
+
+
+SERIAL_MAX_PIXELS = 1 << 21
+"""Row kernels (``count_runs``, ``fill_runs``) run serially on at most this many pixels per call."""
+SERIAL_MAX_RUNS = 1 << 13
+"""Segment kernels (``union_runs``, ``number_components``, ``sum_moments``) run serially on at most this many
+runs per call."""
+
+
+def _kernel(name: str, serial: bool, dtype=None):
+    """Kernel ``name`` in its serial variant (``serial``) or its parallel one.  A parallel loop costs a round trip
+    through Taichi's thread pool on every launch, ~0.1 ms on a 2-core VM whatever the thread count (a 2-argument
+    kernel: 36 us serial, 150 us parallel), more than these kernels' work on one 1024 x 1024 frame: there the
+    serial row kernels took 1.19 ms for the whole detection against 1.44 ms (1 Taichi thread) and 1.32 against
+    1.58 ms (2 threads), and the segment kernels 70-115 us against 240-250 us each.  The two variants give the
+    same output bit for bit (segments and rows are independent)."""
+    return _KERNELS.get(name + "/serial" if serial else name, dtype)
 
 
 # ============================================================================ public API
@@ -313,8 +340,9 @@ class Components:
         if idx.size and len(self.run_c0):
             slot = np.full(len(self), -1, np.int32)
             slot[idx] = np.arange(idx.size, dtype=np.int32)
-            _KERNELS.get("sum_moments")(self.seg_runs, self.run_c0, self.run_c1, self.run_row, self.run_sums,
-                                        self.run_label, slot, out)
+            serial = len(self.run_c0) <= SERIAL_MAX_RUNS
+            _kernel("sum_moments", serial)(self.seg_runs, self.run_c0, self.run_c1, self.run_row, self.run_sums,
+                                           self.run_label, slot, out)
         return out[:idx.size]
 
     def paint(self, out: np.ndarray, runs, values) -> np.ndarray:
@@ -402,8 +430,10 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
     tn = native_threshold(thr, pixels.dtype)
     row_seg = i32(np.repeat(np.arange(NS), seg_rows))
     counts = np.zeros(max(NR, 1), np.int32)
+    rows_serial = pixels.size <= SERIAL_MAX_PIXELS
     if NR:
-        _KERNELS.get("count_runs", pixels.dtype)(pixels, tn, seg_pix, seg_w, seg_frame, seg_row, row_seg, counts)
+        _kernel("count_runs", rows_serial, pixels.dtype)(pixels, tn, seg_pix, seg_w, seg_frame, seg_row, row_seg,
+                                                         counts)
     run_off = np.zeros(NR + 1, np.int64)
     np.cumsum(counts[:NR], out=run_off[1:])
     R = int(run_off[-1])
@@ -419,10 +449,10 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
     if R:
         cov = (np.ascontiguousarray(coverage, dtype=np.float32).reshape(-1) if coverage is not None
                else np.zeros(1, np.float32))
-        _KERNELS.get("fill_runs", pixels.dtype)(pixels, cov, int(coverage is not None), tn, off, seg_pix, seg_w,
-                                                seg_c0, seg_r0, seg_frame, seg_row, row_seg, run_off, rs, re, rrow,
-                                                rseg, rsum)
-        _KERNELS.get("union_runs")(seg_row, run_off, rs, re, int(connectivity == 8), label, seg_ncomp)
+        _kernel("fill_runs", rows_serial, pixels.dtype)(pixels, cov, int(coverage is not None), tn, off, seg_pix,
+                                                        seg_w, seg_c0, seg_r0, seg_frame, seg_row, row_seg, run_off,
+                                                        rs, re, rrow, rseg, rsum)
+        _kernel("union_runs", R <= SERIAL_MAX_RUNS)(seg_row, run_off, rs, re, int(connectivity == 8), label, seg_ncomp)
     comp_off = np.zeros(NS + 1, np.int64)
     np.cumsum(seg_ncomp[:NS], out=comp_off[1:])
     NC = int(comp_off[-1])
@@ -431,8 +461,8 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
     comp_seg = np.empty(max(NC, 1), np.int32)
     seg_runs = i32(run_off[seg_row])
     if R:
-        _KERNELS.get("number_components")(seg_runs, rs, re, rrow, rsum, i32(comp_off), label, npix, box, comp_seg,
-                                          seg_stats)
+        _kernel("number_components", R <= SERIAL_MAX_RUNS)(seg_runs, rs, re, rrow, rsum, i32(comp_off), label, npix,
+                                                            box, comp_seg, seg_stats)
     return Components(npix=npix[:NC], box=box[:NC], seg=comp_seg[:NC], offsets=comp_off, seg_stats=seg_stats[:NS],
                       run_c0=rs[:R], run_c1=re[:R], run_row=rrow[:R], run_seg=rseg[:R], run_label=label[:R],
                       run_sums=rsum[:R], seg_runs=seg_runs)

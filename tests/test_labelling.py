@@ -3,15 +3,18 @@
 Truth: OpenCV's ``connectedComponentsWithStats`` (labels, areas, bounding boxes, centroids) on random
 binary images, and brute-force numpy sums over OpenCV's labels for the moment sums.  Labels are compared
 up to renumbering: the map from our labels to OpenCV's must be a bijection on the foreground.
+Both kernel variants (serial and parallel, ``kernels.labelling._kernel``) are checked, and must agree bit for bit.
 """
 
 import os
+from contextlib import contextmanager
 
 import cv2
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
+from dualsight.kernels import labelling
 from dualsight.kernels.labelling import NSTAT, label_frames, label_segments, native_threshold
 
 _N = int(os.environ.get("DUALSIGHT_HYPOTHESIS_EXAMPLES", "0"))  # > 0: deeper runs (nightly, by hand)
@@ -25,6 +28,17 @@ def _opencv(binary, conn):
         n, lab, stats, cents = cv2.connectedComponentsWithStats(binary[b].astype(np.uint8), connectivity=conn)
         out.append((n - 1, lab, stats[1:], cents[1:]))
     return out
+
+
+@contextmanager
+def _kernels(serial: bool):
+    """Force the serial (True) or the parallel (False) variant of every labelling kernel."""
+    saved = labelling.SERIAL_MAX_PIXELS, labelling.SERIAL_MAX_RUNS
+    labelling.SERIAL_MAX_PIXELS = labelling.SERIAL_MAX_RUNS = (1 << 62) if serial else -1
+    try:
+        yield
+    finally:
+        labelling.SERIAL_MAX_PIXELS, labelling.SERIAL_MAX_RUNS = saved
 
 
 def _moments_np(lab, n, img, cov):
@@ -51,8 +65,17 @@ def test_labels_and_stats_match_opencv(seed, p, conn, shape, dtype):
     # foreground = value > 9.5 whatever the dtype; background values just below, foreground anywhere above
     img = np.where(binary, rs.integers(10, 200, shape), rs.integers(0, 10, shape)).astype(dtype)
     cov = rs.random(shape).astype(np.float32)
-    comp = label_frames(img, 9.5, coverage=cov, connectivity=conn)
     ref = _opencv(binary, conn)
+    got = []
+    for serial in (True, False):           # both kernel variants, each against OpenCV, and equal bit for bit
+        with _kernels(serial):
+            got.append(_check_against_opencv(img, cov, conn, shape, ref))
+    for a, b in zip(*got):
+        np.testing.assert_array_equal(a, b)
+
+
+def _check_against_opencv(img, cov, conn, shape, ref):
+    comp = label_frames(img, 9.5, coverage=cov, connectivity=conn)
     assert comp.counts.tolist() == [r[0] for r in ref]
     labels = comp.label_image(shape)
     mom = comp.moments()
@@ -80,6 +103,7 @@ def test_labels_and_stats_match_opencv(seed, p, conn, shape, dtype):
     # a subset of components gives the very same sums (same runs, same order)
     pick = np.arange(len(comp))[::3]
     assert np.array_equal(comp.moments(pick), mom[pick])
+    return comp.npix, comp.box, comp.seg, comp.offsets, comp.seg_stats, comp.run_label, comp.run_sums, mom
 
 
 @HSET
