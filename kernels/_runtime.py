@@ -82,10 +82,15 @@ def is_initialised() -> bool:
 
 
 class KernelCache:
-    """Kernels built lazily, once per (name, dtype) per process, from a table of builder functions.
+    """Kernels built lazily, once per (name, dtype, variant) per process, from a table of builder functions.
 
     ``builders`` maps a name to ``builder(dtype) -> kernel``; it may be filled after the cache is made
     (builders are usually defined below it in their module).  :meth:`get` starts Taichi on first use.
+    A builder that also takes ``serial=True`` has a serial variant (its loops under
+    ``ti.loop_config(serialize=True)``), for calls too small to pay for the parallel launch: every launch
+    of a parallel loop is a round trip through Taichi's thread pool, ~0.1 ms on a 2-core VM whatever the
+    thread count (a 2-argument kernel: 36 us with a serial loop, 150 us with a parallel one), more than the
+    work of the small kernels on one frame.
     """
 
     def __init__(self, builders: dict | None = None):
@@ -93,16 +98,16 @@ class KernelCache:
         self._built: dict = {}
         self._lock = threading.Lock()
 
-    def get(self, name: str, dtype=None):
+    def get(self, name: str, dtype=None, serial: bool = False):
         import numpy as np
 
-        key = (name, None if dtype is None else np.dtype(dtype).str)
+        key = (name, None if dtype is None else np.dtype(dtype).str, bool(serial))
         k = self._built.get(key)
         if k is None:
             with self._lock:
                 k = self._built.get(key)
                 if k is None:
                     ensure_init()
-                    k = self.builders[name](dtype)
+                    k = self.builders[name](dtype, serial=True) if serial else self.builders[name](dtype)
                     self._built[key] = k
         return k

@@ -265,9 +265,6 @@ def _build_sum_moments(_dtype=None, serial: bool = False):
 _KERNELS.builders.update({"count_runs": _build_count_runs, "fill_runs": _build_fill_runs,
                           "union_runs": _build_union_runs, "number_components": _build_number_components,
                           "sum_moments": _build_sum_moments})
-for _name in list(_KERNELS.builders):                                  # the serial variants
-    _KERNELS.builders[_name + "/serial"] = (lambda b: lambda dtype=None: b(dtype, serial=True))(
-        _KERNELS.builders[_name])
 
 
 SERIAL_MAX_PIXELS = 1 << 21
@@ -278,13 +275,11 @@ runs per call."""
 
 
 def _kernel(name: str, serial: bool, dtype=None):
-    """Kernel ``name`` in its serial variant (``serial``) or its parallel one.  A parallel loop costs a round trip
-    through Taichi's thread pool on every launch, ~0.1 ms on a 2-core VM whatever the thread count (a 2-argument
-    kernel: 36 us serial, 150 us parallel), more than these kernels' work on one 1024 x 1024 frame: there the
-    serial row kernels took 1.19 ms for the whole detection against 1.44 ms (1 Taichi thread) and 1.32 against
-    1.58 ms (2 threads), and the segment kernels 70-115 us against 240-250 us each.  The two variants give the
-    same output bit for bit (segments and rows are independent)."""
-    return _KERNELS.get(name + "/serial" if serial else name, dtype)
+    """Kernel ``name`` in its serial variant (``serial``) or its parallel one (:class:`KernelCache`): on one
+    1024 x 1024 frame the serial row kernels took 1.19 ms for the whole detection against 1.44 ms (1 Taichi
+    thread) and 1.32 against 1.58 ms (2 threads), and the segment kernels 70-115 us against 240-250 us each.
+    Both give the same output bit for bit (segments and rows are independent)."""
+    return _KERNELS.get(name, dtype, serial=serial)
 
 
 # ============================================================================ public API

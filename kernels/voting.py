@@ -119,11 +119,12 @@ def _keep_best(ids: ti.template(), cs: ti.template(), s, v, k: ti.template()):
 
 
 # ============================================================================ kernels (built lazily)
-def _build_vote(k: int, once: bool):
+def _build_vote(k: int, once: bool, serial_pairs: bool = False, serial_slots: bool = False):
     @ti.kernel
     def vote(pq: _I32x2, keys: _F64x2, angle: _F64x1, starts: _I32x1, inv_w: ti.f64, win: _I32x4,
              stars1: _I32x1, prev: _I32x1, table: _I32x2, counter: _I32x1, out: _I32x4):
         # 1. the window of every observed pair (case, p < q)
+        ti.loop_config(serialize=serial_pairs)
         for e in range(pq.shape[0]):
             lo = _search(angle, starts, inv_w, keys[e, 0], 1)      # angle > d - tol
             hi = _search(angle, starts, inv_w, keys[e, 1], 0)      # angle >= d + tol ends it
@@ -140,6 +141,7 @@ def _build_vote(k: int, once: bool):
         K = win.shape[1]
         N = table.shape[1]
         R = B * K
+        ti.loop_config(serialize=serial_slots)
         for t in range(table.shape[0] * TASK_ITEMS):          # slot t // TASK_ITEMS, one per Taichi task
             if t % TASK_ITEMS != 0:
                 continue
@@ -191,10 +193,16 @@ def _build_vote(k: int, once: bool):
     return vote
 
 
-def _vote_kernel(k: int, once: bool):
-    name = f"vote/{k}/{int(once)}"
+SERIAL_MAX_PAIRS = 4096
+"""The window searches of at most this many observed pairs run serially (a single frame's: 66-300 pairs)."""
+
+
+def _vote_kernel(k: int, once: bool, serial_pairs: bool = False, serial_slots: bool = False):
+    """The vote kernel; ``serial_pairs`` / ``serial_slots``: its first / second loop serial (small calls: a
+    parallel loop's launch is a thread-pool round trip, :class:`~dualsight.kernels._runtime.KernelCache`)."""
+    name = f"vote/{k}/{int(once)}/{int(serial_pairs)}{int(serial_slots)}"
     if name not in _KERNELS.builders:
-        _KERNELS.builders[name] = lambda _dtype=None: _build_vote(k, once)
+        _KERNELS.builders[name] = lambda _dtype=None: _build_vote(k, once, serial_pairs, serial_slots)
     return _KERNELS.get(name)
 
 
@@ -252,8 +260,7 @@ def vote_top_k(case, p, q, lo_key, hi_key, angle, buckets, stars_plus_one, prev,
     table = np.zeros((slots, int(n_cat)), np.int32)
     once = prev is not None
     prev_arr = np.ascontiguousarray(prev, np.int32) if once else np.zeros(1, np.int32)
-    _vote_kernel(int(k), once)(pq, keys, np.ascontiguousarray(angle, np.float64),
-                               np.ascontiguousarray(starts, np.int32), float(inv_w), win,
-                               np.ascontiguousarray(stars_plus_one, np.int32), prev_arr, table,
-                               np.zeros(1, np.int32), out)
+    kern = _vote_kernel(int(k), once, E <= SERIAL_MAX_PAIRS, slots == 1)
+    kern(pq, keys, np.ascontiguousarray(angle, np.float64), np.ascontiguousarray(starts, np.int32), float(inv_w), win,
+         np.ascontiguousarray(stars_plus_one, np.int32), prev_arr, table, np.zeros(1, np.int32), out)
     return out[0], out[1]

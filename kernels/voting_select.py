@@ -121,11 +121,12 @@ def _drop_duplicates(ids: ti.template(), top: ti.template(), work: ti.template()
 
 
 # ============================================================================ kernels (built lazily)
-def _build_select(_dtype=None):
+def _build_select(_dtype=None, serial: bool = False):
     @ti.kernel
     def select(cand: _I32x4, b0: ti.i32, m: ti.i32, unique: ti.i32, cos_cat: _F64x3, c_lo: _F64x3,
                c_hi: _F64x3, cons: _I8x3, work: _I32x3, out: _I32x3, stride: ti.i32):
         K = cand.shape[2]
+        ti.loop_config(serialize=serial)
         for it in range(cos_cat.shape[0] * stride):  # one case of the block per ``stride`` (task_stride)
             if it % stride != 0:
                 continue
@@ -182,12 +183,13 @@ def _build_select(_dtype=None):
     return select
 
 
-def _build_verify_accept(_dtype=None):
+def _build_verify_accept(_dtype=None, serial: bool = False):
     @ti.kernel
     def verify_accept(cons: _I8x3, top: _I32x2, clique: ti.i32, frac: ti.f64, min_acc: ti.i32, work: _I32x3,
                       out_k: _I32x3, out_b: _I32x2, stride: ti.i32):
         B = cons.shape[0]
         K = cons.shape[1]
+        ti.loop_config(serialize=serial)
         for it in range(B * stride):                 # one case per ``stride`` (task_stride)
             if it % stride != 0:
                 continue
@@ -252,7 +254,7 @@ def select_identities(cand_ids, cand_votes, m: int, unique: bool, blocks=None):
         return out[0], out[1]
     cand = np.empty((2, B, K, kk), np.int32)
     cand[0], cand[1] = cand_ids, cand_votes
-    kern = _KERNELS.get("select")
+    kern = _KERNELS.get("select", serial=B == 1)                     # one case: no thread-pool round trip
     if m <= 1:
         dummy = np.zeros((B, 1, 1))                  # one "block" of all cases, no nodes
         blocks = [(0, dummy, dummy, dummy)]
@@ -280,7 +282,7 @@ def verify_accept(cons, top, clique: bool, accept_fraction: float, min_accepted:
     out_k = np.zeros((2, B, K), np.int32)
     out_b = np.zeros((2, B), np.int32)
     if B and K:
-        _KERNELS.get("verify_accept")(cons.view(np.int8), np.ascontiguousarray(top, np.int32), int(bool(clique)),
-                                      float(accept_fraction), int(min_accepted),
-                                      np.empty((B, _NFIELD, K), np.int32), out_k, out_b, task_stride(B))
+        kern = _KERNELS.get("verify_accept", serial=B == 1)         # one case: no thread-pool round trip
+        kern(cons.view(np.int8), np.ascontiguousarray(top, np.int32), int(bool(clique)), float(accept_fraction),
+             int(min_accepted), np.empty((B, _NFIELD, K), np.int32), out_k, out_b, task_stride(B))
     return out_k[0], out_b[0], out_k[1].astype(bool), out_b[1].astype(bool)

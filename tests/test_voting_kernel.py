@@ -124,6 +124,14 @@ def test_bit_identical_degenerate_batches(v55, config):
     _assert_same(v55, cfg, obs[:, :0], valid[:, :0])                     # no star slot
 
 
+@pytest.mark.parametrize("config", ["paper", "robust"])
+def test_bit_identical_single_cases(v55, config):
+    # one case per call (a single frame): the select / verify kernels' serial variants
+    for b in range(8):
+        ref = _assert_same(v55, v55.configs[config], v55.obs[b:b + 1], v55.valid[b:b + 1])
+        assert ref.T[0] > 0                                              # solved: every stage ran
+
+
 def test_engine_argument(v55):
     with pytest.raises(ValueError, match="engine"):
         _run(v55, v55.configs["paper"], "cuda")
