@@ -9,7 +9,7 @@
            (identify, robust method; the numpy and the Taichi engine), attitude (weighted SVD solve).
            Target: <= 5 ms end to end without decoding (for a 1024 x 1024 frame with ~20 stars; the ESA
            frames have ~60 (global) to ~260 (local) detections each).  ``--rendered N`` runs the same on N
-           frames rendered as ``bench_peers.py --rendered`` makes them (1024 x 1024 12-bit in 16-bit PNGs,
+           frames rendered as ``bench_peers.py --rendered`` makes them (1024 x 1024 12-bit, here as 16-bit TIFFs,
            20 deg, the noise of examples/star/noisy_sensor.toml) with the stars to ``--render-mag-limit``
            (default 5.5: ~20 stars per frame), solved with the catalog to ``--mag-limit`` (default 6.0); the
            boresight error against the render's truth is printed with it.
@@ -207,8 +207,22 @@ def rendered_frames(n: int, mag_limit: float, seed: int = 1):
 
     out = Path(tempfile.gettempdir()) / f"dualsight-bench-frames-n{n}-s{seed}-v{mag_limit:g}"
     paths, camera, truth, noise = bench_peers.render_inputs(n, seed, out, mag_limit)
-    print(f"rendered frames: {out} ({noise})")
-    return paths, camera, truth
+    import cv2
+
+    import json
+
+    tiffs = []                          # uncompressed 16-bit TIFFs, as the ESA frames (bench_peers writes PNGs)
+    for p in paths:
+        t = p.with_suffix(".tiff")
+        if not t.exists() and not cv2.imwrite(str(t), cv2.imread(str(p), cv2.IMREAD_UNCHANGED),
+                                               [cv2.IMWRITE_TIFF_COMPRESSION, 1]):
+            raise SystemExit(f"cannot write {t}")
+        tiffs.append(t)
+    truth_t = out / "truth_tiff.json"   # the same truth, keyed by the TIFFs' names
+    truth_t.write_text(json.dumps({str(Path(k).with_suffix(".tiff")): v
+                                   for k, v in json.loads(truth.read_text()).items()}))
+    print(f"rendered frames: {out} (16-bit TIFF; {noise})")
+    return tiffs, camera, truth_t
 
 
 def bench_process(repeats: int) -> None:
