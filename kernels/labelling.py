@@ -10,7 +10,7 @@ a segment's border.  A pixel is foreground when ``value > threshold[frame]`` (ex
 pixel dtype: the threshold is converted by :func:`native_threshold`).
 
 Algorithm: two-pass labelling on run-length codes (Rosenfeld & Pfaltz 1966; the run-based union-find form
-of He, Chao & Suzuki 2008, "A run-based two-scan labeling algorithm", IEEE TIP 17, 749), five kernels:
+of He, Chao & Suzuki 2008, "A run-based two-scan labeling algorithm", IEEE TIP 17, 749), four kernels:
 
 1. ``count_runs``, parallel over rows: number of runs (maximal horizontal stretches) of foreground pixels.
    A prefix sum gives every row its first run.
@@ -19,14 +19,15 @@ of He, Chao & Suzuki 2008, "A run-based two-scan labeling algorithm", IEEE TIP 1
    diagonally) are joined by union-find, the smaller root winning, so a component's root is its first run
    in raster order; counts the components.
 4. ``number_components``, one thread per segment: numbers the components in raster order (after a prefix
-   sum over segments), their pixel counts, bounding boxes, and the sums over all foreground pixels.
-5. ``sum_moments`` (on request, :meth:`Components.moments`): the moment sums of chosen components, their
-   runs' sums added in raster order.
+   sum over segments), their pixel counts, bounding boxes, their moment sums (their runs' sums added in raster
+   order) and the sums over all foreground pixels of the segment.
 
 Each kernel has a serial variant, used for small calls (a single frame: at most ``SERIAL_MAX_PIXELS`` pixels for
-the row kernels 1-2, ``SERIAL_MAX_RUNS`` runs for the segment kernels 3-5): a parallel loop's launch costs a
+the row kernels 1-2, ``SERIAL_MAX_RUNS`` runs for the segment kernels 3-4): a parallel loop's launch costs a
 round trip through Taichi's thread pool that outweighs the work there (:func:`_kernel`).  Both give the same
-output bit for bit.
+output bit for bit.  Segments (pixel offset, width, first column, first row, frame) and runs (first column,
+end column, row, segment) are passed as int32 tables, one argument each: every array argument of a launch
+costs ~9 us in Taichi's Python launcher.
 
 Only runs are stored: the cost is one or two reads of every pixel plus work proportional to the number of
 runs.  Sums are float64 with pixel centres at (col + 0.5, row + 0.5) (DESIGN.md), ``I = value - offset``
@@ -80,6 +81,9 @@ def union(parent: ti.template(), base, a, b):
 _KERNELS = KernelCache()      # builders registered below
 
 
+_PIX, _W, _C0, _R0, _FRAME = range(5)   # columns of the segment table
+
+
 def _threshold_type(dtype):
     """Taichi type of the native threshold compared with pixels of ``dtype`` (see :func:`native_threshold`)."""
     dt = np.dtype(dtype)
@@ -92,13 +96,13 @@ def _build_count_runs(dtype, serial: bool = False):
 
     @ti.kernel
     def count_runs(pix: ti.types.ndarray(dtype=pdt, ndim=1), thr: ti.types.ndarray(dtype=tdt, ndim=1),
-                   seg_pix: _I32, seg_w: _I32, seg_frame: _I32, seg_row: _I32, row_seg: _I32, counts: _I32):
+                   seg: _I32x2, seg_row: _I32, row_seg: _I32, counts: _I32):
         ti.loop_config(serialize=serial)
         for q in range(row_seg.shape[0]):
             s = row_seg[q]
-            w = seg_w[s]
-            p0 = seg_pix[s] + (q - seg_row[s]) * w
-            t = thr[seg_frame[s]]
+            w = seg[s, _W]
+            p0 = seg[s, _PIX] + (q - seg_row[s]) * w
+            t = thr[seg[s, _FRAME]]
             n = 0
             prev = 0
             for c in range(w):
@@ -117,21 +121,20 @@ def _build_fill_runs(dtype, serial: bool = False):
 
     @ti.kernel
     def fill_runs(pix: ti.types.ndarray(dtype=pdt, ndim=1), cov: _F32, use_cov: ti.i32,
-                  thr: ti.types.ndarray(dtype=tdt, ndim=1), off: _F64, seg_pix: _I32, seg_w: _I32, seg_c0: _I32,
-                  seg_r0: _I32, seg_frame: _I32, seg_row: _I32, row_seg: _I32, run_off: _I32, rs: _I32, re: _I32,
-                  rrow: _I32, rseg: _I32, rsum: _F64x2):
+                  thr: ti.types.ndarray(dtype=tdt, ndim=1), off: _F64, seg: _I32x2, seg_row: _I32, row_seg: _I32,
+                  run_off: _I32, runs: _I32x2, rsum: _F64x2):
         ti.loop_config(serialize=serial)
         for q in range(row_seg.shape[0]):
             k = run_off[q]
             if run_off[q + 1] > k:  # only rows that have runs are read again
                 s = row_seg[q]
-                w = seg_w[s]
-                p0 = seg_pix[s] + (q - seg_row[s]) * w
-                fr = seg_frame[s]
+                w = seg[s, _W]
+                p0 = seg[s, _PIX] + (q - seg_row[s]) * w
+                fr = seg[s, _FRAME]
                 t = thr[fr]
                 ofs = off[fr]
-                c0 = seg_c0[s]
-                y = seg_r0[s] + q - seg_row[s]
+                c0 = seg[s, _C0]
+                y = seg[s, _R0] + q - seg_row[s]
                 c = 0
                 while c < w:
                     if ti.cast(pix[p0 + c], tdt) > t:
@@ -150,10 +153,10 @@ def _build_fill_runs(dtype, serial: bool = False):
                             swx += wc * xc
                             swxx += wc * xc * xc
                             c += 1
-                        rs[k] = c0 + start
-                        re[k] = c0 + c
-                        rrow[k] = y
-                        rseg[k] = s
+                        runs[k, 0] = c0 + start
+                        runs[k, 1] = c0 + c
+                        runs[k, 2] = y
+                        runs[k, 3] = s
                         rsum[k, 0] = sI
                         rsum[k, 1] = sIx
                         rsum[k, 2] = sw
@@ -167,7 +170,7 @@ def _build_fill_runs(dtype, serial: bool = False):
 
 def _build_union_runs(_dtype=None, serial: bool = False):
     @ti.kernel
-    def union_runs(seg_row: _I32, run_off: _I32, rs: _I32, re: _I32, conn8: ti.i32, parent: _I32, seg_ncomp: _I32):
+    def union_runs(seg_row: _I32, run_off: _I32, runs: _I32x2, conn8: ti.i32, parent: _I32, seg_ncomp: _I32):
         ti.loop_config(block_dim=1, serialize=serial)
         for s in range(seg_row.shape[0] - 1):  # one thread per segment
             q0 = seg_row[s]
@@ -181,9 +184,9 @@ def _build_union_runs(_dtype=None, serial: bool = False):
                 j = iend
                 jend = run_off[q + 1]
                 while i < iend and j < jend:
-                    if rs[i] + d <= re[j] and rs[j] + d <= re[i]:
+                    if runs[i, 0] + d <= runs[j, 1] and runs[j, 0] + d <= runs[i, 1]:
                         union(parent, 0, i, j)
-                    if re[i] <= re[j]:
+                    if runs[i, 1] <= runs[j, 1]:
                         i += 1
                     else:
                         j += 1
@@ -198,11 +201,11 @@ def _build_union_runs(_dtype=None, serial: bool = False):
 
 
 @ti.func
-def _run_sums(rs: ti.template(), re: ti.template(), rrow: ti.template(), rsum: ti.template(), k):
+def _run_sums(runs: ti.template(), rsum: ti.template(), k):
     """The NSTAT sums of run k as an f64 vector; whole-pixel sums in closed form."""
-    a = ti.cast(rs[k], ti.f64)
-    e = ti.cast(re[k], ti.f64)
-    yc = ti.cast(rrow[k], ti.f64) + 0.5
+    a = ti.cast(runs[k, 0], ti.f64)
+    e = ti.cast(runs[k, 1], ti.f64)
+    yc = ti.cast(runs[k, 2], ti.f64) + 0.5
     n = e - a
     # pixel centres a+0.5 .. e-0.5 (exact: integers and quarters)
     sx = 0.5 * n * (a + e)
@@ -216,62 +219,48 @@ def _run_sums(rs: ti.template(), re: ti.template(), rrow: ti.template(), rsum: t
 
 def _build_number_components(_dtype=None, serial: bool = False):
     @ti.kernel
-    def number_components(seg_run: _I32, rs: _I32, re: _I32, rrow: _I32, rsum: _F64x2, comp_off: _I32,
-                          label: _I32, npix: _I32, box: _I32x2, comp_seg: _I32, seg_stats: _F64x2):
+    def number_components(seg_run: _I32, runs: _I32x2, rsum: _F64x2, comp_off: _I32, label: _I32, npix: _I32,
+                          box: _I32x2, comp_seg: _I32, seg_stats: _F64x2, comp_mom: _F64x2):
         ti.loop_config(block_dim=1, serialize=serial)
         for s in range(seg_run.shape[0] - 1):  # one thread per segment; runs in raster order
             acc = ti.Vector.zero(ti.f64, NSTAT)
             cid = comp_off[s]
             for k in range(seg_run[s], seg_run[s + 1]):
-                acc += _run_sums(rs, re, rrow, rsum, k)
+                v = _run_sums(runs, rsum, k)
+                acc += v
                 rt = label[k]        # in: the root run (from union_runs); out: the component index
-                y = rrow[k]
+                rs, re, y = runs[k, 0], runs[k, 1], runs[k, 2]
+                c = cid
                 if rt == k:          # first run of a new component
-                    npix[cid] = re[k] - rs[k]
-                    box[cid, 0] = rs[k]
+                    npix[cid] = re - rs
+                    box[cid, 0] = rs
                     box[cid, 1] = y
-                    box[cid, 2] = re[k] - 1
+                    box[cid, 2] = re - 1
                     box[cid, 3] = y
                     comp_seg[cid] = s
-                    label[k] = cid
                     cid += 1
                 else:                # the root precedes k and already holds its component index
                     c = label[rt]
-                    npix[c] += re[k] - rs[k]
-                    box[c, 0] = ti.min(box[c, 0], rs[k])
-                    box[c, 2] = ti.max(box[c, 2], re[k] - 1)
+                    npix[c] += re - rs
+                    box[c, 0] = ti.min(box[c, 0], rs)
+                    box[c, 2] = ti.max(box[c, 2], re - 1)
                     box[c, 3] = y
-                    label[k] = c
+                label[k] = c
+                for m in ti.static(range(NSTAT)):   # the component's sums: its runs' in raster order, from 0
+                    comp_mom[c, m] += v[m]
             for m in ti.static(range(NSTAT)):
                 seg_stats[s, m] = acc[m]
     return number_components
 
 
-def _build_sum_moments(_dtype=None, serial: bool = False):
-    @ti.kernel
-    def sum_moments(seg_run: _I32, rs: _I32, re: _I32, rrow: _I32, rsum: _F64x2, label: _I32, slot: _I32,
-                    out: _F64x2):
-        ti.loop_config(block_dim=1, serialize=serial)
-        for s in range(seg_run.shape[0] - 1):  # one thread per segment (a component lies in one segment)
-            for k in range(seg_run[s], seg_run[s + 1]):  # raster order: the same sums in the same order always
-                j = slot[label[k]]
-                if j >= 0:
-                    v = _run_sums(rs, re, rrow, rsum, k)
-                    for m in ti.static(range(NSTAT)):
-                        out[j, m] += v[m]
-    return sum_moments
-
-
 _KERNELS.builders.update({"count_runs": _build_count_runs, "fill_runs": _build_fill_runs,
-                          "union_runs": _build_union_runs, "number_components": _build_number_components,
-                          "sum_moments": _build_sum_moments})
+                          "union_runs": _build_union_runs, "number_components": _build_number_components})
 
 
 SERIAL_MAX_PIXELS = 1 << 21
 """Row kernels (``count_runs``, ``fill_runs``) run serially on at most this many pixels per call."""
 SERIAL_MAX_RUNS = 1 << 13
-"""Segment kernels (``union_runs``, ``number_components``, ``sum_moments``) run serially on at most this many
-runs per call."""
+"""Segment kernels (``union_runs``, ``number_components``) run serially on at most this many runs per call."""
 
 
 def _kernel(name: str, serial: bool, dtype=None):
@@ -288,8 +277,7 @@ class Components:
     """Connected components of a batch of segments, and the runs of foreground pixels they are made of.
 
     Components are numbered segment by segment, in the raster order of their first pixel; runs are in
-    raster order (segment, row, column).  Moment sums are computed on request (:meth:`moments`), for the
-    components a caller needs only.
+    raster order (segment, row, column).
 
     Attributes
     ----------
@@ -304,6 +292,7 @@ class Components:
     run_label : (R,) int32 component of each run.
     run_sums : (R, 5) float64 sums of each run: sum I, sum I x, sum w, sum w x, sum w x^2.
     seg_runs : (NS + 1,) int32; segment s's runs are [seg_runs[s], seg_runs[s + 1]).
+    comp_moments : (NC, NSTAT) float64 moment sums of each component (read through :meth:`moments`).
     """
 
     npix: np.ndarray
@@ -318,6 +307,7 @@ class Components:
     run_label: np.ndarray
     run_sums: np.ndarray
     seg_runs: np.ndarray
+    comp_moments: np.ndarray
 
     def __len__(self) -> int:
         return len(self.seg)
@@ -330,15 +320,9 @@ class Components:
     def moments(self, which=None) -> np.ndarray:
         """(K, NSTAT) float64 moment sums (module docstring) of components ``which`` ((K,) distinct indices;
         None = all), each the sum of its runs' sums in raster order (so bit-identical whatever else is asked)."""
-        idx = np.arange(len(self)) if which is None else np.asarray(which, dtype=np.int64).reshape(-1)
-        out = np.zeros((max(idx.size, 1), NSTAT), np.float64)
-        if idx.size and len(self.run_c0):
-            slot = np.full(len(self), -1, np.int32)
-            slot[idx] = np.arange(idx.size, dtype=np.int32)
-            serial = len(self.run_c0) <= SERIAL_MAX_RUNS
-            _kernel("sum_moments", serial)(self.seg_runs, self.run_c0, self.run_c1, self.run_row, self.run_sums,
-                                           self.run_label, slot, out)
-        return out[:idx.size]
+        if which is None:
+            return self.comp_moments.copy()
+        return self.comp_moments[np.asarray(which, dtype=np.int64).reshape(-1)]
 
     def paint(self, out: np.ndarray, runs, values) -> np.ndarray:
         """Write ``values`` (a scalar or one value per selected run) into ``out[seg, row, col]`` over the pixels
@@ -418,7 +402,9 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
     i32 = lambda a: np.ascontiguousarray(a, dtype=np.int32)
     if pixels.size >= 2 ** 31:
         raise ValueError(f"{pixels.size} pixels in one call; at most 2^31 - 1 (label chunks of frames)")
-    seg_pix, seg_w, seg_c0, seg_r0, seg_frame = i32(seg_pix), i32(seg_w), i32(seg_c0), i32(seg_r0), i32(seg_frame)
+    seg = np.empty((max(NS, 1), 5), np.int32)          # the segment table (columns _PIX, _W, _C0, _R0, _FRAME)
+    for col, a in ((_PIX, seg_pix), (_W, seg_w), (_C0, seg_c0), (_R0, seg_r0), (_FRAME, seg_frame)):
+        seg[:NS, col] = np.asarray(a, dtype=np.int64).reshape(-1)
     seg_row = i32(seg_row)
     thr = np.asarray(threshold, dtype=np.float64).reshape(-1)
     off = np.zeros(thr.size) if offset is None else np.ascontiguousarray(offset, dtype=np.float64).reshape(-1)
@@ -427,8 +413,7 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
     counts = np.zeros(max(NR, 1), np.int32)
     rows_serial = pixels.size <= SERIAL_MAX_PIXELS
     if NR:
-        _kernel("count_runs", rows_serial, pixels.dtype)(pixels, tn, seg_pix, seg_w, seg_frame, seg_row, row_seg,
-                                                         counts)
+        _kernel("count_runs", rows_serial, pixels.dtype)(pixels, tn, seg, seg_row, row_seg, counts)
     run_off = np.zeros(NR + 1, np.int64)
     np.cumsum(counts[:NR], out=run_off[1:])
     R = int(run_off[-1])
@@ -436,7 +421,7 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
         raise ValueError(f"too many foreground runs ({R}); raise the threshold")
     run_off = i32(run_off)
     Ra = max(R, 1)  # Taichi wants non-empty arrays
-    rs, re, rrow, rseg = (np.empty(Ra, np.int32) for _ in range(4))
+    runs = np.empty((Ra, 4), np.int32)                 # first column, end column, row, segment
     rsum = np.empty((Ra, 5), np.float64)
     label = np.empty(Ra, np.int32)
     seg_ncomp = np.zeros(max(NS, 1), np.int32)
@@ -444,23 +429,23 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
     if R:
         cov = (np.ascontiguousarray(coverage, dtype=np.float32).reshape(-1) if coverage is not None
                else np.zeros(1, np.float32))
-        _kernel("fill_runs", rows_serial, pixels.dtype)(pixels, cov, int(coverage is not None), tn, off, seg_pix,
-                                                        seg_w, seg_c0, seg_r0, seg_frame, seg_row, row_seg, run_off,
-                                                        rs, re, rrow, rseg, rsum)
-        _kernel("union_runs", R <= SERIAL_MAX_RUNS)(seg_row, run_off, rs, re, int(connectivity == 8), label, seg_ncomp)
+        _kernel("fill_runs", rows_serial, pixels.dtype)(pixels, cov, int(coverage is not None), tn, off, seg, seg_row,
+                                                        row_seg, run_off, runs, rsum)
+        _kernel("union_runs", R <= SERIAL_MAX_RUNS)(seg_row, run_off, runs, int(connectivity == 8), label, seg_ncomp)
     comp_off = np.zeros(NS + 1, np.int64)
     np.cumsum(seg_ncomp[:NS], out=comp_off[1:])
     NC = int(comp_off[-1])
     npix = np.empty(max(NC, 1), np.int32)
     box = np.empty((max(NC, 1), 4), np.int32)
     comp_seg = np.empty(max(NC, 1), np.int32)
+    comp_mom = np.zeros((max(NC, 1), NSTAT), np.float64)
     seg_runs = i32(run_off[seg_row])
     if R:
-        _kernel("number_components", R <= SERIAL_MAX_RUNS)(seg_runs, rs, re, rrow, rsum, i32(comp_off), label, npix,
-                                                            box, comp_seg, seg_stats)
+        _kernel("number_components", R <= SERIAL_MAX_RUNS)(seg_runs, runs, rsum, i32(comp_off), label, npix, box,
+                                                            comp_seg, seg_stats, comp_mom)
     return Components(npix=npix[:NC], box=box[:NC], seg=comp_seg[:NC], offsets=comp_off, seg_stats=seg_stats[:NS],
-                      run_c0=rs[:R], run_c1=re[:R], run_row=rrow[:R], run_seg=rseg[:R], run_label=label[:R],
-                      run_sums=rsum[:R], seg_runs=seg_runs)
+                      run_c0=runs[:R, 0], run_c1=runs[:R, 1], run_row=runs[:R, 2], run_seg=runs[:R, 3],
+                      run_label=label[:R], run_sums=rsum[:R], seg_runs=seg_runs, comp_moments=comp_mom[:NC])
 
 
 def label_frames(images, threshold, *, offset=None, coverage=None, connectivity: int = 8) -> Components:
