@@ -162,10 +162,27 @@ def test_numpy_and_taichi_voting_give_the_same_rows(monkeypatch):
     ctx = hs.make_context(spec)
     out = {}
     for engine in ("numpy", "taichi"):
-        monkeypatch.setattr(hs, "voting_engine", lambda e=engine: e)
+        monkeypatch.setattr(hs, "voting_engine", lambda n_images=0, e=engine: e)
         t = hs.compute_shard(spec, np.arange(len(paths)), ctx)
         out[engine] = {k: v.drop_columns([c for c in hs.TIMING_COLUMNS if c in v.column_names]).to_pylist()
                        for k, v in t.items()}
     assert sum(r["identified"] for r in out["numpy"]["hil_star"]) == len(paths)
     assert out["numpy"] == out["taichi"]
     assert not math.isnan(out["numpy"]["hil_star"][0]["ra_rad"])
+
+
+def test_voting_engine_starts_taichi_only_for_long_runs():
+    # in a fresh process (Taichi not started): a short run votes with numpy and never starts Taichi (a one-image
+    # `hil star` pays no Taichi start); a run of TAICHI_VOTING_MIN_FRAMES images per core starts it
+    import subprocess
+    import sys
+
+    code = ("import os\n"
+            "from dualsight.jobs import hil_star as hs\n"
+            "from dualsight.kernels._runtime import is_initialised\n"
+            "n = hs.TAICHI_VOTING_MIN_FRAMES * (os.cpu_count() or 1)\n"
+            "print(hs.voting_engine(1), is_initialised(), hs.voting_engine(n - 1), is_initialised(),"
+            " hs.voting_engine(n), is_initialised(), hs.voting_engine(1))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split() == ["numpy", "False", "numpy", "False", "taichi", "True", "taichi"]
