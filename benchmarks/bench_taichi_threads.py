@@ -2,6 +2,8 @@
 
     .venv/bin/python benchmarks/bench_taichi_threads.py [--threads 1 2 4] [--work 2000000]
 
+(prints the launch costs too)
+
 For each ``cpu_max_num_threads`` (one child process each: Taichi starts once per process) it runs two
 kernels doing the same 256 independent work items of pure arithmetic (no memory traffic), and reads every
 thread's CPU time from ``/proc/self/task/*/stat`` around each: the number of threads that did the work, the
@@ -13,6 +15,15 @@ wall time and the process CPU time.
 
 A last check runs two Python threads of numpy sorts in one process, to tell a machine limit (cgroup,
 affinity) from Taichi's own scheduling.
+
+``--launch`` (also in the default run): the fixed cost of one kernel launch, per thread setting: a kernel
+whose loop over 1 item is parallel (the default) or serial (``ti.loop_config(serialize=True)``), with 2
+and with 10 numpy-array arguments; median microseconds of 2,000 launches.  This is what
+:class:`dualsight.kernels._runtime.KernelCache`'s serial variants and the packed argument tables of
+:mod:`dualsight.kernels.labelling` save on a single frame.  Measured (same VM, 2026-11-24, load 2.3): a
+parallel loop adds ~80-100 us per launch at 1 and at 2 threads (the thread pool's round trip), each array
+argument ~8.5 us (Taichi's Python launcher): 2 arguments 30-31 us serial, 108-131 us parallel; 10 arguments
+97-102 us serial, 179-188 us parallel.
 
 Measured on this project's 2-core VM (taichi 1.7.4, Linux, 2026-11-24): ``plain`` runs on ONE thread at
 every setting (Taichi hands a range-for out in tasks of >= 512 iterations, so 256 iterations are one
@@ -79,6 +90,51 @@ for name, k in (("plain", plain), ("spread", spread)):
 print(json.dumps(res))
 """
 
+LAUNCH = r"""
+import json, os, statistics, sys, time
+os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
+import numpy as np
+import taichi as ti
+ti.init(arch=ti.cpu, cpu_max_num_threads=int(sys.argv[1]), offline_cache=False, log_level=ti.WARN)
+A = ti.types.ndarray(dtype=ti.i32, ndim=1)
+
+@ti.kernel
+def par2(a: A, b: A):
+    for i in range(a.shape[0] - 1):
+        b[i] = a[i]
+
+@ti.kernel
+def ser2(a: A, b: A):
+    ti.loop_config(serialize=True)
+    for i in range(a.shape[0] - 1):
+        b[i] = a[i]
+
+@ti.kernel
+def par10(a: A, b: A, c: A, d: A, e: A, f: A, g: A, h: A, i2: A, j: A):
+    for i in range(a.shape[0] - 1):
+        b[i] = a[i]
+
+@ti.kernel
+def ser10(a: A, b: A, c: A, d: A, e: A, f: A, g: A, h: A, i2: A, j: A):
+    ti.loop_config(serialize=True)
+    for i in range(a.shape[0] - 1):
+        b[i] = a[i]
+
+x = [np.zeros(2, np.int32) for _ in range(10)]
+out = {}
+for name, k, n in (("parallel, 2 args", par2, 2), ("serial, 2 args", ser2, 2), ("parallel, 10 args", par10, 10),
+                   ("serial, 10 args", ser10, 10)):
+    k(*x[:n])
+    ts = []
+    for _ in range(20):
+        t0 = time.perf_counter()
+        for _ in range(100):
+            k(*x[:n])
+        ts.append((time.perf_counter() - t0) / 100 * 1e6)
+    out[name] = round(statistics.median(ts), 1)
+print(json.dumps(out))
+"""
+
 NUMPY = r"""
 import threading, time, numpy as np
 a = [np.random.default_rng(i).random(8_000_000) for i in range(2)]
@@ -112,6 +168,17 @@ def main() -> int:
             print(f"taichi cpu_max_num_threads {n}, {d['loop']:6s} loop: wall {d['wall_s']:.2f} s, "
                   f"cpu {d['cpu_s']:.2f} s (cpu/wall {d['cpu_s'] / max(d['wall_s'], 1e-9):.2f}), "
                   f"threads doing the work: {len(d['busy_threads'])} {d['busy_threads']}")
+    launch = os.path.join(tmp, "launch.py")
+    with open(launch, "w") as f:
+        f.write(LAUNCH)
+    for n in args.threads:
+        r = subprocess.run([sys.executable, launch, str(n)], capture_output=True, text=True)
+        if r.returncode != 0:
+            print(f"launch, threads {n}: failed: {r.stderr.strip()[-300:]}")
+            continue
+        d = json.loads(r.stdout.strip().splitlines()[-1])
+        print(f"taichi cpu_max_num_threads {n}, us per launch (loop over 1 item): "
+              + ", ".join(f"{k} {v:.0f}" for k, v in d.items()))
     shutil.rmtree(tmp, ignore_errors=True)
     r = subprocess.run([sys.executable, "-c", NUMPY], capture_output=True, text=True)
     wall, cpu = map(float, r.stdout.split())

@@ -89,8 +89,8 @@ class KernelCache:
     A builder that also takes ``serial=True`` has a serial variant (its loops under
     ``ti.loop_config(serialize=True)``), for calls too small to pay for the parallel launch: every launch
     of a parallel loop is a round trip through Taichi's thread pool, ~0.1 ms on a 2-core VM whatever the
-    thread count (a 2-argument kernel: 36 us with a serial loop, 150 us with a parallel one), more than the
-    work of the small kernels on one frame.
+    thread count (a 2-argument kernel: 30-40 us with a serial loop, 110-150 us with a parallel one;
+    ``benchmarks/bench_taichi_threads.py``), more than the work of the small kernels on one frame.
     """
 
     def __init__(self, builders: dict | None = None):

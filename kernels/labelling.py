@@ -27,7 +27,7 @@ the row kernels 1-2, ``SERIAL_MAX_RUNS`` runs for the segment kernels 3-4): a pa
 round trip through Taichi's thread pool that outweighs the work there (:func:`_kernel`).  Both give the same
 output bit for bit.  Segments (pixel offset, width, first column, first row, frame) and runs (first column,
 end column, row, segment) are passed as int32 tables, one argument each: every array argument of a launch
-costs ~9 us in Taichi's Python launcher.
+costs ~8.5 us in Taichi's Python launcher (``benchmarks/bench_taichi_threads.py``).
 
 Only runs are stored: the cost is one or two reads of every pixel plus work proportional to the number of
 runs.  Sums are float64 with pixel centres at (col + 0.5, row + 0.5) (DESIGN.md), ``I = value - offset``
