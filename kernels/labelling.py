@@ -30,7 +30,8 @@ end column, row, segment) are passed as int32 tables, one argument each: every a
 costs ~8.5 us in Taichi's Python launcher (``benchmarks/bench_taichi_threads.py``).
 
 Only runs are stored: the cost is one or two reads of every pixel plus work proportional to the number of
-runs.  Sums are float64 with pixel centres at (col + 0.5, row + 0.5) (DESIGN.md), ``I = value - offset``
+runs.  Memory per run: 16 bytes of table, 40 of sums, 4 of label; per component 15 float64 moment sums (so
+at most 120 more bytes per run, when every run is its own component: a threshold at the noise level).  Sums are float64 with pixel centres at (col + 0.5, row + 0.5) (DESIGN.md), ``I = value - offset``
 (offset: the frame's background, 0 for none) and ``w`` the coverage (1 without a coverage buffer):
 
     0 n      1 sum x    2 sum y    3 sum x^2   4 sum x y   5 sum y^2         (whole pixels)
