@@ -10,8 +10,8 @@ the number of threads or the order in which they take the work.
 
 Kernels (built lazily, once per process, through :class:`~dualsight.kernels._runtime.KernelCache`):
 
-``vote/<k>/<once>`` (step 1; k = identities kept per star, once = one vote per observed pair), two
-parallel loops:
+``vote/<k>/<once>/<serial pairs><serial slots>`` (step 1; k = identities kept per star, once = one vote per
+observed pair), two loops, each parallel unless the call is small (:func:`_vote_kernel`):
 
 1. over observed pairs (case, p < q): the window ``[lo, lo + cnt)`` of catalog pairs with
    ``angle > d - tol`` and ``angle < d + tol`` (numpy ``searchsorted`` sides ``right`` / ``left``):
