@@ -12,14 +12,19 @@ import numpy as np
 _SQRT2 = math.sqrt(2.0)
 
 
+AS_P, AS_A = 0.3275911, (0.254829592, -0.284496736, 1.421413741, -1.453152027, 1.061405429)
+"""Abramowitz & Stegun 7.1.26: erf(x) = 1 - (a1 t + ... + a5 t^5) exp(-x^2), t = 1 / (1 + p x), x >= 0,
+|error| <= 1.5e-7; ``AS_A`` = (a1, ..., a5)."""
+
+
 def _erf(x):
-    """erf (Abramowitz & Stegun 7.1.26, |error| <= 1.5e-7), vectorised."""
+    """erf (Abramowitz & Stegun 7.1.26, :data:`AS_A`), vectorised."""
+    a1, a2, a3, a4, a5 = AS_A
     x = np.asarray(x, np.float64)
     s = np.sign(x)
     a = np.abs(x)
-    t = 1.0 / (1.0 + 0.3275911 * a)
-    y = 1.0 - (((((1.061405429 * t - 1.453152027) * t) + 1.421413741) * t - 0.284496736) * t
-               + 0.254829592) * t * np.exp(-a * a)
+    t = 1.0 / (1.0 + AS_P * a)
+    y = 1.0 - (((((a5 * t + a4) * t) + a3) * t + a2) * t + a1) * t * np.exp(-a * a)
     return s * y
 
 

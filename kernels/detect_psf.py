@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from dualsight.kernels.detect_background import _Phi, _phi
+from dualsight.kernels.detect_background import AS_A, AS_P, _Phi, _phi
 
 
 # ============================================================================ PSF helpers
@@ -67,11 +67,11 @@ def _Phi_phi(e):
     ex *= -0.5
     np.exp(ex, out=ex)
     t = np.abs(e)
-    t *= 0.3275911 / math.sqrt(2.0)
+    t *= AS_P / math.sqrt(2.0)
     t += 1.0
     np.reciprocal(t, out=t)
-    q = t * 1.061405429
-    for c in (-1.453152027, 1.421413741, -0.284496736, 0.254829592):
+    q = t * AS_A[4]
+    for c in AS_A[3::-1]:                                # a4 .. a1 (Horner)
         q += c
         q *= t
     q *= ex

@@ -110,6 +110,8 @@ def patch_digest(values: np.ndarray, poff: np.ndarray, boxes: np.ndarray, patch_
 def _build_patch_sums(dtype):
     import taichi as ti   # here, not at import: the CLI imports this module without any kernel to run
 
+    from dualsight.kernels import rng
+
     is_float = np.dtype(dtype).kind == "f"
 
     @ti.kernel
@@ -121,10 +123,7 @@ def _build_patch_sums(dtype):
             acc = ti.u64(0)
             for i in range(ti.cast(poff[g + 1] - poff[g], ti.i32)):
                 idx = ti.cast((gbox[g, 2] + i // pw) * width + gbox[g, 0] + i % pw, ti.u64)
-                z = idx * ti.u64(0x9E3779B97F4A7C15) + ti.u64(0x9E3779B97F4A7C15)
-                z = (z ^ (z >> ti.u64(30))) * ti.u64(0xBF58476D1CE4E5B9)
-                z = (z ^ (z >> ti.u64(27))) * ti.u64(0x94D049BB133111EB)
-                z = z ^ (z >> ti.u64(31))
+                z = rng.mix64(idx * ti.u64(rng.GOLDEN) + ti.u64(rng.GOLDEN))      # splitmix64(idx)
                 v = val[poff[g] + i]
                 b = ti.u64(0)
                 if ti.static(is_float):
@@ -140,6 +139,8 @@ def _build_patch_sums(dtype):
 def _build_row_sums(dtype):
     import taichi as ti
 
+    from dualsight.kernels import rng
+
     tt = {1: ti.u8, 2: ti.u16, 4: ti.u32, 8: ti.u64}[np.dtype(dtype).itemsize]
 
     @ti.kernel
@@ -150,10 +151,7 @@ def _build_row_sums(dtype):
             acc = ti.u64(0)
             base = ti.cast(r, ti.u64) * ti.cast(n, ti.u64)
             for c in range(n):
-                z = (base + ti.cast(c, ti.u64)) * ti.u64(0x9E3779B97F4A7C15) + ti.u64(0x9E3779B97F4A7C15)
-                z = (z ^ (z >> ti.u64(30))) * ti.u64(0xBF58476D1CE4E5B9)
-                z = (z ^ (z >> ti.u64(27))) * ti.u64(0x94D049BB133111EB)
-                z = z ^ (z >> ti.u64(31))
+                z = rng.mix64((base + ti.cast(c, ti.u64)) * ti.u64(rng.GOLDEN) + ti.u64(rng.GOLDEN))
                 acc += (ti.cast(img[b, r, c], ti.u64) - sky_bits[b]) * z
             out[b, r] = acc
 

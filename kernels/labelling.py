@@ -24,15 +24,16 @@ of He, Chao & Suzuki 2008, "A run-based two-scan labeling algorithm", IEEE TIP 1
 
 Each kernel has a serial variant, used for small calls (a single frame: at most ``SERIAL_MAX_PIXELS`` pixels for
 the row kernels 1-2, ``SERIAL_MAX_RUNS`` runs for the segment kernels 3-4): a parallel loop's launch costs a
-round trip through Taichi's thread pool that outweighs the work there (:func:`_kernel`).  Both give the same
+round trip through Taichi's thread pool that outweighs the work there (:class:`KernelCache`).  Both give the same
 output bit for bit.  Segments (pixel offset, width, first column, first row, frame) and runs (first column,
 end column, row, segment) are passed as int32 tables, one argument each: every array argument of a launch
 costs ~8.5 us in Taichi's Python launcher (``benchmarks/bench_taichi_threads.py``).
 
 Only runs are stored: the cost is one or two reads of every pixel plus work proportional to the number of
 runs.  Memory per run: 16 bytes of table, 40 of sums, 4 of label; per component 15 float64 moment sums (so
-at most 120 more bytes per run, when every run is its own component: a threshold at the noise level).  Sums are float64 with pixel centres at (col + 0.5, row + 0.5) (DESIGN.md), ``I = value - offset``
-(offset: the frame's background, 0 for none) and ``w`` the coverage (1 without a coverage buffer):
+at most 120 more bytes per run, when every run is its own component: a threshold at the noise level).
+Sums are float64 with pixel centres at (col + 0.5, row + 0.5) (DESIGN.md), ``I = value - offset`` (offset: the
+frame's background, 0 for none) and ``w`` the coverage (1 without a coverage buffer):
 
     0 n      1 sum x    2 sum y    3 sum x^2   4 sum x y   5 sum y^2         (whole pixels)
     6 sum I  7 sum I x  8 sum I y                                            (intensity)
@@ -259,17 +260,12 @@ _KERNELS.builders.update({"count_runs": _build_count_runs, "fill_runs": _build_f
 
 
 SERIAL_MAX_PIXELS = 1 << 21
-"""Row kernels (``count_runs``, ``fill_runs``) run serially on at most this many pixels per call."""
+"""Row kernels (``count_runs``, ``fill_runs``) run serially on at most this many pixels per call: on one
+1024 x 1024 frame the serial row kernels took 1.19 ms for the whole detection against 1.44 ms (1 Taichi thread)
+and 1.32 against 1.58 ms (2 threads)."""
 SERIAL_MAX_RUNS = 1 << 13
-"""Segment kernels (``union_runs``, ``number_components``) run serially on at most this many runs per call."""
-
-
-def _kernel(name: str, serial: bool, dtype=None):
-    """Kernel ``name`` in its serial variant (``serial``) or its parallel one (:class:`KernelCache`): on one
-    1024 x 1024 frame the serial row kernels took 1.19 ms for the whole detection against 1.44 ms (1 Taichi
-    thread) and 1.32 against 1.58 ms (2 threads), and the segment kernels 70-115 us against 240-250 us each.
-    Both give the same output bit for bit (segments and rows are independent)."""
-    return _KERNELS.get(name, dtype, serial=serial)
+"""Segment kernels (``union_runs``, ``number_components``) run serially on at most this many runs per call
+(on one frame: 70-115 us against 240-250 us each)."""
 
 
 # ============================================================================ public API
@@ -414,13 +410,14 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
     counts = np.zeros(max(NR, 1), np.int32)
     rows_serial = pixels.size <= SERIAL_MAX_PIXELS
     if NR:
-        _kernel("count_runs", rows_serial, pixels.dtype)(pixels, tn, seg, seg_row, row_seg, counts)
+        _KERNELS.get("count_runs", pixels.dtype, serial=rows_serial)(pixels, tn, seg, seg_row, row_seg, counts)
     run_off = np.zeros(NR + 1, np.int64)
     np.cumsum(counts[:NR], out=run_off[1:])
     R = int(run_off[-1])
     if R >= 2 ** 31 - 1:
         raise ValueError(f"too many foreground runs ({R}); raise the threshold")
     run_off = i32(run_off)
+    segs_serial = R <= SERIAL_MAX_RUNS
     Ra = max(R, 1)  # Taichi wants non-empty arrays
     runs = np.empty((Ra, 4), np.int32)                 # first column, end column, row, segment
     rsum = np.empty((Ra, 5), np.float64)
@@ -430,9 +427,10 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
     if R:
         cov = (np.ascontiguousarray(coverage, dtype=np.float32).reshape(-1) if coverage is not None
                else np.zeros(1, np.float32))
-        _kernel("fill_runs", rows_serial, pixels.dtype)(pixels, cov, int(coverage is not None), tn, off, seg, seg_row,
-                                                        row_seg, run_off, runs, rsum)
-        _kernel("union_runs", R <= SERIAL_MAX_RUNS)(seg_row, run_off, runs, int(connectivity == 8), label, seg_ncomp)
+        _KERNELS.get("fill_runs", pixels.dtype, serial=rows_serial)(pixels, cov, int(coverage is not None), tn, off,
+                                                                    seg, seg_row, row_seg, run_off, runs, rsum)
+        _KERNELS.get("union_runs", serial=segs_serial)(seg_row, run_off, runs, int(connectivity == 8), label,
+                                                       seg_ncomp)
     comp_off = np.zeros(NS + 1, np.int64)
     np.cumsum(seg_ncomp[:NS], out=comp_off[1:])
     NC = int(comp_off[-1])
@@ -442,8 +440,8 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
     comp_mom = np.zeros((max(NC, 1), NSTAT), np.float64)
     seg_runs = i32(run_off[seg_row])
     if R:
-        _kernel("number_components", R <= SERIAL_MAX_RUNS)(seg_runs, runs, rsum, i32(comp_off), label, npix, box,
-                                                            comp_seg, seg_stats, comp_mom)
+        _KERNELS.get("number_components", serial=segs_serial)(seg_runs, runs, rsum, i32(comp_off), label, npix,
+                                                              box, comp_seg, seg_stats, comp_mom)
     return Components(npix=npix[:NC], box=box[:NC], seg=comp_seg[:NC], offsets=comp_off, seg_stats=seg_stats[:NS],
                       run_c0=runs[:R, 0], run_c1=runs[:R, 1], run_row=runs[:R, 2], run_seg=runs[:R, 3],
                       run_label=label[:R], run_sums=rsum[:R], seg_runs=seg_runs, comp_moments=comp_mom[:NC])

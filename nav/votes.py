@@ -79,11 +79,17 @@ def observed_pairs(obs_k: np.ndarray, use: np.ndarray) -> ObservedPairs:
     return ObservedPairs(case, pair, p, q, angle_between(obs_k[case, p], obs_k[case, q]), K)
 
 
+@functools.lru_cache(maxsize=64)
 def pair_slots(K: int) -> np.ndarray:
     """(K, K) int64: the index of pair (p, q) (or (q, p)) in ``np.triu_indices(K, 1)``; the diagonal
     holds P = K (K - 1) / 2, one past the last pair ("no pair"), so arrays of (B, P + 1) values per
-    pair read as (B, K, K) matrices with ``values[:, pair_slots(K)]``."""
-    return _pair_slots(int(K))
+    pair read as (B, K, K) matrices with ``values[:, pair_slots(K)]``.  Made once per K (read-only)."""
+    P = K * (K - 1) // 2
+    tp, tq = _triu(K)
+    pid = np.full((K, K), P, np.int64)
+    pid[tp, tq] = pid[tq, tp] = np.arange(P)
+    pid.flags.writeable = False
+    return pid
 
 
 @functools.lru_cache(maxsize=64)
@@ -92,16 +98,6 @@ def _triu(K: int) -> tuple[np.ndarray, np.ndarray]:
     tp, tq = np.triu_indices(K, 1)
     tp.flags.writeable = tq.flags.writeable = False
     return tp, tq
-
-
-@functools.lru_cache(maxsize=64)
-def _pair_slots(K: int) -> np.ndarray:
-    P = K * (K - 1) // 2
-    tp, tq = _triu(K)
-    pid = np.full((K, K), P, np.int64)
-    pid[tp, tq] = pid[tq, tp] = np.arange(P)
-    pid.flags.writeable = False
-    return pid
 
 
 def pair_windows(d: np.ndarray, catalog_angle: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
