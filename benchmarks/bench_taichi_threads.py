@@ -23,7 +23,9 @@ and with 10 numpy-array arguments; median microseconds of 2,000 launches.  This 
 :mod:`dualsight.kernels.labelling` save on a single frame.  Measured (same VM, 2026-11-24, load 2.3): a
 parallel loop adds ~80-100 us per launch at 1 and at 2 threads (the thread pool's round trip), each array
 argument ~8.5 us (Taichi's Python launcher): 2 arguments 30-31 us serial, 108-131 us parallel; 10 arguments
-97-102 us serial, 179-188 us parallel.
+97-102 us serial, 179-188 us parallel.  The same kernels through
+:class:`dualsight.kernels._runtime.FastKernel` (what every dualsight kernel is called through) are the
+``FastKernel`` rows.
 
 Measured on this project's 2-core VM (taichi 1.7.4, Linux, 2026-11-24): ``plain`` runs on ONE thread at
 every setting (Taichi hands a range-for out in tasks of >= 512 iterations, so 256 iterations are one
@@ -120,10 +122,13 @@ def ser10(a: A, b: A, c: A, d: A, e: A, f: A, g: A, h: A, i2: A, j: A):
     for i in range(a.shape[0] - 1):
         b[i] = a[i]
 
+from dualsight.kernels._runtime import FastKernel   # dualsight's short launcher, same kernels, same process
+
 x = [np.zeros(2, np.int32) for _ in range(10)]
 out = {}
-for name, k, n in (("parallel, 2 args", par2, 2), ("serial, 2 args", ser2, 2), ("parallel, 10 args", par10, 10),
-                   ("serial, 10 args", ser10, 10)):
+kernels = (("parallel, 2 args", par2, 2), ("serial, 2 args", ser2, 2), ("parallel, 10 args", par10, 10),
+           ("serial, 10 args", ser10, 10))
+for name, k, n in kernels + tuple((f"FastKernel {name}", FastKernel(k), n) for name, k, n in kernels):
     k(*x[:n])
     ts = []
     for _ in range(20):

@@ -8,6 +8,9 @@ Worker processes must be *spawned* (a fork of an initialised runtime hangs).
 Environment:
     DUALSIGHT_TI_CACHE    offline kernel cache folder (default ~/.cache/dualsight/taichi)
     DUALSIGHT_TI_THREADS  CPU threads Taichi may use in this process (default: all cores)
+    DUALSIGHT_TI_LAUNCHER ``fast`` (default): kernels are called through :class:`FastKernel`; ``taichi``:
+                          always through Taichi's own launcher (for comparison, or should a Taichi release
+                          change the internals FastKernel uses)
 """
 
 from __future__ import annotations
@@ -109,5 +112,117 @@ class KernelCache:
                 if k is None:
                     ensure_init()
                     k = self.builders[name](dtype, serial=True) if serial else self.builders[name](dtype)
+                    if os.environ.get("DUALSIGHT_TI_LAUNCHER", "fast") != "taichi":
+                        k = FastKernel(k)
                     self._built[key] = k
         return k
+
+
+class FastKernel:
+    """A Taichi kernel called through a shorter launcher (what :meth:`KernelCache.get` returns).
+
+    Taichi 1.7's Python launcher (``Kernel.__call__``) spends ~10 us per numpy-array argument (template
+    lookup, a type dispatch per argument, ``ndarray.ctypes``) before the launch itself: ~130 us for a kernel
+    of 10 arrays on this VM, more than the kernel's own work on one frame.  The first call with an argument
+    *signature* (each array's dtype and ndim, each scalar's Python type) goes through Taichi's launcher,
+    which compiles, type-checks and raises Taichi's own errors; the compiled kernel and one setter per
+    argument are then kept, and later calls with that signature set the arguments on a launch context and
+    launch it directly (~30 us for 10 arrays; ``benchmarks/bench_taichi_threads.py``).  The kernel sees the
+    very same arguments either way.  Calls the plan does not cover (keyword arguments, an array that is
+    not C-contiguous, a Taichi ndarray or field, a kernel with a return value, autodiff) use Taichi's launcher.
+    """
+
+    __slots__ = ("kernel", "_plans")
+
+    def __init__(self, kernel):
+        self.kernel = kernel
+        self._plans: dict = {}
+
+    def __call__(self, *args):
+        sig = _signature(args)
+        plan = self._plans.get(sig) if sig is not None else False
+        if plan is None:                                 # first call with this signature: Taichi's launcher
+            out = self.kernel(*args)
+            self._plans[sig] = _plan(self.kernel, args)
+            return out
+        if plan is False:
+            return self.kernel(*args)
+        t_kernel, setters, prog = plan
+        ctx = t_kernel.make_launch_context()
+        for i, a in enumerate(args):
+            setters[i](ctx, (i,), a)
+        prog.launch_kernel(prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel), ctx)
+        return None
+
+
+_SCALARS = (int, float, bool)
+
+
+def _signature(args) -> tuple | None:
+    """The plan key of a call: (dtype number, ndim) per C-contiguous numpy array, the type of each Python or
+    numpy scalar; None when an argument is anything else."""
+    import numpy as np
+
+    sig = []
+    for a in args:
+        t = type(a)
+        if t is np.ndarray:
+            if not a.flags.c_contiguous:
+                return None
+            sig.append((a.dtype.num, a.ndim))
+        elif t in _SCALARS or isinstance(a, (np.integer, np.floating)):
+            sig.append(t)
+        else:
+            return None
+    return tuple(sig)
+
+
+def _set_array(ctx, idx, a):
+    ctx.set_arg_external_array_with_shape(idx, a.ctypes.data, a.nbytes, a.shape, 0)
+
+
+def _set_float(ctx, idx, v):
+    ctx.set_arg_float(idx, float(v))
+
+
+def _set_int(ctx, idx, v):
+    ctx.set_arg_int(idx, int(v))
+
+
+def _set_uint(ctx, idx, v):
+    ctx.set_arg_uint(idx, int(v))
+
+
+def _plan(kernel, args):
+    """(compiled Taichi kernel, setter per argument, program) for calls like ``args`` (just launched by
+    Taichi), or False when the short launcher does not cover the kernel or its arguments (see
+    :class:`FastKernel`).  Uses Taichi 1.7's launcher internals, each checked (anything unexpected: False)."""
+    try:
+        from taichi.lang import impl
+        from taichi.lang.enums import AutodiffMode
+        from taichi.lang.util import cook_dtype
+        from taichi.types import ndarray_type, primitive_types
+        from taichi.types.utils import is_signed
+
+        primal = kernel._primal
+        if (primal.autodiff_mode != AutodiffMode.NONE or primal.return_type is not None or primal.has_print
+                or len(primal.arguments) != len(args)):
+            return False
+        setters = []
+        for a, arg in zip(args, primal.arguments):
+            anno = arg.annotation
+            if isinstance(anno, ndarray_type.NdarrayType):
+                if not (type(a).__name__ == "ndarray" and (anno.dtype is None
+                                                          or id(anno.dtype) in primitive_types.type_ids)):
+                    return False
+                setters.append(_set_array)
+            elif id(anno) in primitive_types.real_type_ids:
+                setters.append(_set_float)
+            elif id(anno) in primitive_types.integer_type_ids:
+                setters.append(_set_int if is_signed(cook_dtype(anno)) else _set_uint)
+            else:
+                return False
+        key = primal.ensure_compiled(*args)
+        return primal.compiled_kernels[key], tuple(setters), impl.get_runtime().prog
+    except Exception:                                   # another Taichi version's internals: its own launcher
+        return False
