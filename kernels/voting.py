@@ -225,7 +225,7 @@ def bucket_starts(angle: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def vote_top_k(case, p, q, lo_key, hi_key, angle, buckets, stars_plus_one, prev, n_slots, k: int, n_cat: int,
-               max_cells: int) -> tuple[np.ndarray, np.ndarray]:
+               max_cells: int, window_counts: bool = False) -> tuple[np.ndarray, ...]:
     """Voting round and each observed star's ``k`` best identities, for the (B, K) star slots.
 
     case, p, q : (E,) int the observed pairs (case, star slots p < q; p, q < K).
@@ -239,7 +239,8 @@ def vote_top_k(case, p, q, lo_key, hi_key, angle, buckets, stars_plus_one, prev,
     max_cells : memory bound of the vote rows: at most max(1, max_cells // N) rows of N int32 (and at
         most one per Taichi thread).
     Returns ``ids (B, K, k)`` int32 (most votes first, ties to the lower row; -1 = none) and
-    ``votes (B, K, k)`` int32 (0 = none); a slot without pairs has none.
+    ``votes (B, K, k)`` int32 (0 = none); a slot without pairs has none; with ``window_counts`` also
+    ``(E,)`` int64 the size of each pair's window (the catalog pairs it voted with).
     """
     B, K = n_slots
     out = np.zeros((2, B, K, k), np.int32)
@@ -247,7 +248,7 @@ def vote_top_k(case, p, q, lo_key, hi_key, angle, buckets, stars_plus_one, prev,
     E = int(np.size(case))
     M = int(np.size(angle))
     if B == 0 or K == 0 or E == 0 or M == 0 or n_cat == 0:
-        return out[0], out[1]
+        return (out[0], out[1], np.zeros(E, np.int64)) if window_counts else (out[0], out[1])
     if M >= 2 ** 30 or B * K >= 2 ** 31 - 1:
         raise ValueError("vote_top_k: catalog pairs < 2^30 and observed stars < 2^31 - 1 (int32 indices)")
     pq = np.empty((E, 3), np.int32)
@@ -263,4 +264,6 @@ def vote_top_k(case, p, q, lo_key, hi_key, angle, buckets, stars_plus_one, prev,
     kern = _vote_kernel(int(k), once, E <= SERIAL_MAX_PAIRS, slots == 1)
     kern(pq, keys, np.ascontiguousarray(angle, np.float64), np.ascontiguousarray(starts, np.int32), float(inv_w), win,
          np.ascontiguousarray(stars_plus_one, np.int32), prev_arr, table, np.zeros(1, np.int32), out)
+    if window_counts:
+        return out[0], out[1], win[case, p, q, 1].astype(np.int64)
     return out[0], out[1]

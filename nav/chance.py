@@ -58,15 +58,18 @@ _LOG_FACT = np.concatenate([[0.0], np.cumsum(np.log(np.arange(1, 4097, dtype=np.
 
 
 def pair_hypotheses(d_obs: np.ndarray, case: np.ndarray, n_cases: int, catalog_angle: np.ndarray,
-                    tol: float) -> np.ndarray:
+                    tol: float, counts: np.ndarray | None = None) -> np.ndarray:
     """Candidate attitudes of step 1: ``2 * sum`` over each case's observed pairs of the catalog pairs
     whose angle matches within ``tol``.
 
     d_obs : (E,) float64 observed pair angles (rad).  case : (E,) int case of each pair.
     n_cases : B.  catalog_angle : (M,) float64 catalog pair angles (rad), ascending.  tol : rad.
+    counts : optional (E,) int, those numbers of catalog pairs when already known (the voting round's
+        windows, when its tolerance is ``tol``: :func:`dualsight.nav.votes.vote`'s ``window_counts``);
+        else they are searched here (:func:`~dualsight.nav.votes.pair_windows`).
     Returns (B,) float64.
     """
-    _, cnt = pair_windows(np.asarray(d_obs, np.float64), catalog_angle, float(tol))
+    cnt = counts if counts is not None else pair_windows(np.asarray(d_obs, np.float64), catalog_angle, float(tol))[1]
     return 2.0 * np.bincount(np.asarray(case, np.int64), weights=cnt.astype(np.float64), minlength=n_cases)
 
 

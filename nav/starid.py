@@ -237,13 +237,14 @@ def _round(obs: np.ndarray, valid: np.ndarray, voters: np.ndarray, cat_unit: np.
     obs_k = np.where(use[..., None], np.take_along_axis(obs, cols[..., None], axis=1), 0.0)
 
     pairs = observed_pairs(obs_k, use)
+    windows = chance and cfg.verify_tol == cfg.tolerance_rad      # the hypotheses count the voting windows
     if engine == "taichi":
-        cand_ids, cand_votes = vote_taichi(pairs, use, index, N, cfg)                      # step 1
+        cand_ids, cand_votes, *counts = vote_taichi(pairs, use, index, N, cfg, windows)   # step 1
         vote_ids, top = assign_identities_taichi(cand_ids, cand_votes, pairs, cat_unit, cfg)   # step 2
         vv, T, acc_k, reject = verify_accept_taichi(pairs, vote_ids, top, cat_unit, cfg)   # steps 3-5
         vote_ids, top, vv, T = (x.astype(np.int64) for x in (vote_ids, top, vv, T))
     else:
-        cand_ids, cand_votes = vote(pairs, use, index, N, cfg)                             # step 1
+        cand_ids, cand_votes, *counts = vote(pairs, use, index, N, cfg, windows)           # step 1
         vote_ids, top = assign_identities(cand_ids, cand_votes, pairs, cat_unit, cfg)      # step 2
         cons, vv, T = verify(pairs, vote_ids, cat_unit, cfg)                              # steps 3-4
         acc_k, reject = accept(cons, vv, T, top, cfg)                                     # step 5
@@ -270,8 +271,8 @@ def _round(obs: np.ndarray, valid: np.ndarray, voters: np.ndarray, cat_unit: np.
         n_att = np.where(n_att >= 0, n_att - n_res, n_att)
     return dict(ids=ids_s, accepted=acc_s, T=np.where(reject, 0, T), vote_ids=vote_ids_s, votes=scatter(top, 0),
                 verify_votes=scatter(vv, 0), rejected=reject, n_attitude_matches=n_att, n_residual_rejected=n_res,
-                hypotheses=(pair_hypotheses(pairs.angle, pairs.case, B, index.angle, cfg.verify_tol) if chance
-                            else np.zeros(B)))
+                hypotheses=(pair_hypotheses(pairs.angle, pairs.case, B, index.angle, cfg.verify_tol,
+                                            counts[0] if windows else None) if chance else np.zeros(B)))
 
 
 def _chance(obs: np.ndarray, valid: np.ndarray, res: dict, hyp: np.ndarray, cat_unit: np.ndarray,

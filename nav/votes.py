@@ -117,7 +117,7 @@ def pair_windows(d: np.ndarray, catalog_angle: np.ndarray, tol: float) -> tuple[
 
 
 def vote(pairs: ObservedPairs, use: np.ndarray, index: VotingIndex, n_cat: int,
-         cfg: VotingConfig) -> tuple[np.ndarray, np.ndarray]:
+         cfg: VotingConfig, window_counts: bool = False) -> tuple[np.ndarray, ...]:
     """Voting round (Kolomenkin 2008, step 1) and each observed star's best-voted identities.
 
     pairs : :class:`ObservedPairs` of the (B, K) voting stars ``use``.
@@ -126,7 +126,9 @@ def vote(pairs: ObservedPairs, use: np.ndarray, index: VotingIndex, n_cat: int,
         counts at most once per observed pair), ``candidates_kept`` and ``max_vote_cells``.
     Returns ``cand_ids (B, K, k)`` int64 catalog rows, best first (most votes, ties to the lower row;
     -1 = none) and ``cand_votes (B, K, k)`` int64 their vote counts (0 = none), k =
-    ``cfg.candidates_kept``; unused slots hold -1 / 0.
+    ``cfg.candidates_kept``; unused slots hold -1 / 0; with ``window_counts`` also ``(E,)`` int64 the
+    size of each observed pair's window (the catalog pairs within the tolerance, for
+    :func:`dualsight.nav.chance.pair_hypotheses`).
     """
     B, K = use.shape
     P = K * (K - 1) // 2
@@ -147,11 +149,11 @@ def vote(pairs: ObservedPairs, use: np.ndarray, index: VotingIndex, n_cat: int,
     cand_votes = np.zeros((B, K, k), np.int64)
     cand_ids[use] = r_ids
     cand_votes[use] = r_cnt
-    return cand_ids, cand_votes
+    return (cand_ids, cand_votes, cnt) if window_counts else (cand_ids, cand_votes)
 
 
 def vote_taichi(pairs: ObservedPairs, use: np.ndarray, index: VotingIndex, n_cat: int,
-                cfg: VotingConfig) -> tuple[np.ndarray, np.ndarray]:
+                cfg: VotingConfig, window_counts: bool = False) -> tuple[np.ndarray, ...]:
     """:func:`vote` by the Taichi kernel ``vote`` of :mod:`dualsight.kernels.voting` (same arguments, same
     results bit for bit, as int32): windows by binary search per observed pair, votes counted per
     observed star in a row of N int32 counts per thread (``min(threads, max(1, cfg.max_vote_cells //
@@ -161,8 +163,8 @@ def vote_taichi(pairs: ObservedPairs, use: np.ndarray, index: VotingIndex, n_cat
     once per :class:`VotingIndex` and kept while it lives.
     """
     if np.dtype(index.tile_dtype) != np.int32:                          # ~500M pairs: beyond int32
-        ids, cnt = vote(pairs, use, index, n_cat, cfg)
-        return ids.astype(np.int32), cnt.astype(np.int32)
+        ids, cnt, *windows = vote(pairs, use, index, n_cat, cfg, window_counts)
+        return ids.astype(np.int32), cnt.astype(np.int32), *windows
     from dualsight.kernels import voting as kvoting
 
     tol = cfg.tolerance_rad
@@ -172,7 +174,7 @@ def vote_taichi(pairs: ObservedPairs, use: np.ndarray, index: VotingIndex, n_cat
         buckets = _BUCKETS[index] = kvoting.bucket_starts(index.angle)
     return kvoting.vote_top_k(pairs.case, pairs.p, pairs.q, pairs.angle - tol, pairs.angle + tol, index.angle,
                               buckets, index.stars_plus_one, index.prev_padded if once else None, use.shape,
-                              cfg.candidates_kept, n_cat, cfg.max_vote_cells)
+                              cfg.candidates_kept, n_cat, cfg.max_vote_cells, window_counts=window_counts)
 
 
 def _tile_length(n_el: np.ndarray) -> int:

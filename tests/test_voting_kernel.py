@@ -8,6 +8,9 @@ numpy stages (``engine="numpy"``, the reference), bit for bit, on rendered star 
   maxima without candidate cliques, two candidates, once-per-pair with the fraction rule, one vote
   row for the whole batch) on 200 cases; and for degenerate batches (empty, no valid star, one or
   two stars, NaN padding).
+* ``p_chance`` too: its hypothesis count reads the vote's own windows (``window_counts``), checked
+  against a brute-force count of the catalog pairs within the tolerance, and searched anew when the
+  verification tolerance differs from the voting one.
 * The window search (bucketed binary search) equals ``np.searchsorted`` on both sides, with keys
   equal to catalog angles, repeated angles, keys outside the range and useless buckets.
 * The comparison has teeth: kernels/voting.py with a planted bug (loaded from a patched copy, the
@@ -32,7 +35,8 @@ from dualsight.kernels import voting as kvoting
 from dualsight.kernels import voting_select as kselect
 from dualsight.nav.starid import VotingConfig, identify, voting_index
 
-FIELDS = ("ids", "accepted", "T", "vote_ids", "votes", "verify_votes", "rejected", "n_attitude_matches")
+FIELDS = ("ids", "accepted", "T", "vote_ids", "votes", "verify_votes", "rejected", "n_attitude_matches",
+          "p_chance")     # p_chance: its hypothesis count reads the vote's own windows (NaN = no answer, equal)
 
 
 def _rendered(mag_limit: float, n: int):
@@ -64,7 +68,8 @@ def _run(w, cfg, engine, obs=None, valid=None):
 
 def _differences(a, b) -> list[str]:
     return [f for f in FIELDS if not (getattr(a, f).dtype == getattr(b, f).dtype
-                                      and np.array_equal(getattr(a, f), getattr(b, f)))]
+                                      and np.array_equal(getattr(a, f), getattr(b, f),
+                                                         equal_nan=getattr(a, f).dtype.kind == "f"))]
 
 
 def _assert_same(w, cfg, obs=None, valid=None):
@@ -222,3 +227,50 @@ def test_voting_index_buckets_follow_the_catalog(v55):
     ref_starts, ref_inv = kvoting.bucket_starts(index.angle)
     np.testing.assert_array_equal(starts, ref_starts)
     assert inv_w == ref_inv and starts[-1] == len(index)
+
+
+@pytest.mark.parametrize("config", ["paper", "robust"])
+def test_vote_window_counts_are_the_catalog_pairs_within_tolerance(v55, config):
+    """Both engines' ``window_counts`` (what the chance probability's hypothesis count reads) are, for every
+    observed pair, the number of catalog pairs with d - tol < angle < d + tol, counted by brute force."""
+    from dualsight.nav.votes import observed_pairs, vote, vote_taichi
+
+    cfg = v55.configs[config]
+    index = voting_index(v55.pairs.i, v55.pairs.j, v55.pairs.angle)
+    K = 8
+    use = v55.valid[:40, :K]
+    pairs = observed_pairs(np.where(use[..., None], v55.obs[:40, :K], 0.0), use)
+    d = pairs.angle[:, None]
+    tol = cfg.tolerance_rad
+    truth = np.count_nonzero((index.angle[None, :] > d - tol) & (index.angle[None, :] < d + tol), axis=1)
+    assert pairs.angle.size > 500 and truth.sum() > 1000 and (truth > 1).mean() > 0.5
+    for fn in (vote, vote_taichi):
+        counts = fn(pairs, use, index, len(v55.cat), cfg, window_counts=True)[2]
+        np.testing.assert_array_equal(counts, truth, err_msg=fn.__name__)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "taichi"])
+@pytest.mark.parametrize("verify_factor", [1.0, 3.0])
+def test_round_hypotheses_count_the_pairs_within_the_verify_tolerance(v55, engine, verify_factor):
+    """A round's hypothesis count is 2 x the catalog pairs within ``verify_tol`` of each voting pair (brute
+    force), whether it equals the voting tolerance (the vote's windows are reused) or not (searched anew)."""
+    import dataclasses
+
+    from dualsight.nav import starid
+    from dualsight.scene.units import angle_between
+
+    base = v55.configs["robust"]
+    cfg = dataclasses.replace(base, verify_tolerance_rad=verify_factor * base.tolerance_rad)
+    index = voting_index(v55.pairs.i, v55.pairs.j, v55.pairs.angle)
+    S = 6                                                   # fewer than first_stars: every valid star votes
+    obs, valid = v55.obs[:30, :S], v55.valid[:30, :S]
+    out = starid._round(obs, valid, valid, v55.cat, index, cfg, engine)
+    truth = np.zeros(len(obs))
+    for b in range(len(obs)):
+        idx = np.flatnonzero(valid[b])
+        for x in range(idx.size):
+            for y in range(x + 1, idx.size):
+                d = float(angle_between(obs[b, idx[x]], obs[b, idx[y]]))
+                truth[b] += 2 * np.count_nonzero(np.abs(index.angle - d) < cfg.verify_tol)
+    assert truth.sum() > 0
+    np.testing.assert_array_equal(out["hypotheses"], truth)
