@@ -47,12 +47,17 @@ _F64x1, _F64x2 = (ti.types.ndarray(dtype=ti.f64, ndim=n) for n in (1, 2))
 _KERNELS = KernelCache()      # builders registered below (and per (k, once) on first use)
 
 
+_THREADS: list = []       # [threads] once read: Taichi is initialised once per process (~60 us to read the config)
+
+
 def n_threads() -> int:
     """CPU threads of the Taichi runtime (starts it if needed)."""
-    ensure_init()
-    from taichi.lang import impl
+    if not _THREADS:
+        ensure_init()
+        from taichi.lang import impl
 
-    return max(1, int(impl.current_cfg().cpu_max_num_threads))
+        _THREADS.append(max(1, int(impl.current_cfg().cpu_max_num_threads)))
+    return _THREADS[0]
 
 
 # ============================================================================ Taichi funcs
