@@ -43,14 +43,16 @@ def subtract_background(frames: np.ndarray, block: int) -> tuple[np.ndarray, np.
     import cv2
 
     f32 = np.asarray(frames)
-    if f32.dtype != np.float32:
+    own = f32.dtype != np.float32                            # a converted copy: the residual is written over it
+    if own:
         f32 = f32.astype(np.float32)
     B, H, W = f32.shape
     if block <= 0:
         return f32, np.median(f32.reshape(B, -1), axis=1)
     b = bin_size(block)
     nby, nbx, m = -(-H // block), -(-W // block), block // b
-    out = np.empty((B, H, W), np.float32)
+    out = f32 if own else np.empty((B, H, W), np.float32)   # (one full-frame buffer fewer: ~0.2 ms per frame)
+    bg = np.empty((nby * block, nbx * block), np.float32)    # the interpolated background, one frame at a time
     levels = np.empty(B, np.float64)
     for k in range(B):                                       # one frame at a time: OpenCV calls on 2-D images
         ext = f32[k]
@@ -62,7 +64,7 @@ def subtract_background(frames: np.ndarray, block: int) -> tuple[np.ndarray, np.
         srt = np.sort(cells, axis=-1)                        # (a SIMD sort of a few dozen values beats a partition)
         n = m * m
         med = srt[..., n // 2] if n % 2 else np.float32(0.5) * (srt[..., n // 2 - 1] + srt[..., n // 2])
-        bg = cv2.resize(med, (nbx * block, nby * block), interpolation=cv2.INTER_LINEAR)[:H, :W]
-        np.subtract(f32[k], bg, out=out[k])
+        cv2.resize(med, (nbx * block, nby * block), dst=bg, interpolation=cv2.INTER_LINEAR)
+        np.subtract(f32[k], bg[:H, :W], out=out[k])
         levels[k] = np.median(med)
     return out, levels

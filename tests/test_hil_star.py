@@ -365,7 +365,9 @@ def test_subtract_background_removes_a_gradient_and_keeps_stars():
     sky = 100.0 + 0.5 * xx + 0.3 * yy
     star = 500.0 * np.exp(-((xx + 0.5 - 60.3) ** 2 + (yy + 0.5 - 40.7) ** 2) / (2 * 0.8 ** 2))
     f = (sky + star + rng.normal(0, 3, (H, W)))[None].astype(np.float32)
+    f_before = f.copy()
     r, level = subtract_background(f, 16)
+    assert np.array_equal(f, f_before)                  # the caller's float32 frames are not written over
     assert r.shape == f.shape and r.dtype == np.float32
     far = np.hypot(xx - 60, yy - 40) > 6
     assert abs(float(np.median(r[0][far]))) < 0.5 and float(np.std(r[0][far])) < 3.5
@@ -376,7 +378,9 @@ def test_subtract_background_removes_a_gradient_and_keeps_stars():
     # integer frames are partitioned in their own type: the same medians (exact) and residuals as float32
     for blk in (16, 15):                                  # even and odd block areas
         fu = np.round(f).astype(np.uint16)
+        fu_before = fu.copy()
         ru, lu = subtract_background(fu, blk)
+        assert np.array_equal(fu, fu_before)
         rf, lf = subtract_background(fu.astype(np.float32), blk)
         assert ru.dtype == np.float32 and np.array_equal(ru, rf) and np.array_equal(lu, lf)
 

@@ -19,7 +19,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from dualsight.kernels import rng as krng
-from dualsight.kernels.detect import (DetectConfig, Detections, detect_stars, estimate_background,
+from dualsight.kernels.detect import (DetectConfig, Detections, detect_stars, estimate_background, row_medians,
                                       render_and_detect_ideal)
 from dualsight.kernels.starfield import (SensorConfig, false_star_lists, flux_from_magnitude,
                                          render_star_fields)
@@ -476,3 +476,20 @@ def test_config_validation():
         render_star_fields([[1.0]], [[1.0]], [[1.0]], None, 8, 8, SensorConfig(read_noise_e=1.0))
     with pytest.raises(ValueError, match="shape"):
         render_star_fields([[1.0, 2.0]], [[1.0]], [[1.0]], None, 8, 8)
+
+
+@settings(max_examples=300, deadline=None)
+@given(rows=st.integers(1, 4), n=st.integers(1, 70), seed=st.integers(0, 2 ** 32 - 1),
+       ties=st.booleans(), nan=st.booleans())
+def test_row_medians_equal_numpy_median(rows, n, seed, ties, nan):
+    """row_medians (estimate_background's medians) is np.median(axis=1) bit for bit: odd and even lengths,
+    repeated values, NaN rows, signed zeros."""
+    rng = np.random.default_rng(seed)
+    x = rng.integers(-3, 4, (rows, n)).astype(np.float64) if ties else rng.normal(0, 10, (rows, n))
+    if ties:
+        x[rng.random((rows, n)) < 0.1] = -0.0
+    if nan:
+        x[rng.integers(0, rows), rng.integers(0, n)] = np.nan
+    got, want = row_medians(x), np.median(x, axis=1)
+    assert got.dtype == want.dtype and np.array_equal(got, want, equal_nan=True)
+    assert np.array_equal(np.signbit(got), np.signbit(want))
