@@ -19,6 +19,25 @@ import numpy as np
 __all__ = ["svd_attitude", "solve_identified"]
 
 
+def _lapack_gufuncs():
+    """numpy's own LAPACK gufuncs behind ``np.linalg.svd`` (full matrices) and ``np.linalg.det``, called
+    directly: the same LAPACK calls, bit for bit, without the wrappers' per-call checks and error-state
+    set-up, which cost more than the 3 x 3 factorisation itself on one frame (~40 of ~50 us per attitude;
+    5 attitudes per frame).  Falls back to the wrappers when this numpy names them otherwise."""
+    try:
+        from numpy.linalg import _umath_linalg as ul
+    except ImportError:                                  # pragma: no cover (numpy 1.26 and 2.x have it)
+        ul = None
+    svd = getattr(ul, "svd_f", None) or getattr(ul, "svd_n_f", None)      # numpy 2.x / 1.26 (m >= n)
+    det = getattr(ul, "det", None)
+    if svd is None or det is None:                       # pragma: no cover
+        return np.linalg.svd, np.linalg.det
+    return (lambda a: svd(a, signature="d->ddd")), (lambda a: det(a, signature="d->d"))
+
+
+_SVD, _DET = _lapack_gufuncs()
+
+
 def svd_attitude(obs: np.ndarray, ref: np.ndarray, weights: np.ndarray, *,
                  return_cov: bool = False, rank_tol: float = 1e-10):
     """Batched SVD solution of Wahba's problem (Markley 1988).
@@ -39,7 +58,8 @@ def svd_attitude(obs: np.ndarray, ref: np.ndarray, weights: np.ndarray, *,
     Returns
     -------
     A : (B, 3, 3) float64 rotation matrices with ``b ~ A r`` (NaN where not ok).
-    ok : (B,) bool, at least two non-parallel observations with positive weight.
+    ok : (B,) bool, at least two non-parallel observations with positive weight (False, A NaN, for a case
+        whose profile matrix is not finite, e.g. an infinite weight; the other cases are unaffected).
     cov : (B, 3, 3) float64, only if ``return_cov``: covariance (rad^2) of the small error rotation
         vector ``dtheta`` in the camera frame, ``A_true ~ (I + [dtheta x]) A`` to first order, from
         Markley 1988 (covariance of the SVD estimate; also Markley & Crassidis 2014, Sec. 5.5):
@@ -59,8 +79,9 @@ def svd_attitude(obs: np.ndarray, ref: np.ndarray, weights: np.ndarray, *,
     b = np.where(use[..., None], obs, 0.0)
     r = np.where(use[..., None], ref, 0.0)
     Bm = np.einsum("bs,bsi,bsj->bij", w, b, r)                       # attitude profile matrix
-    U, s, Vt = np.linalg.svd(Bm)
-    d = np.linalg.det(U) * np.linalg.det(Vt)                          # +-1
+    with np.errstate(invalid="ignore"):       # a factorisation that fails (non-finite B) gives NaN: not ok
+        U, s, Vt = _SVD(Bm)
+        d = _DET(U) * _DET(Vt)                                        # +-1
     U_d = U.copy()
     U_d[:, :, 2] *= d[:, None]                                        # U diag(1, 1, d)
     A = U_d @ Vt

@@ -19,8 +19,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from dualsight.kernels import rng as krng
-from dualsight.kernels.detect import (DetectConfig, Detections, detect_stars, estimate_background, row_medians,
+from dualsight.kernels.detect import (DetectConfig, Detections, detect_stars, estimate_background,
                                       render_and_detect_ideal)
+from dualsight.scene.background import row_medians
 from dualsight.kernels.starfield import (SensorConfig, false_star_lists, flux_from_magnitude,
                                          render_star_fields)
 
@@ -480,12 +481,13 @@ def test_config_validation():
 
 @settings(max_examples=300, deadline=None)
 @given(rows=st.integers(1, 4), n=st.integers(1, 70), seed=st.integers(0, 2 ** 32 - 1),
-       ties=st.booleans(), nan=st.booleans())
-def test_row_medians_equal_numpy_median(rows, n, seed, ties, nan):
-    """row_medians (estimate_background's medians) is np.median(axis=1) bit for bit: odd and even lengths,
-    repeated values, NaN rows, signed zeros."""
+       ties=st.booleans(), nan=st.booleans(), f32=st.booleans())
+def test_row_medians_equal_numpy_median(rows, n, seed, ties, nan, f32):
+    """row_medians (estimate_background's and subtract_background's medians) is np.median(axis=1) bit for bit,
+    float64 and float32: odd and even lengths, repeated values, NaN rows, signed zeros."""
     rng = np.random.default_rng(seed)
     x = rng.integers(-3, 4, (rows, n)).astype(np.float64) if ties else rng.normal(0, 10, (rows, n))
+    x = x.astype(np.float32 if f32 else np.float64)
     if ties:
         x[rng.random((rows, n)) < 0.1] = -0.0
     if nan:

@@ -50,6 +50,26 @@ def test_svd_padding_and_degenerate_cases():
     assert np.isnan(A[1]).all() and np.isnan(A[2]).all()
 
 
+def test_svd_non_finite_case_fails_alone():
+    """A case whose profile matrix is not finite (an infinite weight, a NaN vector with weight) has no attitude;
+    the other cases of the batch are solved as alone, and nothing is raised or warned."""
+    import warnings
+
+    rng = np.random.default_rng(3)
+    A_true = quat_to_dcm(random_quaternions(rng, 3))
+    ref = _unit(rng.normal(size=(3, 6, 3)))
+    obs = np.einsum("bij,bsj->bsi", A_true, ref)
+    w = np.ones((3, 6))
+    w[0, 2] = np.inf
+    obs[2, 4] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        A, ok = svd_attitude(obs, ref, w)
+    assert ok.tolist() == [False, True, False]
+    assert np.isnan(A[[0, 2]]).all()
+    np.testing.assert_allclose(A[1], A_true[1], atol=1e-12)
+
+
 def test_svd_noise_matches_markley_covariance():
     """Monte Carlo errors of noisy observations against Markley's covariance (QUEST noise model)."""
     rng = np.random.default_rng(3)
