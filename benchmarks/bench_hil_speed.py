@@ -129,6 +129,7 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
     spec = star_spec_from_args(args)                       # the CLI's own spec (robust voting, no comparison)
     ctx = hs.make_context(spec)
     rt = ctx.rt
+    settings_global = rt.settings.model_copy(update={"detector": "global"})   # what `--detector global` sets
     sat = float(2 ** rt.camera.bit_depth - 1)
     T = Timers()
     T.wrap(dl, "tile_background", "background")
@@ -138,7 +139,9 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
     T.wrap(dl, "_measure", "centroid fit")
     from dualsight.kernels import detect as kd
     T.wrap(hs, "subtract_background", "background")
+    T.wrap(hs, "background_model", "background")
     T.wrap(kd, "detect_stars", "labelling")
+    T.wrap(hs, "detect_stars", "labelling")
     results = {}
     for detector, engine in ((d, e) for d in detectors for e in ("numpy", "taichi")):
         per = {}
@@ -154,8 +157,7 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
                                                                     source="spec", section="settings.detect_local"),
                                              saturation_adu=sat)
                     else:     # the HIL's global path: smooth background, one threshold, Taichi labelling
-                        resid, _ = hs.subtract_background(px[None], rt.settings.background_block_px)
-                        det = kd.detect_stars(resid, rt.detect)
+                        det = hs.detect_frames(px[None], settings_global, rt.detect, residual=False)[2]
                 with T.stage("observations"):
                     obs = observations(det, 1, cam, max_obs=rt.settings.max_obs)
                 with T.stage("voting"):

@@ -75,7 +75,7 @@ from dualsight.nav.observations import observations
 from dualsight.nav.star_solution import centroid_weights, identify, solve
 from dualsight.nav.starid import VotingConfig
 from dualsight.scene.attitude import angle_between, unit_to_radec
-from dualsight.scene.background import subtract_background
+from dualsight.scene.background import background_model, subtract_background
 from dualsight.scene.camera import Camera
 from dualsight.scene.imageio import read_image
 from dualsight.scene.pointing import roll_deg
@@ -194,20 +194,26 @@ def read_frame(entry: ImageEntry, camera: Camera) -> tuple[np.ndarray, object]:
 
 def detect_frames(frames: np.ndarray, settings: StarSettings, detect: DetectConfig, *,
                   saturation_adu: float | None = None, residual: bool = True):
-    """Background subtraction and detection of (B, H, W) frames: (residual frames (None unless ``residual``
-    with the local detector), background levels (B,), Detections).
+    """Background subtraction and detection of (B, H, W) frames: (residual frames (float32, None unless
+    ``residual``), background levels (B,), Detections).
 
     ``settings.detector``: "local" (default) = :func:`dualsight.kernels.detect_local.detect_real` on the raw
     frames (tiled local background, matched filter, hot pixels, saturation at ``saturation_adu``, e.g. the
     camera's 2^bits - 1, PSF-fit centroids with their uncertainty); "global" = the smooth background
-    (``background_block_px``) then :func:`dualsight.kernels.detect.detect_stars`."""
+    (``background_block_px``, :func:`~dualsight.scene.background.background_model`) then
+    :func:`dualsight.kernels.detect.detect_stars` on the frames minus that background, evaluated per pixel
+    inside the labeller (no residual frame is made unless asked for)."""
     if settings.detector == "local":
         cfg = validate(LocalDetectConfig, settings.detect_local, source="spec", section="settings.detect_local")
         det = detect_real(frames, cfg, saturation_adu=saturation_adu)
         resid = subtract_local_background(frames, cfg)[0] if residual else None
         return resid, det.background_adu, det
-    resid, bg = subtract_background(frames, settings.background_block_px)
-    return resid, bg, detect_stars(resid, detect)
+    if settings.background_block_px <= 0:                # no background: the frames themselves
+        resid, bg = subtract_background(frames, settings.background_block_px)
+        return (resid if residual else None), bg, detect_stars(resid, detect)
+    model = background_model(frames, settings.background_block_px)
+    det = detect_stars(frames, detect, background=model)
+    return (model.subtract(frames) if residual else None), model.levels, det
 
 
 def compute_shard(spec: HilStarSpec, case_ids: np.ndarray, ctx: Context) -> dict[str, pa.Table]:

@@ -232,13 +232,15 @@ _KERNELS.builders.update({"group": _build_group, "patches": _build_patches})
 
 
 # ============================================================================ helpers
-def estimate_background(images: np.ndarray, step: int = 16) -> tuple[np.ndarray, np.ndarray]:
+def estimate_background(images: np.ndarray, step: int = 16, background=None) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame background level and noise sigma (ADU) from a strided sample of pixels.
 
     Parameters
     ----------
     images : (B, H, W) array.
     step : take every ``step``-th row and column (starting at step // 2).
+    background : optional :class:`dualsight.scene.background.Background` of the frames: the sample is then
+        of ``images - background`` (float64, as the labeller thresholds them).
 
     Returns
     -------
@@ -250,7 +252,11 @@ def estimate_background(images: np.ndarray, step: int = 16) -> tuple[np.ndarray,
     """
     B = images.shape[0]
     o = step // 2
-    s = images[:, o::step, o::step].reshape(B, -1).astype(np.float64)
+    s = images[:, o::step, o::step].astype(np.float64)
+    if background is not None and s.size:
+        ys, xs = np.arange(o, images.shape[1], step), np.arange(o, images.shape[2], step)
+        s -= background.at(np.arange(B)[:, None, None], ys[None, :, None], xs[None, None, :])
+    s = s.reshape(B, -1)
     if s.shape[1] == 0:
         s = images.reshape(B, -1).astype(np.float64)
     bg = row_medians(s)
@@ -327,13 +333,15 @@ def _empty(B, cfg, bg, thr) -> Detections:
 
 
 # ============================================================================ public API
-def detect_stars(images: np.ndarray, cfg: DetectConfig = DetectConfig()) -> Detections:
+def detect_stars(images: np.ndarray, cfg: DetectConfig = DetectConfig(), background=None) -> Detections:
     """Detect and centroid blobs in a batch of frames.
 
     Parameters
     ----------
     images : (B, H, W) uint8, uint16, float32 or float64 frames (ADU), C-contiguous preferred.
     cfg : :class:`DetectConfig`.
+    background : optional :class:`dualsight.scene.background.Background` of the frames: detection then runs
+        on ``images - background`` (evaluated per pixel inside the labeller, float64; no residual frame is made).
 
     Returns
     -------
@@ -353,16 +361,19 @@ def detect_stars(images: np.ndarray, cfg: DetectConfig = DetectConfig()) -> Dete
         raise ValueError(f"frames of {W} x {H} px are larger than 2^30 pixels")
     chunk = max(1, sf.MAX_CHUNK_PIXELS // max(1, H * W))
     if B > chunk:  # bounded run buffers and int32 indices: loop over chunks of frames
-        return _concat([detect_stars(images[b0:b0 + chunk], cfg) for b0 in range(0, B, chunk)])
+        return _concat([detect_stars(images[b0:b0 + chunk], cfg,
+                                     None if background is None else background.frames(slice(b0, b0 + chunk)))
+                        for b0 in range(0, B, chunk)])
     images = np.ascontiguousarray(images)
     if cfg.background_adu is None or cfg.noise_sigma_adu is None:
-        bg_e, sig_e = estimate_background(images, cfg.background_step) if B and H and W else (np.zeros(B),) * 2
+        bg_e, sig_e = (estimate_background(images, cfg.background_step, background) if B and H and W
+                       else (np.zeros(B),) * 2)
     else:
         bg_e = sig_e = None
     bg, thr = _levels(cfg, B, bg_e, sig_e)
     if B == 0 or H == 0 or W == 0:
         return _empty(B, cfg, bg, thr)
-    comp = label_frames(images, thr, offset=bg, connectivity=cfg.connectivity)
+    comp = label_frames(images, thr, offset=bg, connectivity=cfg.connectivity, background=background)
     return _from_components(comp, np.arange(B), B, cfg, bg, thr)
 
 

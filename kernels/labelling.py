@@ -22,6 +22,11 @@ of He, Chao & Suzuki 2008, "A run-based two-scan labeling algorithm", IEEE TIP 1
    sum over segments), their pixel counts, bounding boxes, their moment sums (their runs' sums added in raster
    order) and the sums over all foreground pixels of the segment.
 
+With a ``background`` (:class:`dualsight.scene.background.Background` of dense frames), kernels 1-2 threshold
+and sum ``value - background``, the smooth background evaluated per pixel from its block rows (float64, the same
+bits as its numpy evaluation): a frame minus its background is labelled without a residual frame being made
+(one read of the raw pixels instead of writing and reading a float32 residual; ``*_bg`` kernels).
+
 Each kernel has a serial variant, used for small calls (a single frame: at most ``SERIAL_MAX_PIXELS`` pixels for
 the row kernels 1-2, ``SERIAL_MAX_RUNS`` runs for the segment kernels 3-4): a parallel loop's launch costs a
 round trip through Taichi's thread pool that outweighs the work there (:class:`KernelCache`).  Both give the same
@@ -40,19 +45,16 @@ frame's background, 0 for none) and ``w`` the coverage (1 without a coverage buf
     9 sum w  10 sum w x 11 sum w y 12 sum w x^2 13 sum w x y 14 sum w y^2   (coverage)
 """
 
-from dataclasses import dataclass
-
 import numpy as np
 import taichi as ti
 
 from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.components import NSTAT, STAT_NAMES, Components
 
 __all__ = ["NSTAT", "STAT_NAMES", "Components", "label_segments", "label_frames", "native_threshold", "find", "union"]
 
-NSTAT = 15
-STAT_NAMES = ("n", "sx", "sy", "sxx", "sxy", "syy", "sI", "sIx", "sIy", "sw", "swx", "swy", "swxx", "swxy", "swyy")
 _I32, _I32x2 = ti.types.ndarray(dtype=ti.i32, ndim=1), ti.types.ndarray(dtype=ti.i32, ndim=2)
-_F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
+_F32, _F32x2 = ti.types.ndarray(dtype=ti.f32, ndim=1), ti.types.ndarray(dtype=ti.f32, ndim=2)
 _F64, _F64x2 = ti.types.ndarray(dtype=ti.f64, ndim=1), ti.types.ndarray(dtype=ti.f64, ndim=2)
 _PIXEL_TYPES = {np.dtype(np.uint8).str: ti.u8, np.dtype(np.uint16).str: ti.u16,
                 np.dtype(np.float32).str: ti.f32, np.dtype(np.float64).str: ti.f64}
@@ -92,81 +94,131 @@ def _threshold_type(dtype):
     return ti.f64 if dt == np.float64 else (ti.f32 if dt == np.float32 else ti.i32)
 
 
-def _build_count_runs(dtype, serial: bool = False):
-    pdt = _PIXEL_TYPES[np.dtype(dtype).str]
-    tdt = _threshold_type(dtype)
+@ti.func
+def _pixel(pix: ti.template(), p, vt: ti.template(), bg: ti.template(), rows: ti.template(), vr: ti.template(),
+           vw: ti.template(), rbase, y, x):
+    """The value pixel ``p`` is thresholded and summed by: ``pix[p]`` as type ``vt``; with ``bg`` (static) the
+    float64 ``pix[p]`` minus the smooth background (:class:`dualsight.scene.background.Background`) at image
+    row y, column x of the frame whose first block row in ``rows`` is ``rbase``: both products are exact in
+    float64 and every operation rounds once, so these are the very bits of ``Background.at``."""
+    v = ti.cast(pix[p], vt)
+    if ti.static(bg):
+        v = ti.cast(pix[p], ti.f64) - (vw[y, 0] * ti.cast(rows[rbase + vr[y, 0], x], ti.f64)
+                                       + vw[y, 1] * ti.cast(rows[rbase + vr[y, 1], x], ti.f64))
+    return v
 
-    @ti.kernel
-    def count_runs(pix: ti.types.ndarray(dtype=pdt, ndim=1), thr: ti.types.ndarray(dtype=tdt, ndim=1),
-                   seg: _I32x2, seg_row: _I32, row_seg: _I32, counts: _I32):
-        ti.loop_config(serialize=serial)
-        for q in range(row_seg.shape[0]):
-            s = row_seg[q]
-            w = seg[s, _W]
-            p0 = seg[s, _PIX] + (q - seg_row[s]) * w
-            t = thr[seg[s, _FRAME]]
-            n = 0
-            prev = 0
-            for c in range(w):
-                on = 0
-                if ti.cast(pix[p0 + c], tdt) > t:
-                    on = 1
-                n += on & (1 - prev)
-                prev = on
-            counts[q] = n
+
+def _build_count_runs(dtype, serial: bool = False, bg: bool = False):
+    pdt = _PIXEL_TYPES[np.dtype(dtype).str]
+    tdt = ti.f64 if bg else _threshold_type(dtype)
+
+    @ti.func
+    def row_runs(pix: ti.template(), t, p0, w, c0, y, rows: ti.template(), vr: ti.template(), vw: ti.template(),
+                 rbase):
+        n = 0
+        prev = 0
+        for c in range(w):
+            on = 0
+            if _pixel(pix, p0 + c, tdt, bg, rows, vr, vw, rbase, y, c0 + c) > t:
+                on = 1
+            n += on & (1 - prev)
+            prev = on
+        return n
+
+    if bg:      # frames minus their smooth background (rows, vr, vw, nby: the Background's arrays)
+        @ti.kernel
+        def count_runs(pix: ti.types.ndarray(dtype=pdt, ndim=1), thr: ti.types.ndarray(dtype=tdt, ndim=1),
+                       seg: _I32x2, seg_row: _I32, row_seg: _I32, counts: _I32, rows: _F32x2, vr: _I32x2,
+                       vw: _F64x2, nby: ti.i32):
+            ti.loop_config(serialize=serial)
+            for q in range(row_seg.shape[0]):
+                s = row_seg[q]
+                w = seg[s, _W]
+                counts[q] = row_runs(pix, thr[seg[s, _FRAME]], seg[s, _PIX] + (q - seg_row[s]) * w, w, seg[s, _C0],
+                                     seg[s, _R0] + q - seg_row[s], rows, vr, vw, seg[s, _FRAME] * nby)
+    else:
+        @ti.kernel
+        def count_runs(pix: ti.types.ndarray(dtype=pdt, ndim=1), thr: ti.types.ndarray(dtype=tdt, ndim=1),
+                       seg: _I32x2, seg_row: _I32, row_seg: _I32, counts: _I32):
+            ti.loop_config(serialize=serial)
+            for q in range(row_seg.shape[0]):
+                s = row_seg[q]
+                w = seg[s, _W]
+                counts[q] = row_runs(pix, thr[seg[s, _FRAME]], seg[s, _PIX] + (q - seg_row[s]) * w, w, 0, 0,
+                                     counts, seg, seg, 0)
     return count_runs
 
 
-def _build_fill_runs(dtype, serial: bool = False):
+def _build_fill_runs(dtype, serial: bool = False, bg: bool = False):
     pdt = _PIXEL_TYPES[np.dtype(dtype).str]
-    tdt = _threshold_type(dtype)
+    tdt = ti.f64 if bg else _threshold_type(dtype)
 
-    @ti.kernel
-    def fill_runs(pix: ti.types.ndarray(dtype=pdt, ndim=1), cov: _F32, use_cov: ti.i32,
-                  thr: ti.types.ndarray(dtype=tdt, ndim=1), off: _F64, seg: _I32x2, seg_row: _I32, row_seg: _I32,
-                  run_off: _I32, runs: _I32x2, rsum: _F64x2):
-        ti.loop_config(serialize=serial)
-        for q in range(row_seg.shape[0]):
-            k = run_off[q]
-            if run_off[q + 1] > k:  # only rows that have runs are read again
-                s = row_seg[q]
-                w = seg[s, _W]
-                p0 = seg[s, _PIX] + (q - seg_row[s]) * w
-                fr = seg[s, _FRAME]
-                t = thr[fr]
-                ofs = off[fr]
-                c0 = seg[s, _C0]
-                y = seg[s, _R0] + q - seg_row[s]
-                c = 0
+    @ti.func
+    def row_fill(pix: ti.template(), cov: ti.template(), use_cov, t, ofs, p0, w, c0, y, s, k,
+                 runs: ti.template(), rsum: ti.template(), rows: ti.template(), vr: ti.template(),
+                 vw: ti.template(), rbase):
+        c = 0
+        while c < w:
+            if _pixel(pix, p0 + c, tdt, bg, rows, vr, vw, rbase, y, c0 + c) > t:
+                start = c
+                sI, sIx = ti.f64(0.0), ti.f64(0.0)
+                sw, swx, swxx = ti.f64(0.0), ti.f64(0.0), ti.f64(0.0)
                 while c < w:
-                    if ti.cast(pix[p0 + c], tdt) > t:
-                        start = c
-                        sI, sIx = ti.f64(0.0), ti.f64(0.0)
-                        sw, swx, swxx = ti.f64(0.0), ti.f64(0.0), ti.f64(0.0)
-                        while c < w and ti.cast(pix[p0 + c], tdt) > t:
-                            xc = ti.cast(c0 + c, ti.f64) + ti.f64(0.5)
-                            v = ti.cast(pix[p0 + c], ti.f64) - ofs
-                            wc = ti.f64(1.0)
-                            if use_cov != 0:
-                                wc = ti.cast(cov[p0 + c], ti.f64)
-                            sI += v
-                            sIx += v * xc
-                            sw += wc
-                            swx += wc * xc
-                            swxx += wc * xc * xc
-                            c += 1
-                        runs[k, 0] = c0 + start
-                        runs[k, 1] = c0 + c
-                        runs[k, 2] = y
-                        runs[k, 3] = s
-                        rsum[k, 0] = sI
-                        rsum[k, 1] = sIx
-                        rsum[k, 2] = sw
-                        rsum[k, 3] = swx
-                        rsum[k, 4] = swxx
-                        k += 1
-                    else:
-                        c += 1
+                    val = _pixel(pix, p0 + c, tdt, bg, rows, vr, vw, rbase, y, c0 + c)
+                    if not val > t:
+                        break
+                    xc = ti.cast(c0 + c, ti.f64) + ti.f64(0.5)
+                    v = ti.cast(pix[p0 + c], ti.f64) - ofs
+                    if ti.static(bg):
+                        v = val - ofs
+                    wc = ti.f64(1.0)
+                    if use_cov != 0:
+                        wc = ti.cast(cov[p0 + c], ti.f64)
+                    sI += v
+                    sIx += v * xc
+                    sw += wc
+                    swx += wc * xc
+                    swxx += wc * xc * xc
+                    c += 1
+                runs[k, 0] = c0 + start
+                runs[k, 1] = c0 + c
+                runs[k, 2] = y
+                runs[k, 3] = s
+                rsum[k, 0] = sI
+                rsum[k, 1] = sIx
+                rsum[k, 2] = sw
+                rsum[k, 3] = swx
+                rsum[k, 4] = swxx
+                k += 1
+            else:
+                c += 1
+
+    if bg:      # frames minus their smooth background (rows, vr, vw, nby: the Background's arrays)
+        @ti.kernel
+        def fill_runs(pix: ti.types.ndarray(dtype=pdt, ndim=1), cov: _F32, use_cov: ti.i32,
+                      thr: ti.types.ndarray(dtype=tdt, ndim=1), off: _F64, seg: _I32x2, seg_row: _I32, row_seg: _I32,
+                      run_off: _I32, runs: _I32x2, rsum: _F64x2, rows: _F32x2, vr: _I32x2, vw: _F64x2, nby: ti.i32):
+            ti.loop_config(serialize=serial)
+            for q in range(row_seg.shape[0]):
+                if run_off[q + 1] > run_off[q]:  # only rows that have runs are read again
+                    s = row_seg[q]
+                    w = seg[s, _W]
+                    fr = seg[s, _FRAME]
+                    row_fill(pix, cov, use_cov, thr[fr], off[fr], seg[s, _PIX] + (q - seg_row[s]) * w, w, seg[s, _C0],
+                             seg[s, _R0] + q - seg_row[s], s, run_off[q], runs, rsum, rows, vr, vw, fr * nby)
+    else:
+        @ti.kernel
+        def fill_runs(pix: ti.types.ndarray(dtype=pdt, ndim=1), cov: _F32, use_cov: ti.i32,
+                      thr: ti.types.ndarray(dtype=tdt, ndim=1), off: _F64, seg: _I32x2, seg_row: _I32, row_seg: _I32,
+                      run_off: _I32, runs: _I32x2, rsum: _F64x2):
+            ti.loop_config(serialize=serial)
+            for q in range(row_seg.shape[0]):
+                if run_off[q + 1] > run_off[q]:  # only rows that have runs are read again
+                    s = row_seg[q]
+                    w = seg[s, _W]
+                    fr = seg[s, _FRAME]
+                    row_fill(pix, cov, use_cov, thr[fr], off[fr], seg[s, _PIX] + (q - seg_row[s]) * w, w, seg[s, _C0],
+                             seg[s, _R0] + q - seg_row[s], s, run_off[q], runs, rsum, runs, seg, off, 0)
     return fill_runs
 
 
@@ -256,6 +308,8 @@ def _build_number_components(_dtype=None, serial: bool = False):
 
 
 _KERNELS.builders.update({"count_runs": _build_count_runs, "fill_runs": _build_fill_runs,
+                          "count_runs_bg": lambda dtype, serial=False: _build_count_runs(dtype, serial, bg=True),
+                          "fill_runs_bg": lambda dtype, serial=False: _build_fill_runs(dtype, serial, bg=True),
                           "union_runs": _build_union_runs, "number_components": _build_number_components})
 
 
@@ -269,81 +323,6 @@ SERIAL_MAX_RUNS = 1 << 13
 
 
 # ============================================================================ public API
-@dataclass(frozen=True, eq=False)
-class Components:
-    """Connected components of a batch of segments, and the runs of foreground pixels they are made of.
-
-    Components are numbered segment by segment, in the raster order of their first pixel; runs are in
-    raster order (segment, row, column).
-
-    Attributes
-    ----------
-    npix : (NC,) int32 pixels of each component.
-    box : (NC, 4) int32 inclusive bounding box [x0, y0, x1, y1] (image columns and rows).
-    seg : (NC,) int32 segment of each component.
-    offsets : (NS + 1,) int64; segment s's components are [offsets[s], offsets[s + 1]).
-    seg_stats : (NS, NSTAT) float64 sums (module docstring) over all foreground pixels of each segment.
-    run_c0, run_c1 : (R,) int32 image columns of each run, half-open [c0, c1).
-    run_row : (R,) int32 image row of each run.
-    run_seg : (R,) int32 segment of each run.
-    run_label : (R,) int32 component of each run.
-    run_sums : (R, 5) float64 sums of each run: sum I, sum I x, sum w, sum w x, sum w x^2.
-    seg_runs : (NS + 1,) int32; segment s's runs are [seg_runs[s], seg_runs[s + 1]).
-    comp_moments : (NC, NSTAT) float64 moment sums of each component (read through :meth:`moments`).
-    """
-
-    npix: np.ndarray
-    box: np.ndarray
-    seg: np.ndarray
-    offsets: np.ndarray
-    seg_stats: np.ndarray
-    run_c0: np.ndarray
-    run_c1: np.ndarray
-    run_row: np.ndarray
-    run_seg: np.ndarray
-    run_label: np.ndarray
-    run_sums: np.ndarray
-    seg_runs: np.ndarray
-    comp_moments: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.seg)
-
-    @property
-    def counts(self) -> np.ndarray:
-        """(NS,) components per segment."""
-        return np.diff(self.offsets)
-
-    def moments(self, which=None) -> np.ndarray:
-        """(K, NSTAT) float64 moment sums (module docstring) of components ``which`` ((K,) distinct indices;
-        None = all), each the sum of its runs' sums in raster order (so bit-identical whatever else is asked)."""
-        if which is None:
-            return self.comp_moments.copy()
-        return self.comp_moments[np.asarray(which, dtype=np.int64).reshape(-1)]
-
-    def paint(self, out: np.ndarray, runs, values) -> np.ndarray:
-        """Write ``values`` (a scalar or one value per selected run) into ``out[seg, row, col]`` over the pixels
-        of the selected ``runs`` (indices or a bool mask over the runs) and return ``out``.  For dense frames
-        (:func:`label_frames`, segment b = frame b) ``out`` is (B, H, W).  Vectorised over runs and pixels."""
-        runs = np.flatnonzero(runs) if np.asarray(runs).dtype == bool else np.asarray(runs, dtype=np.int64)
-        lens = (self.run_c1[runs] - self.run_c0[runs]).astype(np.int64)
-        total = int(lens.sum())
-        if total == 0:
-            return out
-        first = np.cumsum(lens) - lens
-        xx = np.repeat(self.run_c0[runs].astype(np.int64), lens) + (np.arange(total) - np.repeat(first, lens))
-        vals = values if np.ndim(values) == 0 else np.repeat(np.asarray(values), lens)
-        out[np.repeat(self.run_seg[runs], lens), np.repeat(self.run_row[runs], lens), xx] = vals
-        return out
-
-    def label_image(self, shape) -> np.ndarray:
-        """(B, H, W) int32 label image of dense frames: 0 = background, k + 1 - offsets[b] for component k
-        of frame b (so 1..n per frame, like OpenCV's ``connectedComponents``)."""
-        out = np.zeros(shape, np.int32)
-        lab = self.run_label.astype(np.int64)
-        return self.paint(out, np.arange(lab.size), lab + 1 - self.offsets[self.run_seg])
-
-
 def native_threshold(thr, dtype) -> np.ndarray:
     """Thresholds t' of the pixels' own comparison type with (v > t') == (v > t) for every pixel value v.
 
@@ -364,7 +343,7 @@ def native_threshold(thr, dtype) -> np.ndarray:
 
 
 def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, threshold, *, offset=None,
-                   coverage=None, connectivity: int = 8) -> Components:
+                   coverage=None, connectivity: int = 8, background=None) -> Components:
     """Label the foreground of a set of segments (see the module docstring) and sum each component.
 
     Parameters
@@ -379,6 +358,9 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
     offset : (F,) float64 subtracted from the values in the intensity sums (None = 0).
     coverage : optional (N,) float32 coverage in [0, 1] beside ``pixels`` for the ``sw*`` sums (else w = 1).
     connectivity : 8 or 4.
+    background : optional :class:`dualsight.scene.background.Background` of the frames the segments lie in
+        (segment columns and rows are image columns and rows; frame f = its frame ``f``): the pixels are then
+        thresholded and summed as ``value - background`` (float64; ``threshold`` and ``offset`` apply to it).
 
     Returns
     -------
@@ -405,12 +387,19 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
     seg_row = i32(seg_row)
     thr = np.asarray(threshold, dtype=np.float64).reshape(-1)
     off = np.zeros(thr.size) if offset is None else np.ascontiguousarray(offset, dtype=np.float64).reshape(-1)
-    tn = native_threshold(thr, pixels.dtype)
+    tn = native_threshold(thr, pixels.dtype) if background is None else np.ascontiguousarray(thr)
+    bg, suffix = (), ""
+    if background is not None:                       # the frames' smooth background, evaluated in the row kernels
+        nby = background.rows.shape[1]
+        bg = (np.ascontiguousarray(background.rows.reshape(-1, background.rows.shape[2]), np.float32),
+              np.ascontiguousarray(background.r, np.int32), np.ascontiguousarray(background.w, np.float64), nby)
+        suffix = "_bg"
     row_seg = i32(np.repeat(np.arange(NS), seg_rows))
     counts = np.zeros(max(NR, 1), np.int32)
     rows_serial = pixels.size <= SERIAL_MAX_PIXELS
     if NR:
-        _KERNELS.get("count_runs", pixels.dtype, serial=rows_serial)(pixels, tn, seg, seg_row, row_seg, counts)
+        _KERNELS.get("count_runs" + suffix, pixels.dtype, serial=rows_serial)(pixels, tn, seg, seg_row,
+                                                                                    row_seg, counts, *bg)
     run_off = np.zeros(NR + 1, np.int64)
     np.cumsum(counts[:NR], out=run_off[1:])
     R = int(run_off[-1])
@@ -427,8 +416,8 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
     if R:
         cov = (np.ascontiguousarray(coverage, dtype=np.float32).reshape(-1) if coverage is not None
                else np.zeros(1, np.float32))
-        _KERNELS.get("fill_runs", pixels.dtype, serial=rows_serial)(pixels, cov, int(coverage is not None), tn, off,
-                                                                    seg, seg_row, row_seg, run_off, runs, rsum)
+        _KERNELS.get("fill_runs" + suffix, pixels.dtype, serial=rows_serial)(
+            pixels, cov, int(coverage is not None), tn, off, seg, seg_row, row_seg, run_off, runs, rsum, *bg)
         _KERNELS.get("union_runs", serial=segs_serial)(seg_row, run_off, runs, int(connectivity == 8), label,
                                                        seg_ncomp)
     comp_off = np.zeros(NS + 1, np.int64)
@@ -447,18 +436,24 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
                       run_label=label[:R], run_sums=rsum[:R], seg_runs=seg_runs, comp_moments=comp_mom[:NC])
 
 
-def label_frames(images, threshold, *, offset=None, coverage=None, connectivity: int = 8) -> Components:
+def label_frames(images, threshold, *, offset=None, coverage=None, connectivity: int = 8,
+                 background=None) -> Components:
     """Label a batch of dense frames: segment b = frame b (see :func:`label_segments`).
 
     images : (B, H, W) uint8, uint16, float32 or float64; threshold, offset : scalar or (B,) float64;
-    coverage : optional (B, H, W) float32.  Returns :class:`Components` (segment = frame index).
+    coverage : optional (B, H, W) float32; background : optional
+    :class:`dualsight.scene.background.Background` of the frames (their shape).  Returns :class:`Components`
+    (segment = frame index).
     """
     images = np.ascontiguousarray(images)
     if images.ndim != 3:
         raise ValueError(f"images must have shape (B, H, W), got {images.shape}")
     B, H, W = images.shape
+    if background is not None and tuple(background.shape) != (B, H, W):
+        raise ValueError(f"background of frames {background.shape}, images {images.shape}")
     thr = np.broadcast_to(np.asarray(threshold, dtype=np.float64), (B,))
     off = None if offset is None else np.broadcast_to(np.asarray(offset, dtype=np.float64), (B,))
     z = np.zeros(B, np.int32)
     return label_segments(images.reshape(-1), np.arange(B, dtype=np.int64) * H * W, np.full(B, W), np.full(B, H),
-                          z, z, np.arange(B), thr, offset=off, coverage=coverage, connectivity=connectivity)
+                          z, z, np.arange(B), thr, offset=off, coverage=coverage, connectivity=connectivity,
+                          background=background)
