@@ -254,8 +254,7 @@ def estimate_background(images: np.ndarray, step: int = 16, background=None) -> 
     o = step // 2
     s = images[:, o::step, o::step].astype(np.float64)
     if background is not None and s.size:
-        ys, xs = np.arange(o, images.shape[1], step), np.arange(o, images.shape[2], step)
-        s -= background.at(np.arange(B)[:, None, None], ys[None, :, None], xs[None, None, :])
+        s -= background.grid(np.arange(o, images.shape[1], step), np.arange(o, images.shape[2], step))
     s = s.reshape(B, -1)
     if s.shape[1] == 0:
         s = images.reshape(B, -1).astype(np.float64)

@@ -95,17 +95,30 @@ def _threshold_type(dtype):
 
 
 @ti.func
-def _pixel(pix: ti.template(), p, vt: ti.template(), bg: ti.template(), rows: ti.template(), vr: ti.template(),
-           vw: ti.template(), rbase, y, x):
+def _pixel(pix: ti.template(), p, vt: ti.template(), bg: ti.template(), rows: ti.template(), ra, rb, w0, w1, x):
     """The value pixel ``p`` is thresholded and summed by: ``pix[p]`` as type ``vt``; with ``bg`` (static) the
-    float64 ``pix[p]`` minus the smooth background (:class:`dualsight.scene.background.Background`) at image
-    row y, column x of the frame whose first block row in ``rows`` is ``rbase``: both products are exact in
-    float64 and every operation rounds once, so these are the very bits of ``Background.at``."""
+    float64 ``pix[p]`` minus the smooth background (:class:`dualsight.scene.background.Background`) at column x
+    of an image row whose two block rows are ``rows[ra]``, ``rows[rb]`` with weights ``w0``, ``w1``
+    (:func:`_row_weights`): both products are exact in float64 and every operation rounds once, so these are
+    the very bits of ``Background.at``."""
     v = ti.cast(pix[p], vt)
     if ti.static(bg):
-        v = ti.cast(pix[p], ti.f64) - (vw[y, 0] * ti.cast(rows[rbase + vr[y, 0], x], ti.f64)
-                                       + vw[y, 1] * ti.cast(rows[rbase + vr[y, 1], x], ti.f64))
+        v = ti.cast(pix[p], ti.f64) - (w0 * ti.cast(rows[ra, x], ti.f64) + w1 * ti.cast(rows[rb, x], ti.f64))
     return v
+
+
+@ti.func
+def _row_weights(bg: ti.template(), vr: ti.template(), vw: ti.template(), rbase, y):
+    """(ra, rb, w0, w1) of image row y for :func:`_pixel` (zeros without ``bg``)."""
+    ra, rb, w0, w1 = 0, 0, ti.f64(0.0), ti.f64(0.0)
+    if ti.static(bg):
+        ra, rb, w0, w1 = rbase + vr[y, 0], rbase + vr[y, 1], vw[y, 0], vw[y, 1]
+    return ra, rb, w0, w1
+
+
+_CHUNK = 64
+"""Pixels per chunk of ``fill_runs``' second read of a row: a chunk without a foreground pixel (one vectorised
+test) is skipped, so only the chunks that hold runs are walked pixel by pixel."""
 
 
 def _build_count_runs(dtype, serial: bool = False, bg: bool = False):
@@ -115,12 +128,11 @@ def _build_count_runs(dtype, serial: bool = False, bg: bool = False):
     @ti.func
     def row_runs(pix: ti.template(), t, p0, w, c0, y, rows: ti.template(), vr: ti.template(), vw: ti.template(),
                  rbase):
+        ra, rb, w0, w1 = _row_weights(bg, vr, vw, rbase, y)
         n = 0
         prev = 0
         for c in range(w):
-            on = 0
-            if _pixel(pix, p0 + c, tdt, bg, rows, vr, vw, rbase, y, c0 + c) > t:
-                on = 1
+            on = ti.cast(_pixel(pix, p0 + c, tdt, bg, rows, ra, rb, w0, w1, c0 + c) > t, ti.i32)
             n += on & (1 - prev)
             prev = on
         return n
@@ -157,41 +169,44 @@ def _build_fill_runs(dtype, serial: bool = False, bg: bool = False):
     def row_fill(pix: ti.template(), cov: ti.template(), use_cov, t, ofs, p0, w, c0, y, s, k,
                  runs: ti.template(), rsum: ti.template(), rows: ti.template(), vr: ti.template(),
                  vw: ti.template(), rbase):
-        c = 0
-        while c < w:
-            if _pixel(pix, p0 + c, tdt, bg, rows, vr, vw, rbase, y, c0 + c) > t:
-                start = c
-                sI, sIx = ti.f64(0.0), ti.f64(0.0)
-                sw, swx, swxx = ti.f64(0.0), ti.f64(0.0), ti.f64(0.0)
-                while c < w:
-                    val = _pixel(pix, p0 + c, tdt, bg, rows, vr, vw, rbase, y, c0 + c)
-                    if not val > t:
-                        break
-                    xc = ti.cast(c0 + c, ti.f64) + ti.f64(0.5)
-                    v = ti.cast(pix[p0 + c], ti.f64) - ofs
-                    if ti.static(bg):
-                        v = val - ofs
-                    wc = ti.f64(1.0)
-                    if use_cov != 0:
-                        wc = ti.cast(cov[p0 + c], ti.f64)
-                    sI += v
-                    sIx += v * xc
-                    sw += wc
-                    swx += wc * xc
-                    swxx += wc * xc * xc
-                    c += 1
-                runs[k, 0] = c0 + start
-                runs[k, 1] = c0 + c
-                runs[k, 2] = y
-                runs[k, 3] = s
-                rsum[k, 0] = sI
-                rsum[k, 1] = sIx
-                rsum[k, 2] = sw
-                rsum[k, 3] = swx
-                rsum[k, 4] = swxx
-                k += 1
-            else:
-                c += 1
+        ra, rb, w0, w1 = _row_weights(bg, vr, vw, rbase, y)
+        start = 0
+        inrun = 0
+        sI, sIx = ti.f64(0.0), ti.f64(0.0)
+        sw, swx, swxx = ti.f64(0.0), ti.f64(0.0), ti.f64(0.0)
+        for ch in range((w + _CHUNK - 1) // _CHUNK):
+            a = ch * _CHUNK
+            e = ti.min(a + _CHUNK, w)
+            hit = inrun                          # a run open at the chunk's start ends (or goes on) in it
+            for c in range(a, e):
+                hit |= ti.cast(_pixel(pix, p0 + c, tdt, bg, rows, ra, rb, w0, w1, c0 + c) > t, ti.i32)
+            if hit != 0:
+                for c in range(a, e):            # the chunk pixel by pixel: runs start, grow and end
+                    val = _pixel(pix, p0 + c, tdt, bg, rows, ra, rb, w0, w1, c0 + c)
+                    if val > t:
+                        if inrun == 0:
+                            inrun = 1
+                            start = c
+                            sI, sIx = ti.f64(0.0), ti.f64(0.0)
+                            sw, swx, swxx = ti.f64(0.0), ti.f64(0.0), ti.f64(0.0)
+                        xc = ti.cast(c0 + c, ti.f64) + ti.f64(0.5)
+                        v = ti.cast(pix[p0 + c], ti.f64) - ofs
+                        if ti.static(bg):
+                            v = val - ofs
+                        wc = ti.f64(1.0)
+                        if use_cov != 0:
+                            wc = ti.cast(cov[p0 + c], ti.f64)
+                        sI += v
+                        sIx += v * xc
+                        sw += wc
+                        swx += wc * xc
+                        swxx += wc * xc * xc
+                    elif inrun != 0:
+                        inrun = 0
+                        _store_run(runs, rsum, k, c0 + start, c0 + c, y, s, sI, sIx, sw, swx, swxx)
+                        k += 1
+        if inrun != 0:
+            _store_run(runs, rsum, k, c0 + start, c0 + w, y, s, sI, sIx, sw, swx, swxx)
 
     if bg:      # frames minus their smooth background (rows, vr, vw, nby: the Background's arrays)
         @ti.kernel
@@ -220,6 +235,19 @@ def _build_fill_runs(dtype, serial: bool = False, bg: bool = False):
                     row_fill(pix, cov, use_cov, thr[fr], off[fr], seg[s, _PIX] + (q - seg_row[s]) * w, w, seg[s, _C0],
                              seg[s, _R0] + q - seg_row[s], s, run_off[q], runs, rsum, runs, seg, off, 0)
     return fill_runs
+
+
+@ti.func
+def _store_run(runs: ti.template(), rsum: ti.template(), k, c_start, c_end, y, s, sI, sIx, sw, swx, swxx):
+    runs[k, 0] = c_start
+    runs[k, 1] = c_end
+    runs[k, 2] = y
+    runs[k, 3] = s
+    rsum[k, 0] = sI
+    rsum[k, 1] = sIx
+    rsum[k, 2] = sw
+    rsum[k, 3] = swx
+    rsum[k, 4] = swxx
 
 
 def _build_union_runs(_dtype=None, serial: bool = False):

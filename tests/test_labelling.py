@@ -107,6 +107,23 @@ def _check_against_opencv(img, cov, conn, shape, ref):
 
 
 @HSET
+@given(seed=st.integers(0, 2**32 - 1), p=st.floats(0.5, 0.98), conn=st.sampled_from([4, 8]),
+       shape=st.tuples(st.integers(1, 2), st.integers(1, 12), st.integers(60, 300)),
+       dtype=st.sampled_from([np.uint16, np.float32]))
+def test_wide_rows_match_opencv(seed, p, conn, shape, dtype):
+    """Rows wider than the second read's chunks (``labelling._CHUNK`` px), with long runs that cross the chunk
+    boundaries, end on them or run to the row's end: both kernel variants against OpenCV."""
+    rs = np.random.default_rng(seed)
+    binary = rs.random(shape) < p
+    img = np.where(binary, rs.integers(10, 200, shape), rs.integers(0, 10, shape)).astype(dtype)
+    cov = rs.random(shape).astype(np.float32)
+    ref = _opencv(binary, conn)
+    for serial in (True, False):
+        with _kernels(serial):
+            _check_against_opencv(img, cov, conn, shape, ref)
+
+
+@HSET
 @given(seed=st.integers(0, 2**32 - 1), conn=st.sampled_from([4, 8]))
 def test_segments_label_like_the_cropped_frames(seed, conn):
     # patches cut from frames, labelled as segments at their place: components and sums of each crop
