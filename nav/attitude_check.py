@@ -94,22 +94,25 @@ def _nearest_catalog(v_icrs: np.ndarray, valid: np.ndarray, cat_unit: np.ndarray
     B, S, _ = v_icrs.shape
     v = np.where(valid[..., None], v_icrs, 0.0)
     c = v.sum(axis=1)
-    n = np.linalg.norm(c, axis=-1, keepdims=True)
-    c = np.where(n > 0, c / np.where(n > 0, n, 1.0), np.array([0.0, 0.0, 1.0]))
+    n = np.sqrt((c * c).sum(axis=-1, keepdims=True))                # np.linalg.norm's own reduction
+    c = np.where(n > 0, c / np.where(n > 0, n, 1.0), _Z)
     cos_in = np.where(valid, (v @ c[:, :, None])[..., 0], 1.0).min(axis=1, initial=1.0)  # widest
     radius = np.minimum(np.arccos(np.clip(cos_in, -1.0, 1.0)) + pad, np.pi)
     near = (c @ cat_unit.T) >= np.cos(radius)[:, None]                             # (B, N)
-    bi, ni = np.divmod(np.flatnonzero(near), near.shape[1])
+    bi, ni = np.nonzero(near)
     counts = near.sum(axis=1)
     kc = max(2, int(counts.max()) if B else 2)
     pos = np.arange(bi.size) - (np.cumsum(counts) - counts)[bi]
     cand = np.full((B, kc), -1, np.int64)
     cand[bi, pos] = ni
-    dots = v @ np.swapaxes(cat_unit[np.where(cand >= 0, cand, 0)], 1, 2)          # (B, S, kc)
-    dots = np.where((cand >= 0)[:, None, :], dots, -np.inf)
+    has = cand >= 0
+    dots = v @ np.swapaxes(cat_unit[np.where(has, cand, 0)], 1, 2)                # (B, S, kc)
+    dots = np.where(has[:, None, :], dots, -np.inf)
     k = dots.argmax(axis=2)
-    cos1 = np.take_along_axis(dots, k[..., None], axis=2)[..., 0]
-    np.put_along_axis(dots, k[..., None], -np.inf, axis=2)
-    cos2 = dots.max(axis=2)
-    idx = np.where(np.isfinite(cos1), np.take_along_axis(cand, k, axis=1), -1)
+    cos1 = dots.max(axis=2)
+    cos2 = np.partition(dots, kc - 2, axis=2)[..., kc - 2]          # the second largest (a tie of the first too)
+    idx = np.where(np.isfinite(cos1), cand[np.arange(B)[:, None], k], -1)
     return idx, cos1, cos2
+
+
+_Z = np.array([0.0, 0.0, 1.0])
