@@ -208,6 +208,18 @@ def _build_fill_runs(dtype, serial: bool = False, bg: bool = False):
         if inrun != 0:
             _store_run(runs, rsum, k, c0 + start, c0 + w, y, s, sI, sIx, sw, swx, swxx)
 
+    @ti.func
+    def fill_row(q, pix: ti.template(), cov: ti.template(), use_cov, thr: ti.template(), off: ti.template(),
+                 seg: ti.template(), seg_row: ti.template(), row_seg: ti.template(), run_off: ti.template(),
+                 runs: ti.template(), rsum: ti.template(), rows: ti.template(), vr: ti.template(), vw: ti.template(),
+                 nby):
+        if run_off[q + 1] > run_off[q]:  # only rows that have runs are read again
+            s = row_seg[q]
+            w = seg[s, _W]
+            fr = seg[s, _FRAME]
+            row_fill(pix, cov, use_cov, thr[fr], off[fr], seg[s, _PIX] + (q - seg_row[s]) * w, w, seg[s, _C0],
+                     seg[s, _R0] + q - seg_row[s], s, run_off[q], runs, rsum, rows, vr, vw, fr * nby)
+
     if bg:      # frames minus their smooth background (rows, vr, vw, nby: the Background's arrays)
         @ti.kernel
         def fill_runs(pix: ti.types.ndarray(dtype=pdt, ndim=1), cov: _F32, use_cov: ti.i32,
@@ -215,25 +227,15 @@ def _build_fill_runs(dtype, serial: bool = False, bg: bool = False):
                       run_off: _I32, runs: _I32x2, rsum: _F64x2, rows: _F32x2, vr: _I32x2, vw: _F64x2, nby: ti.i32):
             ti.loop_config(serialize=serial)
             for q in range(row_seg.shape[0]):
-                if run_off[q + 1] > run_off[q]:  # only rows that have runs are read again
-                    s = row_seg[q]
-                    w = seg[s, _W]
-                    fr = seg[s, _FRAME]
-                    row_fill(pix, cov, use_cov, thr[fr], off[fr], seg[s, _PIX] + (q - seg_row[s]) * w, w, seg[s, _C0],
-                             seg[s, _R0] + q - seg_row[s], s, run_off[q], runs, rsum, rows, vr, vw, fr * nby)
-    else:
+                fill_row(q, pix, cov, use_cov, thr, off, seg, seg_row, row_seg, run_off, runs, rsum, rows, vr, vw, nby)
+    else:       # (the background's arguments: placeholders, never read)
         @ti.kernel
         def fill_runs(pix: ti.types.ndarray(dtype=pdt, ndim=1), cov: _F32, use_cov: ti.i32,
                       thr: ti.types.ndarray(dtype=tdt, ndim=1), off: _F64, seg: _I32x2, seg_row: _I32, row_seg: _I32,
                       run_off: _I32, runs: _I32x2, rsum: _F64x2):
             ti.loop_config(serialize=serial)
             for q in range(row_seg.shape[0]):
-                if run_off[q + 1] > run_off[q]:  # only rows that have runs are read again
-                    s = row_seg[q]
-                    w = seg[s, _W]
-                    fr = seg[s, _FRAME]
-                    row_fill(pix, cov, use_cov, thr[fr], off[fr], seg[s, _PIX] + (q - seg_row[s]) * w, w, seg[s, _C0],
-                             seg[s, _R0] + q - seg_row[s], s, run_off[q], runs, rsum, runs, seg, off, 0)
+                fill_row(q, pix, cov, use_cov, thr, off, seg, seg_row, row_seg, run_off, runs, rsum, runs, seg, off, 0)
     return fill_runs
 
 
