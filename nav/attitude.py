@@ -82,11 +82,12 @@ def svd_attitude(obs: np.ndarray, ref: np.ndarray, weights: np.ndarray, *,
     with np.errstate(invalid="ignore"):       # a factorisation that fails (non-finite B) gives NaN: not ok
         U, s, Vt = _SVD(Bm)
         d = _DET(U) * _DET(Vt)                                        # +-1
-    U_d = U.copy()
+    U_d = U.copy() if return_cov else U                                 # (U itself is needed for cov only)
     U_d[:, :, 2] *= d[:, None]                                        # U diag(1, 1, d)
     A = U_d @ Vt
-    ok = (use.sum(axis=1) >= 2) & (s[:, 0] > 0) & (s[:, 1] > rank_tol * s[:, 0])
-    A[~ok] = np.nan
+    ok = (np.count_nonzero(use, axis=1) >= 2) & (s[:, 0] > 0) & (s[:, 1] > rank_tol * s[:, 0])
+    if not ok.all():
+        A[~ok] = np.nan
     if not return_cov:
         return A, ok
     s1, s2, s3 = s[:, 0], s[:, 1], d * s[:, 2]

@@ -240,3 +240,22 @@ def test_voting_index_is_built_once_and_reused(slow_inputs):
         assert prev[e] == (earlier[-1] // 2 if earlier.size else -1)
     with pytest.raises(ValueError, match="sorted"):
         VotingIndex(x.i, x.j, x.angle[::-1])
+
+
+def test_voting_index_of_memory_maps(slow_inputs, tmp_path):
+    """Memory-mapped pair arrays (the cached catalogs): read-only maps are reused by identity (they cannot change);
+    a writable map edited in place still gets a new index (its values are sampled, as for any array)."""
+    x = slow_inputs
+    maps = {}
+    for mode in ("r", "r+"):
+        folder = tmp_path / mode.replace("+", "plus")     # one file set per map (never rewrite a mapped file)
+        folder.mkdir()
+        for name in ("i", "j", "angle"):
+            np.save(folder / f"{name}.npy", getattr(x, name))
+        maps[mode] = [np.load(folder / f"{n}.npy", mmap_mode=mode) for n in ("i", "j", "angle")]
+        first = voting_index(*maps[mode])
+        assert voting_index(*maps[mode]) is first
+        np.testing.assert_array_equal(first.stars_plus_one, voting_index(x.i, x.j, x.angle).stars_plus_one)
+        if mode == "r+":
+            maps[mode][0][:] = maps[mode][0][::-1]
+            assert voting_index(*maps[mode]) is not first
