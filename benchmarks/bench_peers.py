@@ -196,13 +196,16 @@ def dualsight_chain(frames: np.ndarray, ctx):
     [(A or None, stars detected, stars identified)] per frame."""
     from dualsight.jobs.hil_star import detect_frames
     from dualsight.nav.observations import observations
-    from dualsight.nav.star_solution import identify, solve
+    from dualsight.nav.star_solution import centroid_weights, identify, solve
 
     rt, B = ctx.rt, frames.shape[0]
-    _, _, det = detect_frames(frames, rt.settings, rt.detect)
+    _, _, det = detect_frames(frames, rt.settings, rt.detect, saturation_adu=float(2 ** rt.camera.bit_depth - 1),
+                              residual=False)
     obs = observations(det, B, rt.camera, max_obs=rt.settings.max_obs)
-    ident = identify(obs, ctx.catalog.unit, ctx.pairs, rt.voting)
-    sol = solve(obs, ident, ctx.catalog.unit, None)
+    ident = identify(obs, ctx.catalog.unit, ctx.pairs, rt.voting, cat_vmag=ctx.catalog.vmag)
+    floor = rt.settings.centroid_floor_px
+    sol = solve(obs, ident, ctx.catalog.unit, None,
+                weights=centroid_weights(det, obs, floor) if floor is not None else None)
     out = []
     for b in range(B):
         ok = bool(sol.ok[b]) and int(ident.T[b]) > 0
