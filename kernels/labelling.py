@@ -166,9 +166,11 @@ def _build_fill_runs(dtype, serial: bool = False, bg: bool = False):
     tdt = ti.f64 if bg else _threshold_type(dtype)
 
     @ti.func
-    def row_fill(pix: ti.template(), cov: ti.template(), use_cov, t, ofs, p0, w, c0, y, s, k,
+    def row_fill(pix: ti.template(), cov: ti.template(), use_cov, t, ofs, p0, w, c0, y, s, k, kend,
                  runs: ti.template(), rsum: ti.template(), rows: ti.template(), vr: ti.template(),
                  vw: ti.template(), rbase):
+        """The runs of one row into slots k .. kend - 1 (never beyond: a row that finds more runs than were
+        counted stores only those); returns the slot after the last run found."""
         ra, rb, w0, w1 = _row_weights(bg, vr, vw, rbase, y)
         start = 0
         inrun = 0
@@ -203,53 +205,55 @@ def _build_fill_runs(dtype, serial: bool = False, bg: bool = False):
                         swxx += wc * xc * xc
                     elif inrun != 0:
                         inrun = 0
-                        _store_run(runs, rsum, k, c0 + start, c0 + c, y, s, sI, sIx, sw, swx, swxx)
+                        if k < kend:
+                            _store_run(runs, rsum, k, c0 + start, c0 + c, y, s, sI, sIx, sw, swx, swxx)
                         k += 1
         if inrun != 0:
-            _store_run(runs, rsum, k, c0 + start, c0 + w, y, s, sI, sIx, sw, swx, swxx)
+            if k < kend:
+                _store_run(runs, rsum, k, c0 + start, c0 + w, y, s, sI, sIx, sw, swx, swxx)
+            k += 1
+        return k
 
     @ti.func
     def fill_row(q, pix: ti.template(), cov: ti.template(), use_cov, thr: ti.template(), off: ti.template(),
                  seg: ti.template(), seg_row: ti.template(), row_seg: ti.template(), run_off: ti.template(),
-                 runs: ti.template(), rsum: ti.template(), rows: ti.template(), vr: ti.template(), vw: ti.template(),
-                 nby):
-        if run_off[q + 1] > run_off[q]:  # only rows that have runs are read again
+                 runs: ti.template(), rsum: ti.template(), counts: ti.template(), rows: ti.template(),
+                 vr: ti.template(), vw: ti.template(), nby):
+        if run_off[q + 1] > run_off[q]:  # only rows that have runs are read again; counts[q] = the runs found
             s = row_seg[q]
             w = seg[s, _W]
             fr = seg[s, _FRAME]
-            row_fill(pix, cov, use_cov, thr[fr], off[fr], seg[s, _PIX] + (q - seg_row[s]) * w, w, seg[s, _C0],
-                     seg[s, _R0] + q - seg_row[s], s, run_off[q], runs, rsum, rows, vr, vw, fr * nby)
+            counts[q] = row_fill(pix, cov, use_cov, thr[fr], off[fr], seg[s, _PIX] + (q - seg_row[s]) * w, w,
+                                 seg[s, _C0], seg[s, _R0] + q - seg_row[s], s, run_off[q], run_off[q + 1], runs, rsum,
+                                 rows, vr, vw, fr * nby) - run_off[q]
 
     if bg:      # frames minus their smooth background (rows, vr, vw, nby: the Background's arrays)
         @ti.kernel
         def fill_runs(pix: ti.types.ndarray(dtype=pdt, ndim=1), cov: _F32, use_cov: ti.i32,
                       thr: ti.types.ndarray(dtype=tdt, ndim=1), off: _F64, seg: _I32x2, seg_row: _I32, row_seg: _I32,
-                      run_off: _I32, runs: _I32x2, rsum: _F64x2, rows: _F32x2, vr: _I32x2, vw: _F64x2, nby: ti.i32):
+                      run_off: _I32, runs: _I32x2, rsum: _F64x2, counts: _I32, rows: _F32x2, vr: _I32x2, vw: _F64x2,
+                      nby: ti.i32):
             ti.loop_config(serialize=serial)
             for q in range(row_seg.shape[0]):
-                fill_row(q, pix, cov, use_cov, thr, off, seg, seg_row, row_seg, run_off, runs, rsum, rows, vr, vw, nby)
+                fill_row(q, pix, cov, use_cov, thr, off, seg, seg_row, row_seg, run_off, runs, rsum, counts, rows, vr,
+                         vw, nby)
     else:       # (the background's arguments: placeholders, never read)
         @ti.kernel
         def fill_runs(pix: ti.types.ndarray(dtype=pdt, ndim=1), cov: _F32, use_cov: ti.i32,
                       thr: ti.types.ndarray(dtype=tdt, ndim=1), off: _F64, seg: _I32x2, seg_row: _I32, row_seg: _I32,
-                      run_off: _I32, runs: _I32x2, rsum: _F64x2):
+                      run_off: _I32, runs: _I32x2, rsum: _F64x2, counts: _I32):
             ti.loop_config(serialize=serial)
             for q in range(row_seg.shape[0]):
-                fill_row(q, pix, cov, use_cov, thr, off, seg, seg_row, row_seg, run_off, runs, rsum, runs, seg, off, 0)
+                fill_row(q, pix, cov, use_cov, thr, off, seg, seg_row, row_seg, run_off, runs, rsum, counts, runs, seg,
+                         off, 0)
     return fill_runs
 
 
 @ti.func
 def _store_run(runs: ti.template(), rsum: ti.template(), k, c_start, c_end, y, s, sI, sIx, sw, swx, swxx):
-    runs[k, 0] = c_start
-    runs[k, 1] = c_end
-    runs[k, 2] = y
-    runs[k, 3] = s
-    rsum[k, 0] = sI
-    rsum[k, 1] = sIx
-    rsum[k, 2] = sw
-    rsum[k, 3] = swx
-    rsum[k, 4] = swxx
+    """Run k: columns [c_start, c_end) of image row y of segment s, and its sums."""
+    runs[k, 0], runs[k, 1], runs[k, 2], runs[k, 3] = c_start, c_end, y, s
+    rsum[k, 0], rsum[k, 1], rsum[k, 2], rsum[k, 3], rsum[k, 4] = sI, sIx, sw, swx, swxx
 
 
 def _build_union_runs(_dtype=None, serial: bool = False):
@@ -447,7 +451,10 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
         cov = (np.ascontiguousarray(coverage, dtype=np.float32).reshape(-1) if coverage is not None
                else np.zeros(1, np.float32))
         _KERNELS.get("fill_runs" + suffix, pixels.dtype, serial=rows_serial)(
-            pixels, cov, int(coverage is not None), tn, off, seg, seg_row, row_seg, run_off, runs, rsum, *bg)
+            pixels, cov, int(coverage is not None), tn, off, seg, seg_row, row_seg, run_off, runs, rsum, counts, *bg)
+        if not np.array_equal(counts[:NR], np.diff(run_off)):   # fill found other runs than count: never written
+            raise RuntimeError("labeller: the rows' second read found other runs than the first counted "
+                               f"({int(np.abs(counts[:NR] - np.diff(run_off)).sum())} differ); no result")
         _KERNELS.get("union_runs", serial=segs_serial)(seg_row, run_off, runs, int(connectivity == 8), label,
                                                        seg_ncomp)
     comp_off = np.zeros(NS + 1, np.int64)

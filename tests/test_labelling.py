@@ -230,3 +230,28 @@ def test_detection_with_a_background_equals_detection_on_the_residual():
     assert got.offsets[-1] >= 25
     for name in ("case", "x", "y", "flux", "npix", "offsets", "background_adu", "threshold_adu"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+
+
+@pytest.mark.parametrize("delta", [-1, 1])
+def test_rows_counted_and_filled_differently_raise_instead_of_overrunning(monkeypatch, delta):
+    """Should the two reads of a row ever disagree (a counting bug), the labeller stores nothing outside the row's
+    slots and raises a clear error, instead of overrunning its run buffer."""
+    img = np.zeros((1, 8, 200), np.float32)
+    img[0, 3, 10:15] = img[0, 3, 70:90] = img[0, 5, 150:151] = 100.0
+    real_get = labelling._KERNELS.get
+
+    def get(name, dtype=None, serial=False):
+        kern = real_get(name, dtype, serial=serial)
+        if not name.startswith("count_runs"):
+            return kern
+
+        def miscount(*args):
+            kern(*args)
+            args[5][3] += delta                        # row 3 (two runs): one run more, or fewer, than it has
+        return miscount
+
+    monkeypatch.setattr(labelling._KERNELS, "get", get)
+    with pytest.raises(RuntimeError, match="found other runs than the first counted"):
+        label_frames(img, 50.0)
+    monkeypatch.undo()
+    assert len(label_frames(img, 50.0)) == 3
