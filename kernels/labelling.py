@@ -32,7 +32,8 @@ the row kernels 1-2, ``SERIAL_MAX_RUNS`` runs for the segment kernels 3-4): a pa
 round trip through Taichi's thread pool that outweighs the work there (:class:`KernelCache`).  Both give the same
 output bit for bit.  Segments (pixel offset, width, first column, first row, frame) and runs (first column,
 end column, row, segment) are passed as int32 tables, one argument each: every array argument of a launch
-costs ~8.5 us in Taichi's Python launcher (``benchmarks/bench_taichi_threads.py``).
+costs ~8.5 us in Taichi's Python launcher, ~2 us through :class:`~dualsight.kernels._runtime.FastKernel`
+(``benchmarks/bench_taichi_threads.py``).
 
 Only runs are stored: the cost is one or two reads of every pixel plus work proportional to the number of
 runs.  Memory per run: 16 bytes of table, 40 of sums, 4 of label; per component 15 float64 moment sums (so
