@@ -212,8 +212,7 @@ def _plan(kernel, args):
         for a, arg in zip(args, primal.arguments):
             anno = arg.annotation
             if isinstance(anno, ndarray_type.NdarrayType):
-                if not (type(a).__name__ == "ndarray" and (anno.dtype is None
-                                                          or id(anno.dtype) in primitive_types.type_ids)):
+                if not (anno.dtype is None or id(anno.dtype) in primitive_types.type_ids):   # (a: a numpy array)
                     return False
                 setters.append(_set_array)
             elif id(anno) in primitive_types.real_type_ids:

@@ -101,7 +101,7 @@ def _pixel(pix: ti.template(), p, vt: ti.template(), bg: ti.template(), rows: ti
     float64 ``pix[p]`` minus the smooth background (:class:`dualsight.scene.background.Background`) at column x
     of an image row whose two block rows are ``rows[ra]``, ``rows[rb]`` with weights ``w0``, ``w1``
     (:func:`_row_weights`): both products are exact in float64 and every operation rounds once, so these are
-    the very bits of ``Background.at``."""
+    the very bits of ``Background.grid``."""
     v = ti.cast(pix[p], vt)
     if ti.static(bg):
         v = ti.cast(pix[p], ti.f64) - (w0 * ti.cast(rows[ra, x], ti.f64) + w1 * ti.cast(rows[rb, x], ti.f64))

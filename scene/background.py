@@ -52,7 +52,7 @@ class Background:
     with its half-pixel convention, held constant beyond the outer block centres); ``r`` (H, 2) int32 the
     two block rows around image row y and ``w`` (H, 2) float64 their weights, rounded to float32 values:
     both products are then exact in float64 and the sum is rounded once, so every evaluation (this class's
-    numpy, the labeller's Taichi kernels, :func:`dualsight.kernels.labelling.label_frames` with
+    :meth:`grid` and :meth:`subtract`, the labeller's Taichi kernels, :func:`dualsight.kernels.labelling.label_frames` with
     ``background=``) gives the same bits, whatever order or fused multiply-add the compiler picks.
     ``levels`` (B,) float64: the median of each frame's block medians (ADU).
     """
@@ -71,14 +71,9 @@ class Background:
         """The background of frames ``which`` (a slice or indices)."""
         return Background(rows=self.rows[which], r=self.r, w=self.w, levels=self.levels[which])
 
-    def at(self, b: np.ndarray, y: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """float64 background at frames ``b``, rows ``y``, columns ``x`` (int arrays of one broadcast shape)."""
-        return (self.w[y, 0] * self.rows[b, self.r[y, 0], x].astype(np.float64)
-                + self.w[y, 1] * self.rows[b, self.r[y, 1], x].astype(np.float64))
-
     def grid(self, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
-        """(B, len(ys), len(xs)) float64 background at rows ``ys`` x columns ``xs`` of every frame (the values of
-        :meth:`at`, bit for bit: the same products and sums, on the grid's rows only)."""
+        """(B, len(ys), len(xs)) float64 background at rows ``ys`` x columns ``xs`` of every frame (the class's
+        formula; the labeller's kernels evaluate the same, bit for bit)."""
         ry, wy = self.r[ys], self.w[ys]
         cols = self.rows[:, :, xs].astype(np.float64)                       # (B, nby, len(xs))
         return wy[None, :, :1] * cols[:, ry[:, 0]] + wy[None, :, 1:] * cols[:, ry[:, 1]]
@@ -87,9 +82,9 @@ class Background:
         """(B, H, W) residual ``frames - background`` (computed in float64, returned as ``dtype``)."""
         frames = np.asarray(frames)
         out = np.empty(frames.shape, dtype)
-        for k in range(frames.shape[0]):
-            bg = self.w[:, :1] * self.rows[k, self.r[:, 0]].astype(np.float64)
-            bg += self.w[:, 1:] * self.rows[k, self.r[:, 1]].astype(np.float64)
+        ys, xs = np.arange(self.r.shape[0]), np.arange(self.rows.shape[2])
+        for k in range(frames.shape[0]):                     # one frame's float64 map at a time
+            bg = self.frames(slice(k, k + 1)).grid(ys, xs)[0]
             np.subtract(frames[k], bg, out=out[k], dtype=np.float64, casting="unsafe")
         return out
 
