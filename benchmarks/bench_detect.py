@@ -1,7 +1,7 @@
 """Benchmark: star detection on noisy rendered frames — dualsight's local detector (``kernels/detect_local.py``)
 against the global one (``kernels/detect.py``) and against ``sep`` (Source Extractor as a library).
 
-Frames: the star job's own chain, ``jobs/star.py: compute_batch(spec, ctx, ids, keep_images=True)`` on the
+Frames: the star job's own chain, ``jobs/kinds/star.py: compute_batch(spec, ctx, ids, keep_images=True)`` on the
 noisy-sensor example (``examples/star/noisy_sensor.toml``: the reference's 1024 x 768 camera, PSF sigma 0.9 px,
 catalog to V 5.5, 10 e- read noise, sky, dark, hot pixels, two glints per frame) and on harder variants
 (more read noise and a deeper catalog: fainter stars; a sharper PSF: 1-2 px stars).  Truth: the returned
@@ -67,8 +67,8 @@ def render(condition: str, n: int, seed: int = 11):
     (n, H, W) bool, the hot pixels (the same seeds rendered with every other effect off)."""
     import dataclasses
 
-    from dualsight.jobs import star as jstar
-    from dualsight.jobs.config import preset_and_config
+    from dualsight.jobs.kinds import star as jstar
+    from dualsight.jobs.engine.specs import preset_and_config
     from dualsight.kernels.starfield import false_star_lists, render_star_fields
 
     _, sensor_over, catalog_over = CONDITIONS[condition]

@@ -36,8 +36,8 @@ def main() -> int:
     ap.add_argument("--cases", type=int, default=4000, help="star cases per executor (default 4000)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
-    from dualsight.jobs import star
-    from dualsight.jobs.runner import run_job
+    from dualsight.jobs.kinds import star
+    from dualsight.jobs.engine.runner import run_job
     from dualsight.warehouse.lake import Lake
 
     out = {"cores": os.cpu_count()}

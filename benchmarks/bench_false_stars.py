@@ -79,7 +79,7 @@ def main(argv=None):
 
     import numpy as np
 
-    from dualsight.jobs import star
+    from dualsight.jobs.kinds import star
     from dualsight.nav.observations import Observations
     from dualsight.nav.star_solution import identify, solve
     from dualsight.scene.units import ARCSEC

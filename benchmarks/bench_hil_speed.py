@@ -111,9 +111,9 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
     import numpy as np
 
     cv2.setNumThreads(1)
-    from dualsight.jobs import hil_star as hs
-    from dualsight.jobs.cli import main  # noqa: F401  (the package's normal import state)
-    from dualsight.jobs.hil_common import ImageEntry  # noqa: F401
+    from dualsight.jobs.kinds import hil_star as hs
+    from dualsight.jobs.cli.main import main  # noqa: F401  (the package's normal import state)
+    from dualsight.jobs.kinds.hil_common import ImageEntry  # noqa: F401
     from dualsight.kernels import detect_local as dl
     from dualsight.nav import star_solution as ss
     from dualsight.nav.observations import observations
@@ -123,8 +123,8 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
 
     paths = frames() if paths is None else paths
     cam = Camera.from_toml(camera)
-    from dualsight.jobs.cli import build_parser
-    from dualsight.jobs.cli_hil import star_spec_from_args
+    from dualsight.jobs.cli.main import build_parser
+    from dualsight.jobs.cli.hil_star import star_spec_from_args
     args = build_parser().parse_args(hil_cmd(paths, "--no-compare", *extra, camera=camera)[3:])
     spec = star_spec_from_args(args)                       # the CLI's own spec (robust voting, no comparison)
     ctx = hs.make_context(spec)
@@ -190,7 +190,7 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
         total = 1e3 * statistics.median(per["total"])       # the median frame's sum (not the sum of medians)
         q1, q3 = (1e3 * q for q in statistics.quantiles(per["total"], n=4)[::2])
         # the engine `hil star` itself picks for a short run: the global detector has started Taichi, the local
-        # one has not (jobs/hil_star.py voting_engine)
+        # one has not (jobs/kinds/hil_star.py voting_engine)
         mark = " (hil star's own choice)" if (engine == "taichi") == (detector == "global") else ""
         print(f"  detector {detector}, voting engine {engine}{mark}: "
               + ", ".join(f"{s} {v:.2f}" for s, v in med.items())
@@ -275,7 +275,7 @@ def bench_process(repeats: int) -> None:
           + ", ".join(f"{n} {c / 1e3:.0f} ms" for c, n in rows[:10]))
     prof = subprocess.run([PY, "-c", (
         "import cProfile, pstats, sys, io\n"
-        "from dualsight.jobs.cli import main\n"
+        "from dualsight.jobs.cli.main import main\n"
         "pr = cProfile.Profile(); pr.enable()\n"
         f"main({hil_cmd([one])[3:]!r})\n"
         "pr.disable(); s = io.StringIO(); pstats.Stats(pr, stream=s).sort_stats('cumulative').print_stats(45)\n"

@@ -8,13 +8,13 @@ Workload: ``examples/star/noisy_sensor.toml`` (the reference's 1024 x 768 camera
 hot pixels, two false stars per frame).
 
 Part 1, stages (in this process, one Taichi thread, one BLAS/OpenMP thread): the chain of
-``jobs/star.py: compute_batch`` cut into its stages, each timed on its own over the same batches, reported in ms
+``jobs/kinds/star.py: compute_batch`` cut into its stages, each timed on its own over the same batches, reported in ms
 per case (median over ``--repeats`` passes over ``--batches`` batches of ``--batch`` cases; min-max spread too):
 
   sample      draw_cases + stars_in_field (attitudes, projection)
   render      render_star_fields with every random effect off (PSF splat + the ADC pass over every pixel)
   noise       render_star_fields of the noisy sensor minus ``render`` (shot, read, hot pixels in the same pass)
-  digest      frame_digest_taichi of the frames (jobs/star.py: one Taichi pass, parallel over rows)
+  digest      frame_digest_taichi of the frames (jobs/kinds/star.py: one Taichi pass, parallel over rows)
   background  estimate_background (strided sample: median, MAD, clipped sigma)
   threshold   _levels + native_threshold (per-frame numbers)
   labelling   label_frames (run-length union-find: every pixel read once or twice)
@@ -63,7 +63,7 @@ STAGES = ("sample", "render", "noise", "digest", "background", "threshold", "lab
 def load_spec(batch: int | None = None) -> tuple[dict, int]:
     from pathlib import Path
 
-    from dualsight.jobs import star
+    from dualsight.jobs.kinds import star
 
     d, n = star.resolve_spec(None, Path(NOISY))
     if batch is not None:
@@ -82,7 +82,7 @@ def stage_times(batch: int, batches: int, repeats: int) -> dict:
     """{stage: [ms per case per repeat]} for ``batches`` batches of ``batch`` cases, ``repeats`` passes."""
     import dataclasses
 
-    from dualsight.jobs import star
+    from dualsight.jobs.kinds import star
     from dualsight.kernels import detect as kd
     from dualsight.kernels import starfield as sf
     from dualsight.kernels.digest import frame_digest_taichi as frame_digest
@@ -173,8 +173,8 @@ def stage_times(batch: int, batches: int, repeats: int) -> dict:
 _JOB = r"""
 import json, tempfile, time
 from pathlib import Path
-from dualsight.jobs import star
-from dualsight.jobs.runner import run_job
+from dualsight.jobs.kinds import star
+from dualsight.jobs.engine.runner import run_job
 from dualsight.warehouse.lake import Lake
 spec, _ = star.resolve_spec(None, Path({cfg!r}))
 if {batch!r} is not None:

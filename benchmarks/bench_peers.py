@@ -9,12 +9,12 @@ The peer is never a dependency of dualsight: on first use this script creates it
 (``benchmarks/.venv-cedar``, git-ignored; ``--cedar-venv``), pip-installs ``cedar-solve`` there (a tetra3 fork,
 importable as ``tetra3``) and runs ``benchmarks/peers/cedar_worker.py`` with that venv's python.  They exchange
 files only: a JSON job, one ``.npy`` of ADC counts per frame (decoded once, here, by dualsight's reader, so both
-solvers see the same pixels and decoding is outside both timings) and JSON answers (``jobs/peer_import.py``'s
+solvers see the same pixels and decoding is outside both timings) and JSON answers (``jobs/kinds/peer_star.py``'s
 layout).  No pickles.
 
 What is timed, per frame, warm (after one untimed run of the first frame), on one thread (OMP, OpenBLAS, MKL,
 numba and Taichi capped at 1 for both processes; ``--cpu K`` pins both to core K):
-  * dualsight: the functions ``dualsight hil star`` runs (jobs/hil_star.py ``_run_batch``): ``detect_frames``
+  * dualsight: the functions ``dualsight hil star`` runs (jobs/kinds/hil_star.py ``_run_batch``): ``detect_frames``
     (background + detection/centroids), ``nav.observations``, ``nav.star_solution.identify`` (lost-in-space
     robust geometric voting) and ``solve`` (SVD attitude), one frame at a time and batched (``batch_size``
     frames per call, ms per frame = batch time / frames).  Its answers are checked to equal the job's own
@@ -27,7 +27,7 @@ Errors are against the truth file's ``R_icrs_to_cam`` (boresight angle and roll 
 truth.json was itself made by cedar-solve 0.5.1 with its default database: on those frames cedar is scored
 against its own answer and only the rendered frames are an independent truth for both.
 
-``--rendered N`` renders N frames with dualsight's simulator (jobs/star.py ``compute_batch(..., keep_images=True)``,
+``--rendered N`` renders N frames with dualsight's simulator (jobs/kinds/star.py ``compute_batch(..., keep_images=True)``,
 uniform random attitudes, the sensor of examples/star/noisy_sensor.toml, 1024x1024 px, fx = 2904 px = 20.0 deg
 horizontal field, Hipparcos to V 7) and writes them as 16-bit PNG (12-bit ADC counts, right-aligned) with a
 camera file and a truth file in the format of esa_tetra3/truth.json, so ``dualsight hil star`` reads them too.
@@ -135,7 +135,7 @@ def render_inputs(n: int, seed: int, out: Path, mag_limit: float):
     paths = [out / f"frame_{i:04d}.png" for i in range(n)]
     if all(p.exists() for p in paths) and truth_path.exists() and camera_path.exists():
         return paths, camera_path, truth_path, noise
-    from dualsight.jobs import star
+    from dualsight.jobs.kinds import star
     from dualsight.scene.attitude import unit_to_radec
 
     spec = star.spec_from_dict({"seed": seed, "batch_size": 16, "attitudes": "uniform", "error_frame": "camera",
@@ -176,8 +176,8 @@ def render_inputs(n: int, seed: int, out: Path, mag_limit: float):
 
 # ============================================================================================ dualsight
 def dualsight_spec(paths, camera_path, truth_path, args):
-    from dualsight.jobs import hil_star as hs
-    from dualsight.jobs.hil_truth import resolve_star_truths
+    from dualsight.jobs.kinds import hil_star as hs
+    from dualsight.jobs.kinds.hil_truth import resolve_star_truths
     from dualsight.scene.camera import Camera
     from dualsight.scene.skytruth import load_truth_json
     from dualsight.scene.timescale import observation_epoch
@@ -194,7 +194,7 @@ def dualsight_spec(paths, camera_path, truth_path, args):
 def dualsight_chain(frames: np.ndarray, ctx):
     """detect -> observations -> identify -> solve of (B, H, W) frames, as hil_star's ``_run_batch`` calls them:
     [(A or None, stars detected, stars identified)] per frame."""
-    from dualsight.jobs.hil_star import detect_frames
+    from dualsight.jobs.kinds.hil_star import detect_frames
     from dualsight.nav.observations import observations
     from dualsight.nav.star_solution import centroid_weights, identify, solve
 
@@ -215,7 +215,7 @@ def dualsight_chain(frames: np.ndarray, ctx):
 
 def run_dualsight(spec, pixels: list[np.ndarray], repeats: int):
     """Per-frame answers and ms (single frames), batched ms per frame, and setup times."""
-    from dualsight.jobs import hil_star as hs
+    from dualsight.jobs.kinds import hil_star as hs
 
     t0 = time.perf_counter()
     ctx = hs.make_context(spec)
@@ -253,7 +253,7 @@ def run_dualsight(spec, pixels: list[np.ndarray], repeats: int):
 def check_against_job(spec, answers) -> float:
     """Largest angle (arcsec) between our in-process boresights and the hil_star job's own compute_shard rows
     (the same spec): 0 when the benchmark runs exactly the job's chain; inf when one solved and the other not."""
-    from dualsight.jobs import hil_star as hs
+    from dualsight.jobs.kinds import hil_star as hs
     from dualsight.scene.attitude import angle_between
 
     ctx = hs.make_context(spec)
@@ -367,7 +367,7 @@ def _main(args) -> int:
     else:
         paths, camera_path, truth_path, noise = esa_inputs(args)
     spec = dualsight_spec(paths, camera_path, truth_path, args)
-    from dualsight.jobs.hil_star import read_frame
+    from dualsight.jobs.kinds.hil_star import read_frame
 
     pixels = [read_frame(e, Camera_of(spec))[0] for e in spec.images]          # decoding: outside the timings
     ds = run_dualsight(spec, pixels, args.repeats)
@@ -452,9 +452,9 @@ def Camera_of(spec):
 
 def _to_lake(lake_dir: Path, spec, answers: dict, keep: Path):
     """Both solvers' answers into one lake: dualsight's as a hil_star run (the engine, one worker), the peer's as
-    a peer_star run (jobs/peer_import.py); prints the runs and a query joining them."""
-    from dualsight.jobs.peer_import import import_answers
-    from dualsight.jobs.runner import run_job
+    a peer_star run (jobs/kinds/peer_star.py); prints the runs and a query joining them."""
+    from dualsight.jobs.kinds.peer_star import import_answers
+    from dualsight.jobs.engine.runner import run_job
     from dualsight.warehouse.lake import Lake
 
     lake = Lake(lake_dir)

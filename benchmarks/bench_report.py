@@ -91,7 +91,8 @@ def _profile(con, sql: str, params: dict) -> tuple[int, int]:
 
 def run_cases(n_cases: int, lake_dir: Path) -> dict:
     """Run ``n_cases`` paper-preset cases in this process into ``lake_dir``; the run's numbers."""
-    from dualsight.jobs import runner, star
+    from dualsight.jobs.engine import runner
+    from dualsight.jobs.kinds import star
     from dualsight.warehouse.lake import Lake
 
     spec, n = star.resolve_spec("paper", None, seed=1, cases=n_cases)
@@ -127,8 +128,9 @@ def replicate(src: Path, dst: Path, k: int) -> dict:
 
 def measure_report(lake_dir: Path, repeat: int) -> dict:
     """Both report paths over run ``RUN`` of ``lake_dir``: fixed costs, each query, build, the CLI."""
-    from dualsight.jobs import star, star_report
-    from dualsight.jobs.star_summaries import DATASET
+    from dualsight.jobs.kinds import star
+    from dualsight.jobs.reports import star as star_report
+    from dualsight.jobs.kinds.star_summaries import DATASET
     from dualsight.warehouse.lake import Lake
     from dualsight.warehouse.query import connect, sql_text
 

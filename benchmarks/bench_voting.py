@@ -90,7 +90,7 @@ CONFIG_FIELDS = ("tolerance_rad", "max_stars", "require_unique_max", "vote_once_
 
 def rendered_workload(mag_limit: float, cases: int) -> dict:
     """``cases`` rendered cases of the star preset "paper" with the catalog to ``mag_limit``."""
-    from dualsight.jobs import star
+    from dualsight.jobs.kinds import star
 
     spec_dict, _ = star.resolve_spec("paper", None)
     spec_dict["catalog"]["mag_limit"] = mag_limit

@@ -21,7 +21,7 @@ The limit is the smallest V on a 0.1 mag grid whose mean count per field reaches
   whole sky (the star catalog's own minimum).
 
 ``dualsight hil star`` uses it by default (``--mag-limit`` not given, or ``mag_limit = "auto"`` in the
-``[catalog]`` table; resolved when the spec is built, jobs/hil_star_spec.py) with
+``[catalog]`` table; resolved when the spec is built, jobs/kinds/hil_star_spec.py) with
 :data:`HIL_TARGET_PER_FIELD` = 35 stars per field.
 
 When a cap binds, the field holds fewer than the target on average; :class:`AutoLimit` says which cap and

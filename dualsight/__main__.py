@@ -1,3 +1,3 @@
-from dualsight.jobs.cli import main
+from dualsight.jobs.cli.main import main
 
 raise SystemExit(main())

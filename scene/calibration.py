@@ -7,7 +7,7 @@ and Levenberg-Marquardt over intrinsics, distortion k1, k2, p1, p2, k3 and one b
 The default flags, ``cv2.CALIB_FIX_ASPECT_RATIO`` (= 2, with aspect ratio fx/fy = 1), are the ones of
 OpenCV's reference calibration of its ``left*.jpg`` samples (``left_intrinsics.yml``: ``flags: 2``).
 The two steps are separate functions: :func:`find_view` (one photo -> its corners; the per-case work of the
-``calibrate`` job kind, jobs/calibrate.py) and :func:`solve_calibration` (all views -> the camera);
+``calibrate`` job kind, jobs/kinds/calibrate.py) and :func:`solve_calibration` (all views -> the camera);
 :func:`calibrate_chessboard` does both in-process.
 
 Conventions
@@ -298,7 +298,7 @@ def solve_calibration(views: Iterable[ViewCorners], board: tuple[int, int] = (9,
 def calibrate_main(folder: str | Path, board="9x6", square: float = 0.025, output: str | Path | None = None,
                    pixel_pitch_um: float | None = None, *, quiet: bool = False) -> CalibrationResult:
     """In-process calibration of a folder (the ``dualsight calibrate`` command runs the same steps as a job of
-    the engine, jobs/calibrate_cli.py).
+    the engine, jobs/cli/calibrate.py).
 
     Calibrates from every image in ``folder`` (natural order), prints :func:`format_summary` unless
     ``quiet``, and writes the camera file to ``output`` if given.  ``board`` is "9x6" or (9, 6);

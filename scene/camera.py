@@ -117,7 +117,7 @@ class Camera:
     @classmethod
     def from_dict(cls, table: dict, source: str = "camera") -> "Camera":
         """Build from a ``[camera]`` table (see module docstring; the layout is :class:`CameraTable`),
-        validated by ``dualsight.jobs.config.validate``; errors name ``source`` and ``camera.<key>``."""
+        validated by ``dualsight.jobs.engine.specs.validate``; errors name ``source`` and ``camera.<key>``."""
         return cls.from_table(validate_table(CameraTable, table, source=source, section="camera"), source=source)
 
     @classmethod
@@ -283,9 +283,9 @@ def read_toml(path: Path) -> dict:
 
 
 def validate_table(model, table, *, source: str, section: str | None):
-    """``dualsight.jobs.config.validate`` (the one configuration layer, imported lazily) for the scene's
+    """``dualsight.jobs.engine.specs.validate`` (the one configuration layer, imported lazily) for the scene's
     file readers; a key that cannot be printed on one line (e.g. holding a newline) is named escaped."""
-    from dualsight.jobs.config import validate
+    from dualsight.jobs.engine.specs import validate
 
     try:
         return validate(model, table, source=source, section=section)

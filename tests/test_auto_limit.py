@@ -191,7 +191,7 @@ def test_sensor_limit_by_hand():
 
 # ------------------------------------------------------------------------------------ hil star settings
 def test_hil_settings_resolve_auto_from_the_camera(tmp_path):
-    from dualsight.jobs import hil_star as hs
+    from dualsight.jobs.kinds import hil_star as hs
 
     deferred = hs.settings_from_table(None, mag_limit=None, epoch_jyear=2019.6)
     assert deferred.catalog == {"mag_limit": "auto", "epoch_jyear": 2019.6}
@@ -214,7 +214,7 @@ def test_hil_settings_resolve_auto_from_the_camera(tmp_path):
 def test_cli_default_is_auto():
     import argparse
 
-    from dualsight.jobs import cli_hil
+    from dualsight.jobs.cli import hil_star as cli_hil
 
     p = argparse.ArgumentParser()
     cli_hil.add_star_parser(p.add_subparsers())
@@ -232,7 +232,7 @@ def test_hil_star_header_states_the_automatic_depth(tmp_path):
     sys.path.insert(0, str(Path(__file__).parent))
     import test_hil_star as th
 
-    from dualsight.jobs.cli import main
+    from dualsight.jobs.cli.main import main
 
     if not th.ESA.is_dir():
         pytest.skip(f"real ESA frames not found in {th.ESA}")

@@ -110,8 +110,8 @@ def test_calibration_job_gives_the_in_process_numbers(tmp_path, real_result):
     """The calibrate job kind (corners per photo in shards of 5, written to the lake, read back with SQL, then
     one calibrateCamera) gives the numbers of the in-process calibration: the very same corners and the very same
     fit (the solver runs single-threaded: OpenCV's threaded one moves the 9th digit from call to call)."""
-    from dualsight.jobs import calibrate as job
-    from dualsight.jobs.runner import run_job
+    from dualsight.jobs.kinds import calibrate as job
+    from dualsight.jobs.engine.runner import run_job
     from dualsight.warehouse.lake import Lake
     from dualsight.warehouse.query import connect, run_report
 
@@ -189,7 +189,7 @@ def run_cli(argv) -> tuple[int, str, str]:
     import contextlib
     import io
 
-    from dualsight.jobs import cli
+    from dualsight.jobs.cli import main as cli
 
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):

@@ -38,10 +38,10 @@ def test_draws_equal_numpys_generators_in_any_order(seed, case_ids, order):
 
 
 def test_star_cases_draw_what_per_case_generators_draw():
-    """jobs/star.py draw_cases against the per-case default_rng it replaced, both attitude models."""
+    """jobs/kinds/star.py draw_cases against the per-case default_rng it replaced, both attitude models."""
     import dataclasses
 
-    from dualsight.jobs import star
+    from dualsight.jobs.kinds import star
     from dualsight.scene.attitude import euler123_to_dcm, quat_to_dcm, random_quaternions
 
     spec, _ = star.resolve("paper", None, seed=11, cases=1000)

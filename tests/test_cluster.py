@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from dualsight.errors import InputError
-from dualsight.jobs.runner import EngineError, run_job
+from dualsight.jobs.engine.runner import EngineError, run_job
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import run_sql
 
@@ -89,7 +89,7 @@ def test_selftest_cluster_equals_in_process_and_two_lakes_do_not_collide(tmp_pat
 
 
 def test_star_and_prox_on_the_cluster_equal_in_process(tmp_path, cluster):
-    from dualsight.jobs import prox, star
+    from dualsight.jobs.kinds import prox, star
 
     spec, _ = star.resolve_spec("paper", None, seed=9)
     cols = "case_id, n_generated, n_observed, T, status, A_est::VARCHAR, err_total_rad::VARCHAR"

@@ -388,7 +388,7 @@ def test_attitude_weights_default_to_equal_and_inverse_variance_helps():
 
 # ============================================================================================ HIL wiring
 def test_hil_settings_select_the_detector():
-    from dualsight.jobs import hil_star as hs
+    from dualsight.jobs.kinds import hil_star as hs
 
     s = hs.settings_from_table(None)
     assert s.detector == "local" and s.detect_local["k_sigma"] == 5.0 and s.detect_local["psf_sigma_px"] is None
@@ -409,8 +409,8 @@ def test_hil_settings_select_the_detector():
 def _render_noisy(n, read_noise_e=30.0, mag_limit=6.5, seed=11):
     from pathlib import Path
 
-    from dualsight.jobs import star as jstar
-    from dualsight.jobs.config import preset_and_config
+    from dualsight.jobs.kinds import star as jstar
+    from dualsight.jobs.engine.specs import preset_and_config
     from dualsight.kernels.starfield import false_star_lists
 
     toml = Path(__file__).resolve().parents[1] / "examples" / "star" / "noisy_sensor.toml"
@@ -526,7 +526,7 @@ def test_sil_star_job_can_use_the_real_sensor_detector():
     import dataclasses
 
     from dualsight.errors import ConfigError
-    from dualsight.jobs import star
+    from dualsight.jobs.kinds import star
 
     spec, _ = star.resolve("noisy", None, seed=2, cases=24)
     faint = dataclasses.replace(spec, sensor=dataclasses.replace(spec.sensor, read_noise_e=30.0),

@@ -101,7 +101,7 @@ def test_patches_on_a_constant_sky_give_the_whole_frame_digest(dtype):
 
 
 def test_sparse_star_path_stores_the_digest_of_the_dense_frame():
-    from dualsight.jobs import star
+    from dualsight.jobs.kinds import star
 
     spec, _ = star.resolve("paper", None, seed=5, cases=12)
     ctx = star.make_context(spec)

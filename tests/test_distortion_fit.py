@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import pytest
 
-from dualsight.jobs.cli import main
+from dualsight.jobs.cli.main import main
 from dualsight.nav import distortion_fit as dfit
 from dualsight.scene.attitude import quat_to_dcm, random_quaternions, unit_to_radec
 from dualsight.scene.camera import Camera
@@ -62,7 +62,7 @@ def sky(tmp_path_factory):
     goes to V 6), their truth file, and camera files: true; without coefficients and fx 1 % short (what the
     fit starts from); without coefficients and the true fx."""
     from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
-    from dualsight.jobs.star import psf_margin_px
+    from dualsight.jobs.kinds.star import psf_margin_px
     from dualsight.kernels.starfield import SensorConfig, flux_from_magnitude, render_star_fields
     from dualsight.scene.starfield_geometry import stars_in_field
 

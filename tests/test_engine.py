@@ -22,8 +22,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from dualsight.errors import InputError
-from dualsight.jobs import selftest
-from dualsight.jobs.runner import default_shard_size, run_job
+from dualsight.jobs.kinds import selftest
+from dualsight.jobs.engine.runner import default_shard_size, run_job
 from dualsight.warehouse.lake import Lake, LakeError, ShardInfo, check_run_id, verify_shard
 from dualsight.warehouse.query import run_sql
 
@@ -193,7 +193,7 @@ def test_damaged_shard_is_named_left_out_and_repaired(tmp_path):
     xs, ks = truth(2, 80)
     assert rows[0][0] == ks.sum()                                        # the other run is unaffected
     assert any("part-000003" in w and "bad" in w for w in warnings)
-    from dualsight.jobs.lakecheck import check_lake
+    from dualsight.jobs.engine.lakecheck import check_lake
 
     rep = {r["run"]: r for r in check_lake(lake)}
     assert rep["bad"]["damaged_shards"] == [3] and rep["bad"]["found"] == 175 and rep["good"]["verdict"] == "ok"
@@ -322,7 +322,7 @@ def test_sigkill_at_random_moments_20_resumes(tmp_path):
     p = _start(tmp_path)
     assert p.wait(timeout=120) == 0, p.stderr.read()
     assert_exact(tmp_path, "k", 1, 600)
-    from dualsight.jobs.lakecheck import check_lake
+    from dualsight.jobs.engine.lakecheck import check_lake
 
     (row,) = check_lake(Lake(tmp_path))
     assert (row["requested"], row["found"], row["duplicated"], row["verdict"]) == (600, 600, 0, "ok")
@@ -403,7 +403,7 @@ def test_unwritable_lake_is_one_line(tmp_path):
 
 
 def test_taichi_is_not_initialised_at_import():
-    code = ("import dualsight.jobs.star, dualsight.kernels.starfield, dualsight.kernels.detect, sys;"
+    code = ("import dualsight.jobs.kinds.star, dualsight.kernels.starfield, dualsight.kernels.detect, sys;"
             "from dualsight.kernels import _runtime; print(_runtime.is_initialised())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=ENV)
     assert out.stdout.strip() == "False"

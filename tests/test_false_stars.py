@@ -35,7 +35,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from dualsight.jobs import star
+from dualsight.jobs.kinds import star
 from dualsight.nav import chance, widen
 from dualsight.nav.attitude import solve_identified
 from dualsight.nav.errors import axis_errors

@@ -13,8 +13,8 @@ import tomli_w
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from dualsight.errors import InputError
-from dualsight.jobs import prox, selftest, star
-from dualsight.jobs.cli import build_parser, main
+from dualsight.jobs.kinds import prox, selftest, star
+from dualsight.jobs.cli.main import build_parser, main
 from dualsight.scene.camera import Camera, read_toml
 from dualsight.scene.satellite import satellite_from_dict
 

@@ -27,8 +27,8 @@ import numpy as np
 import pytest
 
 from dualsight.errors import ConfigError
-from dualsight.jobs import hil_prox as hp
-from dualsight.jobs.hil_truth import load_range_truth
+from dualsight.jobs.kinds import hil_prox as hp
+from dualsight.jobs.kinds.hil_truth import load_range_truth
 from dualsight.scene.camera import Camera
 from dualsight.scene.segment import binarize
 from dualsight.warehouse.lake import Lake
@@ -45,7 +45,7 @@ CHESS = shared_real() / "opencv_chessboard"
 YML = CHESS / "left_intrinsics.yml"
 needs_chess = pytest.mark.skipif(not YML.exists(), reason=f"real OpenCV chessboard photos not found at {CHESS}")
 
-# Settings of the chessboard check (chosen on the 13 photos, see the module docstring of jobs/hil_prox.py and
+# Settings of the chessboard check (chosen on the 13 photos, see the module docstring of jobs/kinds/hil_prox.py and
 # examples/targets/opencv_chessboard.toml): the dark squares are <= 48 of 255 and most of the background is
 # > 50, so T = 210 on the inverted image (original <= 45); --border 6 drops the photos' 1-4 px black frame;
 # an opening of 9 px removes thin dark clutter (shirt stripes, cables); a closing of 61 px (> the largest
@@ -127,7 +127,7 @@ def chess(calibrated, tmp_path_factory):
 @needs_chess
 def test_chessboard_range_from_the_blobber_near_the_calibrated_distance(chess, calibrated):
     """The 13 real photos: a dark plate of known size at a known pose.  Errors against the board's true
-    distance (yml pose), measured: -21 .. +13 %, median |error| 7.7 % (jobs/hil_prox.py for what limits it).
+    distance (yml pose), measured: -21 .. +13 %, median |error| 7.7 % (jobs/kinds/hil_prox.py for what limits it).
     Bound 12 % on the median: the exact silhouette alone gives 3.9 % (next test), and thresholding a cluttered
     office leaks the closing into dark background or loses the palest squares (+-10-20 % in N_blob per
     image); the margin covers JPEG-decoder and OpenCV differences that move pixels across the threshold."""
@@ -444,7 +444,7 @@ def test_spec_round_trip_shards_and_changed_files(rendered, tmp_path):
     """The hil_prox kind: canonical spec, errors naming the field, rows independent of the shard layout
     (timing columns excepted), and an image changed after planning gives an error row, not another image's
     results."""
-    from dualsight.jobs.runner import run_job
+    from dualsight.jobs.engine.runner import run_job
 
     folder = tmp_path / "frames"
     shutil.copytree(rendered["folder"], folder)
@@ -521,7 +521,7 @@ def test_chosen_threshold_is_the_flattest_and_ignores_the_truth():
     from hypothesis import given, settings
     from hypothesis import strategies as st
 
-    from dualsight.jobs.hil_prox_report import stable_threshold
+    from dualsight.jobs.reports.hil_prox import stable_threshold
 
     th = [10, 20, 30, 40, 50]
     # ranges change a lot at both ends and hardly around threshold 30
@@ -540,7 +540,7 @@ def test_chosen_threshold_is_the_flattest_and_ignores_the_truth():
 
 
 def test_cross_validated_error_by_hand():
-    from dualsight.jobs.hil_prox_report import cross_validated_error
+    from dualsight.jobs.reports.hil_prox import cross_validated_error
 
     th = [1, 2]
     truth = np.array([10.0, 10.0, 10.0])

@@ -152,7 +152,7 @@ def test_tile_statistics_counts_equal_the_float32_comparisons(dtype):
 
 @pytest.mark.skipif(not (ESA / "truth.json").exists(), reason=f"ESA tetra3 frames not found at {ESA}")
 def test_numpy_and_taichi_voting_give_the_same_rows(monkeypatch):
-    from dualsight.jobs import hil_star as hs
+    from dualsight.jobs.kinds import hil_star as hs
     from dualsight.scene.camera import Camera
 
     paths = sorted(ESA.glob("*.tiff"))[:3]

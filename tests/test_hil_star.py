@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 
 from dualsight.errors import ConfigError
-from dualsight.jobs import hil_star as hs
-from dualsight.jobs.cli import main
-from dualsight.jobs.hil_truth import Site, resolve_star_truths
-from dualsight.jobs.runner import run_job
+from dualsight.jobs.kinds import hil_star as hs
+from dualsight.jobs.cli.main import main
+from dualsight.jobs.kinds.hil_truth import Site, resolve_star_truths
+from dualsight.jobs.engine.runner import run_job
 from dualsight.scene.attitude import angle_between, radec_to_unit, rot_axis, unit_to_radec
 from dualsight.scene.background import bin_size, subtract_background
 from dualsight.scene.camera import Camera
@@ -439,7 +439,7 @@ def test_synthetic_frame_round_trip(tmp_path):
     a 12-bit-in-16-bit TIFF like the ESA frames, with a truth file of the same format: identified, and the
     boresight within a few arcsec of the attitude it was rendered with."""
     from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
-    from dualsight.jobs.star import psf_margin_px
+    from dualsight.jobs.kinds.star import psf_margin_px
     from dualsight.kernels.starfield import SensorConfig, flux_from_magnitude, render_star_fields
     from dualsight.scene.starfield_geometry import stars_in_field
 
@@ -510,10 +510,10 @@ def test_spec_round_trip_and_errors_name_the_field(tmp_path):
     assert spec.settings.voting["tolerance_rad"] == pytest.approx(15 * ARCSEC) and spec.settings.alt_voting
     # the robust method's cheaper first round is in the HIL spec; the paper method (alt) has none, and its
     # table does not even hold the key (a newer option at its default leaves older tables unchanged)
-    from dualsight.jobs.hil_star_spec import HIL_FIRST_STARS
+    from dualsight.jobs.kinds.hil_star_spec import HIL_FIRST_STARS
     assert spec.settings.voting["first_stars"] == HIL_FIRST_STARS == 12
     assert "first_stars" not in spec.settings.alt_voting
-    from dualsight.jobs import star
+    from dualsight.jobs.kinds import star
     d_star, _ = star.resolve_spec("paper", None)
     assert "first_stars" not in d_star["robust"] and "first_stars" not in d_star["voting"]
     for change, field, words in (({"settings": {"max_obs": 1}}, "settings.max_obs", "greater than or equal to 2"),

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dualsight.jobs import hil_star_sweep as sw
-from dualsight.jobs.cli import main
+from dualsight.jobs.kinds import hil_star_sweep as sw
+from dualsight.jobs.cli.main import main
 from dualsight.warehouse.query import run_sql
 
 sys.path.insert(0, str(Path(__file__).parent))

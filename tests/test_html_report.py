@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from dualsight.jobs.cli import main
+from dualsight.jobs.cli.main import main
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (scripts/test.sh installs it)")

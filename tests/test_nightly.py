@@ -27,11 +27,12 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from dualsight.jobs import cli, nightly, nightly_stats as st
-from dualsight.jobs import nightly_store as store
-from dualsight.jobs import nightly_suite as ns
-from dualsight.jobs import prox, star
-from dualsight.jobs.lakecheck import check_run
+from dualsight.jobs.cli import main as cli
+from dualsight.jobs.nightly import run as nightly, stats as st
+from dualsight.jobs.nightly import store
+from dualsight.jobs.nightly import suite as ns
+from dualsight.jobs.kinds import prox, star
+from dualsight.jobs.engine.lakecheck import check_run
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import run_sql
 

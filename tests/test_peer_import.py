@@ -1,4 +1,4 @@
-"""A peer solver's answers in the lake (``jobs/peer_import.py``, dataset ``peer_star``).
+"""A peer solver's answers in the lake (``jobs/kinds/peer_star.py``, dataset ``peer_star``).
 
 Independent truths: the answers files written here by hand (every stored value must equal the value written,
 angles through one degrees <-> radians conversion; the attitude matrices are built here from RA/Dec/roll by an
@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 from dualsight.errors import InputError
-from dualsight.jobs import peer_import as pi
-from dualsight.jobs.cli import main
-from dualsight.jobs.lakecheck import check_run
+from dualsight.jobs.kinds import peer_star as pi
+from dualsight.jobs.cli.main import main
+from dualsight.jobs.engine.lakecheck import check_run
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import run_sql
 

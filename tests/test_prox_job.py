@@ -11,8 +11,8 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
 
-from dualsight.jobs import prox
-from dualsight.jobs.cli import main
+from dualsight.jobs.kinds import prox
+from dualsight.jobs.cli.main import main
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import run_sql
 from test_star_job import _snapshot

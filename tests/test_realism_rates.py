@@ -1,7 +1,7 @@
 """Detection and identification rates on frames rendered with each sensor-realism feature, default settings
 (issue 11, "Done when").
 
-Every variant is the ``realistic`` star preset (jobs/star.py: a CMV4000-like 12-bit CMOS star camera on the
+Every variant is the ``realistic`` star preset (jobs/kinds/star.py: a CMV4000-like 12-bit CMOS star camera on the
 reference's 1024 x 768, 17 mm optics, V 5.5 catalog; defocus-disk PSF, shot + read + dark noise, sky, hot
 pixels 1e-4) with ONE feature changed or strengthened, and nothing else: no detection or identification
 setting is touched (the detector is the spec's ``auto`` choice, the identification the robust method's
@@ -34,7 +34,7 @@ import math
 import numpy as np
 import pytest
 
-from dualsight.jobs import star
+from dualsight.jobs.kinds import star
 from dualsight.kernels import starfield as kstar
 
 N_CASES = 64

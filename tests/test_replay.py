@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dualsight.jobs.cli import main
-from dualsight.jobs.runner import run_job
+from dualsight.jobs.cli.main import main
+from dualsight.jobs.engine.runner import run_job
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import run_sql
 
@@ -68,7 +68,7 @@ def test_a_tampered_row_or_seed_fails_the_replay(star_lake, tmp_path, capsys):
 
 
 def test_prox_case_recording_has_the_blob_and_its_numbers(tmp_path):
-    from dualsight.jobs import prox
+    from dualsight.jobs.kinds import prox
 
     spec = prox.resolve_spec("paper", None, orientations=1)
     run_job("prox_sweep", spec, n_cases=11, lake=Lake(tmp_path / "l"), run_id="p", workers=1, progress=False)
@@ -164,7 +164,7 @@ def test_a_tampered_stored_metric_fails_the_replay_naming_it(star_lake, tmp_path
 
 
 def test_star_recording_has_magnitudes_and_both_attitudes(star_lake, tmp_path):
-    from dualsight.jobs import star
+    from dualsight.jobs.kinds import star
 
     _, rows = run_sql(star_lake, "SELECT case_id, A_true, A_est FROM star_cases WHERE run = 's' "
                                  "AND status = 'success' ORDER BY case_id LIMIT 1")
@@ -189,7 +189,7 @@ def test_star_recording_has_magnitudes_and_both_attitudes(star_lake, tmp_path):
 
 
 def test_a_trajectory_replays_as_one_recording_on_the_frame_time_line(tmp_path):
-    from dualsight.jobs import prox
+    from dualsight.jobs.kinds import prox
 
     spec = prox.resolve_spec("paper", None, job="trajectory", frames=8)
     run_job("prox_trajectory", spec, n_cases=8, lake=Lake(tmp_path / "l"), run_id="tr", workers=1, progress=False)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from dualsight.errors import ConfigError
-from dualsight.jobs.config import dataclass_from_table
+from dualsight.jobs.engine.specs import dataclass_from_table
 from dualsight.kernels.detect import render_and_detect_ideal
 from dualsight.kernels.starfield import SensorConfig, render_star_fields
 from dualsight.scene.camera import Camera
@@ -436,7 +436,7 @@ def test_adc_full_scale_and_full_well_clip(bits):
 def test_presets_and_example_resolve_and_run():
     from pathlib import Path
 
-    from dualsight.jobs import star
+    from dualsight.jobs.kinds import star
 
     spec, _ = star.resolve("realistic", None)
     s = spec.sensor
@@ -460,7 +460,7 @@ def test_a_star_job_smears_its_stars_by_its_rate():
     """The job passes the camera and each case's attitude to the renderer: with a rate of 3 deg/s about the
     camera's y axis for 0.1 s, a star near the centre moves L = w t fx ~ 19 px along x, so its image's
     second moment along x grows by L^2/12 (uniform motion), and not along y."""
-    from dualsight.jobs import star
+    from dualsight.jobs.kinds import star
 
     base, _ = star.resolve("ideal", None, seed=3, cases=8)
     smeared = dataclasses.replace(base, sensor=dataclasses.replace(base.sensor, rate_deg_s=(0.0, 3.0, 0.0)))
@@ -498,8 +498,8 @@ def test_a_runs_identity_covers_the_psf_images_content(tmp_path):
     file has changed since fails in one line naming the file, before the lake is touched."""
     from dualsight.errors import ConfigError as CfgErr
     from dualsight.errors import InputError
-    from dualsight.jobs import star
-    from dualsight.jobs.runner import run_job, spec_hash
+    from dualsight.jobs.kinds import star
+    from dualsight.jobs.engine.runner import run_job, spec_hash
     from dualsight.warehouse.lake import Lake
 
     path = tmp_path / "psf.npy"

@@ -14,7 +14,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from dualsight.jobs.cli import main
+from dualsight.jobs.cli.main import main
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import run_sql
 
@@ -117,7 +117,7 @@ def test_cases_do_not_depend_on_shard_or_batch(small_run, tmp_path):
 def test_replay_reproduces_the_row_and_refuses_a_tampered_one(small_run, tmp_path, monkeypatch, capsys):
     import shutil
 
-    from dualsight.jobs import replay
+    from dualsight.jobs.replay import cases as replay
 
     out = tmp_path / "case7.rrd"
     assert main(["star", "replay", "--lake", str(small_run), "--run", "small", "--case", "7", "-o", str(out)]) == 0

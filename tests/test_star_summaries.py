@@ -20,9 +20,10 @@ import pyarrow.parquet as pq
 import pytest
 
 from dualsight.errors import InputError
-from dualsight.jobs import star, star_report
-from dualsight.jobs import star_summaries as ss
-from dualsight.jobs.cli import main
+from dualsight.jobs.kinds import star
+from dualsight.jobs.reports import star as star_report
+from dualsight.jobs.kinds import star_summaries as ss
+from dualsight.jobs.cli.main import main
 from dualsight.warehouse.lake import Lake
 
 ARCSEC_PER_RAD = 180 * 3600 / np.pi

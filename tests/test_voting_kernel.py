@@ -30,7 +30,7 @@ import numpy as np
 import pytest
 
 import dualsight.kernels
-from dualsight.jobs import star
+from dualsight.jobs.kinds import star
 from dualsight.kernels import voting as kvoting
 from dualsight.kernels import voting_select as kselect
 from dualsight.nav.starid import VotingConfig, identify, voting_index

@@ -1,7 +1,7 @@
 """The nightly's page: one self-contained HTML file (no network) with the night's verdict table, the nights'
 summary and every metric's trend, drawn with matplotlib and embedded as a base64 PNG; the same figure is
 saved as ``<page>.png`` beside the page.  Input: verdict rows as the nightly_verdicts dataset holds them
-(jobs/nightly_store.py), never the jobs themselves.
+(jobs/nightly/store.py), never the jobs themselves.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@
 Talks to ``benchmarks/bench_peers.py`` through files only (no pickles): the job is JSON, every frame is a
 ``.npy`` array of ADC counts (H, W) that the benchmark decoded with dualsight's own reader (so both solvers see
 the very same pixels and decoding is excluded from both timings), and the answers are JSON in the layout
-that ``dualsight.jobs.peer_import`` reads.
+that ``dualsight.jobs.kinds.peer_star`` reads.
 
 Job (JSON)::
 

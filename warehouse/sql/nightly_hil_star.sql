@@ -1,4 +1,4 @@
--- Nightly metrics of one star HIL run ($run), one row per image (jobs/nightly_compare.py: METRICS["hil_star"]).
+-- Nightly metrics of one star HIL run ($run), one row per image (jobs/nightly/compare.py: METRICS["hil_star"]).
 --   identified                   lost-in-space identification gave an attitude
 --   success                      every axis within the status limit of the image's truth (NULL without truth)
 --   boresight_err_arcsec         solved boresight vs the truth's, over identified images with truth

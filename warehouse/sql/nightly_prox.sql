@@ -1,5 +1,5 @@
 -- Nightly metrics of one proximity run ($run: sweep or trajectory), one row per case
--- (jobs/nightly_compare.py: METRICS["prox_sweep"], METRICS["prox_trajectory"]).  NULL = not applicable.
+-- (jobs/nightly/compare.py: METRICS["prox_sweep"], METRICS["prox_trajectory"]).  NULL = not applicable.
 --   found                        a blob was found
 --   within_{paper,subpixel}      the true range lies in the estimator's [range_min, range_max] (false when found
 --                                but the bounds are not finite)

@@ -1,4 +1,4 @@
--- Nightly metrics of one star SIL run ($run), one row per case (jobs/nightly_compare.py: METRICS["star"]).
+-- Nightly metrics of one star SIL run ($run), one row per case (jobs/nightly/compare.py: METRICS["star"]).
 -- Rates are booleans, error distributions doubles; NULL = not applicable to this case.
 --   success, confident_wrong     status of the reference's method (every axis within 100 arcsec; failed with T > 0)
 --   identification               every accepted identity right and at least two of them (id_correct)

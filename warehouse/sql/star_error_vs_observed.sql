@@ -1,7 +1,7 @@
 -- Error per axis and root-sum-square against the number of stars observed, over the successful
 -- cases (the data behind the reference's Figures 9 and 10).
 -- Full scan of star_cases.  `star report` reads star_summ_error_vs_observed.sql (the per-shard summaries, same numbers) when
--- every shard of the run has one, and this file for runs made before the summaries (jobs/star_report.py).
+-- every shard of the run has one, and this file for runs made before the summaries (jobs/reports/star.py).
 SELECT
     n_observed                                                         AS stars_observed,
     count(*)                                                           AS cases,

@@ -1,6 +1,6 @@
 -- The reference's method beside dualsight's robust voting options, on the same detections.
 -- Full scan of star_cases.  `star report` reads star_summ_robust.sql (the per-shard summaries, same numbers) when
--- every shard of the run has one, and this file for runs made before the summaries (jobs/star_report.py).
+-- every shard of the run has one, and this file for runs made before the summaries (jobs/reports/star.py).
 SELECT method, success_rate, confident_wrong_rate, no_solution_rate, identification_rate,
        mean_err_x_arcsec, mean_err_y_arcsec, mean_err_z_arcsec FROM (
     SELECT 1 AS k, 'reference (paper)' AS method,

@@ -1,5 +1,5 @@
 -- star_summary.sql computed from the per-shard partial aggregates (dataset star_summaries: one row per shard and
--- (status, status_robust, n_observed); jobs/star_summaries.py) instead of scanning every case: each avg(x) of the
+-- (status, status_robust, n_observed); jobs/kinds/star_summaries.py) instead of scanning every case: each avg(x) of the
 -- full scan is sum(sum_x) / sum(n_x) over the groups it covers, each rate a count of cases over a count of cases.
 -- Same columns and numbers as star_summary.sql (counts and rates exactly; means to ~1e-16 relative).
 -- The star_summ_*.sql files read the table star_summaries that jobs/star_report.open_summaries loads: the run's

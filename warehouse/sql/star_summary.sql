@@ -2,7 +2,7 @@
 -- success: all three axis errors (Eqs. 4-7) <= 100 arcsec; confident_wrong: failed with T > 0;
 -- no_solution: failed with T <= 0.  *_robust: dualsight's voting options on the same detections.  Means of Table 5 are over the successful cases, as in the reference.
 -- Full scan of star_cases.  `star report` reads star_summ_summary.sql (the per-shard summaries, same numbers) when
--- every shard of the run has one, and this file for runs made before the summaries (jobs/star_report.py).
+-- every shard of the run has one, and this file for runs made before the summaries (jobs/reports/star.py).
 SELECT
     count(*)                                                        AS cases,
     avg((status = 'success')::DOUBLE)                               AS success_rate,

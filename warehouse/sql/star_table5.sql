@@ -1,6 +1,6 @@
 -- The reference's Table 5: average performance over the successful cases, beside the reference's values.
 -- Full scan of star_cases.  `star report` reads star_summ_table5.sql (the per-shard summaries, same numbers) when
--- every shard of the run has one, and this file for runs made before the summaries (jobs/star_report.py).
+-- every shard of the run has one, and this file for runs made before the summaries (jobs/reports/star.py).
 WITH s AS (
     SELECT * FROM star_cases WHERE run = $run AND status = 'success'
 )

@@ -1,0 +1,105 @@
+"""Command-line building blocks shared by every command group (so that no group imports ``jobs/cli/main.py``):
+the one-line-error parser, typed option parsers, the lake option and the shared run options."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from dualsight.errors import InputError
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (the usage is one ``--help`` away)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def run_id_arg(text: str) -> str:
+    """argparse type for --run: the full-match run id check (an empty or multi-line id is refused)."""
+    from dualsight.warehouse.lake import RUN_ID_PATTERN, check_run_id
+
+    try:
+        return check_run_id(text)
+    except InputError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a run id: it must match {RUN_ID_PATTERN} in full") \
+            from None
+
+
+def positive_int(lo: int, hi: int):
+    """argparse type: an integer in [lo, hi] (also written as 1e6 or 1_000_000)."""
+    def parse(text: str) -> int:
+        try:
+            v = float(text.replace("_", "")) if any(c in text for c in "eE.") else int(text.replace("_", ""))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if v != int(v) or not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"must be an integer in [{lo}, {hi:,}], got {text}")
+        return int(v)
+    return parse
+
+
+def _lake_arg(p: argparse.ArgumentParser):
+    from dualsight.warehouse.lake import default_lake
+
+    p.add_argument("--lake", type=Path, default=None,
+                   help=f"lake folder (default: $DUALSIGHT_LAKE or ./lake, now {default_lake()})")
+
+
+def _lake(args):
+    from dualsight.warehouse.lake import Lake, default_lake
+
+    return Lake(args.lake if args.lake is not None else default_lake())
+
+
+def add_run_args(p: argparse.ArgumentParser, *, cases: bool = True):
+    """Options shared by every Monte Carlo command."""
+    p.add_argument("--preset", default=None, help="named preset (default: paper)")
+    p.add_argument("--config", type=Path, default=None, help="TOML file overriding the preset")
+    if cases:
+        p.add_argument("--cases", type=positive_int(1, 10**9), default=None,
+                       help="number of cases, 1 to 1e9 (default: the preset's)")
+    p.add_argument("--seed", type=positive_int(0, 2**63 - 1), default=None,
+                   help="run seed: case i draws from default_rng([seed, i])")
+    _lake_arg(p)
+    p.add_argument("--run", type=run_id_arg, default=None,
+                   help="run id, [A-Za-z0-9._-]{1,64} (default: <job>-<seed>-<cases>-<spec hash>); the same id "
+                        "with the same settings resumes, with other settings is refused")
+    p.add_argument("--workers", type=positive_int(1, 512), default=None,
+                   help="local worker processes (default: one per core)")
+    p.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786) to run shards on "
+                   "a cluster; the lake must be on storage every worker can write")
+    p.add_argument("--shard-size", type=positive_int(1, 10**6), default=None,
+                   help="cases per shard file (default: from the case count, 25 to 1000)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _latest_run(lake, kinds) -> str:
+    runs = [m for m in lake.list_manifests() if m.get("kind") in kinds]
+    if not runs:
+        raise InputError(f"no {'/'.join(kinds)} run in {lake.root}; run one first", source="--run")
+    return max(runs, key=lambda m: m.get("created_unix", 0))["run_id"]
+
+
+def add_image_args(p: argparse.ArgumentParser):
+    """The positional ``images`` (files or folders) and ``--camera``."""
+    p.add_argument("images", nargs="+", type=Path, help="image files (PNG, JPEG, TIFF, FITS) or folders of them")
+    p.add_argument("--camera", type=Path, required=True, help="camera file (TOML with a [camera] table)")
+
+
+def add_engine_args(p: argparse.ArgumentParser, *, prefix: str):
+    """``--lake``, ``--run``, ``--no-lake``, ``--workers``, ``--scheduler``, ``--shard-size``, ``--no-progress``."""
+    g = p.add_argument_group("engine and lake")
+    _lake_arg(g)
+    g.add_argument("--run", default=None,
+                   help=f"run id (default {prefix}-<hash of the spec and code version>: the same images, settings "
+                        "and code resume the same run)")
+    g.add_argument("--no-lake", action="store_true",
+                   help="run into a temporary lake that is deleted afterwards (nothing kept)")
+    g.add_argument("--workers", type=int, default=None, help="local worker processes (default: one per core)")
+    g.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786) to run the shards "
+                   "on a cluster; the lake and the images must be on storage every worker can read and write")
+    g.add_argument("--shard-size", type=int, default=None, help="images per shard file (default: automatic)")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar")
+

@@ -1,0 +1,334 @@
+"""The ``dualsight`` command line.
+
+    dualsight star run     [--preset paper] [--config FILE.toml] [--cases N] [--seed S] [--lake DIR] [--run ID]
+    dualsight star report  [--lake DIR] [--run ID] [--json] [--plot FILE.png]
+    dualsight star replay  --run ID --case I [--lake DIR] [-o FILE.rrd]
+    dualsight prox ...     (see ``dualsight prox --help``)
+    dualsight hil ...      (see ``dualsight hil --help``)
+    dualsight calibrate FOLDER --board 9x6 --square 0.025 [-o camera.toml]
+    dualsight sql "SELECT ..." [--lake DIR] [--json | --csv]       read-only: SELECT / EXPLAIN only
+    dualsight runs [--lake DIR] [--json]
+    dualsight lake check [--lake DIR] [--repair] [--json]
+
+Bad input prints one line naming the file, field and allowed range, exits with status 2 and leaves the
+lake untouched.  The lake defaults to ``$DUALSIGHT_LAKE`` or ``./lake``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+from pathlib import Path
+
+from dualsight.errors import InputError
+from dualsight.jobs.cli.args import (Parser, _lake, _lake_arg, _latest_run, add_run_args,  # noqa: F401
+                                      positive_int, run_id_arg)
+
+# The one table from commands to job kinds (jobs/engine/runner.py JOB_KINDS maps kinds to modules).
+COMMAND_KINDS = {
+    ("star", "run"): "star",
+    ("prox", "sweep"): "prox_sweep",
+    ("prox", "trajectory"): "prox_trajectory",
+    ("hil", "star"): "hil_star",
+    ("hil", "prox"): "hil_prox",
+    ("calibrate",): "calibrate",
+    ("selftest", "run"): "selftest",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from dualsight import __version__
+
+    parser = Parser(prog="dualsight", description="End-to-end test bench for a dual-use "
+                                     "(star tracker + proximity navigation) small-satellite camera.")
+    parser.add_argument("--version", action="version", version=f"dualsight {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    star = sub.add_parser("star", help="star tracker: Monte Carlo runs, reports, replay")
+    ssub = star.add_subparsers(dest="action", metavar="ACTION")
+    p = ssub.add_parser("run", help="run (or resume) a star-tracker Monte Carlo into the lake")
+    add_run_args(p)
+    p.set_defaults(func=cmd_star_run)
+    p = ssub.add_parser("report", help="reliability summary, Table 5, error vs stars observed")
+    _lake_arg(p)
+    p.add_argument("--run", type=run_id_arg, default=None, help="run id (default: the latest star run)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--plot", type=Path, default=None, help="write Figures 9-10 (error vs stars observed) as PNG")
+    p.set_defaults(func=cmd_star_report)
+    p = ssub.add_parser("replay", help="re-render one case bit-identically and record it for rerun (.rrd)")
+    _lake_arg(p)
+    p.add_argument("--run", type=run_id_arg, required=True)
+    p.add_argument("--case", type=positive_int(0, 10**9), required=True)
+    p.add_argument("-o", "--output", type=Path, default=None, help="recording file (default: <run>-case<I>.rrd)")
+    p.set_defaults(func=cmd_star_replay)
+    star.set_defaults(func=lambda a: _help(star))
+
+    for register in _optional_registrations():
+        register(sub)
+
+    p = sub.add_parser("sql", help="DuckDB SQL over the lake's views (one per dataset)")
+    p.add_argument("query", help="SQL text, e.g. \"SELECT status, count(*) FROM star_cases GROUP BY ALL\"")
+    _lake_arg(p)
+    fmt = p.add_mutually_exclusive_group()
+    fmt.add_argument("--json", action="store_true", help="rows as JSON objects")
+    fmt.add_argument("--csv", action="store_true", help="CSV")
+    p.set_defaults(func=cmd_sql)
+
+    p = sub.add_parser("replay", help="replay cases of any run, chosen by --case or an SQL predicate, into rerun "
+                                      "recordings; each case is verified against its row first")
+    _lake_arg(p)
+    p.add_argument("--run", type=run_id_arg, required=True)
+    sel = p.add_mutually_exclusive_group(required=True)
+    sel.add_argument("--case", type=positive_int(0, 10**9), default=None)
+    sel.add_argument("--where", default=None, help="SQL predicate over the run's primary dataset, e.g. "
+                                                   "\"status <> 'success'\"")
+    p.add_argument("--limit", type=positive_int(1, 1000), default=20, help="at most this many cases (default 20)")
+    p.add_argument("-o", "--output", type=Path, default=None,
+                   help="a .rrd file (every selected case in one recording, on the 'frame' time line: a "
+                        "trajectory plays as a film) or a folder (one <run>-case<N>.rrd per case)")
+    p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("report", help="one self-contained HTML page for any run: tables, the reference's "
+                                      "figures, worst cases with thumbnails and replay commands, spec, timings")
+    _lake_arg(p)
+    p.add_argument("--run", type=run_id_arg, required=True)
+    p.add_argument("--html", type=Path, required=True, help="page to write (its folder must exist)")
+    p.set_defaults(func=cmd_report_html)
+
+    p = sub.add_parser("runs", help="list the runs in the lake (damaged ones are named)")
+    _lake_arg(p)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_runs)
+
+    p = sub.add_parser("selftest", help="engine self-test job (tiny, deterministic; for fault drills and "
+                                        "benchmarks)")
+    tsub = p.add_subparsers(dest="action", metavar="ACTION")
+    p = tsub.add_parser("run", help="run the self-test job into the lake")
+    add_run_args(p)
+    p.add_argument("--sleep-ms", type=float, default=None, help="busy time per case, ms (default 0)")
+    p.set_defaults(func=cmd_selftest_run)
+
+    lake_p = sub.add_parser("lake", help="lake maintenance")
+    lsub = lake_p.add_subparsers(dest="lake_action", metavar="ACTION")
+    p = lsub.add_parser("check", help="verify every run (manifest, shard metadata, row counts, duplicate cases); "
+                                      "with --repair recompute damaged or missing shards")
+    _lake_arg(p)
+    p.add_argument("--repair", action="store_true", help="recompute damaged or missing shards, rebuild damaged "
+                                                         "manifests from their spec copy")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--workers", type=positive_int(1, 512), default=None, help="workers for --repair")
+    p.set_defaults(func=cmd_lake_check)
+    lake_p.set_defaults(func=lambda a: _help(lake_p))
+    return parser
+
+
+def _optional_registrations():
+    """Command groups of the other jobs (each module adds its own sub-commands)."""
+    from dualsight.jobs.cli import calibrate as calibrate_cli, hil_star as cli_hil, prox as cli_prox
+    from dualsight.jobs.nightly import run as nightly
+
+    return [cli_prox.register, cli_hil.register, calibrate_cli.register_calibrate, nightly.register]
+
+
+def _help(p):
+    p.print_help()
+    return 0
+
+
+def _on_sigterm(signum, frame):
+    from dualsight.jobs.engine.runner import Interrupted
+
+    raise Interrupted(f"signal {signum}")
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:                  # --help, --version, or a one-line usage error (status 2)
+        return int(e.code or 0)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 0
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        return int(args.func(args) or 0)
+    except InputError as e:
+        print(f"dualsight: error: {_one_line(e)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as e:
+        sig = "SIGTERM" if str(e).startswith("signal") else "Ctrl-C"
+        print(f"dualsight: interrupted ({sig}); completed shards are kept, run the same command again to resume",
+              file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+    except OSError as e:
+        from dualsight.warehouse.lake import os_error_text
+
+        print(f"dualsight: error: {os_error_text(e)}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("dualsight: error: out of memory; lower the batch size, the case count per shard or the catalog "
+              "depth", file=sys.stderr)
+        return 2
+    except Exception as e:                                    # a bug: one line, the traceback on request
+        if os.environ.get("DUALSIGHT_DEBUG"):
+            raise
+        print(f"dualsight: internal error: {type(e).__name__}: {_one_line(e)} (set DUALSIGHT_DEBUG=1 for the "
+              "traceback)", file=sys.stderr)
+        return 3
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _one_line(e: Exception) -> str:
+    return " ".join(str(e).split())
+
+
+# ---------------------------------------------------------------------------------------------- star
+def cmd_star_run(args) -> int:
+    from dualsight.jobs.kinds import star
+    from dualsight.jobs.engine.runner import run_job
+
+    from dualsight.jobs.engine.runner import prepare
+
+    spec_dict, n_cases = star.resolve_spec(args.preset, args.config, seed=args.seed, cases=args.cases)
+    _, _, _, h = prepare(COMMAND_KINDS[("star", "run")], spec_dict, n_cases,
+                         source=str(args.config) if args.config else f"preset {args.preset or 'paper'}")
+    run_id = args.run or f"star-{spec_dict['seed']}-{n_cases}-{h[:8]}"
+    lake = _lake(args)
+    info = star.catalog_info(spec_dict)
+    print(f"catalog: {info['stars']} stars to V {info['mag_limit']}, {info['pairs']:,} pairs closer than "
+          f"{info['pair_max_angle_deg']:.2f} deg ({info['pair_catalog_bytes'] / 2**20:.2f} MiB, memory-mapped)",
+          file=sys.stderr)
+    manifest = run_job(COMMAND_KINDS[("star", "run")], spec_dict, n_cases=n_cases, lake=lake, run_id=run_id, workers=args.workers,
+                       scheduler=args.scheduler, shard_size=args.shard_size, progress=not args.no_progress,
+                       label=f"star {run_id}", extra={"catalog": info})
+    ex = manifest["executions"][-1]
+    el = ex.get("elapsed_s")
+    rate = f", {ex.get('cases_run', n_cases) / el:.0f} cases/s" if el else ""
+    print(f"run {run_id}: {manifest['status']}, {n_cases} cases in {lake.root}{rate}", file=sys.stderr)
+    print(f"report: dualsight star report --lake {lake.root} --run {run_id}", file=sys.stderr)
+    return 0
+
+
+def cmd_selftest_run(args) -> int:
+    from dualsight.jobs.engine.specs import preset_and_config
+    from dualsight.jobs.engine.runner import run_job
+
+    d, source = preset_and_config({"default": {"seed": 1}}, args.preset, args.config, default="default")
+    if args.seed is not None:
+        d["seed"] = args.seed
+    if args.sleep_ms is not None:
+        d["sleep_ms"] = args.sleep_ms
+    m = run_job(COMMAND_KINDS[("selftest", "run")], d, n_cases=args.cases or 1000, lake=_lake(args),
+                run_id=args.run, workers=args.workers, scheduler=args.scheduler, shard_size=args.shard_size,
+                progress=not args.no_progress, source=source)
+    print(f"run {m['run_id']}: {m['status']}, {m['n_cases']} cases", file=sys.stderr)
+    return 0
+
+
+def cmd_star_report(args) -> int:
+    from dualsight.jobs.reports import star as star_report
+
+    lake = _lake(args)
+    run_id = args.run or _latest_run(lake, ["star"])
+    rep = star_report.build(lake, run_id)
+    if args.plot:
+        star_report.plot(rep, args.plot)
+    if args.json:
+        print(json.dumps(rep["json"], indent=1))
+    else:
+        print(star_report.text(rep))
+        if args.plot:
+            print(f"\nfigure: {args.plot}")
+    return 0
+
+
+def cmd_star_replay(args) -> int:
+    from dualsight.jobs.replay import cases as replay
+
+    out = replay.replay_star_case(_lake(args), args.run, args.case, args.output)
+    print(f"recording: {out}  (open with: rerun {out})")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------- lake
+def cmd_sql(args) -> int:
+    from dualsight.warehouse.query import format_table, run_sql
+
+    cols, rows = run_sql(_lake(args), args.query)
+    if args.json:
+        print(json.dumps([dict(zip(cols, r)) for r in rows], default=str, indent=1))
+    elif args.csv:
+        import csv
+
+        w = csv.writer(sys.stdout)
+        w.writerow(cols)
+        w.writerows(rows)
+    elif cols:
+        print(format_table(cols, rows))
+    return 0
+
+
+def cmd_report_html(args) -> int:
+    from dualsight.jobs.reports.html import write_html
+
+    out = write_html(_lake(args), args.run, args.html)
+    print(f"report: {out} ({out.stat().st_size / 2**20:.1f} MiB, self-contained)", file=sys.stderr)
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from dualsight.jobs.replay.cases import replay_run
+
+    outs = replay_run(_lake(args), args.run, case=args.case, where=args.where, limit=args.limit, output=args.output)
+    for o in outs:
+        print(f"recording: {o}")
+    print(f"{len(outs)} case(s) verified and recorded; open with: rerun {outs[0]}", file=sys.stderr)
+    return 0
+
+
+def cmd_runs(args) -> int:
+    from dualsight.warehouse.lake import LakeError
+    from dualsight.warehouse.query import format_table
+
+    lake = _lake(args)
+    rows, docs = [], []
+    for rid in lake.run_ids():
+        try:
+            m = lake.read_manifest(rid)
+        except LakeError as e:
+            rows.append((rid, "?", None, "?", "DAMAGED", None, str(e.detail)[:60]))
+            docs.append({"run_id": rid, "status": "damaged", "problem": e.detail})
+            continue
+        h = lake.scan(rid)
+        status = lake.live_status(m) + (" (damaged files)" if h.problems else "")
+        rows.append((rid, m.get("kind"), m.get("n_cases"), f"{m.get('shards_done', '?')}/{m.get('n_shards')}",
+                     status, m.get("seed"), m.get("spec_hash")))
+        docs.append(dict(m, problems=h.problems))
+    if args.json:
+        print(json.dumps(docs, indent=1))
+        return 0
+    print(format_table(["run", "kind", "cases", "shards", "status", "seed", "spec hash"], rows) if rows
+          else f"no runs in {lake.root}")
+    return 0
+
+
+def cmd_lake_check(args) -> int:
+    from dualsight.jobs.engine.lakecheck import check_lake, report_text
+
+    rows = check_lake(_lake(args), repair=args.repair, workers=args.workers)
+    if args.json:
+        print(json.dumps(rows, indent=1))
+    else:
+        print(report_text(rows))
+    return 0 if all(r["verdict"] in ("ok", "repaired") for r in rows) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

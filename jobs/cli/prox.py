@@ -1,0 +1,210 @@
+"""``dualsight prox ...``: proximity sweep and trajectory runs, their reports, replay and video."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+
+from dualsight.errors import InputError
+
+
+def register(sub):
+    from dualsight.jobs.cli.args import _lake_arg, add_run_args
+
+    prox = sub.add_parser("prox", help="proximity operations: range sweeps, trajectories, reports, replay")
+    psub = prox.add_subparsers(dest="action", metavar="ACTION")
+
+    p = psub.add_parser("sweep", help="ranges x random orientations Monte Carlo (reference Table 3)")
+    add_run_args(p, cases=False)
+    p.add_argument("--ranges", type=float, nargs="+", default=None, metavar="M",
+                   help="true ranges in m (default: 11 log-spaced 1-100 m)")
+    p.add_argument("--orientations", type=int, default=None, help="random orientations per range (paper: 9)")
+    p.add_argument("--mode", choices=["paper", "accurate"], default=None,
+                   help="renderer: paper (fixed surface resolution) or accurate (exact coverage)")
+    p.add_argument("--satellite", type=Path, default=None, help="satellite TOML (default: the 3U CubeSat)")
+    p.set_defaults(func=cmd_sweep, job="sweep")
+
+    p = psub.add_parser("trajectory", help="the reference's trajectory (Table 2 motion), frame by frame")
+    add_run_args(p, cases=False)
+    p.add_argument("--frames", type=int, default=None, help="number of frames (default: the satellite file's)")
+    p.add_argument("--mode", choices=["paper", "accurate"], default=None)
+    p.add_argument("--satellite", type=Path, default=None, help="satellite TOML (default: the 3U CubeSat)")
+    p.add_argument("--video", type=Path, default=None, help="also write the frames as a video (.mp4 or .avi)")
+    p.add_argument("--fps", type=float, default=10.0, help="video frame rate")
+    p.set_defaults(func=cmd_trajectory, job="trajectory")
+
+    p = psub.add_parser("report", help="Table 3 per true range (sweep) or per-axis errors (trajectory)")
+    _lake_arg(p)
+    p.add_argument("--run", default=None, help="run id (default: the latest prox run)")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--estimator", choices=["paper", "subpixel"], default=None,
+                   help="estimator for the top-level JSON keys (default: paper for paper-mode runs, "
+                        "subpixel for accurate-mode runs)")
+    p.add_argument("--plot", type=Path, default=None, help="figure (Fig. 7 style for sweeps, Fig. 6 for trajectories)")
+    p.set_defaults(func=cmd_report)
+
+    p = psub.add_parser("resolvable", help="nearest and farthest resolvable range of a camera and object size")
+    p.add_argument("--camera", type=Path, default=None, help="camera TOML (default: the reference's Table 1 camera)")
+    p.add_argument("--size", type=float, default=0.1, help="characteristic object size h (m), default 0.1")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_resolvable)
+
+    p = psub.add_parser("replay", help="re-render one case bit-identically and record it for rerun (.rrd)")
+    _lake_arg(p)
+    p.add_argument("--run", required=True)
+    p.add_argument("--case", type=int, required=True)
+    p.add_argument("-o", "--output", type=Path, default=None)
+    p.set_defaults(func=cmd_replay)
+    prox.set_defaults(func=lambda a: (prox.print_help(), 0)[1])
+
+
+def _run(args, overrides: dict) -> dict:
+    from dualsight.jobs.kinds import prox
+    from dualsight.jobs.cli.args import _lake
+    from dualsight.jobs.engine.runner import run_job
+
+    s = prox.resolve(args.preset, args.config, seed=args.seed, mode=getattr(args, "mode", None),
+                     satellite=str(args.satellite) if getattr(args, "satellite", None) else None, **overrides)
+    n = s.n_cases
+    kind = f"prox_{s.job}"
+    run_id = args.run or f"prox-{s.job}-{s.mode}-{s.seed}-{n}"
+    lake = _lake(args)
+    m = run_job(kind, s.to_dict(), n_cases=n, lake=lake, run_id=run_id, workers=args.workers, scheduler=args.scheduler,
+                shard_size=args.shard_size, progress=not args.no_progress, label=f"prox {s.job} {run_id}")
+    print(f"run {run_id}: {m['status']}, {n} cases in {lake.root}", file=sys.stderr)
+    print(f"report: dualsight prox report --lake {lake.root} --run {run_id}", file=sys.stderr)
+    return {"manifest": m, "spec": s, "lake": lake, "run_id": run_id}
+
+
+def cmd_sweep(args) -> int:
+    over = {"job": "sweep", "ranges_m": args.ranges, "orientations": args.orientations}
+    _run(args, over)
+    return 0
+
+
+def cmd_trajectory(args) -> int:
+    out = _run(args, {"job": "trajectory", "frames": args.frames})
+    if args.video:
+        from dualsight.jobs.replay.prox import write_trajectory_video
+
+        path = write_trajectory_video(out["spec"], args.video, fps=args.fps)
+        print(f"video: {path}", file=sys.stderr)
+    return 0
+
+
+def build_report(lake, run_id: str, estimator: str | None = None) -> dict:
+    from dualsight.warehouse.query import connect, run_report
+
+    m = lake.read_manifest(run_id)
+    if m is None or not str(m.get("kind", "")).startswith("prox"):
+        raise InputError(f"no prox run {run_id!r} in {lake.root}", source="--run")
+    if "prox_cases" not in lake.datasets():
+        raise InputError(f"no prox_cases dataset in {lake.root}", source="--lake")
+    con = connect(lake)
+    job = m["spec"]["job"]
+    est = estimator or ("subpixel" if m["spec"]["mode"] == "accurate" else "paper")
+    rep = {"run": run_id, "job": job, "mode": m["spec"]["mode"], "estimator": est}
+    if job == "sweep":
+        cols, rows = run_report(con, "prox_table3", run=run_id)
+        table = [dict(zip(cols, r)) for r in rows]
+        rep["table"] = (cols, rows)
+        rep["ranges"] = [{"true_range_m": r["true_range_m"], "cases": r["cases"],
+                          "avg_est_range_m": r[f"{est}_avg_est_m"], "avg_abs_error_m": r[f"{est}_avg_abs_err_m"],
+                          "avg_rel_error_pct": r[f"{est}_avg_rel_err_pct"],
+                          "within_min_max_pct": r[f"{est}_within_pct"],
+                          "paper": {k[6:]: v for k, v in r.items() if k.startswith("paper_")},
+                          "subpixel": {k[9:]: v for k, v in r.items() if k.startswith("subpixel_")},
+                          "reference": {k[4:]: v for k, v in r.items() if k.startswith("ref_")}}
+                         for r in table]
+    else:
+        cols, rows = run_report(con, "prox_trajectory", run=run_id)
+        rep["summary"] = dict(zip(cols, rows[0]))
+        fcols, frows = run_report(con, "prox_frames", run=run_id)
+        rep["frames"] = [dict(zip(fcols, r)) for r in frows]
+    tc, tr = run_report(con, "prox_stage_times", run=run_id)
+    rep["stage_ms"] = dict(zip(tc, tr[0]))
+    return rep
+
+
+def _fmt(v, nd=3):
+    return "-" if v is None or (isinstance(v, float) and v != v) else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))
+
+
+def report_text(rep: dict) -> str:
+    lines = [f"proximity {rep['job']} run {rep['run']} (renderer: {rep['mode']})", ""]
+    if rep["job"] == "sweep":
+        lines.append("Table 3 per true range: reference | paper estimator (Eq. 1) | subpixel estimator")
+        hdr = (f"{'range m':>8} {'n':>5} | {'ref est':>7} {'rel%':>6} {'in%':>6} | {'est':>7} {'abs m':>7} "
+               f"{'rel%':>6} {'in%':>6} | {'est':>7} {'abs m':>7} {'rel%':>6} {'in%':>6}")
+        lines += [hdr, "-" * len(hdr)]
+        for r in rep["ranges"]:
+            p, s, f = r["paper"], r["subpixel"], r["reference"]
+            lines.append(f"{r['true_range_m']:8.3f} {r['cases']:5d} | {_fmt(f.get('avg_est_m'), 3):>7} "
+                         f"{_fmt(f.get('avg_rel_err_pct'), 2):>6} {_fmt(f.get('within_pct'), 1):>6} | "
+                         f"{_fmt(p['avg_est_m']):>7} {_fmt(p['avg_abs_err_m']):>7} {_fmt(p['avg_rel_err_pct'], 2):>6} "
+                         f"{_fmt(p['within_pct'], 1):>6} | {_fmt(s['avg_est_m']):>7} {_fmt(s['avg_abs_err_m']):>7} "
+                         f"{_fmt(s['avg_rel_err_pct'], 2):>6} {_fmt(s['within_pct'], 1):>6}")
+    else:
+        s = rep["summary"]
+        lines.append(f"frames {s['frames']} (found {s['frames_found']}), true range {_fmt(s['min_range_m'], 2)}-"
+                     f"{_fmt(s['max_range_m'], 2)} m, direction error {_fmt(s['mean_direction_err_arcsec'], 1)} arcsec")
+        lines.append(f"{'estimator':>10} {'|dx| m':>8} {'|dy| m':>8} {'|dz| m':>8} {'range rel %':>12}")
+        for e in ("paper", "subpixel"):
+            lines.append(f"{e:>10} {_fmt(s[f'{e}_mean_abs_err_x_m'], 4):>8} {_fmt(s[f'{e}_mean_abs_err_y_m'], 4):>8} "
+                         f"{_fmt(s[f'{e}_mean_abs_err_z_m'], 4):>8} {_fmt(s[f'{e}_mean_rel_range_err_pct'], 2):>12}")
+    st = rep["stage_ms"]
+    lines += ["", f"time per case: render {_fmt(st['render_ms'])} ms, blobber {_fmt(st['blob_paper_ms'])} ms (paper) + "
+              f"{_fmt(st['blob_subpixel_ms'])} ms (subpixel), total {_fmt(st['total_ms'])} ms"]
+    return "\n".join(lines)
+
+
+def cmd_report(args) -> int:
+    from dualsight.jobs.cli.args import _lake, _latest_run
+
+    lake = _lake(args)
+    run_id = args.run or _latest_run(lake, ["prox_sweep", "prox_trajectory"])
+    rep = build_report(lake, run_id, args.estimator)
+    if args.plot:
+        from dualsight.viz.prox_figures import plot_sweep, plot_trajectory
+
+        (plot_sweep if rep["job"] == "sweep" else plot_trajectory)(rep, args.plot)
+    if args.json:
+        out = {k: v for k, v in rep.items() if k != "table"}
+        print(json.dumps(out, indent=1, default=lambda o: None if o != o else float(o)))
+    else:
+        print(report_text(rep))
+        if args.plot:
+            print(f"\nfigure: {args.plot}")
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from dualsight.jobs.cli.args import _lake
+    from dualsight.jobs.replay.prox import replay_prox_case
+
+    out = replay_prox_case(_lake(args), args.run, args.case, args.output)
+    print(f"recording: {out}  (open with: rerun {out})")
+    return 0
+
+
+def cmd_resolvable(args) -> int:
+    from dualsight.nav.range import resolvable_range
+    from dualsight.scene.camera import Camera
+
+    if not (args.size > 0):
+        raise InputError(f"must be > 0 m, got {args.size}", source="--size")
+    cam = Camera.from_toml(args.camera) if args.camera else Camera.pinhole(1024, 768, 4.65e-6, 6e-3)
+    r = resolvable_range(cam, args.size)
+    out = {"size_m": args.size, "nearest_fits_frame_m": r.near_fit_m, "nearest_fills_frame_m": r.near_fill_m,
+           "farthest_2x2_px_m": r.far_m, "reference_convention_nearest_m": r.reference_near_m}
+    if args.json:
+        print(json.dumps(out, indent=1))
+    else:
+        print(f"object {args.size} m, camera {cam.width}x{cam.height} px, f = {cam.fx:.1f} px:\n"
+              f"  nearest (object fits the frame's short side): {r.near_fit_m:.4f} m\n"
+              f"  object fills the whole frame (long side):      {r.near_fill_m:.4f} m\n"
+              f"  farthest (object covers 2 x 2 pixels):         {r.far_m:.2f} m\n"
+              f"  the reference's 8.4 cm convention (h/2 over the full sensor height): {r.reference_near_m:.4f} m")
+    return 0

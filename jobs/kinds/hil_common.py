@@ -1,0 +1,170 @@
+"""What the hardware-in-the-loop job kinds (``hil_star``, ``hil_prox``, ``calibrate``) share.
+
+* Image lists in specs.  A HIL run is its images: each is an entry ``{path (absolute), bytes, mtime_ns}``
+  (:class:`ImageEntry`, :func:`image_entries`), so a changed image file makes a different run (another spec
+  hash), and case i is image i of the list.  A file that is missing when the run is planned keeps its
+  entry with ``bytes = mtime_ns = None``: it becomes an error row.  A worker that finds a file different
+  from its entry (:func:`check_unchanged`) writes an error row instead of results of another image, so a
+  run's rows are a function of its spec alone.
+* The spec dict's common part (:func:`spec_base`: camera table, settings table, image entries), the case
+  count (:func:`n_cases`: one case per image) and the rows -> Arrow table of every HIL dataset (:func:`rows_table`).
+* The options of the HIL commands (:func:`add_image_args`, :func:`add_engine_args`), the call of the engine
+  with a temporary lake for ``--no-lake`` (:func:`engine_lake`, :func:`run_engine`) and the closing line
+  (:func:`done_message`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import pyarrow as pa
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from dualsight.errors import ImageError
+from dualsight.jobs.cli.args import add_engine_args, add_image_args  # noqa: F401  (their home before)
+from dualsight.scene.imageio import list_images
+
+__all__ = ["Frozen", "ImageEntry", "image_entries", "check_unchanged", "expand_inputs", "spec_base", "n_cases",
+           "rows_table", "add_image_args", "add_engine_args", "engine_lake", "run_engine", "done_message",
+           "fixed_point"]
+
+
+class Frozen(BaseModel):
+    """Base of the HIL specs: immutable, unknown keys refused."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    def to_dict(self) -> dict:
+        """Canonical JSON-serialisable dict (``spec_from_dict(spec.to_dict()) == spec``)."""
+        return self.model_dump(mode="json")
+
+
+class ImageEntry(Frozen):
+    """One image of a run: absolute path, size and modification time when the run was planned
+    (None, None: the file did not exist then)."""
+
+    path: str = Field(min_length=1, max_length=4096)
+    bytes: int | None = Field(default=None, ge=0)
+    mtime_ns: int | None = Field(default=None, ge=0)
+
+    @field_validator("path")
+    @classmethod
+    def _absolute(cls, v: str) -> str:
+        if not os.path.isabs(v):
+            raise ValueError("must be an absolute path")
+        return v
+
+    @property
+    def name(self) -> str:
+        return Path(self.path).name
+
+
+def image_entries(paths) -> list[dict]:
+    """Spec entries of image files (absolute paths, sizes and modification times; missing: None)."""
+    out = []
+    for p in paths:
+        a = os.path.abspath(os.fspath(p))
+        try:
+            st = os.stat(a)
+            out.append({"path": a, "bytes": int(st.st_size), "mtime_ns": int(st.st_mtime_ns)})
+        except OSError:
+            out.append({"path": a, "bytes": None, "mtime_ns": None})
+    return out
+
+
+def spec_base(paths, camera, settings) -> dict:
+    """``{"camera", "settings", "images"}`` of a HIL spec dict: the camera's table (a ``Camera`` or its
+    table), the settings' table (a ``Frozen`` model, a table or None) and the images' entries (stat now)."""
+    return {"camera": camera.to_dict() if hasattr(camera, "to_dict") else dict(camera),
+            "settings": settings.to_dict() if isinstance(settings, Frozen) else dict(settings or {}),
+            "images": image_entries(paths)}
+
+
+def n_cases(spec) -> int:
+    """Cases of a HIL run: one per image of its spec."""
+    return len(spec.images)
+
+
+def rows_table(rows: list[dict], schema: pa.Schema) -> pa.Table:
+    """Arrow table of ``schema`` from row dicts (a key a row does not have is null)."""
+    return pa.table({f.name: pa.array([r.get(f.name) for r in rows], type=f.type) for f in schema}, schema=schema)
+
+
+def check_unchanged(entry: ImageEntry):
+    """Raise ImageError (naming the file) unless the file is as it was when the run was planned."""
+    if entry.bytes is None:
+        raise ImageError("file not found (when the run was planned)", source=entry.path)
+    try:
+        st = os.stat(entry.path)
+    except OSError:
+        raise ImageError("file not found (it existed when the run was planned)", source=entry.path) from None
+    if st.st_size != entry.bytes or st.st_mtime_ns != entry.mtime_ns:
+        raise ImageError(f"changed since the run was planned ({entry.bytes} -> {st.st_size} bytes, modified "
+                         "again); start a new run for the new file", source=entry.path)
+
+
+def expand_inputs(items) -> list[Path]:
+    """Image paths; a folder argument expands to its images (natural order).  Missing files are kept
+    (they become error rows)."""
+    out = []
+    for it in items:
+        p = Path(it)
+        out.extend(list_images(p) if p.is_dir() else [p])
+    return out
+
+
+def fixed_point(normalise, value, rounds: int = 4):
+    """``normalise`` applied until the value stops changing (at most ``rounds`` times): canonical forms
+    whose float conversions (um <-> m) could otherwise move the last digit on every round trip."""
+    for _ in range(rounds):
+        nxt = normalise(value)
+        if nxt == value:
+            return nxt
+        value = nxt
+    return value
+
+
+# ============================================================================================ CLI and engine
+@contextlib.contextmanager
+def engine_lake(args):
+    """The lake of a HIL command: ``--lake`` / $DUALSIGHT_LAKE / ./lake, or with ``--no-lake`` a temporary
+    folder deleted on exit.  Yields (Lake, kept: bool)."""
+    from dualsight.warehouse.lake import Lake
+
+    if not getattr(args, "no_lake", False):
+        from dualsight.jobs.cli.args import _lake
+
+        yield _lake(args), True
+        return
+    tmp = tempfile.mkdtemp(prefix="dualsight-nolake-")
+    try:
+        yield Lake(Path(tmp)), False
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def run_engine(kind: str, spec: dict, n_cases: int, lake, args, *, label: str, progress_default: bool = True) -> dict:
+    """``run_job`` with the command's engine options; returns the manifest."""
+    from dualsight.jobs.engine.runner import run_job
+
+    progress = progress_default and not getattr(args, "no_progress", False) and sys.stderr.isatty()
+    return run_job(kind, spec, n_cases=n_cases, lake=lake, run_id=getattr(args, "run", None),
+                   workers=getattr(args, "workers", None), scheduler=getattr(args, "scheduler", None),
+                   shard_size=getattr(args, "shard_size", None), progress=progress, label=label,
+                   source=label)
+
+
+def done_message(summary: str, elapsed_s: float, run_id: str, lake, kept: bool, datasets: tuple[str, ...],
+                 query: str) -> str:
+    """The closing stderr line of a HIL command: ``summary``, the time, and (lake kept) where the rows are,
+    with an SQL example over dataset ``query``."""
+    msg = f"{summary} ({elapsed_s:.1f} s)"
+    if kept:
+        msg += (f"; run {run_id} in {lake.root} (datasets {', '.join(datasets)})\n"
+                f"query: dualsight sql \"SELECT * FROM {query} WHERE run = '{run_id}'\" --lake {lake.root}")
+    return msg

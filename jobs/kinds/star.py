@@ -1,0 +1,458 @@
+"""Star-tracker software-in-the-loop job: the whole chain for a batch of cases (orchestration only).
+
+    draw attitudes (here) -> stars in the field (scene.starfield_geometry) -> render and detect/centroid
+    (kernels.starfield, kernels.detect) -> back-project (nav.observations) -> geometric voting + T and
+    SVD attitude + Eqs. 4-7 (nav.star_solution) -> truth of the detections (nav.truth_match) -> Arrow rows
+
+One row per case in ``star_cases`` and one row per detection in ``star_detections``.  Case ``i`` draws
+its attitude and its sensor-noise seed from ``default_rng([seed, i])`` only.
+
+Spec (TOML; every table optional, defaults = preset ``paper``)::
+
+    seed = 1
+    cases = 200
+    batch_size = 64               # frames per kernel batch
+    attitudes = "euler123"        # reference: 3 angles uniform in [-180, 180) deg, 1-2-3; or "uniform" (SO(3))
+    error_frame = "camera"        # axes of Eqs. 4-7: "camera" (x, y across the boresight, z roll) or "inertial"
+    detector = "auto"             # "global" (the reference's one threshold), "local" (kernels/detect_local.py,
+                                  # as hil star), "auto": local when the sensor has stray light or bright objects
+    compare_robust = true         # dualsight's robust identification beside the reference's on every case
+    [camera]   ... (scene/camera.py)
+    [catalog]  mag_limit = 5.5, epoch_jyear = 2000.0
+    [sensor]   ... (kernels/starfield.py SensorConfig)
+    [detect]   ... (kernels/detect.py DetectConfig)
+    [voting]   ... (nav/starid.py VotingConfig; angles as *_arcsec)
+    [robust]   ... (the same keys, for the robust method)
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pyarrow as pa
+from pydantic import BaseModel, ConfigDict, Field
+
+from dualsight.catalogs.pairs import load_pair_catalog
+from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
+from dualsight.errors import InputError
+from dualsight.jobs.kinds import star_summaries
+from dualsight.jobs.kinds.star_tables import CASES_SCHEMA, DETECTIONS_SCHEMA, cases_table, detections_table
+from dualsight.jobs.engine.specs import dataclass_from_table, dataclass_to_table, preset_and_config, validate
+from dualsight.kernels import detect as kdetect
+from dualsight.kernels import starfield as kstar
+from dualsight.kernels.detect import DetectConfig
+from dualsight.kernels.digest import frame_digest_taichi
+from dualsight.kernels.starfield import SensorConfig
+from dualsight.nav.errors import STATUS_NAMES
+from dualsight.nav.observations import observations
+from dualsight.nav.star_solution import centroid_weights, identify, solve
+from dualsight.nav.starid import VotingConfig
+from dualsight.nav.truth_match import match_truth
+from dualsight.scene.attitude import euler123_to_dcm, quat_to_dcm, quaternions_from_uniforms
+from dualsight.scene.camera import Camera
+from dualsight.scene.case_rng import streams as case_streams
+from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
+
+NAME = "star"
+PRIMARY = "star_cases"
+
+PRESETS = {
+    # The reference's star SIL (section 3.2-3.3): 1024x768, 4.65 um, 17 mm (19.9 deg diagonal),
+    # catalog to V 5.5, ideal images, slight defocus; 200 random 1-2-3 attitudes.
+    "paper": {
+        # batch 256: the sparse path's kernel launches and per-batch Python amortised over more cases
+        # (in-process, one thread: ~1.4x the cases/s of batch 64; results do not depend on the batch)
+        "seed": 1, "cases": 200, "batch_size": 256, "attitudes": "euler123", "error_frame": "camera",
+        "camera": {"width": 1024, "height": 768, "pixel_pitch_um": 4.65, "focal_length_mm": 17.0},
+        "catalog": {"mag_limit": 5.5, "epoch_jyear": 2000.0},
+        "sensor": {},
+        "detect": {},
+        # The reference gives no voting tolerance; 10 arcsec (0.18 px of this camera) is ~10x the pair-angle
+        # error of its noise-free centroids and keeps chance votes rare (measured: 5-20 arcsec all work).
+        "voting": {"tolerance_arcsec": 10.0},
+        "compare_robust": True,
+        "robust": {},
+    },
+}
+PRESETS["noisy"] = {**PRESETS["paper"], "batch_size": 16,           # full frames: 16 x 1024 x 768 per batch
+                   "sensor": {"shot_noise": True, "read_noise_e": 10.0,
+                              "sky_background_e": 50.0, "dark_current_e_per_s": 20.0}}
+# Sensor presets on the reference's camera (kernels/starfield.py SensorConfig; "paper" above: ideal images,
+# slight defocus, 12-bit ADC that saturates the brightest stars at 20 ke-).
+# "ideal": the paper's sensor without saturation (full well never reached, 16-bit ADC): optics and algorithms only.
+PRESETS["ideal"] = {**PRESETS["paper"], "sensor": {"full_well_e": 1e12, "bit_depth": 16}}
+# "realistic": a small-satellite CMOS star camera (examples/star/realistic_sensor.toml has the same numbers).
+PRESETS["realistic"] = {
+    **PRESETS["paper"], "batch_size": 16,        # full frames are rendered: 16 x 1024 x 768 per batch
+    "sensor": {
+        # PSF: star trackers defocus so a star covers ~3x3 to 5x5 px for sub-pixel centroids (Liebe 2002,
+        # IEEE TAES 38(2) 587): a 1.5 px radius disk blurred by a 0.5 px Gaussian (lens, charge diffusion).
+        "psf_model": "defocus", "defocus_radius_px": 1.5, "defocus_gaussian": True, "psf_sigma_px": 0.5,
+        "psf_window_sigma": 5.0,
+        "exposure_s": 0.1,                       # typical star-tracker exposures: 50-200 ms
+        # Detector: CMOSIS (ams) CMV4000 datasheet, a CMOS sensor flown in CubeSat star trackers: full well
+        # 13.5 ke-, dark (read) noise 13 e- rms, dark current 125 e-/s at 25 C, 12-bit ADC.
+        "full_well_e": 13500.0, "read_noise_e": 13.0, "dark_current_e_per_s": 125.0, "bit_depth": 12,
+        "gain_e_per_adu": 3.3,                   # full well / 4095 ADU: the ADC spans the well
+        "bias_adu": 32.0,                        # black level: > 8 sigma of the read noise (3.9 ADU) above 0
+        "shot_noise": True,
+        # Sky: zodiacal + diffuse galactic light ~V 22 mag/arcsec^2 (Leinert et al. 1998, A&AS 127, 1) over a
+        # 56 arcsec pixel (4.65 um / 17 mm) = V 13.2 per pixel: 0.8 e- in 0.1 s at the default zero point.
+        "sky_background_e": 0.8,
+        # Hot pixels: assumed order of magnitude for a CMOS sensor after ~1 year in LEO (1e-4 of the pixels,
+        # 20 ke-/s each), one fixed map (a property of the sensor).
+        "hot_pixel_fraction": 1e-4, "hot_pixel_e": 2000.0, "hot_pixel_seed": 1,
+    },
+    "detect": {"k_sigma": 5.0, "min_pixels": 3},
+    "voting": {"tolerance_arcsec": 20.0},        # noisy centroids: as examples/star/noisy_sensor.toml
+    "detector": "local",                         # what `hil star` runs on real frames: SIL predicts HIL
+}
+
+
+@dataclass(frozen=True)
+class StarSpec:
+    """A validated star-tracker job."""
+
+    camera: Camera
+    catalog: StarCatalogConfig
+    sensor: SensorConfig
+    detect: DetectConfig
+    voting: VotingConfig
+    robust: VotingConfig | None = None
+    seed: int = 1
+    batch_size: int = 64
+    attitudes: Literal["euler123", "uniform"] = "euler123"
+    error_frame: Literal["camera", "inertial"] = "camera"
+    detector: Literal["global", "local"] = "global"     # "auto" in a TOML is resolved by auto_detector()
+    source: str = field(default="defaults", compare=False)
+
+    def to_dict(self) -> dict:
+        return {"seed": self.seed, "batch_size": self.batch_size, "attitudes": self.attitudes,
+                "error_frame": self.error_frame, "detector": self.detector, "camera": self.camera.to_dict(),
+                "catalog": dataclass_to_table(self.catalog), "sensor": _sensor_table(self.sensor),
+                "detect": dataclass_to_table(self.detect), "voting": dataclass_to_table(self.voting),
+                "compare_robust": self.robust is not None,
+                "robust": dataclass_to_table(self.robust) if self.robust is not None else {}}
+
+
+def _sensor_table(sensor: SensorConfig) -> dict:
+    """The sensor's spec table; ``psf_image_sha256`` only with a PSF image, so the canonical spec of every other
+    sensor (and the nightly's comparison of specs) is what it was before that key existed."""
+    t = dataclass_to_table(sensor)
+    if t.get("psf_image_sha256") is None:
+        t.pop("psf_image_sha256", None)
+    return t
+
+
+class StarTable(BaseModel):
+    """The top level of a star spec's TOML layout (pydantic); the sections are validated into their
+    dataclasses by :func:`dualsight.jobs.engine.specs.dataclass_from_table`."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    seed: int = Field(1, ge=0, le=2**63 - 1)
+    cases: int | None = Field(None, ge=1, le=10**9)
+    batch_size: int = Field(64, ge=1, le=4096)
+    attitudes: Literal["euler123", "uniform"] = "euler123"
+    error_frame: Literal["camera", "inertial"] = "camera"
+    detector: Literal["auto", "global", "local"] = "auto"
+    compare_robust: bool = True
+    preset: str | None = None
+    camera: dict
+    catalog: dict = {}
+    sensor: dict = {}
+    detect: dict = {}
+    voting: dict = {}
+    robust: dict = {}
+
+
+def spec_from_dict(d: dict, source: str = "spec") -> StarSpec:
+    """Validate a spec dict (TOML layout); every error names ``source`` and the key."""
+    top = validate(StarTable, d, source=source)
+    camera = Camera.from_dict(top.camera, source=source)
+    seed, bs, att, frame, cmp_ = top.seed, top.batch_size, top.attitudes, top.error_frame, top.compare_robust
+    catalog = dataclass_from_table(StarCatalogConfig, d.get("catalog"), source=source, section="catalog")
+    sensor = dataclass_from_table(SensorConfig, d.get("sensor"), source=source, section="sensor")
+    detect = dataclass_from_table(DetectConfig, d.get("detect"), source=source, section="detect")
+    voting = dataclass_from_table(VotingConfig, d.get("voting"), source=source, section="voting",
+                                  base=VotingConfig.paper())
+    robust = (dataclass_from_table(VotingConfig, d.get("robust"), source=source, section="robust",
+                                   base=VotingConfig.robust(tolerance_rad=voting.tolerance_rad))
+              if cmp_ else None)
+    return StarSpec(camera=camera, catalog=catalog, sensor=sensor, detect=detect, voting=voting, robust=robust,
+                    seed=int(seed), batch_size=int(bs), attitudes=att, error_frame=frame,
+                    detector=auto_detector(sensor) if top.detector == "auto" else top.detector, source=source)
+
+
+def auto_detector(sensor: SensorConfig) -> Literal["global", "local"]:
+    """The detector that ``detector = "auto"`` (the default) resolves to, stored in the spec.
+
+    "global" (the reference's one threshold per frame, kernels/detect.py) where its assumption holds: one
+    background level over the frame (the ideal, paper and noisy presets; its 3-pixel minimum blob size drops
+    hot pixels and pairs of them); "local" (kernels/detect_local.py, what ``hil star`` uses on real frames)
+    when the background varies over the frame: stray-light gradients (measured on the realistic preset plus
+    200 e- of stray light rising to ~430 e- at a corner: the global detector finds 12 % of the stars with
+    SNR >= 10, the local one 99 %) or bright objects (the Moon).  The ``realistic`` preset asks for "local"
+    itself, so that SIL frames go through the detector HIL uses."""
+    real = sensor.has_stray_light or bool(sensor.bright_objects)
+    return "local" if real else "global"
+
+
+def resolve(preset: str | None, config: Path | None, *, seed: int | None = None,
+            cases: int | None = None) -> tuple[StarSpec, int]:
+    """Merge preset, config file and flags into the validated spec; returns (spec, number of cases).
+
+    The one way from the command line to a spec: ``spec.to_dict()`` is its canonical dict (what the
+    engine stores).  The catalog is built (or read from the cache) here, so a magnitude limit that leaves
+    too few stars fails before anything touches the lake."""
+    d, source = preset_and_config(PRESETS, preset, config)
+    if seed is not None:
+        d["seed"] = seed
+    n = cases if cases is not None else d.get("cases", 200)
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1 or n > 10**9:
+        raise InputError(f"number of cases must be an integer in [1, 1e9], got {n!r}",
+                         source="--cases" if cases is not None else source)
+    spec = spec_from_dict(d, source=source)
+    load_star_catalog(spec.catalog)
+    return spec, int(n)
+
+
+def resolve_spec(preset: str | None, config: Path | None, *, seed: int | None = None,
+                 cases: int | None = None) -> tuple[dict, int]:
+    """:func:`resolve` in the engine's form: (``spec.to_dict()``, number of cases)."""
+    spec, n = resolve(preset, config, seed=seed, cases=cases)
+    return spec.to_dict(), n
+
+
+def catalog_info(spec: StarSpec | dict) -> dict:
+    """Size of the run's star and pair catalogs (built or read from the cache, as the workers load them).
+
+    ``spec``: the spec, or its dict form (validated by :func:`spec_from_dict`)."""
+    if not isinstance(spec, StarSpec):
+        spec = spec_from_dict(spec)
+    ctx = make_context(spec)
+    return {"stars": len(ctx.catalog.hip), "mag_limit": spec.catalog.mag_limit, "pairs": len(ctx.pairs.angle),
+            "pair_max_angle_deg": math.degrees(pair_angle(spec.camera)),
+            "pair_catalog_bytes": int(ctx.pairs.nbytes), "star_catalog_bytes": int(ctx.catalog.nbytes)}
+
+
+# ------------------------------------------------------------------------------------------ context
+@dataclass(frozen=True)
+class StarContext:
+    """Per-process state: the star catalog and its pair catalog (read from the cache)."""
+
+    catalog: object
+    pairs: object
+
+
+def pair_angle(camera: Camera) -> float:
+    """Largest angle (rad) between two stars of one image: the field's diagonal (the pair catalog's limit)."""
+    return camera.fov_rad[2]
+
+
+def make_context(spec: StarSpec) -> StarContext:
+    cat = load_star_catalog(spec.catalog)
+    return StarContext(cat, load_pair_catalog(cat, pair_angle(spec.camera)))
+
+
+# ------------------------------------------------------------------------------------------ cases
+def draw_cases(spec: StarSpec, case_ids: np.ndarray) -> dict:
+    """Inputs of each case from ``default_rng([seed, case_id])``: attitude and the sensor-noise seed.
+
+    Returns dict of arrays: angles (B,3) rad (NaN for "uniform"), quat (B,4), A_true (B,3,3), noise_seed (B,) uint64.
+    """
+    B = len(case_ids)
+    angles = np.full((B, 3), np.nan)
+    quat = np.full((B, 4), np.nan)
+    # one generator per case, default_rng([seed, i]), all stepped at once (scene/case_rng.py: the same
+    # draws bit for bit), so a case never depends on its batch
+    rng = case_streams(spec.seed, np.asarray(case_ids, np.int64))
+    if spec.attitudes == "euler123":
+        angles = np.stack([rng.uniform(-np.pi, np.pi) for _ in range(3)], axis=-1)
+    else:
+        quat = quaternions_from_uniforms(rng.random(), rng.random(), rng.random())
+    noise = rng.integers_63()
+    A = euler123_to_dcm(angles) if spec.attitudes == "euler123" else quat_to_dcm(quat)
+    return {"angles": angles, "quat": quat, "A_true": A, "noise_seed": noise}
+
+
+def compute_shard(spec: StarSpec, case_ids: np.ndarray, ctx: StarContext) -> dict[str, pa.Table]:
+    """The engine's contract: rows of ``case_ids`` (int64, ascending) in kernel batches of ``spec.batch_size``,
+    and the shard's exact partial aggregates for the report (``star_summaries``, :mod:`dualsight.jobs.kinds.star_summaries`)."""
+    parts = {d: [] for d in ("star_cases", "star_detections")}
+    for s in range(0, len(case_ids), spec.batch_size):
+        out = compute_batch(spec, ctx, case_ids[s: s + spec.batch_size])["tables"]
+        for d in parts:
+            parts[d].append(out[d])
+    tables = {d: pa.concat_tables(parts[d]) if parts[d] else SCHEMAS[d].empty_table() for d in parts}
+    tables[star_summaries.DATASET] = star_summaries.summarize(tables["star_cases"])
+    return tables
+
+
+def catalog_bytes(mag_limit: float, pair_angle_rad: float) -> int:
+    """Estimated bytes of the star catalog to ``mag_limit`` and its pair catalog to ``pair_angle_rad``.
+
+    Stars from the Hipparcos count-magnitude relation log10 N = 0.52 V + 0.1 (fit to V 5.5: 2.9k, V 7: 16k,
+    V 9: 120k), ~200 bytes each; pairs ~ N^2/2 x (1 - cos d)/2 (the sky fraction of a cap of radius d),
+    24 bytes each (angle, two indices), twice for sorting scratch.
+    """
+    n_stars = 10 ** (0.52 * mag_limit + 0.1)
+    pairs = n_stars ** 2 / 2 * (1 - math.cos(min(pair_angle_rad, math.pi))) / 2
+    return int(2 * 24 * pairs + 200 * n_stars)
+
+
+def memory_estimate(spec: StarSpec) -> int:
+    """Peak bytes one worker needs for this spec, estimated before anything is allocated.
+
+    Frames: ``batch_size`` x width x height float32 images (three planes) when the dense path runs (noise-free
+    frames take the sparse path: windows around stars only); plus :func:`catalog_bytes` for the magnitude
+    limit and the field diagonal.
+    """
+    w, h = spec.camera.width, spec.camera.height
+    frames = 3 * 4 * w * h * spec.batch_size if not spec.sensor.is_ideal else 0
+    return frames + catalog_bytes(spec.catalog.mag_limit, pair_angle(spec.camera))
+
+
+# ------------------------------------------------------------------------------------------ render
+@dataclass(frozen=True)
+class Rendered:
+    """The batch's frames through the render and detection kernels.
+
+    detections : ``kernels.detect.Detections``; images : (B, H, W) float32 when kept (replay), else None;
+    t_render_ns, t_detect_ns : wall time of the stages (t_detect_ns None: detection ran fused into the
+    sparse render, not as its own stage).
+    digest : (B,) uint64 digest of each full frame (:mod:`dualsight.kernels.digest`, sky = the sensor's
+        empty-sky level), the same whether the frame was rendered whole or only around its stars.
+    """
+
+    detections: object
+    images: np.ndarray | None
+    t_render_ns: int
+    t_detect_ns: int | None
+    digest: np.ndarray
+
+
+def psf_margin_px(sensor: SensorConfig, camera: Camera | None = None) -> float:
+    """How far outside the frame (px) a star still puts light into it: the PSF's reach
+    (``SensorConfig.psf_reach_px``: Gaussian window, defocus disk or PSF image) plus, with an angular rate
+    and a camera, the longest smear over the field, ``|w| t (f (1 + (r/f)^2) + r)`` with r the half
+    diagonal (the image motion of a star at radius r under a rate w about any axis, small-angle)."""
+    reach = float(sensor.psf_reach_px())
+    rate = getattr(sensor, "rate_deg_s", None)
+    if rate is not None and camera is not None and any(rate):
+        w = math.radians(math.hypot(*rate))
+        f = max(camera.fx, camera.fy)
+        r = 0.5 * math.hypot(camera.width, camera.height)
+        reach += w * sensor.exposure_s * (f * (1.0 + (r / f) ** 2) + r)
+    return reach
+
+
+def local_detect_config(sensor: SensorConfig, detect_cfg: DetectConfig):
+    """The real-sensor detector's settings for a simulated sensor: its threshold (``k_sigma``), the
+    Gaussian PSF width it was rendered with (measured per frame for other PSF models), its gain (for the
+    stars' own shot noise in the centroid uncertainty) and its ADC full scale (saturation)."""
+    from dualsight.kernels.detect_local import LocalDetectConfig
+
+    return LocalDetectConfig(k_sigma=max(1.0, detect_cfg.k_sigma),
+                             psf_sigma_px=(max(0.2, sensor.psf_sigma_px) if sensor.psf_model == "gaussian"
+                                           else None),
+                             gain_e_per_adu=sensor.gain_e_per_adu)
+
+
+def render_and_detect(field_: FieldStars, noise_seeds: np.ndarray, camera: Camera, sensor: SensorConfig,
+                      detect_cfg: DetectConfig, keep_images: bool = False, attitude: np.ndarray | None = None,
+                      detector: str = "global") -> Rendered:
+    """Render the batch's star fields and detect/centroid the stars (Taichi kernels).
+
+    attitude : (B, 3, 3) true attitudes (inertial -> camera), for the effects that need them (motion
+    smear, bright objects: kernels/psf_models.py).  Noise-free frames that need not be kept take the
+    sparse path (render and label only the windows around stars: the same blobs as full frames).
+    detector : "global" (kernels/detect.py: one level per frame, the reference's thresholding) or "local"
+    (kernels/detect_local.py, as for real frames: tiled background, matched filter, PSF-fit centroids with
+    their uncertainty; always on full frames)."""
+    t0 = time.perf_counter_ns()
+    if sensor.is_ideal and not keep_images and detector == "global":
+        det, digest = kdetect.render_and_detect_ideal(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
+                                                      camera.height, sensor, detect_cfg, noise_seeds, digest=True)
+        return Rendered(det, None, time.perf_counter_ns() - t0, None, digest)
+    images = kstar.render_star_fields(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
+                                      camera.height, sensor, noise_seeds, camera=camera, attitude=attitude)
+    digest = frame_digest_taichi(images, np.asarray(sensor.empty_pixel_adu()).astype(images.dtype))  # Taichi runs
+    t1 = time.perf_counter_ns()
+    if detector == "local":
+        from dualsight.kernels.detect_local import detect_real
+
+        det = detect_real(images, local_detect_config(sensor, detect_cfg), saturation_adu=float(sensor.max_adu))
+    else:
+        det = kdetect.detect_stars(images, detect_cfg)
+    t2 = time.perf_counter_ns()
+    return Rendered(det, images if keep_images else None, t1 - t0, t2 - t1, digest)
+
+
+def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_images: bool = False) -> dict:
+    """The whole chain for a batch; returns every intermediate result and the Arrow tables.
+
+    Keys: draw, field, rendered (detections, images if ``keep_images``), obs, ident, sol, alt, truth, tables.
+    """
+    B = len(case_ids)
+    t = {}
+    t0 = time.perf_counter_ns()
+    draw = draw_cases(spec, case_ids)
+    cat = ctx.catalog
+    flux = kstar.flux_from_magnitude(cat.vmag.astype(np.float64), spec.sensor)
+    field_ = stars_in_field(draw["A_true"], cat.unit, flux, spec.camera, psf_margin_px(spec.sensor, spec.camera))
+    t["sample"] = time.perf_counter_ns() - t0
+
+    r = render_and_detect(field_, draw["noise_seed"], spec.camera, spec.sensor, spec.detect, keep_images=keep_images,
+                          attitude=draw["A_true"], detector=spec.detector)
+    t["render"], t["detect"] = r.t_render_ns, r.t_detect_ns
+
+    t1 = time.perf_counter_ns()
+    obs = observations(r.detections, B, spec.camera)
+    # the reference's method: its chance probability is not stored (p_chance is the robust method's)
+    ident = identify(obs, cat.unit, ctx.pairs, spec.voting, cat_vmag=cat.vmag, chance=False)
+    t["identify"] = time.perf_counter_ns() - t1
+
+    t2 = time.perf_counter_ns()
+    # centroid uncertainties as attitude weights when the detector states them (local detector; a 0.02 px
+    # floor for the PSF model's own error), else equal weights
+    weights = centroid_weights(r.detections, obs, 0.02)
+    sol = solve(obs, ident, cat.unit, draw["A_true"], spec.error_frame, weights=weights)
+    t["attitude"] = time.perf_counter_ns() - t2
+
+    alt = None
+    if spec.robust is not None:   # dualsight's method beside the reference's, on the same detections
+        t3 = time.perf_counter_ns()
+        ident_r = identify(obs, cat.unit, ctx.pairs, spec.robust, cat_vmag=cat.vmag)
+        alt = (ident_r, solve(obs, ident_r, cat.unit, draw["A_true"], spec.error_frame, weights=weights))
+        t["robust"] = time.perf_counter_ns() - t3
+
+    truth = match_truth(r.detections, field_, obs, cat.hip)
+    per_case = {k: (np.full(B, v // max(B, 1), dtype=np.int64) if v is not None else None) for k, v in t.items()}
+    tables = {"star_cases": cases_table(case_ids, spec, draw, field_, r.detections, obs, ident, sol, truth, per_case,
+                                        alt, r.digest),
+              "star_detections": detections_table(case_ids, r.detections, obs, ident, sol, truth, ctx.catalog)}
+    return {"draw": draw, "field": field_, "rendered": r, "obs": obs, "ident": ident, "sol": sol, "alt": alt,
+            "truth": truth, "tables": tables}
+
+
+# ------------------------------------------------------------------------------------------ tables
+SCHEMAS = {"star_cases": CASES_SCHEMA, "star_detections": DETECTIONS_SCHEMA,
+           star_summaries.DATASET: star_summaries.SCHEMA}
+
+
+# ------------------------------------------------------------------------------------------ progress
+def shard_summary(tables: dict[str, pa.Table]) -> dict:
+    st = tables["star_cases"].column("status").to_numpy(zero_copy_only=False)
+    return {name: int((st == name).sum()) for name in STATUS_NAMES}
+
+
+def progress_postfix(stats: dict) -> str:
+    n = sum(stats.get(k, 0) for k in STATUS_NAMES)
+    if not n:
+        return ""
+    return f"success {100 * stats.get('success', 0) / n:.1f}%, conf-wrong {100 * stats.get('confident_wrong', 0) / n:.1f}%"

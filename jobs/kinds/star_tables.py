@@ -1,0 +1,121 @@
+"""The star job's rows (:mod:`dualsight.jobs.kinds.star`): the explicit Arrow schemas of ``star_cases`` (one row
+per case) and ``star_detections`` (one row per detection), and the functions that fill them from a batch's
+stage outputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+
+from dualsight.kernels.digest import to_int64
+from dualsight.nav.errors import STATUS_NAMES
+from dualsight.nav.observations import ragged_rank
+from dualsight.scene.attitude import boresight_radec
+
+__all__ = ["CASES_SCHEMA", "DETECTIONS_SCHEMA", "cases_table", "detections_table"]
+
+
+# ------------------------------------------------------------------------------------------ tables
+_MAT9 = pa.list_(pa.float64(), 9)
+
+CASES_SCHEMA = pa.schema([
+    ("case_id", pa.int64()), ("seed", pa.int64()), ("attitude_model", pa.string()),
+    ("theta1_rad", pa.float64()), ("theta2_rad", pa.float64()), ("theta3_rad", pa.float64()),
+    ("A_true", _MAT9), ("A_est", _MAT9),
+    ("ra_true_rad", pa.float64()), ("dec_true_rad", pa.float64()),
+    ("ra_est_rad", pa.float64()), ("dec_est_rad", pa.float64()),
+    ("noise_seed", pa.uint64()), ("image_digest", pa.int64()), ("blobs_dropped", pa.int32()),
+    ("n_generated", pa.int32()), ("n_observed", pa.int32()), ("n_used", pa.int32()),
+    ("n_identified", pa.int32()), ("n_correct_ids", pa.int32()), ("n_wrong_ids", pa.int32()),
+    ("id_correct", pa.bool_()), ("T", pa.int32()),
+    ("err_x_rad", pa.float64()), ("err_y_rad", pa.float64()), ("err_z_rad", pa.float64()),
+    ("err_total_rad", pa.float64()), ("status", pa.string()),
+    ("T_robust", pa.int32()), ("n_identified_robust", pa.int32()), ("id_correct_robust", pa.bool_()),
+    ("err_x_robust_rad", pa.float64()), ("err_y_robust_rad", pa.float64()), ("err_z_robust_rad", pa.float64()),
+    ("err_total_robust_rad", pa.float64()), ("status_robust", pa.string()), ("p_chance", pa.float64()),
+    ("t_sample_ns", pa.int64()), ("t_render_ns", pa.int64()), ("t_detect_ns", pa.int64()),
+    ("t_identify_ns", pa.int64()), ("t_attitude_ns", pa.int64()), ("t_robust_ns", pa.int64()),
+    ("t_total_ns", pa.int64()),
+])
+
+DETECTIONS_SCHEMA = pa.schema([
+    ("case_id", pa.int64()), ("det_index", pa.int32()),
+    ("x_px", pa.float64()), ("y_px", pa.float64()), ("flux", pa.float64()), ("npix", pa.int32()),
+    ("used", pa.bool_()), ("votes", pa.int32()), ("verify_votes", pa.int32()), ("accepted", pa.bool_()),
+    ("hip_assigned", pa.int32()), ("hip_true", pa.int32()), ("true_dist_px", pa.float64()),
+    ("residual_rad", pa.float64()),
+])
+
+
+
+
+def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, alt=None, det_digest=None) -> pa.Table:
+    B = len(case_ids)
+    ra_t, dec_t = boresight_radec(draw["A_true"])
+    ra_e, dec_e = boresight_radec(sol.A_est)
+    total = sum(v for v in t.values() if v is not None)
+    status = np.asarray(STATUS_NAMES, dtype=object)[sol.status]
+    names = np.asarray(STATUS_NAMES, dtype=object)
+    if alt is not None:
+        ident_r, sol_r = alt
+        robust = {"T_robust": ident_r.T, "n_identified_robust": ident_r.accepted.sum(1),
+                  "id_correct_robust": truth.id_correct(ident_r),
+                  "err_x_robust_rad": sol_r.axis_err[:, 0], "err_y_robust_rad": sol_r.axis_err[:, 1],
+                  "err_z_robust_rad": sol_r.axis_err[:, 2], "err_total_robust_rad": sol_r.total_err,
+                  "status_robust": names[sol_r.status],
+                  # null (not NaN) without an answer, so that SQL aggregates over the column skip those cases
+                  "p_chance": pa.array(ident_r.p_chance, pa.float64(), mask=~np.isfinite(ident_r.p_chance))}
+    else:
+        robust = {k: [None] * B for k in ("T_robust", "n_identified_robust", "id_correct_robust", "err_x_robust_rad",
+                                          "err_y_robust_rad", "err_z_robust_rad", "err_total_robust_rad",
+                                          "status_robust", "p_chance")}
+    cols = {
+        "case_id": np.asarray(case_ids, dtype=np.int64), "seed": np.full(B, spec.seed, dtype=np.int64),
+        "attitude_model": np.full(B, spec.attitudes, dtype=object),
+        "theta1_rad": draw["angles"][:, 0], "theta2_rad": draw["angles"][:, 1], "theta3_rad": draw["angles"][:, 2],
+        "A_true": _mat9(draw["A_true"]), "A_est": _mat9(sol.A_est),
+        "ra_true_rad": ra_t, "dec_true_rad": dec_t, "ra_est_rad": ra_e, "dec_est_rad": dec_e,
+        "noise_seed": draw["noise_seed"], "image_digest": to_int64(det_digest),
+        "blobs_dropped": (det.blobs_dropped.astype(np.int32) if det.blobs_dropped is not None else [None] * B),
+        "n_generated": field_.n_generated.astype(np.int32), "n_observed": np.diff(det.offsets).astype(np.int32),
+        "n_used": obs.valid.sum(1).astype(np.int32), "n_identified": ident.accepted.sum(1).astype(np.int32),
+        "n_correct_ids": truth.n_correct(ident).astype(np.int32),
+        "n_wrong_ids": truth.n_wrong(ident).astype(np.int32),
+        "id_correct": truth.id_correct(ident), "T": ident.T.astype(np.int32),
+        "err_x_rad": sol.axis_err[:, 0], "err_y_rad": sol.axis_err[:, 1], "err_z_rad": sol.axis_err[:, 2],
+        "err_total_rad": sol.total_err, "status": status,
+        **robust,
+        "t_sample_ns": t["sample"], "t_render_ns": t["render"], "t_detect_ns": t["detect"] if t["detect"] is not None else [None] * B,
+        "t_identify_ns": t["identify"], "t_attitude_ns": t["attitude"],
+        "t_robust_ns": t["robust"] if t.get("robust") is not None else [None] * B, "t_total_ns": total,
+    }
+    return pa.table({k: pa.array(v, type=CASES_SCHEMA.field(k).type)
+                     if k not in ("A_true", "A_est") and not isinstance(v, pa.Array) else v
+                     for k, v in cols.items()}, schema=CASES_SCHEMA)
+
+
+def _mat9(A: np.ndarray) -> pa.FixedSizeListArray:
+    flat = np.ascontiguousarray(A.reshape(-1, 9), dtype=np.float64).ravel()
+    return pa.FixedSizeListArray.from_arrays(pa.array(flat), 9)
+
+
+def detections_table(case_ids, det, obs, ident, sol, truth, catalog) -> pa.Table:
+    case_local, rank = ragged_rank(det.case, det.offsets)
+    S = obs.valid.shape[1]
+    used = rank < S
+    r_ok = np.where(used, rank, 0)
+    pick = lambda a, fill: np.where(used, a[case_local, r_ok], fill)  # noqa: E731
+    ids = pick(ident.ids, -1)
+    hip_assigned = np.where(ids >= 0, catalog.hip[np.maximum(ids, 0)], -1)
+    cols = {
+        "case_id": np.asarray(case_ids, dtype=np.int64)[case_local], "det_index": rank.astype(np.int32),
+        "x_px": det.x, "y_px": det.y, "flux": det.flux, "npix": det.npix.astype(np.int32),
+        "used": used & pick(obs.valid, False), "votes": pick(ident.votes, 0).astype(np.int32),
+        "verify_votes": pick(ident.verify_votes, 0).astype(np.int32),
+        "accepted": pick(ident.accepted, False), "hip_assigned": hip_assigned.astype(np.int32),
+        "hip_true": truth.hip_true.astype(np.int32), "true_dist_px": truth.dist_px,
+        "residual_rad": pick(sol.residual, np.nan),
+    }
+    t = pa.table({k: pa.array(v, type=DETECTIONS_SCHEMA.field(k).type) for k, v in cols.items()},
+                 schema=DETECTIONS_SCHEMA)
+    return t

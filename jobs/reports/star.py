@@ -1,0 +1,230 @@
+"""The star-tracker report: every number comes out of the SQL files in ``warehouse/sql``.
+
+Two ways to the same numbers (issue 13):
+
+* **summaries** (``warehouse/sql/star_summ_*.sql``): sums of the per-shard partial aggregates that every star shard
+  writes beside its cases (dataset ``star_summaries``, :mod:`dualsight.jobs.kinds.star_summaries`, ~40 rows per shard of
+  1,000 cases).  :func:`open_summaries` reads the run's summary files once (no view over the rest of the lake) and
+  sums them per key as it reads, into an in-memory table of ~50 rows with one named column per sum and count; the
+  six queries run on it.
+* **scan** (``warehouse/sql/star_*.sql``): every row of ``star_cases`` of the run, over the lake's views.
+
+The report takes the summaries when the run's journal has a readable ``star_summaries`` file for exactly the shards
+that have a readable ``star_cases`` file, and the summaries' case counts add up to the journalled rows of those
+``star_cases`` files; otherwise (runs made before the summaries, a damaged summaries file) it falls back to the full
+scan, which gives the same numbers: counts and rates exactly, means to ~1e-16 relative (float sums in another
+order).  Nothing in the report is an order statistic (median, percentile), so no query needs the rows themselves.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+import duckdb
+
+from dualsight.errors import InputError
+from dualsight.jobs.kinds.star_summaries import DATASET as SUMMARIES
+from dualsight.jobs.kinds.star_summaries import merge_sql
+from dualsight.warehouse.lake import RUN_ID_PATTERN, Lake
+from dualsight.warehouse.query import connect, format_table, run_report
+
+REFERENCE = {"success_rate": 191 / 200, "confident_wrong_rate": 2 / 200, "mean_stars_generated": 11.4607,
+             "mean_stars_observed": 10.1152, "mean_T": 8.6230,
+             "mean_error_arcsec": {"x": 10.6237, "y": 7.7998, "z": 6.4789}}
+
+#: The report's queries by their full-scan name; :func:`query_name` gives the file each path reads.
+QUERIES = ("star_summary", "star_table5", "star_error_vs_observed", "star_status", "star_stage_times", "star_robust")
+SOURCES = ("auto", "summaries", "scan")
+_RUN_ID = re.compile(RUN_ID_PATTERN)
+
+
+def query_name(name: str, source: str) -> str:
+    """SQL file of report query ``name`` (one of :data:`QUERIES`) for ``source`` "summaries" or "scan":
+    ``star_summary`` -> ``star_summ_summary`` (summaries) or ``star_summary`` (scan)."""
+    if name not in QUERIES:
+        raise ValueError(f"unknown star report query {name!r}")
+    return "star_summ_" + name[len("star_"):] if source == "summaries" else name
+
+
+def _stderr(msg: str):
+    print(f"dualsight: warning: {msg}", file=sys.stderr)
+
+
+def open_summaries(lake: Lake, run_id: str, *, warn=None, locked: bool = True,
+                   threads: int | None = None) -> duckdb.DuckDBPyConnection | None:
+    """In-memory DuckDB connection with table ``star_summaries``: the run's summaries summed over its shards per key
+    (status, status_robust, n_observed: ~40-60 rows), columns ``cases``, ``sum_<m>`` / ``n_<m>`` per measure and
+    ``run``; or None when the summaries do not cover exactly the run's cases.
+
+    Exact coverage: the run's journal (stat only, :meth:`Lake.scan`) lists a readable summaries file for exactly the
+    shards with a readable ``star_cases`` file (at least one), and the summaries' ``cases`` add up to the rows the
+    journal records for those ``star_cases`` files.  Only those files are read, once.  ``warn`` (default: one line
+    on stderr) hears about a run whose summaries exist but do not match, and about this run's damaged files when
+    the summaries are used.  ``locked``: as :func:`dualsight.warehouse.query.connect` (no file, network or
+    extension access, configuration locked) once the table is loaded.
+    """
+    report = warn if warn is not None else _stderr
+    if not isinstance(run_id, str) or not _RUN_ID.fullmatch(run_id) or run_id in (".", ".."):
+        return None                 # not a run id (no path from it); the scan path reports "no star cases"
+    h = lake.scan(run_id)
+    cases = {p.name for p in h.files.get("star_cases", [])}
+    summ = sorted(h.files.get(SUMMARIES, []))
+    if not cases or cases != {p.name for p in summ}:
+        if summ:
+            report(f"run {run_id}: its {SUMMARIES} files do not match its star_cases files; the report scans "
+                   "star_cases")
+        return None
+    rows = sum(int((e.get("rows") or {}).get("star_cases", -1)) for e in lake.read_journal(run_id)
+               if lake.shard_path("star_cases", run_id, int(e["shard"])).name in cases)
+    con = duckdb.connect(":memory:")
+    if threads:
+        con.execute(f"SET threads = {int(threads)}")
+    lst = ", ".join("'" + p.as_posix().replace("'", "''") + "'" for p in summ)
+    try:
+        # one pass over the files, summed per key as it reads (storing the packed lists in a table costs ~3x more)
+        con.execute(f"CREATE TABLE {SUMMARIES} AS SELECT {merge_sql()}, $run::VARCHAR AS run "
+                    f"FROM read_parquet([{lst}]) GROUP BY ALL", {"run": run_id})
+        n = con.execute(f"SELECT coalesce(sum(cases), 0) FROM {SUMMARIES}").fetchone()[0]
+    except duckdb.Error as e:
+        report(f"run {run_id}: its {SUMMARIES} files do not read ({str(e).splitlines()[0][:120]}); the report "
+               "scans star_cases")
+        con.close()
+        return None
+    if int(n) != rows:
+        report(f"run {run_id}: its {SUMMARIES} count {n} cases, its star_cases files {rows}; the report scans "
+               "star_cases")
+        con.close()
+        return None
+    for m in h.problems:
+        report(m)
+    from dualsight.scene.units import ARCSEC      # the same macro as warehouse.query.connect
+
+    con.execute(f"CREATE MACRO arcsec_per_rad() AS {1.0 / ARCSEC!r}")
+    if locked:
+        con.execute("SET enable_external_access = false")
+        con.execute("SET autoinstall_known_extensions = false")
+        con.execute("SET autoload_known_extensions = false")
+        con.execute("SET lock_configuration = true")
+    return con
+
+
+def summaries_complete(lake: Lake, run_id: str) -> bool:
+    """True when :func:`open_summaries` would give the summaries path for ``run_id`` (quietly)."""
+    con = open_summaries(lake, run_id, warn=lambda m: None)
+    if con is None:
+        return False
+    con.close()
+    return True
+
+
+def build(lake: Lake, run_id: str, source: str = "auto") -> dict:
+    """Run the star report queries for ``run_id``; returns tables, the JSON summary and the path taken ("source").
+
+    ``source``: "auto" (summaries when they cover the run exactly, else the full scan), "summaries" (InputError
+    when they do not) or "scan" (see the module)."""
+    if source not in SOURCES:
+        raise InputError(f"report source must be one of {', '.join(SOURCES)}, got {source!r}")
+    con, src = None, "scan"
+    if source != "scan":
+        con = open_summaries(lake, run_id)
+        if con is not None:
+            src = "summaries"
+        elif source == "summaries":
+            raise InputError(f"run {run_id!r} has no complete {SUMMARIES} (made before them, or a file is damaged); "
+                             "the full scan gives the same numbers", source="--run")
+    if con is None:
+        if "star_cases" not in lake.datasets():
+            raise InputError(f"no star_cases dataset in {lake.root}", source="--lake")
+        con = connect(lake)
+    cols, rows = run_report(con, query_name("star_summary", src), run=run_id)
+    s = dict(zip(cols, rows[0]))
+    if not s["cases"]:
+        raise InputError(f"run {run_id!r} has no star cases in {lake.root}", source="--run")
+    tables = {name: run_report(con, query_name(name, src), run=run_id) for name in QUERIES[1:]}
+    js = {
+        "run": run_id,
+        "cases": int(s["cases"]),
+        "success_rate": s["success_rate"],
+        "confident_wrong_rate": s["confident_wrong_rate"],
+        "no_solution_rate": s["no_solution_rate"],
+        "identification_rate": s["identification_rate"],
+        "robust": {"success_rate": s["robust_success_rate"],
+                   "confident_wrong_rate": s["robust_confident_wrong_rate"],
+                   "no_solution_rate": s["robust_no_solution_rate"],
+                   "identification_rate": s["robust_identification_rate"]},
+        "mean_stars_generated": s["mean_stars_generated"],
+        "mean_stars_observed": s["mean_stars_observed"],
+        "mean_T": s["mean_T"],
+        "mean_error_arcsec": {"x": s["mean_err_x_arcsec"], "y": s["mean_err_y_arcsec"], "z": s["mean_err_z_arcsec"]},
+        "mean_stars_generated_all_cases": s["mean_stars_generated_all"],
+        "sky_share_ge3_stars": s["sky_share_ge3_stars"],
+        "sky_share_ge4_stars": s["sky_share_ge4_stars"],
+        "mean_ms_per_case": s["mean_ms_per_case"],
+        "error_vs_stars_observed": [dict(zip(tables["star_error_vs_observed"][0], r))
+                                    for r in tables["star_error_vs_observed"][1]],
+        "reference": REFERENCE,
+    }
+    return {"summary": s, "tables": tables, "json": js, "source": src}
+
+
+def _pct(x):
+    return "-" if x is None else f"{100 * x:.2f} %"
+
+
+def text(rep: dict) -> str:
+    j = rep["json"]
+    ref = REFERENCE
+    lines = [
+        f"star-tracker run {j['run']}: {j['cases']} cases",
+        "",
+        "reliability                        dualsight      reference",
+        f"  success (all axes <= 100 arcsec)  {_pct(j['success_rate']):>10}   {_pct(ref['success_rate']):>10}",
+        f"  confident but wrong (T > 0)       {_pct(j['confident_wrong_rate']):>10}   "
+        f"{_pct(ref['confident_wrong_rate']):>10}",
+        f"  no confident solution (T <= 0)    {_pct(j['no_solution_rate']):>10}",
+        f"  identification right (ids)        {_pct(j['identification_rate']):>10}",
+        f"  sky limit: attitudes with >= 3 / >= 4 catalog stars in the field: "
+        f"{_pct(j['sky_share_ge3_stars'])} / {_pct(j['sky_share_ge4_stars'])}",
+        "",
+        "Reference method beside dualsight's robust voting (unique maxima, consistent set, attitude check)",
+        format_table(*rep["tables"]["star_robust"]),
+        "",
+        "Table 5 (averages over the successful cases)",
+        format_table(*rep["tables"]["star_table5"]),
+        "",
+        "Error vs stars observed (Figures 9-10), successful cases",
+        format_table(*rep["tables"]["star_error_vs_observed"], floatfmt="{:.2f}"),
+        "",
+        "Outcomes",
+        format_table(*rep["tables"]["star_status"], floatfmt="{:.2f}"),
+        "",
+        "Time per case by stage",
+        format_table(*rep["tables"]["star_stage_times"], floatfmt="{:.3f}"),
+    ]
+    return "\n".join(lines)
+
+
+def plot(rep: dict, path: Path) -> Path:
+    """Figures 9 and 10 of the reference: mean error per axis and RSS against stars observed."""
+    from dualsight.viz.prox_figures import _plt, save_figure
+
+    plt = _plt()
+    rows = rep["json"]["error_vs_stars_observed"]
+    n = [r["stars_observed"] for r in rows]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+    for key, label in (("mean_err_x_arcsec", "x"), ("mean_err_y_arcsec", "y"), ("mean_err_z_arcsec", "z")):
+        a.plot(n, [r[key] for r in rows], "o-", label=label)
+    a.set_xlabel("stars observed")
+    a.set_ylabel("mean |error| (arcsec)")
+    a.set_title("Error per axis vs stars observed (cf. Fig. 9)")
+    a.legend()
+    b.bar(n, [r["mean_rss_arcsec"] for r in rows], color="tab:gray")
+    for x, r in zip(n, rows):
+        b.annotate(str(r["cases"]), (x, r["mean_rss_arcsec"]), ha="center", va="bottom", fontsize=7)
+    b.set_xlabel("stars observed (label: cases)")
+    b.set_ylabel("mean RSS error (arcsec)")
+    b.set_title("RSS error vs stars observed (cf. Fig. 10)")
+    fig.suptitle(f"run {rep['json']['run']}: {rep['json']['cases']} cases")
+    return save_figure(fig, path)
