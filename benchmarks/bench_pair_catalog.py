@@ -10,7 +10,7 @@ Each catalog is built in its own child process (so that its peak RSS, ``resource
 end; ``--keep`` keeps it) through ``load_pair_catalog`` with the budget ``--max-mib``; a second child then
 loads the cached entry (memory-mapped) and reports its time and RSS, and checks the arrays: ascending by
 (angle, i, j), i < j, every angle below the limit, the sampled digest of the manifest.  The field is
-``--field-deg`` square (20 x 20 deg: diagonal 28.0 deg, the pair limit, as ``jobs.star.pair_angle``).
+``--field-deg`` square (20 x 20 deg: diagonal 28.0 deg, the pair limit, as ``jobs.kinds.star.pair_angle``).
 
 Measured (2-core AMD EPYC VM shared with other test runs, load average 3-6, 24 GB RAM, numpy 2.4; 20 x 20 deg
 field, pair limit 28.0 deg; peak RSS = ru_maxrss of the build process, which includes the ~145 MiB of the

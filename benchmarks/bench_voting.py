@@ -15,7 +15,7 @@ Inputs (made once, in this process, and saved to a temporary .npz that every tim
 * ``hil7``: synthetic frames for the HIL configuration: V 7.0 catalog (2.0M pairs within 14 deg), an
   11.4 x 8.4 deg camera of 40.3 arcsec pixels, the stars of V <= 7.3 in view, brightest first, 5 arcsec
   noise, 1-3 stars dropped and 0-3 false stars; 25 stars vote, tolerance 20 arcsec, ``max_vote_cells``
-  4M (as ``jobs.hil_star`` sets them).
+  4M (as ``jobs.kinds.hil_star`` sets them).
 
 For each Taichi thread count (``--threads``, one child process each with ``DUALSIGHT_TI_THREADS``, which
 Taichi reads once per process) and each workload, config and batch size B (the first B cases): both

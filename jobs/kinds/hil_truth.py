@@ -63,7 +63,7 @@ def _matrix(a) -> list[float]:
 
 
 def resolve_star_truths(paths, truth_file: dict | None, site: Site | None) -> list[dict]:
-    """Truth of every image as spec entries (``jobs.hil_star.StarTruth``): ``source`` ("file", "altaz",
+    """Truth of every image as spec entries (``jobs.kinds.hil_star_spec.StarTruth``): ``source`` ("file", "altaz",
     "none"), ``A`` (9 floats, row-major ICRS -> camera), the truth file's ``ra_deg``/``dec_deg`` and
     ``matched`` stars, the tripod attitude ``altaz_A``, and a ``note`` when an image has no truth.
     The alt/az attitudes come from one astropy call."""

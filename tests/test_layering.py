@@ -1,0 +1,83 @@
+"""The layering of docs/architecture.md, checked by import-linter (contracts in pyproject.toml).
+
+grimp (import-linter's graph builder) walks only the root package's own folder, while dualsight's
+sub-packages live in top-level folders mapped by ``package-dir``; the tests therefore copy the mapped
+folders into one ``dualsight/`` tree (as a wheel installs them) and run ``lint-imports`` on that copy.
+grimp reads every import statement, those inside functions included.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PYPROJECT = REPO / "pyproject.toml"
+LINT = Path(sys.executable).with_name("lint-imports")
+
+pytestmark = pytest.mark.skipif(not LINT.exists(), reason="import-linter is not installed (pip install -e '.[dev]')")
+
+
+def merged_tree(dest: Path) -> Path:
+    """Copy every folder of pyproject's package-dir mapping to ``dest/<dotted path>`` and return ``dest``."""
+    mapping = tomllib.loads(PYPROJECT.read_text())["tool"]["setuptools"]["package-dir"]
+    for package, folder in sorted(mapping.items()):
+        target = dest.joinpath(*package.split("."))
+        shutil.copytree(REPO / folder, target, dirs_exist_ok=True,
+                        ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    return dest
+
+
+def lint(tree: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([str(LINT), "--no-cache", "--no-logo", str(PYPROJECT)], cwd=tree, capture_output=True, text=True,
+                          env={"PYTHONPATH": str(tree), "PATH": "/usr/bin:/bin"}, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory) -> Path:
+    return merged_tree(tmp_path_factory.mktemp("merged"))
+
+
+def test_the_contracts_hold(tree):
+    r = lint(tree)
+    assert r.returncode == 0, r.stdout[-6000:] + r.stderr[-2000:]
+    assert "Contracts: " in r.stdout and " broken" in r.stdout
+
+
+@pytest.mark.parametrize("module, planted, contract", [
+    # an import hidden in a function body, from a leaf up to the engine
+    ("kernels/rng.py", "def _planted():\n    from dualsight.jobs.engine import runner\n", "kernels-leaf"),
+    ("nav/errors.py", "import pyarrow\n", "nav-no-storage"),
+    ("warehouse/query.py", "from dualsight.nav import attitude\n", "warehouse-no-algorithm"),
+    ("scene/attitude.py", "def _planted():\n    import dualsight.nav.attitude\n", "layers"),
+])
+def test_a_planted_violation_breaks_a_contract(tmp_path, module, planted, contract):
+    tree = merged_tree(tmp_path)
+    path = tree / "dualsight" / module
+    path.write_text(path.read_text() + "\n\n" + planted)
+    r = lint(tree)
+    assert r.returncode != 0
+    broken = re.findall(r"^(.+?) BROKEN$", r.stdout, flags=re.M)
+    names = {c["id"]: c["name"] for c in tomllib.loads(PYPROJECT.read_text())["tool"]["importlinter"]["contracts"]}
+    assert names[contract] in [b.strip() for b in broken], r.stdout[-3000:]
+
+
+def test_the_layer_table_of_the_architecture_page_is_the_contract():
+    """docs/architecture.md's table "Layers" lists, top to bottom, the layers of the ``layers`` contract."""
+    text = (REPO / "docs" / "architecture.md").read_text()
+    section = text.split("## Layers", 1)[1].split("\n## ", 1)[0]
+    rows = [r for r in section.splitlines() if r.startswith("| ") and not r.startswith("| layer")]
+    documented = []
+    for r in rows:
+        cell = r.split("|")[2].strip()
+        if cell.startswith("`"):
+            documented.append(" | ".join(sorted(re.findall(r"`(dualsight[\w.]*)`", cell))))
+    contracts = tomllib.loads(PYPROJECT.read_text())["tool"]["importlinter"]["contracts"]
+    layers = next(c for c in contracts if c["id"] == "layers")["layers"]
+    assert documented == [" | ".join(sorted(x.strip() for x in layer.split("|"))) for layer in layers]
