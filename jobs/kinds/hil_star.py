@@ -106,8 +106,15 @@ class Runtime:
 
 
 def runtime(spec: HilStarSpec) -> Runtime:
-    s = spec.settings
-    return Runtime(camera=Camera.from_dict(spec.camera, source="spec"),
+    """The spec's stage configs (:func:`runtime_of` its camera table and settings)."""
+    return runtime_of(spec.camera, spec.settings)
+
+
+def runtime_of(camera: dict, settings: StarSettings) -> Runtime:
+    """The stage configs of a canonical camera table and settings
+    (:func:`~dualsight.jobs.kinds.hil_star_spec.normalise_run`)."""
+    s = settings
+    return Runtime(camera=Camera.from_dict(camera, source="spec"),
                    catalog=validate(StarCatalogConfig, s.catalog, source="spec", section="settings.catalog"),
                    detect=validate(DetectConfig, s.detect, source="spec", section="settings.detect"),
                    voting=validate(VotingConfig, s.voting, source="spec", section="settings.voting"),
@@ -126,7 +133,11 @@ class Context:
 
 
 def make_context(spec: HilStarSpec) -> Context:
-    rt = runtime(spec)
+    return context_of(runtime(spec))
+
+
+def context_of(rt: Runtime) -> Context:
+    """The per-process state of stage configs ``rt``: the star catalog and its pair catalog (from the cache)."""
     cat = load_star_catalog(rt.catalog)
     return Context(rt, cat, load_pair_catalog(cat, pair_angle(rt.camera)))
 
@@ -226,9 +237,11 @@ def compute_shard(spec: HilStarSpec, case_ids: np.ndarray, ctx: Context) -> dict
     return tables(results)
 
 
-def _base_row(k: int, entry: ImageEntry, rt: Runtime, truth: StarTruth) -> dict:
+def base_row(case_id: int, image: str, path: str | None, rt: Runtime, truth: StarTruth) -> dict:
+    """The ``hil_star`` row of one image before it is processed (status "error" until :func:`solve_frames`
+    fills it): its case id, file name and path, the truth's source and the settings' summary columns."""
     st = rt.settings
-    return {"case_id": k, "image": entry.name, "path": entry.path, "error": None, "status": "error",
+    return {"case_id": case_id, "image": image, "path": path, "error": None, "status": "error",
             "method": st.method, "identified": False, "truth_source": truth.source, "truth_note": truth.note,
             "camera_fx_px": rt.camera.fx, "camera_width": rt.camera.width, "camera_height": rt.camera.height,
             "mag_limit": rt.catalog.mag_limit, "tolerance_rad": rt.voting.tolerance_rad,
@@ -265,7 +278,7 @@ def _run_batch(idx: list[int], spec: HilStarSpec, ctx: Context) -> list[ImageRes
     good, frames, t_read = [], [], {}
     for k in idx:
         entry = spec.images[k]
-        res = results[k] = ImageResult(k, _base_row(k, entry, rt, spec.truth(k)))
+        res = results[k] = ImageResult(k, base_row(k, entry.name, entry.path, rt, spec.truth(k)))
         t0 = time.perf_counter_ns()
         try:
             px, img = read_frame(entry, rt.camera)
@@ -278,17 +291,33 @@ def _run_batch(idx: list[int], spec: HilStarSpec, ctx: Context) -> list[ImageRes
                        image_digest=int(to_int64(frame_digest(px[None]))[0]))
         good.append(k)
         frames.append(px)
-    if not good:
-        return [results[k] for k in idx]
+    if good:
+        solve_frames(np.stack(frames), [results[k] for k in good], [spec.truth(k) for k in good], ctx,
+                     n_images=len(spec.images), t_read_ns=[t_read[k] for k in good])
+    return [results[k] for k in idx]
 
-    B = len(good)
+
+def solve_frames(frames: np.ndarray, results: list[ImageResult], truths: list[StarTruth], ctx: Context, *,
+                 n_images: int | None = None, t_read_ns: list[int] | None = None) -> list[ImageResult]:
+    """The chain of every ``hil_star`` image after decoding, on a batch: detection and centroids
+    (:func:`detect_frames`), back-projection, lost-in-space voting, SVD attitude (and the comparison
+    method when the settings ask for it), then the scores against ``truths``.
+
+    frames : (B, H, W) ADC counts (uint8, uint16, float32 or float64; :func:`read_frame`'s), the camera's size.
+    results : B results whose rows are :func:`base_row`'s; filled in place (row and identified stars) and returned.
+    truths : B truths (``StarTruth()``: none).
+    n_images : images of the whole run, for :func:`voting_engine` (default B).
+    t_read_ns : B decoding times (ns) for the rows' ``t_read_ns`` and ``t_total_ns``, or None.
+    """
+    rt = ctx.rt
+    B = len(results)
     t0 = time.perf_counter_ns()
-    _, bg, det = detect_frames(np.stack(frames), rt.settings, rt.detect,
+    _, bg, det = detect_frames(np.asarray(frames), rt.settings, rt.detect,
                                saturation_adu=float(2 ** rt.camera.bit_depth - 1), residual=False)
     t1 = time.perf_counter_ns()
     cat_unit = ctx.catalog.unit
     obs = observations(det, B, rt.camera, max_obs=rt.settings.max_obs)
-    engine = voting_engine(len(spec.images))
+    engine = voting_engine(B if n_images is None else n_images)
     ident = identify(obs, cat_unit, ctx.pairs, rt.voting, cat_vmag=ctx.catalog.vmag, engine=engine)
     t2 = time.perf_counter_ns()
     floor = rt.settings.centroid_floor_px
@@ -302,12 +331,12 @@ def _run_batch(idx: list[int], spec: HilStarSpec, ctx: Context) -> list[ImageRes
     t4 = time.perf_counter_ns()
     share = {"t_detect_ns": (t1 - t0) // B, "t_identify_ns": (t2 - t1) // B, "t_attitude_ns": (t3 - t2) // B,
              "t_alt_ns": (t4 - t3) // B}
-    for b, k in enumerate(good):
-        res = results[k]
-        res.row.update(share, t_read_ns=t_read[k], t_total_ns=t_read[k] + sum(share.values()),
+    for b, res in enumerate(results):
+        t_read = t_read_ns[b] if t_read_ns is not None else None
+        res.row.update(share, t_read_ns=t_read, t_total_ns=(t_read or 0) + sum(share.values()),
                        background_adu=float(bg[b]))
-        _fill(res, b, det, obs, ident, sol, alt, spec.truth(k), ctx)
-    return [results[k] for k in idx]
+        _fill(res, b, det, obs, ident, sol, alt, truths[b], ctx)
+    return results
 
 
 MIN_IDENTIFIED_STARS = 3
@@ -469,4 +498,5 @@ def progress_postfix(stats: dict) -> str:
 
 __all__ = ["NAME", "PRIMARY", "SCHEMAS", "StarSettings", "StarTruth", "HilStarSpec", "settings_from_table",
            "spec_from_dict", "build_spec", "n_cases", "make_context", "memory_estimate", "compute_shard",
-           "shard_summary", "progress_postfix", "read_frame", "detect_frames", "runtime", "tables"]
+           "shard_summary", "progress_postfix", "read_frame", "detect_frames", "runtime", "tables",
+           "runtime_of", "context_of", "base_row", "solve_frames", "Runtime", "Context", "ImageResult", "StarRow"]

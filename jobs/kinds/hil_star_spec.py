@@ -24,7 +24,7 @@ from dualsight.nav.starid import VotingConfig
 from dualsight.scene.camera import Camera
 
 __all__ = ["METHODS", "MAX_VOTE_CELLS", "StarSettings", "Matched", "StarTruth", "HilStarSpec", "normalise_settings",
-           "settings_from_table", "spec_from_dict"]
+           "settings_from_table", "spec_from_dict", "normalise_run"]
 
 METHODS = ("robust", "paper")
 MAX_VOTE_CELLS = 4_000_000
@@ -219,10 +219,17 @@ def spec_from_dict(d: dict, source: str = "spec") -> HilStarSpec:
     if not isinstance(d, dict):
         raise ConfigError("must be a table", source=source)
     m = validate(HilStarSpec, d, source=source)
-    cam = fixed_point(lambda c: Camera.from_dict(c, source=source).to_dict(), dict(m.camera))
     if m.truths and len(m.truths) != len(m.images):
         raise ConfigError(f"must be empty or have one entry per image ({len(m.images)}), got {len(m.truths)}",
                           source=source, field="truths")
-    settings = normalise_settings(m.settings, source=source, section="settings",
-                                  camera=Camera.from_dict(cam, source=source))
+    cam, settings = normalise_run(m.camera, m.settings, source=source)
     return m.model_copy(update={"camera": cam, "settings": settings})
+
+
+def normalise_run(camera: dict, settings: StarSettings, *, source: str = "spec") -> tuple[dict, StarSettings]:
+    """The canonical camera table and settings of a run, as :func:`spec_from_dict` stores them: the camera
+    table at its fixed point through :class:`~dualsight.scene.camera.Camera`, the settings completed for that
+    camera (:func:`normalise_settings`).  ``dualsight.solve`` normalises a frame's camera and settings with it."""
+    cam = fixed_point(lambda c: Camera.from_dict(c, source=source).to_dict(), dict(camera))
+    return cam, normalise_settings(settings, source=source, section="settings",
+                                   camera=Camera.from_dict(cam, source=source))
