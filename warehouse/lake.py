@@ -128,6 +128,31 @@ class RunHealth:
 
 
 @dataclass(frozen=True)
+class RunRecord:
+    """One run as ``dualsight runs`` lists it (:func:`run_records`).
+
+    ``status`` is the live status (:meth:`Lake.live_status`), followed by " (damaged files)" when a shard file
+    is damaged or missing (one line each in ``problems``); ``shards`` is "done/planned" ("?" when unknown).
+    A run whose manifest is damaged has ``manifest`` None, ``status`` "damaged", the reason as its one
+    ``problems`` line and None in the other fields."""
+
+    run_id: str
+    kind: str | None
+    n_cases: int | None
+    shards: str | None
+    status: str
+    seed: int | None
+    spec_hash: str | None
+    problems: tuple[str, ...]
+    manifest: dict | None
+
+    @property
+    def damaged(self) -> bool:
+        """Whether the run's manifest is damaged (unreadable or inconsistent)."""
+        return self.manifest is None
+
+
+@dataclass(frozen=True)
 class Lake:
     """A lake rooted at ``root``.  Nothing is created until a run is written."""
 
@@ -445,6 +470,25 @@ def write_json_atomic(path: Path, doc) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
     return path
+
+
+def run_records(lake: Lake) -> list[RunRecord]:
+    """Every run that has a manifest file, sorted by run id: its manifest, live status and damaged files
+    (stat only, no Parquet file is opened)."""
+    out = []
+    for rid in lake.run_ids():
+        try:
+            m = lake.read_manifest(rid)
+        except LakeError as e:
+            out.append(RunRecord(rid, None, None, None, "damaged", None, None, (e.detail,), None))
+            continue
+        if m is None:                                    # removed since it was listed
+            continue
+        h = lake.scan(rid)
+        status = lake.live_status(m) + (" (damaged files)" if h.problems else "")
+        out.append(RunRecord(rid, m.get("kind"), m.get("n_cases"), f"{m.get('shards_done', '?')}/{m.get('n_shards')}",
+                             status, m.get("seed"), m.get("spec_hash"), tuple(h.problems), m))
+    return out
 
 
 def _manifest_problem(m, run_id: str) -> str | None:

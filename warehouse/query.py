@@ -81,12 +81,42 @@ def run_report(con: duckdb.DuckDBPyConnection, name: str, **params):
 
 
 def run_sql(lake: Lake | Path | str, sql: str, *, warn=None):
-    """Ad-hoc read-only SQL over the lake's views: (column names, rows).
+    """Ad-hoc read-only SQL over the lake's views: (column names, rows as tuples of Python values), what
+    ``dualsight sql`` prints.
 
     Only SELECT (and EXPLAIN) statements run; the connection has no file, network or extension access
     (:func:`connect`), so ``read_csv('/etc/passwd')``, ``COPY ... TO``, ``ATTACH``, ``INSTALL`` and writes
     into the lake are refused with one line (InputError).
     """
+    con, statements = _read_only_statements(lake, sql, warn)
+    try:
+        cur = None
+        for st in statements:
+            cur = con.execute(st)
+    except duckdb.Error as e:
+        raise InputError(f"{type(e).__name__}: {_first_line(e)}", source="sql") from None
+    if cur is None or cur.description is None:
+        return [], []
+    return [d[0] for d in cur.description], cur.fetchall()
+
+
+def run_sql_arrow(lake: Lake | Path | str, sql: str, *, warn=None):
+    """:func:`run_sql` with the last statement's result as a ``pyarrow.Table`` (DuckDB's column types kept),
+    what ``dualsight.Lake.sql`` returns; the same statement check, connection and errors."""
+    con, statements = _read_only_statements(lake, sql, warn)
+    try:
+        for st in statements[:-1]:
+            con.execute(st)
+        return con.sql(statements[-1]).to_arrow_table()
+    except duckdb.Error as e:
+        raise InputError(f"{type(e).__name__}: {_first_line(e)}", source="sql") from None
+    finally:
+        con.close()
+
+
+def _read_only_statements(lake, sql, warn):
+    """(connection of :func:`connect`, the parsed statements of ``sql``), every one SELECT or EXPLAIN;
+    otherwise InputError."""
     if not isinstance(sql, str) or not sql.strip():
         raise InputError("the query is empty", source="sql")
     if len(sql) > 1_000_000:
@@ -103,15 +133,7 @@ def run_sql(lake: Lake | Path | str, sql: str, *, warn=None):
         if kind not in READ_ONLY_STATEMENTS:
             raise InputError(f"only read-only queries (SELECT, EXPLAIN) run here; refused a {kind} statement",
                              source="sql")
-    try:
-        cur = None
-        for st in statements:
-            cur = con.execute(st)
-    except duckdb.Error as e:
-        raise InputError(f"{type(e).__name__}: {_first_line(e)}", source="sql") from None
-    if cur is None or cur.description is None:
-        return [], []
-    return [d[0] for d in cur.description], cur.fetchall()
+    return con, statements
 
 
 def _first_line(e: Exception) -> str:

@@ -294,23 +294,18 @@ def cmd_replay(args) -> int:
 
 
 def cmd_runs(args) -> int:
-    from dualsight.warehouse.lake import LakeError
+    from dualsight.warehouse.lake import run_records
     from dualsight.warehouse.query import format_table
 
     lake = _lake(args)
     rows, docs = [], []
-    for rid in lake.run_ids():
-        try:
-            m = lake.read_manifest(rid)
-        except LakeError as e:
-            rows.append((rid, "?", None, "?", "DAMAGED", None, str(e.detail)[:60]))
-            docs.append({"run_id": rid, "status": "damaged", "problem": e.detail})
+    for r in run_records(lake):                        # what dualsight.Lake.runs() returns
+        if r.damaged:
+            rows.append((r.run_id, "?", None, "?", "DAMAGED", None, str(r.problems[0])[:60]))
+            docs.append({"run_id": r.run_id, "status": "damaged", "problem": r.problems[0]})
             continue
-        h = lake.scan(rid)
-        status = lake.live_status(m) + (" (damaged files)" if h.problems else "")
-        rows.append((rid, m.get("kind"), m.get("n_cases"), f"{m.get('shards_done', '?')}/{m.get('n_shards')}",
-                     status, m.get("seed"), m.get("spec_hash")))
-        docs.append(dict(m, problems=h.problems))
+        rows.append((r.run_id, r.kind, r.n_cases, r.shards, r.status, r.seed, r.spec_hash))
+        docs.append(dict(r.manifest, problems=list(r.problems)))
     if args.json:
         print(json.dumps(docs, indent=1))
         return 0
