@@ -192,22 +192,17 @@ def _one_line(e: Exception) -> str:
 # ---------------------------------------------------------------------------------------------- star
 def cmd_star_run(args) -> int:
     from dualsight.jobs.kinds import star
-    from dualsight.jobs.engine.runner import run_job
 
-    from dualsight.jobs.engine.runner import prepare
-
-    spec_dict, n_cases = star.resolve_spec(args.preset, args.config, seed=args.seed, cases=args.cases)
-    _, _, _, h = prepare(COMMAND_KINDS[("star", "run")], spec_dict, n_cases,
-                         source=str(args.config) if args.config else f"preset {args.preset or 'paper'}")
-    run_id = args.run or f"star-{spec_dict['seed']}-{n_cases}-{h[:8]}"
+    # plan_run and start_run are what dualsight.run("star", ...) calls: same spec, identity, run id and rows
+    plan = star.plan_run(args.preset, args.config, seed=args.seed, cases=args.cases, run_id=args.run)
+    run_id, n_cases = plan.run_id, plan.n_cases
     lake = _lake(args)
-    info = star.catalog_info(spec_dict)
+    info = plan.catalog
     print(f"catalog: {info['stars']} stars to V {info['mag_limit']}, {info['pairs']:,} pairs closer than "
           f"{info['pair_max_angle_deg']:.2f} deg ({info['pair_catalog_bytes'] / 2**20:.2f} MiB, memory-mapped)",
           file=sys.stderr)
-    manifest = run_job(COMMAND_KINDS[("star", "run")], spec_dict, n_cases=n_cases, lake=lake, run_id=run_id, workers=args.workers,
-                       scheduler=args.scheduler, shard_size=args.shard_size, progress=not args.no_progress,
-                       label=f"star {run_id}", extra={"catalog": info})
+    manifest = star.start_run(plan, lake, workers=args.workers, scheduler=args.scheduler,
+                              shard_size=args.shard_size, progress=not args.no_progress)
     ex = manifest["executions"][-1]
     el = ex.get("elapsed_s")
     rate = f", {ex.get('cases_run', n_cases) / el:.0f} cases/s" if el else ""

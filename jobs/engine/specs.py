@@ -108,12 +108,14 @@ def check_range(value, lo, hi, field: str, *, lo_open=False, hi_open=False, sour
     return value
 
 
-def preset_and_config(presets: dict, preset: str | None, config: Path | str | None,
+def preset_and_config(presets: dict, preset: str | None, config: Path | str | dict | None,
                       default: str = "paper") -> tuple[dict, str]:
     """The spec layers below the command-line flags: a preset, then a TOML file over it.
 
     A config file may name its own base with a top-level ``preset = "..."``.  Tables merge key by key
-    (recursively); everything else replaces.  Returns (merged dict, source name for error messages).
+    (recursively); everything else replaces.  ``config`` may also be a table of the file's layout (a dict
+    given in code, ``dualsight.run``; named "config table" in errors).  Returns (merged dict, source name
+    for error messages).
     """
     from dualsight.scene.camera import read_toml
 
@@ -123,8 +125,10 @@ def preset_and_config(presets: dict, preset: str | None, config: Path | str | No
     d = deep_merge(presets[name], {})
     source = f"preset {name!r}"
     if config is not None:
-        user = read_toml(Path(config))
-        source = str(config)
+        if isinstance(config, dict):
+            user, source = config, "config table"
+        else:
+            user, source = read_toml(Path(config)), str(config)
         if "preset" in user:
             if user["preset"] not in presets:
                 raise ConfigError(f"unknown preset {user['preset']!r}; known: {sorted(presets)}", source=source,

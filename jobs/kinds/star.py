@@ -37,11 +37,12 @@ import numpy as np
 import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field
 
-from dualsight.catalogs.pairs import load_pair_catalog
+from dualsight.catalogs.pair_cache import load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 from dualsight.errors import InputError
 from dualsight.jobs.kinds import star_summaries
 from dualsight.jobs.kinds.star_tables import CASES_SCHEMA, DETECTIONS_SCHEMA, cases_table, detections_table
+from dualsight.jobs.engine.runner import prepare, run_job
 from dualsight.jobs.engine.specs import dataclass_from_table, dataclass_to_table, preset_and_config, validate
 from dualsight.kernels import detect as kdetect
 from dualsight.kernels import starfield as kstar
@@ -202,7 +203,7 @@ def auto_detector(sensor: SensorConfig) -> Literal["global", "local"]:
     return "local" if real else "global"
 
 
-def resolve(preset: str | None, config: Path | None, *, seed: int | None = None,
+def resolve(preset: str | None, config: Path | str | dict | None, *, seed: int | None = None,
             cases: int | None = None) -> tuple[StarSpec, int]:
     """Merge preset, config file and flags into the validated spec; returns (spec, number of cases).
 
@@ -221,7 +222,7 @@ def resolve(preset: str | None, config: Path | None, *, seed: int | None = None,
     return spec, int(n)
 
 
-def resolve_spec(preset: str | None, config: Path | None, *, seed: int | None = None,
+def resolve_spec(preset: str | None, config: Path | str | dict | None, *, seed: int | None = None,
                  cases: int | None = None) -> tuple[dict, int]:
     """:func:`resolve` in the engine's form: (``spec.to_dict()``, number of cases)."""
     spec, n = resolve(preset, config, seed=seed, cases=cases)
@@ -238,6 +239,42 @@ def catalog_info(spec: StarSpec | dict) -> dict:
     return {"stars": len(ctx.catalog.hip), "mag_limit": spec.catalog.mag_limit, "pairs": len(ctx.pairs.angle),
             "pair_max_angle_deg": math.degrees(pair_angle(spec.camera)),
             "pair_catalog_bytes": int(ctx.pairs.nbytes), "star_catalog_bytes": int(ctx.catalog.nbytes)}
+
+
+# ------------------------------------------------------------------------------------------ a run
+@dataclass(frozen=True)
+class StarRun:
+    """A star Monte Carlo resolved and identified but not yet run (:func:`plan_run`, :func:`start_run`)."""
+
+    spec: dict               # the canonical spec dict (``spec.to_dict()``)
+    n_cases: int
+    run_id: str
+    spec_hash: str           # 16 hex digits (jobs/engine/runner.py spec_hash)
+    source: str              # where the settings came from, for messages
+    catalog: dict            # catalog_info(spec), stored in the manifest
+
+
+def plan_run(preset: str | None = None, config: Path | str | dict | None = None, *, seed: int | None = None,
+             cases: int | None = None, run_id: str | None = None) -> StarRun:
+    """Everything ``dualsight star run`` decides before the lake is touched, for it and ``dualsight.run``:
+    the preset (default paper), the config file or table over it and the flags merged and validated
+    (:func:`resolve_spec`), the run's identity (``prepare`` of jobs/engine/runner.py), its id (``run_id``, default
+    ``star-<seed>-<cases>-<first 8 digits of the spec hash>``) and the catalog sizes (:func:`catalog_info`)."""
+    spec_dict, n = resolve_spec(preset, config, seed=seed, cases=cases)
+    source = (("config table" if isinstance(config, dict) else str(config)) if config is not None
+              else f"preset {preset or 'paper'}")
+    _, _, _, h = prepare(NAME, spec_dict, n, source=source)
+    return StarRun(spec_dict, n, run_id or f"star-{spec_dict['seed']}-{n}-{h[:8]}", h, source,
+                   catalog_info(spec_dict))
+
+
+def start_run(plan: StarRun, lake, *, workers: int | None = None, scheduler: str | None = None,
+              shard_size: int | None = None, progress: bool = True) -> dict:
+    """Run (or resume) a planned star Monte Carlo into ``lake`` (a warehouse Lake) with the engine's ``run_job``;
+    returns the final manifest.  Errors as ``run_job``'s (InputError, LakeError, EngineError, Interrupted)."""
+    return run_job(NAME, plan.spec, n_cases=plan.n_cases, lake=lake, run_id=plan.run_id, workers=workers,
+                   scheduler=scheduler, shard_size=shard_size, progress=progress, label=f"star {plan.run_id}",
+                   extra={"catalog": plan.catalog})
 
 
 # ------------------------------------------------------------------------------------------ context
