@@ -54,7 +54,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _child_build(mag: float, angle_rad: float, cache: str, max_bytes: int) -> dict:
     import resource
 
-    from dualsight.catalogs import pairs
+    from dualsight.catalogs import pair_cache
     from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 
     import threading
@@ -70,11 +70,11 @@ def _child_build(mag: float, angle_rad: float, cache: str, max_bytes: int) -> di
     th = threading.Thread(target=watch, daemon=True)
     th.start()
     t = time.perf_counter()
-    pc = pairs.load_pair_catalog(cat, angle_rad, cache_dir=cache, max_bytes=max_bytes)
+    pc = pair_cache.load_pair_catalog(cat, angle_rad, cache_dir=cache, max_bytes=max_bytes)
     dt = time.perf_counter() - t
     anon["stop"] = True
     th.join()
-    files = pairs.pair_cache_files(cat, angle_rad, cache)
+    files = pair_cache.pair_cache_files(cat, angle_rad, cache)
     return {"stars": len(cat), "pairs": len(pc), "build_s": dt, "rss_before_mib": rss0,
             "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "peak_anon_mib": anon["peak"], "file_bytes": sum(p.stat().st_size for p in files)}
@@ -85,7 +85,7 @@ def _child_load(mag: float, angle_rad: float, cache: str) -> dict:
 
     import numpy as np
 
-    from dualsight.catalogs import pairs
+    from dualsight.catalogs import pair_cache, pairs
     from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 
     cat = load_star_catalog(StarCatalogConfig(mag_limit=mag), cache_dir=cache)
@@ -94,7 +94,7 @@ def _child_load(mag: float, angle_rad: float, cache: str) -> dict:
         raise AssertionError("the cached entry was rebuilt")
     pairs.build_pair_catalog = no_build
     t = time.perf_counter()
-    pc = pairs.load_pair_catalog(cat, angle_rad, cache_dir=cache)
+    pc = pair_cache.load_pair_catalog(cat, angle_rad, cache_dir=cache)
     dt = time.perf_counter() - t
     rss_loaded = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     # check every pair, a slice at a time (the pages read count in RSS as clean, shared, reclaimable pages)

@@ -135,7 +135,7 @@ def v7_frames(cat, frames, seed=5):
 
 
 def hil7_workload(frames: int) -> dict:
-    from dualsight.catalogs.pairs import load_pair_catalog
+    from dualsight.catalogs.pair_cache import load_pair_catalog
     from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
     from dualsight.nav.starid import VotingConfig
 

@@ -1,8 +1,15 @@
-"""The pair catalog's cache (:mod:`dualsight.catalogs.pairs` builds it): memory-mapped ``.npy`` columns and a
-JSON manifest per (star catalog, maximum angle), keyed by their content; damaged or partial files are detected
-(sizes, a sampled digest) and rebuilt under a lock, written to temporary names and renamed.  The voting's derived
-arrays of an entry live beside it (``<stem>.vstars.npy``, ``<stem>.vprev.npy``: :mod:`dualsight.catalogs.pair_voting_cache`),
-checked against the pairs whenever they are mapped."""
+"""The pair catalog's on-disk cache (:mod:`dualsight.catalogs.pairs` defines and builds the catalog).
+
+:func:`load_pair_catalog` caches the arrays in the cache folder, keyed by the star catalog's content and
+the angle, and opens them with ``np.load(..., mmap_mode="r")``: a run reads the pages it touches, and
+several processes share one copy in the page cache.  One entry is the three ``.npy`` columns
+(``pairs-v<FORMAT_VERSION>-<key>.{i,j,angle}.npy``, :data:`dualsight.catalogs.pairs.COLUMNS`) and the JSON
+manifest ``pairs-v<FORMAT_VERSION>-<key>.json``, written last; a missing, truncated or altered file (sizes,
+shapes, dtypes and a digest of sampled values are checked) is rebuilt under a lock with a one-line warning on
+stderr, written to temporary names and renamed.  The voting's derived arrays of an entry live beside it
+(``<stem>.vstars.npy``, ``<stem>.vprev.npy``: :mod:`dualsight.catalogs.pair_voting_cache`), checked against the
+pairs whenever they are mapped.
+"""
 
 from __future__ import annotations
 
@@ -16,13 +23,19 @@ from pathlib import Path
 
 import numpy as np
 
+from dualsight.catalogs import pairs       # pairs.build_pair_catalog looked up at call time (tests replace it)
 from dualsight.catalogs.cache import atomic_file, resolve_cache_dir, short_hash
-from dualsight.catalogs import pairs as _pairs
-from dualsight.catalogs.pairs import (_COLUMNS, DEFAULT_MAX_BYTES, FORMAT_VERSION, PairCatalog, _check_max_angle,
-                                      _column_path)
+from dualsight.catalogs.pairs import (COLUMNS, DEFAULT_MAX_BYTES, FORMAT_VERSION, PairCatalog, check_max_angle,
+                                      column_path)
+
+try:
+    import fcntl                                                     # POSIX: the build lock
+except ImportError:                                                  # pragma: no cover (Windows)
+    fcntl = None
+
+__all__ = ["load_pair_catalog", "pair_cache_path", "pair_cache_files"]
 
 
-# ============================================================================================ cache
 def pair_cache_path(star_catalog, max_angle_rad: float, cache_dir: str | Path | None = None) -> Path:
     """The cache manifest ``<cache>/pairs-v<FORMAT_VERSION>-<key>.json``, keyed by the star catalog's content
     and the angle; the arrays are ``pairs-v<FORMAT_VERSION>-<key>.{i,j,angle}.npy`` beside it."""
@@ -33,7 +46,7 @@ def pair_cache_files(star_catalog, max_angle_rad: float, cache_dir: str | Path |
     """Every file of a cache entry: the three arrays, then the manifest."""
     man = pair_cache_path(star_catalog, max_angle_rad, cache_dir)
     stem = man.with_suffix("")
-    return [_column_path(stem, name) for name, _ in _COLUMNS] + [man]
+    return [column_path(stem, name) for name, _ in COLUMNS] + [man]
 
 
 def _pair_key(star_catalog, max_angle_rad: float) -> str:
@@ -46,7 +59,7 @@ def _sample_digest(arrays: dict[str, np.ndarray]) -> str:
     arrays are read with ``pread`` from their files, not through the map: touching a mapped page maps its
     whole (possibly large) folio into the process, ~1 MiB per sample on this machine."""
     h = hashlib.sha256()
-    for name, _ in _COLUMNS:
+    for name, _ in COLUMNS:
         a = arrays[name]
         if not a.size:
             continue
@@ -72,7 +85,7 @@ def _open_cached(stem: Path, meta: dict) -> tuple[dict | None, str | None]:
     (reason None: simply absent, or a manifest of another build)."""
     man = stem.with_suffix(".json")
     if not man.is_file():
-        partial = any(_column_path(stem, name).exists() for name, _ in _COLUMNS)
+        partial = any(column_path(stem, name).exists() for name, _ in COLUMNS)
         return None, ("incomplete: arrays without their manifest" if partial else None)
     try:
         stored = json.loads(man.read_text())
@@ -81,8 +94,8 @@ def _open_cached(stem: Path, meta: dict) -> tuple[dict | None, str | None]:
     if not isinstance(stored, dict) or any(stored.get(k) != v for k, v in meta.items()):
         return None, None
     arrays = {}
-    for name, dt in _COLUMNS:
-        p = _column_path(stem, name)
+    for name, dt in COLUMNS:
+        p = column_path(stem, name)
         try:
             a = np.load(p, mmap_mode="r", allow_pickle=False)
         except (OSError, ValueError, EOFError) as e:
@@ -111,9 +124,7 @@ def _remove_stale(stem: Path) -> None:
 def _build_lock(stem: Path):
     """An exclusive lock on ``<stem>.lock`` (POSIX ``flock``; none elsewhere): one process builds an
     entry while the others wait, then read it."""
-    try:
-        import fcntl
-    except ImportError:                                              # pragma: no cover (Windows)
+    if fcntl is None:                                                # pragma: no cover (Windows)
         yield
         return
     with open(stem.with_suffix(".lock"), "a+b") as f:
@@ -135,7 +146,7 @@ def load_pair_catalog(star_catalog, max_angle_rad: float, cache_dir: str | Path 
     digest) is rebuilt with a one-line warning on stderr.  The build holds ``<stem>.lock`` so that
     processes starting together build it once; it needs ``max_bytes`` of memory at most.
     """
-    theta = _check_max_angle(max_angle_rad)
+    theta = check_max_angle(max_angle_rad)
     man = pair_cache_path(star_catalog, theta, cache_dir)
     stem = man.with_suffix("")
     meta = {"key": _pair_key(star_catalog, theta), "format": FORMAT_VERSION, "max_angle_rad": theta,
@@ -150,10 +161,10 @@ def load_pair_catalog(star_catalog, max_angle_rad: float, cache_dir: str | Path 
                           file=sys.stderr)
                 man.unlink(missing_ok=True)                          # the manifest goes first, comes back last
                 _remove_stale(stem)
-                cat = _pairs.build_pair_catalog(star_catalog.unit, theta, max_bytes=max_bytes, out=stem)
+                cat = pairs.build_pair_catalog(star_catalog.unit, theta, max_bytes=max_bytes, out=stem)
                 arrays = {"i": cat.i, "j": cat.j, "angle": cat.angle}
                 doc = {**meta, "pairs": len(cat), "digest": _sample_digest(arrays),
-                       "files": {name: _column_path(stem, name).name for name, _ in _COLUMNS}}
+                       "files": {name: column_path(stem, name).name for name, _ in COLUMNS}}
                 with atomic_file(man, "w") as f:
                     json.dump(doc, f, sort_keys=True, indent=1)
     return PairCatalog(i=arrays["i"], j=arrays["j"], angle=arrays["angle"], limit_rad=theta)

@@ -35,7 +35,7 @@ CHUNK_PAIRS = 1 << 22
 
 def derived_paths(i_array) -> tuple[Path, Path] | None:
     """(``<stem>.vstars.npy``, ``<stem>.vprev.npy``) when ``i_array`` is the memory-mapped ``<stem>.i.npy`` of a
-    cached pair catalog (:func:`dualsight.catalogs.pairs.load_pair_catalog`), else None."""
+    cached pair catalog (:func:`dualsight.catalogs.pair_cache.load_pair_catalog`), else None."""
     fn = getattr(i_array, "filename", None) if isinstance(i_array, np.memmap) else None
     if fn is None or not str(fn).endswith(".i.npy"):
         return None

@@ -23,11 +23,9 @@ bucket sort:
 
 The result equals, element for element, the whole catalog sorted at once by (angle, i, j).
 
-:func:`load_pair_catalog` caches the arrays in the cache folder, keyed by the star catalog's content and
-the angle, and opens them with ``np.load(..., mmap_mode="r")``: a run reads the pages it touches, and
-several processes share one copy in the page cache.  The manifest ``pairs-v<FORMAT_VERSION>-<key>.json`` is
-written last; a missing, truncated or altered file (sizes, shapes, dtypes and a digest of sampled values
-are checked) is rebuilt with a one-line warning on stderr.
+Built with ``out=<stem>``, the three arrays are the files :func:`column_path` names (layout :data:`COLUMNS`);
+the on-disk cache of built catalogs (keys, manifest, lock, damage checks) is
+:mod:`dualsight.catalogs.pair_cache`.
 """
 
 from __future__ import annotations
@@ -43,6 +41,9 @@ import numpy as np
 from dualsight.catalogs.cache import resolve_cache_dir
 from dualsight.errors import ConfigError
 from dualsight.scene.units import angle_between
+
+__all__ = ["FORMAT_VERSION", "DEFAULT_MAX_BYTES", "COLUMNS", "PairCatalog", "build_pair_catalog", "check_max_angle",
+           "column_path"]
 
 FORMAT_VERSION = 3
 """Bump when the build or the stored layout changes: old cache files are then ignored.
@@ -65,7 +66,9 @@ MAX_OPEN_BUCKETS = 256
 """Most bucket files written at once (a larger catalog's buckets are split again when sorted)."""
 
 _REC = np.dtype([("angle", "<f8"), ("i", "<i4"), ("j", "<i4")])
-_COLUMNS = (("i", np.dtype("<i4")), ("j", np.dtype("<i4")), ("angle", np.dtype("<f8")))
+COLUMNS = (("i", np.dtype("<i4")), ("j", np.dtype("<i4")), ("angle", np.dtype("<f8")))
+"""(name, dtype) of the three arrays of a catalog, in file order: ``i``, ``j`` little-endian int32 catalog rows,
+``angle`` little-endian float64 (rad); each is one ``.npy`` file (:func:`column_path`)."""
 _WRITE_BUFFER = 1 << 16
 
 
@@ -78,7 +81,7 @@ class PairCatalog:
     limit_rad : the maximum angle the catalog was built with (every ``angle < limit_rad``), or
         None when unknown (then :attr:`max_angle` is the largest angle present).
 
-    The arrays may be read-only memory maps (:func:`load_pair_catalog`).
+    The arrays may be read-only memory maps (:func:`dualsight.catalogs.pair_cache.load_pair_catalog`).
     """
 
     i: np.ndarray
@@ -107,7 +110,9 @@ class PairCatalog:
         return float(self.angle[-1]) if len(self) else 0.0
 
 
-def _check_max_angle(max_angle_rad) -> float:
+def check_max_angle(max_angle_rad) -> float:
+    """``max_angle_rad`` as a float (rad) if it is a finite real number in (0, pi], else ConfigError (field
+    ``catalog.max_pair_angle``)."""
     ok = isinstance(max_angle_rad, (int, float, np.integer, np.floating)) and not isinstance(max_angle_rad, bool)
     if not ok or not math.isfinite(max_angle_rad) or not 0.0 < max_angle_rad <= math.pi:
         raise ConfigError(f"must be a finite angle in (0, pi] rad, got {max_angle_rad!r}",
@@ -229,7 +234,7 @@ class _Builder:
         if rec.size != count:
             raise OSError(f"bucket file {path} holds {rec.size} pairs, expected {count}")
         s = _sort_order(rec)
-        for (name, dt), f in zip(_COLUMNS, outs):
+        for (name, dt), f in zip(COLUMNS, outs):
             f.write(np.ascontiguousarray(rec[name][s], dtype=dt).data)
 
     def _slices(self, path: Path, count: int):
@@ -306,7 +311,7 @@ def _write_arrays(u: np.ndarray, theta: float, targets: dict[str, Path], work: P
     total = sum(c for _, c in buckets)
     tmps, outs = {}, []
     try:
-        for name, dt in _COLUMNS:
+        for name, dt in COLUMNS:
             fd, tmp = tempfile.mkstemp(prefix=f".{targets[name].name}.", suffix=".tmp", dir=targets[name].parent)
             tmps[name] = Path(tmp)
             f = os.fdopen(fd, "wb", buffering=_WRITE_BUFFER)
@@ -315,7 +320,7 @@ def _write_arrays(u: np.ndarray, theta: float, targets: dict[str, Path], work: P
         starts = [f.tell() for f in outs]
         for p, c in buckets:
             bld.emit(p, c, outs)
-        for (name, dt), f, st in zip(_COLUMNS, outs, starts):
+        for (name, dt), f, st in zip(COLUMNS, outs, starts):
             if f.tell() - st != total * dt.itemsize:                 # every pair routed is written once
                 raise OSError(f"pair catalog build wrote {(f.tell() - st) // dt.itemsize} {name} values, "
                               f"expected {total}")
@@ -323,7 +328,7 @@ def _write_arrays(u: np.ndarray, theta: float, targets: dict[str, Path], work: P
             f.flush()
             os.fsync(f.fileno())
             f.close()
-        for name, _ in _COLUMNS:
+        for name, _ in COLUMNS:
             os.replace(tmps[name], targets[name])
     except BaseException:
         for f in outs:
@@ -357,7 +362,7 @@ def build_pair_catalog(unit: np.ndarray, max_angle_rad: float, max_block: int | 
     -------
     :class:`PairCatalog` with i < j, sorted by angle (ties by i, j).
     """
-    theta = _check_max_angle(max_angle_rad)
+    theta = check_max_angle(max_angle_rad)
     if not (isinstance(max_bytes, (int, np.integer)) and max_bytes > 0):
         raise ValueError(f"max_bytes must be a positive integer, got {max_bytes!r}")
     u = np.ascontiguousarray(np.asarray(unit, dtype=np.float64).reshape(-1, 3))
@@ -372,19 +377,14 @@ def build_pair_catalog(unit: np.ndarray, max_angle_rad: float, max_block: int | 
     prefix = f".{stem.name}.build-" if stem is not None else ".pairs-build-"
     with tempfile.TemporaryDirectory(prefix=prefix, dir=base) as tmp:
         work = Path(tmp)
-        targets = {name: (_column_path(stem, name) if stem is not None else work / f"out.{name}.npy")
-                   for name, _ in _COLUMNS}
+        targets = {name: (column_path(stem, name) if stem is not None else work / f"out.{name}.npy")
+                   for name, _ in COLUMNS}
         _write_arrays(u, theta, targets, work, int(max_bytes), max_block, n_buckets)
-        arrays = {name: np.load(targets[name], mmap_mode="r" if stem is not None else None) for name, _ in _COLUMNS}
+        arrays = {name: np.load(targets[name], mmap_mode="r" if stem is not None else None) for name, _ in COLUMNS}
     return PairCatalog(i=arrays["i"], j=arrays["j"], angle=arrays["angle"], limit_rad=theta)
 
 
-def _column_path(stem: Path, name: str) -> Path:
+def column_path(stem: Path, name: str) -> Path:
+    """The ``.npy`` file of array ``name`` (a :data:`COLUMNS` name) of the catalog written to ``stem``:
+    ``<stem>.<name>.npy``."""
     return stem.with_name(f"{stem.name}.{name}.npy")
-
-
-__all__ = ["FORMAT_VERSION", "DEFAULT_MAX_BYTES", "PairCatalog", "build_pair_catalog", "load_pair_catalog",
-           "pair_cache_path", "pair_cache_files"]
-
-# the cache lives in its own module; its public functions are part of this module's interface
-from dualsight.catalogs.pair_cache import load_pair_catalog, pair_cache_files, pair_cache_path  # noqa: E402,F401

@@ -92,7 +92,7 @@ than V = 2.5 agrees with the BSC within ~0.06 mag (tests/test_catalogs.py)."""
 @dataclass(frozen=True)
 class StarCatalogConfig:
     """What to build.  Both ranges are part of the field types (pydantic ``Field``), checked when a TOML
-    table is validated (``dualsight.jobs.engine.specs.validate``) and when the dataclass is built in Python
+    table is validated (``dualsight.config.validate``) and when the dataclass is built in Python
     (ConfigError naming ``catalog.<field>``, the value and the range).
 
     mag_limit : faintest Johnson V kept (mag), a finite number in [-2, 12] (:data:`MAG_LIMIT_RANGE`:

@@ -48,7 +48,7 @@ class BlobberConfig:
     """Blobber settings.
 
     Every field's range is part of its type (pydantic ``Field``), checked when a TOML table is validated
-    (``dualsight.jobs.engine.specs.validate``) and when the dataclass is built in Python (ValueError naming the
+    (``dualsight.config.validate``) and when the dataclass is built in Python (ValueError naming the
     field, the value and the allowed range).
 
     Attributes

@@ -69,7 +69,7 @@ class VotingConfig:
     """Options of :func:`dualsight.nav.starid.identify`.  Defaults: the reference-faithful :meth:`paper`.
 
     Every field's range is part of its type (pydantic ``Field``), checked when a TOML table is validated
-    (``dualsight.jobs.engine.specs.validate``) and when the dataclass is built in Python; invalid values raise
+    (``dualsight.config.validate``) and when the dataclass is built in Python; invalid values raise
     :class:`dualsight.errors.ConfigError` (a ``ValueError``) naming ``voting.<field>``, the value and
     the allowed range.
 

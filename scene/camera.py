@@ -35,8 +35,8 @@ import numpy as np
 import pydantic
 from pydantic import Field
 
+from dualsight.config import check_fields, validate
 from dualsight.errors import ConfigError, read_user_file
-from dualsight.config import check_fields
 
 _DIST_LEN = 5
 MAX_SIDE_PX = 65536
@@ -117,7 +117,7 @@ class Camera:
     @classmethod
     def from_dict(cls, table: dict, source: str = "camera") -> "Camera":
         """Build from a ``[camera]`` table (see module docstring; the layout is :class:`CameraTable`),
-        validated by ``dualsight.jobs.engine.specs.validate``; errors name ``source`` and ``camera.<key>``."""
+        validated by ``dualsight.config.validate``; errors name ``source`` and ``camera.<key>``."""
         return cls.from_table(validate_table(CameraTable, table, source=source, section="camera"), source=source)
 
     @classmethod
@@ -283,10 +283,8 @@ def read_toml(path: Path) -> dict:
 
 
 def validate_table(model, table, *, source: str, section: str | None):
-    """``dualsight.jobs.engine.specs.validate`` (the one configuration layer, imported lazily) for the scene's
-    file readers; a key that cannot be printed on one line (e.g. holding a newline) is named escaped."""
-    from dualsight.jobs.engine.specs import validate
-
+    """:func:`dualsight.config.validate` (the one configuration layer) for the scene's file readers; a key that
+    cannot be printed on one line (e.g. holding a newline) is named escaped."""
     try:
         return validate(model, table, source=source, section=section)
     except ConfigError as e:

@@ -43,7 +43,7 @@ A TOML file with the reference's three parts (``examples/satellites/README.md`` 
 Every problem raises :class:`~dualsight.errors.ConfigError` naming the file, the key (e.g.
 ``component[1].size``) and what is allowed.  The layout and every range are the pydantic models below
 (:class:`SatelliteTable`, :class:`SatCameraTable`, :class:`BodyTable`, :class:`ComponentTable`),
-validated by ``dualsight.jobs.engine.specs.validate``; the point clouds are bounded by
+validated by ``dualsight.config.validate``; the point clouds are bounded by
 :data:`MAX_SURFACE_POINTS`.
 """
 
@@ -400,7 +400,7 @@ def satellite_from_dict(data: dict, source: str = "<dict>") -> SatelliteConfig:
     """Validate a parsed satellite file (see module docstring) and build a :class:`SatelliteConfig`.
 
     The layout is the pydantic models :class:`SatelliteTable`, :class:`SatCameraTable`,
-    :class:`BodyTable` and :class:`ComponentTable`, validated by ``dualsight.jobs.engine.specs.validate``
+    :class:`BodyTable` and :class:`ComponentTable`, validated by ``dualsight.config.validate``
     (types, ranges, unknown keys); the rules between keys (size per shape, surface points, component
     count, light not zero, camera outside the body) are checked here."""
     rd = _Reader(source)

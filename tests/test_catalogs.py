@@ -20,7 +20,8 @@ import pytest
 from dualsight.catalogs import cache as cache_mod
 from dualsight.catalogs import pairs as pairs_mod
 from dualsight.catalogs import stars as stars_mod
-from dualsight.catalogs.pairs import PairCatalog, build_pair_catalog, load_pair_catalog
+from dualsight.catalogs.pair_cache import load_pair_catalog, pair_cache_path
+from dualsight.catalogs.pairs import PairCatalog, build_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog, read_hip2
 from dualsight.errors import ConfigError
 from dualsight.scene.units import ARCSEC, angle_between
@@ -318,9 +319,9 @@ def test_dubhe_merak(cat55, paper_pairs):
 
 def test_pair_cache(cat55, cat_dir, paper_pairs, monkeypatch):
     fov, pc = paper_pairs
-    path = pairs_mod.pair_cache_path(cat55, fov, cat_dir)
+    path = pair_cache_path(cat55, fov, cat_dir)
     assert path.is_file() and f"pairs-v{pairs_mod.FORMAT_VERSION}-" in path.name
-    assert pairs_mod.pair_cache_path(cat55, fov * 0.5, cat_dir) != path
+    assert pair_cache_path(cat55, fov * 0.5, cat_dir) != path
 
     def no_build(*a, **k):
         raise AssertionError("rebuilt although cached")

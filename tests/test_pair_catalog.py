@@ -18,7 +18,8 @@ import pytest
 
 from dualsight.catalogs import pairs as pairs_mod
 from dualsight.catalogs.cache import short_hash
-from dualsight.catalogs.pairs import PairCatalog, build_pair_catalog, load_pair_catalog
+from dualsight.catalogs.pair_cache import load_pair_catalog, pair_cache_files, pair_cache_path
+from dualsight.catalogs.pairs import PairCatalog, build_pair_catalog
 from dualsight.scene.units import angle_between
 
 
@@ -179,8 +180,8 @@ def _no_build(monkeypatch):
 def test_cache_round_trip_is_memory_mapped(cached, monkeypatch, capsys):
     stars, theta, ref, pc, d = cached
     _assert_same(pc, ref)
-    files = pairs_mod.pair_cache_files(stars, theta, d)
-    assert all(p.is_file() for p in files) and files[-1] == pairs_mod.pair_cache_path(stars, theta, d)
+    files = pair_cache_files(stars, theta, d)
+    assert all(p.is_file() for p in files) and files[-1] == pair_cache_path(stars, theta, d)
     assert f"pairs-v{pairs_mod.FORMAT_VERSION}-" in files[-1].name
     man = json.loads(files[-1].read_text())
     assert man["pairs"] == len(ref[0]) and man["format"] == pairs_mod.FORMAT_VERSION
@@ -193,7 +194,7 @@ def test_cache_round_trip_is_memory_mapped(cached, monkeypatch, capsys):
         assert isinstance(a, np.memmap) and not a.flags.writeable
     assert again.max_angle == theta and again.nbytes == 16 * len(ref[0])
     assert capsys.readouterr().err == ""
-    assert pairs_mod.pair_cache_path(stars, theta * 0.5, d) != files[-1]
+    assert pair_cache_path(stars, theta * 0.5, d) != files[-1]
 
 
 def _replace(path, data: bytes) -> None:
@@ -208,7 +209,7 @@ def _replace(path, data: bytes) -> None:
                                     "garbage-manifest", "header-only"])
 def test_damaged_cache_is_rebuilt_with_one_warning(cached, damage, capsys):
     stars, theta, ref, _, d = cached
-    fi, fj, fa, man = pairs_mod.pair_cache_files(stars, theta, d)
+    fi, fj, fa, man = pair_cache_files(stars, theta, d)
     capsys.readouterr()
     if damage == "truncate-angle":
         _replace(fa, fa.read_bytes()[:-24])
@@ -239,7 +240,7 @@ def test_a_killed_build_is_cleaned_up_and_rebuilt(cached, capsys):
     """Arrays without a manifest (a build killed before its last rename) and a killed build's leftovers
     (its bucket folder, temporary arrays): rebuilt with one warning, the leftovers removed."""
     stars, theta, ref, _, d = cached
-    fi, fj, fa, man = pairs_mod.pair_cache_files(stars, theta, d)
+    fi, fj, fa, man = pair_cache_files(stars, theta, d)
     stem = man.with_suffix("")
     (d / f".{stem.name}.build-dead").mkdir()
     (d / f".{stem.name}.build-dead" / "b00000001.rec").write_bytes(b"\0" * 160)

@@ -60,7 +60,7 @@ import numpy as np
 import pyarrow as pa
 
 from dualsight.kernels.digest import frame_digest, to_int64
-from dualsight.catalogs.pairs import load_pair_catalog
+from dualsight.catalogs.pair_cache import load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 from dualsight.errors import ImageError
 from dualsight.jobs.engine.specs import validate
