@@ -4,7 +4,7 @@ glibc's ``malloc`` serves every request above its mmap threshold (128 KiB at sta
 after such a block is freed) with a fresh ``mmap``, and ``free`` unmaps it: the next array of that size
 starts again on untouched pages, and on this project's VMs each first touch of a 4 KiB page costs ~1.5 us
 of kernel time.  A 1024 x 768 float32 frame is 768 pages: ~1.2 ms of page faults every time a
-temporary of that size is made, more than the arithmetic on it (measured in ``scene/background.py``'s
+temporary of that size is made, more than the arithmetic on it (measured in ``kernels/background.py``'s
 chain: 6 ms per frame with fresh pages, 0.8 ms with reused ones).
 
 :func:`tune` raises the mmap threshold to glibc's maximum (32 MiB on 64-bit: blocks below it come from

@@ -37,13 +37,13 @@ import numpy as np
 import taichi as ti
 from pydantic import Field
 
+from dualsight.config import check_fields
 from dualsight.kernels import star_psf
 from dualsight.kernels import starfield as sf
-from dualsight.config import check_fields
 from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.background import row_medians
 from dualsight.kernels.digest import patch_digest_taichi
 from dualsight.kernels.labelling import Components, find, label_frames, label_segments, union
-from dualsight.scene.background import row_medians
 
 log = logging.getLogger(__name__)
 
@@ -239,7 +239,7 @@ def estimate_background(images: np.ndarray, step: int = 16, background=None) -> 
     ----------
     images : (B, H, W) array.
     step : take every ``step``-th row and column (starting at step // 2).
-    background : optional :class:`dualsight.scene.background.Background` of the frames: the sample is then
+    background : optional :class:`dualsight.kernels.background.Background` of the frames: the sample is then
         of ``images - background`` (float64, as the labeller thresholds them).
 
     Returns
@@ -339,7 +339,7 @@ def detect_stars(images: np.ndarray, cfg: DetectConfig = DetectConfig(), backgro
     ----------
     images : (B, H, W) uint8, uint16, float32 or float64 frames (ADU), C-contiguous preferred.
     cfg : :class:`DetectConfig`.
-    background : optional :class:`dualsight.scene.background.Background` of the frames: detection then runs
+    background : optional :class:`dualsight.kernels.background.Background` of the frames: detection then runs
         on ``images - background`` (evaluated per pixel inside the labeller, float64; no residual frame is made).
 
     Returns

@@ -22,7 +22,7 @@ of He, Chao & Suzuki 2008, "A run-based two-scan labeling algorithm", IEEE TIP 1
    sum over segments), their pixel counts, bounding boxes, their moment sums (their runs' sums added in raster
    order) and the sums over all foreground pixels of the segment.
 
-With a ``background`` (:class:`dualsight.scene.background.Background` of dense frames), kernels 1-2 threshold
+With a ``background`` (:class:`dualsight.kernels.background.Background` of dense frames), kernels 1-2 threshold
 and sum ``value - background``, the smooth background evaluated per pixel from its block rows (float64, the same
 bits as its numpy evaluation): a frame minus its background is labelled without a residual frame being made
 (one read of the raw pixels instead of writing and reading a float32 residual; ``*_bg`` kernels).
@@ -98,7 +98,7 @@ def _threshold_type(dtype):
 @ti.func
 def _pixel(pix: ti.template(), p, vt: ti.template(), bg: ti.template(), rows: ti.template(), ra, rb, w0, w1, x):
     """The value pixel ``p`` is thresholded and summed by: ``pix[p]`` as type ``vt``; with ``bg`` (static) the
-    float64 ``pix[p]`` minus the smooth background (:class:`dualsight.scene.background.Background`) at column x
+    float64 ``pix[p]`` minus the smooth background (:class:`dualsight.kernels.background.Background`) at column x
     of an image row whose two block rows are ``rows[ra]``, ``rows[rb]`` with weights ``w0``, ``w1``
     (:func:`_row_weights`): both products are exact in float64 and every operation rounds once, so these are
     the very bits of ``Background.grid``."""
@@ -393,7 +393,7 @@ def label_segments(pixels, seg_pix, seg_w, seg_rows, seg_c0, seg_r0, seg_frame, 
     offset : (F,) float64 subtracted from the values in the intensity sums (None = 0).
     coverage : optional (N,) float32 coverage in [0, 1] beside ``pixels`` for the ``sw*`` sums (else w = 1).
     connectivity : 8 or 4.
-    background : optional :class:`dualsight.scene.background.Background` of the frames the segments lie in
+    background : optional :class:`dualsight.kernels.background.Background` of the frames the segments lie in
         (segment columns and rows are image columns and rows; frame f = its frame ``f``): the pixels are then
         thresholded and summed as ``value - background`` (float64; ``threshold`` and ``offset`` apply to it).
 
@@ -480,7 +480,7 @@ def label_frames(images, threshold, *, offset=None, coverage=None, connectivity:
 
     images : (B, H, W) uint8, uint16, float32 or float64; threshold, offset : scalar or (B,) float64;
     coverage : optional (B, H, W) float32; background : optional
-    :class:`dualsight.scene.background.Background` of the frames (their shape).  Returns :class:`Components`
+    :class:`dualsight.kernels.background.Background` of the frames (their shape).  Returns :class:`Components`
     (segment = frame index).
     """
     images = np.ascontiguousarray(images)

@@ -26,7 +26,7 @@ from dualsight.jobs.cli.main import main
 from dualsight.jobs.kinds.hil_truth import Site, resolve_star_truths
 from dualsight.jobs.engine.runner import run_job
 from dualsight.scene.attitude import angle_between, radec_to_unit, rot_axis, unit_to_radec
-from dualsight.scene.background import bin_size, subtract_background
+from dualsight.kernels.background import bin_size, subtract_background
 from dualsight.scene.camera import Camera
 from dualsight.scene.pointing import roll_deg
 from dualsight.scene.skytruth import load_truth_json

@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from dualsight.kernels import rng as krng
 from dualsight.kernels.detect import (DetectConfig, Detections, detect_stars, estimate_background,
                                       render_and_detect_ideal)
-from dualsight.scene.background import row_medians
+from dualsight.kernels.background import row_medians
 from dualsight.kernels.starfield import (SensorConfig, false_star_lists, flux_from_magnitude,
                                          render_star_fields)
 

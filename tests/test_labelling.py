@@ -176,7 +176,7 @@ def test_background_inside_the_labeller_matches_opencv_on_the_residual(seed, con
     """``label_frames(frames, background=model)`` (the smooth background evaluated per pixel in the row kernels)
     labels and sums exactly what OpenCV and a brute-force sum give on ``frames - background`` (float64, from
     ``Background.subtract``): a sloped sky with spots, frames not multiples of the block, both kernel variants."""
-    from dualsight.scene.background import background_model
+    from dualsight.kernels.background import background_model
 
     rng = np.random.default_rng(seed)
     B, H, W = shape
@@ -214,7 +214,7 @@ def test_detection_with_a_background_equals_detection_on_the_residual():
     """detect_stars(frames, background=model) gives the detections of detect_stars on the float64 residual, bit
     for bit (noise estimate from the same sample, same threshold, same sums), several frames in one call."""
     from dualsight.kernels.detect import DetectConfig, detect_stars
-    from dualsight.scene.background import background_model
+    from dualsight.kernels.background import background_model
 
     rng = np.random.default_rng(11)
     B, H, W = 3, 130, 170

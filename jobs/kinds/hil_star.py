@@ -1,7 +1,7 @@
 """Job kind ``hil_star``: the SIL star chain on real night-sky frames, scored against independent truth.
 
     read (scene.imageio) -> detect/centroid: local background, matched filter, hot pixels, saturation,
-    PSF fit (kernels.detect_local; or smooth background (scene.background) + kernels.detect: "global")
+    PSF fit (kernels.detect_local; or smooth background (kernels.background) + kernels.detect: "global")
     -> back-project (nav.observations) -> lost-in-space geometric voting -> SVD attitude (nav.star_solution)
     -> boresight RA/Dec and roll (scene.pointing), per-star residuals (reference Table 6)
     -> errors against the truth (nav.hil_score) -> lake rows ``hil_star``, ``hil_star_stars``
@@ -75,7 +75,7 @@ from dualsight.nav.observations import observations
 from dualsight.nav.star_solution import centroid_weights, identify, solve
 from dualsight.nav.starid import VotingConfig
 from dualsight.scene.attitude import angle_between, unit_to_radec
-from dualsight.scene.background import background_model, subtract_background
+from dualsight.kernels.background import background_model, subtract_background
 from dualsight.scene.camera import Camera
 from dualsight.scene.imageio import read_image
 from dualsight.scene.pointing import roll_deg
@@ -211,7 +211,7 @@ def detect_frames(frames: np.ndarray, settings: StarSettings, detect: DetectConf
     ``settings.detector``: "local" (default) = :func:`dualsight.kernels.detect_local.detect_real` on the raw
     frames (tiled local background, matched filter, hot pixels, saturation at ``saturation_adu``, e.g. the
     camera's 2^bits - 1, PSF-fit centroids with their uncertainty); "global" = the smooth background
-    (``background_block_px``, :func:`~dualsight.scene.background.background_model`) then
+    (``background_block_px``, :func:`~dualsight.kernels.background.background_model`) then
     :func:`dualsight.kernels.detect.detect_stars` on the frames minus that background, evaluated per pixel
     inside the labeller (no residual frame is made unless asked for)."""
     if settings.detector == "local":
