@@ -23,7 +23,7 @@ thread (no atomics: a case's float sums do not depend on scheduling):
   bilinear between the image's samples (zero outside).  Bilinear weights sum to one, so the flux and the
   centroid are kept exactly; a second moment grows by phi (1 - phi) per axis (phi = the subpixel
   phase, 1/6 on average), none at integer phase.  The file is read once per process (cached on its path,
-  size and modification time) by :func:`load_psf_image`.
+  size and modification time) by :func:`dualsight.kernels.psf_image.load_psf_image`.
 * **Bright extended objects** (``bright_objects`` with ``radius_px > 0``, e.g. the Moon): uniform disks,
   exact pixel areas as the defocus disk; the PSF (a few px) is neglected at their limb.  Bright points
   (``radius_px = 0``, planets) use the star PSF with a window of :data:`BRIGHT_WINDOW_SIGMA` sigma (their
@@ -49,24 +49,18 @@ boresight gives each star its own length (L = |w_z| T r).
 Taichi is initialised lazily (``dualsight.kernels._runtime``) on the first kernel call.
 """
 
-import io
 import math
-import os
-import threading
-from pathlib import Path
 
 import numpy as np
 import taichi as ti
 
 from dualsight.kernels import star_psf
 from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.psf_image import load_psf_image
 
-__all__ = ["PSF_IMAGE_MAX_PX", "SMEAR_STEP_PX", "MAX_SMEAR_STEPS", "BRIGHT_WINDOW_SIGMA", "load_psf_image",
-           "defocus_quadrature", "smear_vectors", "smear_steps", "bright_object_sources", "Sources",
-           "prepare_sources", "splat_sources"]
+__all__ = ["SMEAR_STEP_PX", "MAX_SMEAR_STEPS", "BRIGHT_WINDOW_SIGMA", "defocus_quadrature", "smear_vectors",
+           "smear_steps", "bright_object_sources", "Sources", "prepare_sources", "splat_sources"]
 
-PSF_IMAGE_MAX_PX = 64
-"""Largest side (px) of a measured PSF image."""
 SMEAR_STEP_PX = 0.2
 """Largest spacing (px) of the sub-positions along a smear path."""
 MAX_SMEAR_STEPS = 4096
@@ -79,85 +73,9 @@ QUAD_MIN_SPACING_PX = 0.1
 """Smallest point spacing (px) of the defocus ring quadrature."""
 QUAD_MAX_POINTS = 16384
 """Sets the defocus quadrature's largest spacing, R sqrt(pi / QUAD_MAX_POINTS) (~1.4x as many points at most)."""
-_PSF_IMAGE_MAX_BYTES = 1 << 20
 
 MODEL_GAUSSIAN, MODEL_DEFOCUS, MODEL_IMAGE = 0, 1, 2
 _MODEL_IDS = {"gaussian": MODEL_GAUSSIAN, "defocus": MODEL_DEFOCUS, "image": MODEL_IMAGE}
-
-
-# ============================================================================ measured PSF image
-_psf_cache: dict = {}
-_psf_lock = threading.Lock()
-
-
-def psf_image_sha256(a: np.ndarray) -> str:
-    """SHA-256 (hex) of a loaded PSF (:func:`load_psf_image`: unit-sum float64): its shape and little-endian values.
-    Stored in the sensor spec, so a run's identity covers the PSF's content, not only its file name."""
-    import hashlib
-
-    h = hashlib.sha256(f"{a.shape[0]}x{a.shape[1]}:".encode())
-    h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
-    return h.hexdigest()
-
-
-def load_psf_image(path: str, key: str = "SensorConfig.psf_image") -> np.ndarray:
-    """The measured PSF of ``path`` as a read-only (ny, nx) float64 array of unit sum (cached per process).
-
-    ``.npy`` (numpy, no pickles) or an image (PNG, TIFF, FITS; colour is converted to grey).  Checked:
-    2-D, both sides odd and <= :data:`PSF_IMAGE_MAX_PX`, every value finite and >= 0, positive sum.
-    Relative paths are relative to the working directory.  Every failure is one-line ValueError naming
-    ``key`` and the file.  The cache key is (absolute path, size, modification time), so the file is read
-    once per process (a job's worker) unless it changes.
-    """
-    p = Path(os.path.abspath(os.fspath(path)))
-
-    def fail(msg):
-        return ValueError(f"{key}: {str(path)!r}: {msg}")
-
-    try:
-        st = p.stat()
-    except OSError as e:
-        raise fail(f"cannot read the file ({e.strerror or e})") from None
-    ck = (str(p), st.st_size, st.st_mtime_ns)
-    with _psf_lock:
-        got = _psf_cache.get(ck)
-    if got is not None:
-        return got
-    from dualsight.errors import InputError, read_user_file
-
-    try:
-        if p.suffix.lower() == ".npy":
-            data = read_user_file(p, what="PSF file", max_bytes=_PSF_IMAGE_MAX_BYTES)
-            a = np.load(io.BytesIO(data), allow_pickle=False)
-        else:
-            from dualsight.scene.imageio import read_image
-            a = read_image(p, as_gray=True).pixels
-    except InputError as e:
-        raise fail(str(getattr(e, "detail", e)).replace("\n", " ")) from None
-    except (ValueError, OSError, EOFError) as e:
-        raise fail(f"not a readable .npy/PNG/TIFF/FITS array ({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
-    a = np.asarray(a)
-    if a.ndim != 2:
-        raise fail(f"must be a 2-D array, got shape {a.shape}")
-    if a.dtype.kind not in "uif":
-        raise fail(f"must hold numbers, got dtype {a.dtype}")
-    ny, nx = a.shape
-    if ny % 2 == 0 or nx % 2 == 0 or ny > PSF_IMAGE_MAX_PX or nx > PSF_IMAGE_MAX_PX:
-        raise fail(f"must have odd sides <= {PSF_IMAGE_MAX_PX} px (centred on its middle pixel), got {ny} x {nx}")
-    a = a.astype(np.float64)
-    if not np.all(np.isfinite(a)):
-        raise fail("holds non-finite values")
-    if a.min() < 0:
-        raise fail(f"holds negative values (min {a.min():g})")
-    total = float(a.sum())
-    if not total > 0:
-        raise fail("sums to zero")
-    a = np.ascontiguousarray(a / total)
-    a.setflags(write=False)
-    with _psf_lock:
-        _psf_cache.clear()  # one PSF per job: keep only the latest
-        _psf_cache[ck] = a
-    return a
 
 
 # ============================================================================ geometry helpers (numpy)

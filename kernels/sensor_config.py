@@ -1,9 +1,10 @@
-"""The star renderer's sensor model: :class:`SensorConfig` (every field's range in its type) and the
-magnitude-to-electrons conversion, importable without the render kernels (:mod:`dualsight.kernels.starfield`
-renders with it; the formulas and sources are in that module's docstring)."""
+"""The star renderer's sensor model: :class:`SensorConfig` (every field's range in its type), the
+magnitude-to-electrons conversion and :func:`with_psf_digest`, the explicit step that reads a measured PSF
+file; importable without the render kernels (no Taichi: :mod:`dualsight.kernels.starfield` renders with it;
+the formulas and sources are in that module's docstring).  Constructing a :class:`SensorConfig` reads no file."""
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Annotated, Literal
 
 import numpy as np
@@ -11,9 +12,13 @@ from pydantic import ConfigDict, Field
 from typing_extensions import TypedDict
 
 from dualsight.config import check_fields
-from dualsight.kernels import psf_models
+from dualsight.kernels.psf_image import load_psf_image, psf_image_sha256
 
-_QUANT_EPS = 1e-9  # ADU; keeps exact multiples of the gain from flooring one count low
+QUANT_EPS_ADU = 1e-9
+"""ADU added before the ADC's floor, ADU = floor(e / gain + bias + QUANT_EPS_ADU): keeps a charge that is an exact
+multiple of the gain from flooring one count low through rounding.  Every evaluation of the ADC uses it (the
+render kernels of :mod:`dualsight.kernels.starfield`, the sky tables of :mod:`dualsight.kernels.sky_noise`,
+:meth:`SensorConfig.empty_pixel_adu`), so they agree bit for bit."""
 
 
 # ============================================================================ configuration
@@ -99,10 +104,12 @@ class SensorConfig:
         diffraction, charge diffusion).
     psf_image : path of the measured PSF (psf_model "image", and only then): a ``.npy`` array or a PNG,
         TIFF or FITS image, 2-D, odd sides <= 64 px, finite, >= 0, sampled on the sensor's pixels (1 to
-        4096 characters; relative to the working directory).  Read and checked when the config is built.
-    psf_image_sha256 : SHA-256 of the PSF's content (``psf_models.psf_image_sha256``), filled in when the config
-        is built and kept in the spec, so a run's identity covers the file's content: a spec that states it
-        (a stored run being resumed or replayed) fails in one line if the file has changed since.
+        4096 characters; relative to the working directory).  Read and checked by :func:`with_psf_digest`
+        (where the job layer builds the spec) and when rendering, not by the constructor.
+    psf_image_sha256 : SHA-256 of the PSF's content (:func:`dualsight.kernels.psf_image.psf_image_sha256`),
+        filled in by :func:`with_psf_digest` and kept in the spec, so a run's identity covers the file's
+        content: a spec that states it (a stored run being resumed or replayed) fails in one line there if
+        the file has changed since.
     rate_deg_s : body rate [wx, wy, wz] of the camera frame during the exposure (deg/s), each in [-100, 100];
         stars smear along their path (straight segments, see :mod:`dualsight.kernels.psf_models`).  Needs
         the camera model at render time.  [0, 0, 0] = off.
@@ -159,15 +166,7 @@ class SensorConfig:
         if (self.psf_model == "image") != (self.psf_image is not None):
             raise ValueError("SensorConfig.psf_image must be given with psf_model = \"image\" and only then "
                              f"(psf_model {self.psf_model!r}, psf_image {self.psf_image!r})")
-        if self.psf_image is not None:            # read and checked now (cached: once per process)
-            got = psf_models.psf_image_sha256(psf_models.load_psf_image(self.psf_image))
-            if self.psf_image_sha256 is None:     # the content is part of the spec (and of a run's hash)
-                object.__setattr__(self, "psf_image_sha256", got)
-            elif self.psf_image_sha256 != got:
-                raise ValueError(f"SensorConfig.psf_image_sha256: the PSF file {self.psf_image!r} is not the one "
-                                 f"this spec was made with (content sha256 {got[:12]}..., the spec says "
-                                 f"{self.psf_image_sha256[:12]}...); restore the file or start a new run")
-        elif self.psf_image_sha256 is not None:
+        if self.psf_image is None and self.psf_image_sha256 is not None:
             raise ValueError("SensorConfig.psf_image_sha256 is only allowed with psf_image")
 
     def __hash__(self):  # bright_objects holds dicts (plain JSON in to_dict)
@@ -234,7 +233,7 @@ class SensorConfig:
         if self.psf_model == "defocus":
             return self.defocus_radius_px + (g if self.defocus_gaussian else 1.0)
         if self.psf_model == "image":
-            img = psf_models.load_psf_image(self.psf_image)
+            img = load_psf_image(self.psf_image)
             return max(img.shape) // 2 + 1.0
         return g
 
@@ -246,7 +245,7 @@ class SensorConfig:
         e = min(np.float64(np.float32(0.0)) + self.base_e, self.full_well_e)
         adu = e / self.gain_e_per_adu + self.bias_adu
         if self.quantize:
-            adu = math.floor(adu + _QUANT_EPS)
+            adu = math.floor(adu + QUANT_EPS_ADU)
         return float(min(max(adu, 0.0), float(self.max_adu)))
 
 
@@ -257,3 +256,30 @@ def flux_from_magnitude(vmag, cfg: SensorConfig = SensorConfig()) -> np.ndarray:
     """
     m = np.asarray(vmag, dtype=np.float64)
     return cfg.zero_mag_rate_e_per_s * np.power(10.0, -0.4 * m) * cfg.exposure_s
+
+
+def with_psf_digest(cfg: SensorConfig, error=ValueError) -> SensorConfig:
+    """``cfg`` with the content hash of its measured PSF in ``psf_image_sha256``: the one step that reads the
+    ``psf_image`` file a spec names (the job layer calls it where it builds the spec, so the stored spec and the
+    run's hash cover the PSF's content, not only its path).
+
+    Without ``psf_image``: ``cfg`` itself, no I/O.  Otherwise the file is read and checked
+    (:func:`dualsight.kernels.psf_image.load_psf_image`, cached per process) and hashed
+    (:func:`~dualsight.kernels.psf_image.psf_image_sha256`); a ``cfg`` that already states the hash (a stored
+    spec being resumed or replayed) must state the file's.  ``error`` builds the exception raised, from its
+    one-line message, for a bad or missing file or a changed content (default ValueError; the job layer's names
+    the spec's source).
+    """
+    if cfg.psf_image is None:
+        return cfg
+    try:
+        got = psf_image_sha256(load_psf_image(cfg.psf_image))
+    except ValueError as e:
+        raise error(str(e)) from None
+    if cfg.psf_image_sha256 is None:
+        return replace(cfg, psf_image_sha256=got)
+    if cfg.psf_image_sha256 != got:
+        raise error(f"SensorConfig.psf_image_sha256: the PSF file {cfg.psf_image!r} is not the one this spec was "
+                    f"made with (content sha256 {got[:12]}..., the spec says {cfg.psf_image_sha256[:12]}...); "
+                    "restore the file or start a new run")
+    return cfg

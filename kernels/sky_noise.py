@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from dualsight.kernels import rng
-from dualsight.kernels.sensor_config import _QUANT_EPS, SensorConfig
+from dualsight.kernels.sensor_config import QUANT_EPS_ADU, SensorConfig
 
 MAX_STRAY_TABLE_ENTRIES = 1 << 21  # Poisson CDF entries tabulated for stray light (24 MB at most)
 MAX_SKY_ADU_WORK = 1 << 19  # (Poisson terms) x (ADU values) evaluated for the sky's ADU table (~0.1 s, once)
@@ -72,7 +72,7 @@ def _sky_adu_table_for(base_e: float, shot: bool, read_e: float, full_well: floa
         k, p = np.array([base_e if not shot else 0.0]), np.ones(1)
     e = np.minimum(k, full_well)                              # the kernel: e = min(e, full_well)
     if read_e <= 0.0:   # ADU a function of the charge: the kernel's own f64 arithmetic
-        adu = np.minimum(np.maximum(np.floor(e / gain + bias + _QUANT_EPS), 0.0), max_adu)
+        adu = np.minimum(np.maximum(np.floor(e / gain + bias + QUANT_EPS_ADU), 0.0), max_adu)
         a0 = float(adu.min())
         pa = np.bincount((adu - a0).astype(np.int64), weights=p)
         cdf = np.cumsum(pa)
@@ -85,7 +85,7 @@ def _sky_adu_table_for(base_e: float, shot: bool, read_e: float, full_well: floa
         a = np.arange(lo, hi + 1.0)
         # P(ADU <= a) = P(e + R z < (a + 1 - bias - eps) g) = sum_k p_k Phi(((a + 1 - bias - eps) g - e_k) / R)
         # for a < max_adu (the clip at 0 ADU is included: every y < 1 floors to <= 0); 1 at max_adu
-        zc = (e[None, :] - (a[:, None] + 1.0 - bias - _QUANT_EPS) * gain) / (read_e * math.sqrt(2.0))
+        zc = (e[None, :] - (a[:, None] + 1.0 - bias - QUANT_EPS_ADU) * gain) / (read_e * math.sqrt(2.0))
         cdf = (0.5 * _erfc(zc).astype(np.float64)) @ p         # Phi(x) = erfc(-x / sqrt 2) / 2
         cdf[a >= max_adu] = 1.0
         a0 = float(lo)

@@ -57,7 +57,7 @@ from dualsight.kernels import psf_models, rng, star_psf
 from dualsight.kernels._runtime import KernelCache
 from dualsight.kernels.sky_noise import (_SKY_ADU_SIGMAS, MAX_SKY_ADU_WORK, MAX_STRAY_TABLE_ENTRIES,  # noqa: F401
                                          _stray_tables, sky_adu_table)
-from dualsight.kernels.sensor_config import (_QUANT_EPS, MAX_ADU, MAX_CHARGE_E, BrightObject,  # noqa: F401  (re-exported)
+from dualsight.kernels.sensor_config import (QUANT_EPS_ADU, MAX_ADU, MAX_CHARGE_E, BrightObject,  # noqa: F401  (re-exported)
                                              SensorConfig, flux_from_magnitude)
 
 __all__ = ["SensorConfig", "flux_from_magnitude", "render_star_fields", "false_star_lists",
@@ -75,7 +75,7 @@ def ideal_adu(s, base_e, full_well, gain, bias, max_adu, quantize):
     e = ti.min(ti.cast(s, ti.f64) + base_e, full_well)
     adu = e / gain + bias
     if quantize != 0:
-        adu = ti.floor(adu + ti.f64(_QUANT_EPS))
+        adu = ti.floor(adu + ti.f64(QUANT_EPS_ADU))
     return ti.min(ti.max(adu, ti.f64(0.0)), max_adu)
 
 
@@ -258,7 +258,7 @@ def _build_finalize(dtype):
                         e += read_e * rng.normal_key(k_read, idx)
                     adu = e / gain + bias
                     if quantize != 0:
-                        adu = ti.floor(adu + ti.f64(_QUANT_EPS))
+                        adu = ti.floor(adu + ti.f64(QUANT_EPS_ADU))
                     adu = ti.min(ti.max(adu, ti.f64(0.0)), max_adu)
                     out[p0 + c] = ti.cast(adu, tdt)
     return finalize

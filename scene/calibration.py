@@ -39,7 +39,7 @@ import numpy as np
 from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.errors import ConfigError, ImageError, InputError
 from dualsight.scene.camera import Camera, read_toml
-from dualsight.scene.imageio import Image, list_images, read_image
+from dualsight.kernels.imageio import Image, list_images, read_image
 
 #: Corner detection flags of OpenCV's calibration sample.
 FIND_FLAGS_DEFAULT = 1 | 2 | 8  # CALIB_CB_ADAPTIVE_THRESH | CALIB_CB_NORMALIZE_IMAGE | CALIB_CB_FAST_CHECK

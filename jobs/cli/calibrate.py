@@ -72,7 +72,7 @@ def cmd_calibrate(args) -> int:
     from dualsight.jobs.kinds import calibrate as job
     from dualsight.jobs.kinds.hil_common import engine_lake, run_engine
     from dualsight.scene import calibration as cal
-    from dualsight.scene.imageio import list_images
+    from dualsight.kernels.imageio import list_images
     from dualsight.warehouse.query import connect, run_report
 
     board = cal.parse_board(args.board)

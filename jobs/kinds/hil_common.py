@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from dualsight.errors import ImageError
 from dualsight.jobs.cli.args import add_engine_args, add_image_args  # noqa: F401  (their home before)
-from dualsight.scene.imageio import list_images
+from dualsight.kernels.imageio import list_images
 
 __all__ = ["Frozen", "ImageEntry", "image_entries", "check_unchanged", "expand_inputs", "spec_base", "n_cases",
            "rows_table", "add_image_args", "add_engine_args", "engine_lake", "run_engine", "done_message",

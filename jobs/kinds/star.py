@@ -39,7 +39,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from dualsight.catalogs.pair_cache import load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
-from dualsight.errors import InputError
+from dualsight.errors import ConfigError, InputError
 from dualsight.jobs.kinds import star_summaries
 from dualsight.jobs.kinds.star_tables import CASES_SCHEMA, DETECTIONS_SCHEMA, cases_table, detections_table
 from dualsight.jobs.engine.runner import prepare, run_job
@@ -48,7 +48,7 @@ from dualsight.kernels import detect as kdetect
 from dualsight.kernels import starfield as kstar
 from dualsight.kernels.detect import DetectConfig
 from dualsight.kernels.digest import frame_digest_taichi
-from dualsight.kernels.starfield import SensorConfig
+from dualsight.kernels.sensor_config import SensorConfig, with_psf_digest
 from dualsight.nav.errors import STATUS_NAMES
 from dualsight.nav.observations import observations
 from dualsight.nav.star_solution import centroid_weights, identify, solve
@@ -177,7 +177,8 @@ def spec_from_dict(d: dict, source: str = "spec") -> StarSpec:
     camera = Camera.from_dict(top.camera, source=source)
     seed, bs, att, frame, cmp_ = top.seed, top.batch_size, top.attitudes, top.error_frame, top.compare_robust
     catalog = dataclass_from_table(StarCatalogConfig, d.get("catalog"), source=source, section="catalog")
-    sensor = dataclass_from_table(SensorConfig, d.get("sensor"), source=source, section="sensor")
+    sensor = with_psf_digest(dataclass_from_table(SensorConfig, d.get("sensor"), source=source, section="sensor"),
+                             error=lambda msg: ConfigError(msg, source=source, field="sensor"))
     detect = dataclass_from_table(DetectConfig, d.get("detect"), source=source, section="detect")
     voting = dataclass_from_table(VotingConfig, d.get("voting"), source=source, section="voting",
                                   base=VotingConfig.paper())

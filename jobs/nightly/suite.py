@@ -209,7 +209,7 @@ def _job(j: JobTable, i: int, source: str, base: Path) -> Job:
 
 
 def _images(text: str, base: Path) -> tuple[list[Path], str | None]:
-    from dualsight.scene.imageio import list_images
+    from dualsight.kernels.imageio import list_images
 
     p = _resolve(text, base)
     if any(c in str(p) for c in "*?["):

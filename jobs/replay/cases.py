@@ -192,7 +192,7 @@ def replay_generic_case(lake: Lake, manifest: dict, case_id: int, output: Path, 
     image, points, labels = None, np.zeros((0, 2)), []
     images = getattr(spec, "images", None)
     if images:
-        from dualsight.scene.imageio import read_image
+        from dualsight.kernels.imageio import read_image
 
         try:
             img = read_image(Path(images[case_id].path), as_gray=("image_digest" not in stored

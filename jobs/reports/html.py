@@ -167,7 +167,7 @@ def _prox(lake, con, m, run_id):
 
 
 def _hil_images(lake, m, run_id, cases: list[tuple[int, str]]):
-    from dualsight.scene.imageio import read_image
+    from dualsight.kernels.imageio import read_image
 
     items = []
     for case_id, cap in cases:

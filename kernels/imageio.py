@@ -1,4 +1,6 @@
-"""Reading real camera frames (PNG, JPEG, TIFF, FITS) for the hardware-in-the-loop path.
+"""Reading real camera frames (PNG, JPEG, TIFF, FITS) for the hardware-in-the-loop path (and the measured PSF
+images of :mod:`dualsight.kernels.psf_image`).  numpy, OpenCV and, for FITS, astropy (both imported on first
+use); no project import but :mod:`dualsight.errors`.
 
 Every failure is an :class:`dualsight.errors.ImageError` that names the file and what is wrong
 (missing, empty, truncated, not the format its name claims, unsupported extension), so that a
@@ -24,6 +26,9 @@ Effective bit depth
 
 from __future__ import annotations
 
+import io
+import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
@@ -250,8 +255,6 @@ def calibrate_frame(img, dark=None, flat=None) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------------- helpers
 def _natural_key(p: Path):
-    import re
-
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", p.name)]
 
 
@@ -322,9 +325,6 @@ def _decode_opencv(path: Path, fmt: str, data: bytes) -> np.ndarray:
 
 
 def _decode_fits(path: Path, data: bytes) -> np.ndarray:
-    import io
-    import warnings
-
     from astropy.io import fits
 
     try:
