@@ -169,7 +169,7 @@ def run_global(images, detect_cfg):
 
 
 def sep_kernel(sigma: float) -> np.ndarray:
-    from dualsight.kernels.detect_local import psf_kernel_1d
+    from dualsight.kernels.detect_psf import psf_kernel_1d
 
     k = psf_kernel_1d(sigma)
     return np.outer(k, k).astype(np.float32)

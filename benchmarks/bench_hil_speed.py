@@ -134,8 +134,8 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
     T = Timers()
     T.wrap(dl, "tile_background", "background")
     T.wrap(dl, "interpolate_tiles", "background")
-    T.wrap(dl, "_filter", "filter")
-    T.wrap(dl, "_candidates", "labelling")
+    T.wrap(dl, "matched_filter", "filter")
+    T.wrap(dl, "find_candidates", "labelling")
     T.wrap(dl, "_measure", "centroid fit")
     from dualsight.kernels import detect as kd
     T.wrap(hs, "subtract_background", "background")

@@ -1,40 +1,16 @@
-"""Background stage of the real-sensor detector (:mod:`dualsight.kernels.detect_local`): a tiled,
-sigma-clipped sky level and noise per frame, median-filtered over the tile grid and interpolated between tile
-centres; plus the normal-distribution helpers the clipping corrections use.  Pure numpy/OpenCV functions
-over arrays."""
+"""Stage 1 of the real-sensor detector (:mod:`dualsight.kernels.detect_local`, step 1 of its docstring): the
+sky's level and noise per frame from tiled, sigma-clipped statistics, median-filtered over the tile grid
+(:func:`tile_background`) and interpolated between tile centres (:func:`interpolate_tiles`); and the
+sigma-clipped statistics themselves: of sorted rows (:func:`clipped_stats`, the tiles) and of one sample
+(:func:`robust_std`, the matched filter's noise measurement in :mod:`dualsight.kernels.detect_candidates`),
+with the exact :func:`median_1d`.  Pure numpy/OpenCV functions over arrays (ADU in, ADU out)."""
 
 import math
 
 import numpy as np
 
 
-# ============================================================================ normal distribution
 _SQRT2 = math.sqrt(2.0)
-
-
-AS_P, AS_A = 0.3275911, (0.254829592, -0.284496736, 1.421413741, -1.453152027, 1.061405429)
-"""Abramowitz & Stegun 7.1.26: erf(x) = 1 - (a1 t + ... + a5 t^5) exp(-x^2), t = 1 / (1 + p x), x >= 0,
-|error| <= 1.5e-7; ``AS_A`` = (a1, ..., a5)."""
-
-
-def _erf(x):
-    """erf (Abramowitz & Stegun 7.1.26, :data:`AS_A`), vectorised."""
-    a1, a2, a3, a4, a5 = AS_A
-    x = np.asarray(x, np.float64)
-    s = np.sign(x)
-    a = np.abs(x)
-    t = 1.0 / (1.0 + AS_P * a)
-    y = 1.0 - (((((a5 * t + a4) * t) + a3) * t + a2) * t + a1) * t * np.exp(-a * a)
-    return s * y
-
-
-def _Phi(z):
-    return 0.5 * (1.0 + _erf(np.asarray(z, np.float64) / _SQRT2))
-
-
-def _phi(z):
-    z = np.asarray(z, np.float64)
-    return np.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
 
 
 def _clip_var_factor(c: float) -> float:
@@ -43,7 +19,6 @@ def _clip_var_factor(c: float) -> float:
     return 1.0 - 2.0 * c * math.exp(-0.5 * c * c) / math.sqrt(2.0 * math.pi) / p
 
 
-# ============================================================================ background
 def _sorted_mad(s: np.ndarray, med: np.ndarray) -> np.ndarray:
     """Exact median absolute deviation from ``med`` of each row of sorted ``s`` (T, N): the k-th smallest
     |s - med| (k = ceil(N / 2)) is min over windows [i, i + k) of max(med - s[i], s[i + k - 1] - med); the
@@ -65,8 +40,10 @@ def _sorted_mad(s: np.ndarray, med: np.ndarray) -> np.ndarray:
     return np.minimum(d0, d1).astype(np.float64)
 
 
-def _clipped_stats(s: np.ndarray, clip: float, iters: int):
-    """Sigma-clipped level and noise of each row of sorted values ``s`` (T, N) (module docstring, step 1).
+def clipped_stats(s: np.ndarray, clip: float, iters: int):
+    """Sigma-clipped level and noise of each row of sorted values ``s`` (T, N), any real dtype (ADU): the median and
+    1.4826 MAD, then ``iters`` windows of the values within ``clip`` sigma of the centre (clipped mean, clipped
+    standard deviation corrected for the truncation; :mod:`dualsight.kernels.detect_local`, step 1).
 
     The kept pixels are always a contiguous run [lo, hi) of a sorted row: its bounds are counts of values
     below the window's ends and its sums one ``add.reduceat`` over all rows, on the values relative to the
@@ -147,28 +124,30 @@ def _kth_pair(v: np.ndarray, k: int):
     return p[k], p[k2]
 
 
-def _median(v: np.ndarray) -> float:
-    """Median of 1-D ``v`` (float64), equal to ``np.median`` (the mean of the two middle values for even size)."""
+def median_1d(v: np.ndarray) -> float:
+    """Median of a 1-D sample ``v`` (N >= 1 values), equal to ``np.median(v)`` bit for bit (the mean of the two
+    middle values for even N), as a float: the two middle order statistics by a bracketed selection on a strided
+    subsample (a few % of a full partition's work for N >= 4096)."""
     N = v.size
     a, b = _kth_pair(v, (N - 1) // 2)
     return float(a) if N % 2 else 0.5 * (float(a) + float(b))
 
 
-def _robust_std(v: np.ndarray, clip: float = 3.0, iters: int = 3, sub: int = 4) -> float:
-    """Sigma-clipped standard deviation (truncation-corrected) of a 1-D sample (0 for an empty or constant
-    sample): the median and 1.4826 MAD, then the first ``iters`` - 1 windows (clipped mean and standard
-    deviation of the values with |v - c| <= clip sd) on every ``sub``-th value, the last window on all values
-    (sample sizes >= 4096; smaller samples: every window on all values).  The last window's mean and standard
-    deviation are the full sample's to ~1/sqrt(N) of the window's own statistical error (the window's edges sit
-    where the normal density is 0.4 % of its peak).  A window's mean and standard deviation are computed in
-    float64 from the kept values' sum and sum of squares relative to the previous centre (exact medians:
-    :func:`_median`)."""
+def robust_std(v: np.ndarray, clip: float = 3.0, iters: int = 3, sub: int = 4) -> float:
+    """Sigma-clipped standard deviation (truncation-corrected) of a sample ``v`` (any shape, flattened; the
+    result in its units, float; 0 for fewer than 8 values or a constant sample): the median and 1.4826 MAD,
+    then the first ``iters`` - 1 windows (clipped mean and standard deviation of the values with
+    |v - c| <= clip sd) on every ``sub``-th value, the last window on all values (sample sizes >= 4096;
+    smaller samples: every window on all values).  The last window's mean and standard deviation are the full
+    sample's to ~1/sqrt(N) of the window's own statistical error (the window's edges sit where the normal
+    density is 0.4 % of its peak).  A window's mean and standard deviation are computed in float64 from the
+    kept values' sum and sum of squares relative to the previous centre (exact medians: :func:`median_1d`)."""
     v = np.asarray(v, np.float64).ravel()
     if v.size < 8:
         return 0.0
     first = v[::sub] if v.size >= 4096 and iters > 1 else v
-    c = _median(first)
-    sd = 1.4826 * _median(np.abs(first - c))
+    c = median_1d(first)
+    sd = 1.4826 * median_1d(np.abs(first - c))
     if sd <= 0:
         return 0.0
     corr = 1.0 / math.sqrt(_clip_var_factor(clip))
@@ -186,7 +165,7 @@ def _robust_std(v: np.ndarray, clip: float = 3.0, iters: int = 3, sub: int = 4) 
 def _last_window(t: np.ndarray, level: np.ndarray, sig: np.ndarray, clip: float):
     """One clipping window over every value of each row of ``t`` (T, N) (unsorted): the values with
     |v - level| <= clip sigma; returns (their mean, their standard deviation x the truncation correction, the
-    kept fraction) (T,) float64, as one iteration of :func:`_clipped_stats` (the row's previous level and sigma
+    kept fraction) (T,) float64, as one iteration of :func:`clipped_stats` (the row's previous level and sigma
     kept where the window is empty or sigma is 0).  Differences from the level and their sums in float32 (~1e-7
     relative: the window holds no bright tail)."""
     d = np.subtract(t, level.astype(np.float32)[:, None], dtype=np.float32)
@@ -203,7 +182,10 @@ def _last_window(t: np.ndarray, level: np.ndarray, sig: np.ndarray, clip: float)
 
 
 def tile_background(img: np.ndarray, tile: int = 32, clip: float = 3.0, iters: int = 3, mesh: int = 3):
-    """Level and noise sigma of every ``tile`` x ``tile`` square of one (H, W) frame (module docstring, step 1).
+    """Level and noise sigma of every ``tile`` x ``tile`` square of one (H, W) frame (uint8, uint16 or float; ADU)
+    (:mod:`dualsight.kernels.detect_local`, step 1): ``clip``-sigma clipping, ``iters`` windows, squares keeping
+    under half of their pixels replaced by the frame's median square, a ``mesh`` x ``mesh`` median filter over
+    the grid (1 = off).
 
     Returns (level (ny, nx) float32, sigma (ny, nx) float32), ny = ceil(H / tile), nx = ceil(W / tile)."""
     import cv2
@@ -224,10 +206,10 @@ def tile_background(img: np.ndarray, tile: int = 32, clip: float = 3.0, iters: i
         h = tile // 2
         half = np.concatenate([np.ascontiguousarray(a[o::2, o::2].reshape(ny, h, nx, h).transpose(0, 2, 1, 3))
                                .reshape(T, h * h) for o in (0, 1)], axis=1)
-        level, sig, _ = _clipped_stats(np.sort(half, axis=1, kind=kind), clip, iters - 1)
+        level, sig, _ = clipped_stats(np.sort(half, axis=1, kind=kind), clip, iters - 1)
         level, sig, kept = _last_window(t, level, sig, clip)
     else:
-        level, sig, kept = _clipped_stats(np.sort(t, axis=1, kind=kind), clip, iters)
+        level, sig, kept = clipped_stats(np.sort(t, axis=1, kind=kind), clip, iters)
     bad = kept < 0.5
     if bad.any() and not bad.all():
         level[bad] = np.median(level[~bad])

@@ -1,22 +1,23 @@
-"""Candidate stage of the real-sensor detector (:mod:`dualsight.kernels.detect_local`): the matched filter
-(the pixel-integrated Gaussian PSF, in units of the filtered image's own noise) and the candidate blobs above
-its threshold (OpenCV connected components on the foreground pixels only, with their local maxima).  Pure
-numpy/OpenCV functions over arrays; ``cfg`` is a ``LocalDetectConfig``."""
+"""Stage 2 of the real-sensor detector (:mod:`dualsight.kernels.detect_local`, steps 2 and 3 of its docstring):
+the matched filter (:func:`matched_filter`: the background-subtracted frame correlated with the pixel-integrated
+Gaussian PSF, in units of the filtered image's own noise) and the candidate stars above its threshold
+(:func:`find_candidates`: OpenCV connected components of the foreground, their local maxima, deblending).  Pure
+numpy/OpenCV functions over arrays; ``cfg`` is a :class:`~dualsight.kernels.detect_local.LocalDetectConfig`."""
 
 import numpy as np
 
-from dualsight.kernels.detect_background import _robust_std
+from dualsight.kernels.detect_background import robust_std
 from dualsight.kernels.detect_psf import psf_kernel_1d
 
 
 NOISE_SAMPLE_STRIDE = 4
-"""Rows and columns between the pixels of the noise sample of :func:`_filter` (~48,000 pixels of a 1024 x 768
+"""Rows and columns between the pixels of the noise sample of :func:`matched_filter` (~48,000 pixels of a 1024 x 768
 frame: the ratio sigma_F / sigma to ~0.3 %)."""
 
 
 class FilteredNoise:
     """Noise sigma_F of the matched-filtered image at given pixels, without the (H, W) map: at pixel (r, c) it is
-    max(sigma(r, c), floor) x ratio x e_row(r) x e_col(c), with e the edge factors of :func:`_filter`.
+    max(sigma(r, c), floor) x ratio x e_row(r) x e_col(c), with e the edge factors of :func:`matched_filter`.
 
     ``noise[r, c]`` (integer index arrays, or scalars) gives float32 values like the map would."""
 
@@ -34,9 +35,11 @@ class FilteredNoise:
         return np.maximum(self.sig_map[r, c], self.floor) * self.ratio * self.row[r] * self.col[c]
 
 
-def _filter(R, sig_map, s, floor, cache=None):
-    """Matched-filtered SNR image Z (float32), the noise ratio sigma_F / sigma, and Z's noise sigma_F (a
-    :class:`FilteredNoise`: evaluated at pixels on demand) of residual R with PSF sigma s.
+def matched_filter(R, sig_map, s, floor, cache=None):
+    """Matched-filtered SNR image Z ((H, W) float32, in units of its own noise), the noise ratio sigma_F / sigma
+    (float), and Z's noise sigma_F (a :class:`FilteredNoise`: evaluated at pixels on demand) of the
+    background-subtracted frame R ((H, W) float32, ADU) with PSF sigma ``s`` (px); ``floor`` (ADU, float32) is
+    the smallest pixel noise used.
 
     Outside the frame R is 0 (its expectation), so near an edge F sums fewer pixels and its white-noise sigma
     is sigma sqrt(sum over the kernel's in-frame part of K^2): Z is normalised by that, exactly, per row and
@@ -54,8 +57,8 @@ def _filter(R, sig_map, s, floor, cache=None):
     inner = (slice(e, max(e + 1, H - e), st), slice(e, max(e + 1, W - e), st))
     sa = cache.get(e)         # R's noise at the sample: the same for both passes (unless their e differ)
     if sa is None:
-        sa = cache[e] = _robust_std(R[inner])
-    sfv = _robust_std(F[inner])
+        sa = cache[e] = robust_std(R[inner])
+    sfv = robust_std(F[inner])
     k2 = k * k
     white = float(k2.sum())
     ratio = sfv / sa if sa > 0 and sfv > 0 else white
@@ -77,10 +80,14 @@ def _filter(R, sig_map, s, floor, cache=None):
     return Z, ratio, FilteredNoise(sig_map, floor, ratio, er, ec)
 
 
-def _candidates(Z, cfg):
-    """Local maxima of Z above the threshold, grouped into components and deblended.
+def find_candidates(Z, cfg):
+    """Candidate stars of the matched-filtered SNR image Z ((H, W) float32, :func:`matched_filter`): the 3 x 3
+    local maxima of Z > ``cfg.k_sigma``, grouped into foreground components (``cfg.connectivity``) and deblended
+    (``cfg.deblend_min_sep_px``, ``cfg.deblend_contrast``); components over ``cfg.max_blob_pixels`` are counted,
+    not searched.
 
-    Returns (rows, cols, npix of their component) of the kept maxima, number of large components."""
+    Returns (rows, cols, npix of their component) (K,) int64 each of the kept maxima, and the number of large
+    components (int)."""
     import cv2
 
     H, W = Z.shape

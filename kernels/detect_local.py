@@ -5,7 +5,12 @@ handling, PSF-fit centroids with their Cramér-Rao uncertainty.
 :func:`dualsight.kernels.detect.detect_stars` (as :class:`LocalDetections`, a subclass that adds per-frame
 counters), so identification and attitude take either.  Every frame is processed on its own (numpy and
 OpenCV, no Taichi: a one-image process starts no kernels): its detections do not depend on the batch it is
-in, and a star's PSF fit does not depend on the other stars (each leaves the batched fit when it converges).  Per frame:
+in, and a star's PSF fit does not depend on the other stars (each leaves the batched fit when it converges).
+
+One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile statistics), steps 2-3
+:mod:`dualsight.kernels.detect_candidates` (matched filter, candidates), the PSF and its fit (steps 4-5)
+:mod:`dualsight.kernels.detect_psf`; this module holds the settings, the hot-pixel and saturation handling
+(steps 4-6) around the fit, and assembles the detections (step 7).  Per frame:
 
 1. **Local background and noise.**  The frame is cut into ``tile_px`` squares (mirrored at the far edges
    to whole tiles).  ``clip_iters`` times, the kept pixels are those within ``clip_sigma`` standard
@@ -106,16 +111,14 @@ import numpy as np
 from pydantic import Field
 
 from dualsight.config import check_fields
-from dualsight.kernels import starfield as sf
 from dualsight.kernels.detect import Detections
-from dualsight.kernels.detect_background import (_SQRT2, _Phi, _clipped_stats, _robust_std,  # noqa: F401
-                                                 interpolate_tiles, tile_background)
-from dualsight.kernels.detect_candidates import _candidates, _filter
-from dualsight.kernels.detect_psf import (_fit, _profiles, _stamps, crb_sigma_px, psf_kernel_1d,  # noqa: F401
-                                          sharpness_limit)
+from dualsight.kernels.detect_background import interpolate_tiles, tile_background
+from dualsight.kernels.detect_candidates import find_candidates, matched_filter
+from dualsight.kernels.detect_psf import cut_stamps, fit_psf, flux_fraction_3x3, psf_kernel_1d, sharpness_limit
+from dualsight.kernels.sensor_config import MAX_ADU
 
-__all__ = ["LocalDetectConfig", "LocalDetections", "detect_real", "tile_background", "interpolate_tiles",
-           "subtract_local_background", "psf_kernel_1d", "sharpness_limit", "crb_sigma_px"]
+__all__ = ["LocalDetectConfig", "LocalDetections", "MIN_MEASURED_SIGMA_PX", "detect_real",
+           "subtract_local_background"]
 
 log = logging.getLogger(__name__)
 
@@ -163,9 +166,9 @@ class LocalDetectConfig:
     mesh_filter: Literal[1, 3, 5] = 3
     hot_pixel_k: Annotated[float, Field(ge=0.0, le=1000.0)] = 5.0
     sharpness_tolerance: Annotated[float, Field(ge=0.0, le=10.0)] = 0.5
-    saturation_adu: Annotated[float, Field(ge=0, le=sf.MAX_ADU)] | None = None
+    saturation_adu: Annotated[float, Field(ge=0, le=MAX_ADU)] | None = None
     gain_e_per_adu: Annotated[float, Field(ge=1e-3, le=1e4)] | None = None
-    noise_floor_adu: Annotated[float, Field(ge=0, le=sf.MAX_ADU)] = 0.29
+    noise_floor_adu: Annotated[float, Field(ge=0, le=MAX_ADU)] = 0.29
     max_blob_pixels: Annotated[int, Field(ge=1, le=2 ** 32)] = 4096
     max_blobs_per_frame: Annotated[int, Field(ge=1, le=10 ** 6)] = 1000
     deblend_min_sep_px: Annotated[float, Field(ge=0.0, le=100.0)] = 2.0
@@ -231,7 +234,7 @@ class _Frame:
 def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False):
     """Hot-pixel test, saturation and PSF fit of the candidates of one frame (``sig_f``: Z's noise map)."""
     H, W = R.shape
-    pr, pc, npix, n_large = _candidates(Z, cfg)
+    pr, pc, npix, n_large = find_candidates(Z, cfg)
     K = pr.size
     e = np.zeros(0)
     if K == 0:
@@ -295,7 +298,7 @@ def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False):
     # saturated candidates: stamp grown by the plateau radius
     sat_any = np.zeros(K, bool)
     if sat is not None and K:
-        st_s, inside, _, _ = _stamps(img, None, r0, c0, h)
+        st_s, inside, _, _ = cut_stamps(img, None, r0, c0, h)
         sat_any = ((st_s >= sat) & (inside > 0)).reshape(K, -1).any(1)
     if sat_any.any():
         nsat = np.array([(img[max(0, a - 3 * h):a + 3 * h + 1, max(0, b - 3 * h):b + 3 * h + 1] >= sat).sum()
@@ -315,12 +318,12 @@ def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False):
     if sat_any.any():
         hs = h + int(math.ceil(math.sqrt(max(nsat.max(), 1) / math.pi))) + 1
         groups.append((sat_any, hs, True))
-    frac3 = float((_Phi(1.5 / s) - _Phi(-1.5 / s)) ** 2)       # PSF fraction in a centred 3 x 3 box
+    frac3 = flux_fraction_3x3(s)                              # PSF fraction in a centred 3 x 3 box
     for sel, hh, saturated in groups:
         idx = np.flatnonzero(sel)
         if idx.size == 0:
             continue
-        st, w0, rr0, cc0 = _stamps(R, None, r0[idx], c0[idx], hh, img=img, sat=sat)
+        st, w0, rr0, cc0 = cut_stamps(R, None, r0[idx], c0[idx], hh, img=img, sat=sat)
         if hot_px[idx].any():      # a kept star under a hot pixel: the spike gets weight 0
             w0[hot_px[idx], hh, hh] = 0.0
         # start: 3 x 3 intensity-weighted centroid of the positive residual
@@ -332,15 +335,15 @@ def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False):
         x0 = c0[idx] + 0.5 + dxs
         y0 = r0[idx] + 0.5 + dys
         usable = w0.reshape(idx.size, -1).sum(1)
-        xf, yf, Af, _, sf_, cf, okf = _fit(st, w0, rr0, cc0, x0, y0, np.full(idx.size, s), noise[idx],
-                                          cfg.gain_e_per_adu, fit_sigma=fit_sigma)
+        xf, yf, Af, _, sf_, cf, okf = fit_psf(st, w0, rr0, cc0, x0, y0, np.full(idx.size, s), noise[idx],
+                                             cfg.gain_e_per_adu, fit_sigma=fit_sigma)
         okf &= usable >= 6
         fb = ~okf
         if fb.any():     # fallback: plateau centre (saturated) or the 3 x 3 centroid
             xf, yf = xf.copy(), yf.copy()
             xf[fb], yf[fb] = x0[fb], y0[fb]
             if saturated:
-                sm, inside, _, _ = _stamps(img, None, r0[idx], c0[idx], hh)
+                sm, inside, _, _ = cut_stamps(img, None, r0[idx], c0[idx], hh)
                 sm = (sm >= sat) & (inside > 0)
                 ns = sm.sum((1, 2))
                 gy, gx = np.mgrid[0:2 * hh + 1, 0:2 * hh + 1]
@@ -352,7 +355,7 @@ def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False):
             Af = np.where(fb, np.maximum(tot, 0) / frac3, Af)
         x[idx], y[idx], A[idx], cov[idx], ok[idx], sfit[idx] = xf, yf, Af, cf, okf, sf_
     zpk = Z[pr, pc].astype(np.float64)
-    sig_fb = _SQRT2 * s / np.maximum(zpk, 1e-6)
+    sig_fb = math.sqrt(2.0) * s / np.maximum(zpk, 1e-6)
     sigma_px = np.where(ok, np.sqrt(np.maximum(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]), 0)), sig_fb)
     return dict(x=x, y=y, flux=A, npix=npix, sigma_px=sigma_px, saturated=sat_any, s=sfit, large=n_large,
                 hot=n_hot, snr=zpk, ok=ok)
@@ -373,7 +376,7 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
     floor = np.float32(max(cfg.noise_floor_adu, 1e-6))
     s = cfg.psf_sigma_px if cfg.psf_sigma_px is not None else cfg.psf_sigma_init_px
     rcache = {}
-    Z, ratio, sig_f = _filter(R, sig_map, s, floor, rcache)      # sig_f: Z's noise, edges included (Z = F / sig_f)
+    Z, ratio, sig_f = matched_filter(R, sig_map, s, floor, rcache)   # sig_f: Z's noise, edges included
     if cfg.psf_sigma_px is None:     # measure the PSF width on bright, unsaturated, isolated stars
         m = _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=True)
         # fitted widths under MIN_MEASURED_SIGMA_PX are not stars' (hot-pixel clusters, cosmic-ray tracks: ~0.2 px)
@@ -386,7 +389,7 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
             s_new = float(np.clip(np.median(m["s"][use]), 0.2, 20.0))
             if abs(s_new - s) > 0.02 * s:
                 s = s_new
-                Z, ratio, sig_f = _filter(R, sig_map, s, floor, rcache)
+                Z, ratio, sig_f = matched_filter(R, sig_map, s, floor, rcache)
     m = _measure(img, R, sig_map, Z, sig_f, s, cfg, sat)
     med_sig = float(np.median(sig))
     return _Frame(x=m["x"], y=m["y"], flux=m["flux"], npix=m["npix"], sigma_px=m["sigma_px"],

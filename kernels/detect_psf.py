@@ -1,19 +1,50 @@
-"""PSF stage of the real-sensor detector (:mod:`dualsight.kernels.detect_local`): the pixel-integrated
-Gaussian PSF (1-D kernels, sharpness limit for the hot-pixel test), the Cramér-Rao centroid bound, and the
-batched weighted least-squares PSF fit of star stamps.  Pure numpy functions over arrays."""
+"""The PSF of the real-sensor detector (:mod:`dualsight.kernels.detect_local`, steps 2, 4 and 5 of its
+docstring): the pixel-integrated Gaussian PSF of standard deviation s (px) — its normal-distribution
+arithmetic, the 1-D kernel of the matched filter (:func:`psf_kernel_1d`), the sharpness limit of the hot-pixel
+test (:func:`sharpness_limit`), the flux fraction of the fallback centroid's box (:func:`flux_fraction_3x3`),
+the Cramér-Rao centroid bound (:func:`crb_sigma_px`) — and stage 3, the batched weighted least-squares fit of
+star stamps (:func:`cut_stamps`, :func:`psf_profiles`, :func:`fit_psf`).  Pure numpy functions over arrays;
+positions in the continuous pixel convention (pixel (r, c) covers [c, c + 1) x [r, r + 1))."""
 
 import functools
 import math
 
 import numpy as np
 
-from dualsight.kernels.detect_background import AS_A, AS_P, _Phi, _phi
+
+# ============================================================================ normal distribution
+_SQRT2 = math.sqrt(2.0)
+
+
+AS_P, AS_A = 0.3275911, (0.254829592, -0.284496736, 1.421413741, -1.453152027, 1.061405429)
+"""Abramowitz & Stegun 7.1.26: erf(x) = 1 - (a1 t + ... + a5 t^5) exp(-x^2), t = 1 / (1 + p x), x >= 0,
+|error| <= 1.5e-7; ``AS_A`` = (a1, ..., a5)."""
+
+
+def _erf(x):
+    """erf (Abramowitz & Stegun 7.1.26, :data:`AS_A`), vectorised."""
+    a1, a2, a3, a4, a5 = AS_A
+    x = np.asarray(x, np.float64)
+    s = np.sign(x)
+    a = np.abs(x)
+    t = 1.0 / (1.0 + AS_P * a)
+    y = 1.0 - (((((a5 * t + a4) * t) + a3) * t + a2) * t + a1) * t * np.exp(-a * a)
+    return s * y
+
+
+def _Phi(z):
+    return 0.5 * (1.0 + _erf(np.asarray(z, np.float64) / _SQRT2))
+
+
+def _phi(z):
+    z = np.asarray(z, np.float64)
+    return np.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
 
 
 # ============================================================================ PSF helpers
 def psf_kernel_1d(sigma: float) -> np.ndarray:
-    """Normalised 1-D pixel-integrated Gaussian, k_i = Phi((i + 1/2) / sigma) - Phi((i - 1/2) / sigma),
-    |i| <= ceil(3 sigma)."""
+    """Normalised 1-D pixel-integrated Gaussian of ``sigma`` px, k_i = Phi((i + 1/2) / sigma) - Phi((i - 1/2) /
+    sigma), |i| <= h = max(1, ceil(3 sigma)): (2h + 1,) float64 summing to 1 (the matched filter's kernel)."""
     h = max(1, int(math.ceil(3.0 * sigma)))
     i = np.arange(-h, h + 1, dtype=np.float64)
     k = _Phi((i + 0.5) / sigma) - _Phi((i - 0.5) / sigma)
@@ -23,7 +54,8 @@ def psf_kernel_1d(sigma: float) -> np.ndarray:
 @functools.lru_cache(maxsize=256)
 def sharpness_limit(sigma: float) -> float:
     """Largest ratio of a pixel-integrated Gaussian star's brightest pixel to the mean of its 4 neighbours
-    (over sub-pixel positions: the star centred on a pixel), a0 / a1 (module docstring, step 4)."""
+    (over sub-pixel positions: the star centred on a pixel), a0 / a1 (:mod:`dualsight.kernels.detect_local`,
+    step 4); ``sigma`` in px."""
     u = np.linspace(-0.5, 0.5, 21)
     a0 = _Phi((0.5 - u) / sigma) - _Phi((-0.5 - u) / sigma)
     ap = _Phi((1.5 - u) / sigma) - _Phi((0.5 - u) / sigma)
@@ -32,6 +64,12 @@ def sharpness_limit(sigma: float) -> float:
     A0 = a0[:, None] * a0[None, :]
     N4 = a0[None, :] * (ap + am)[:, None] + a0[:, None] * (ap + am)[None, :]
     return float((A0 / (N4 / 4.0)).max())
+
+
+def flux_fraction_3x3(sigma: float) -> float:
+    """Fraction of a pixel-integrated Gaussian star's flux (PSF sigma ``sigma`` px) in the 3 x 3 pixels centred on
+    it, (Phi(1.5 / s) - Phi(-1.5 / s))^2: the flux of a fallback 3 x 3 centroid is its box sum over this."""
+    return float((_Phi(1.5 / sigma) - _Phi(-1.5 / sigma)) ** 2)
 
 
 def crb_sigma_px(flux_adu, noise_adu, psf_sigma_px, gain_e_per_adu=None) -> np.ndarray:
@@ -60,9 +98,9 @@ def crb_sigma_px(flux_adu, noise_adu, psf_sigma_px, gain_e_per_adu=None) -> np.n
 
 # ============================================================================ PSF fit
 def _Phi_phi(e):
-    """(Phi(e), phi(e)) of a float64 array, one exp for both: Phi with erf as in
-    :func:`~dualsight.kernels.detect_background._erf` (Abramowitz & Stegun 7.1.26, |error| <= 1.5e-7, written
-    for |e|: erfc(|e| / sqrt 2) = t poly(t) exp(-e^2 / 2)), phi = exp(-e^2 / 2) / sqrt(2 pi)."""
+    """(Phi(e), phi(e)) of a float64 array, one exp for both: Phi with erf as in :func:`_erf` (Abramowitz &
+    Stegun 7.1.26, |error| <= 1.5e-7, written for |e|: erfc(|e| / sqrt 2) = t poly(t) exp(-e^2 / 2)),
+    phi = exp(-e^2 / 2) / sqrt(2 pi)."""
     ex = e * e                                           # in place: small arrays, the calls dominate
     ex *= -0.5
     np.exp(ex, out=ex)
@@ -80,9 +118,10 @@ def _Phi_phi(e):
     return np.where(e >= 0, 1.0 - q, q), ex
 
 
-def _profiles(x, c0, n, s, ds=True):
-    """1-D pixel fractions and their derivatives (d/dx, d/ds; d/ds None unless ``ds``) of stamps starting at
-    pixel c0: (K, n) each.
+def psf_profiles(x, c0, n, s, ds=True):
+    """1-D pixel fractions and their derivatives (d/dx, d/ds; d/ds None unless ``ds``) of K stars at positions
+    ``x`` (K,) (px) with PSF sigmas ``s`` (K,) (px) over n pixels starting at pixel ``c0`` (K,): (K, n) float64
+    each (the fit's model, one axis; the 2-D model is the outer product of the two axes').
 
     Pixel j covers [c0 + j, c0 + j + 1): with edges e_j = (c0 + j - x) / s (j = 0..n, the n + 1 pixel edges,
     each evaluated once), P_j = Phi(e_{j+1}) - Phi(e_j), dP_j/dx = -(phi(e_{j+1}) - phi(e_j)) / s and
@@ -97,8 +136,9 @@ def _profiles(x, c0, n, s, ds=True):
     return P, dP, (ep[:, :-1] - ep[:, 1:]) * inv
 
 
-def _fit(stamp, w0, r0, c0, x, y, s, noise, gain, fit_sigma=False, iters=10, tol_px=1e-3):
-    """Weighted least-squares fit of A P(x, y; s) + b to (K, n, n) stamps whose top-left pixel is (r0, c0).
+def fit_psf(stamp, w0, r0, c0, x, y, s, noise, gain, fit_sigma=False, iters=10, tol_px=1e-3):
+    """Weighted least-squares fit of A P(x, y; s) + b to (K, n, n) stamps (ADU) whose top-left pixel is (r0, c0)
+    (:mod:`dualsight.kernels.detect_local`, step 5); P the pixel-integrated Gaussian (:func:`psf_profiles`).
 
     w0 : (K, n, n) 1 = usable pixel, 0 = excluded (saturated, hot, outside the frame).  x, y, s : initial
     values (K,).  Levenberg-Marquardt (Marquardt's diagonal scaling, lambda from 1e-3, / 10 (down to 1e-6)
@@ -107,7 +147,10 @@ def _fit(stamp, w0, r0, c0, x, y, s, noise, gain, fit_sigma=False, iters=10, tol
     ``tol_px`` on both axes (fitting the width: and its width step too), i.e. its parameters are within
     ~``tol_px`` of the minimum, when lambda reaches 1e4, or after ``iters`` steps; its iterations depend on
     its own stamp only (a batch equals the per-star fits: finished stars are frozen, then dropped).
-    Returns x, y, A, b, s, cov (K, 4, 4) of (x, y, A, b) (Fisher inverse at the final parameters), ok (K,)."""
+    noise : (K,) pixel noise sigma (ADU); gain : e-/ADU for the stars' shot noise in the weights, None = none;
+    fit_sigma : also fit the PSF width (else ``s`` is kept).
+    Returns x, y (K,) px, A (K,) total flux (ADU), b (K,) background (ADU), s (K,) px, cov (K, 4, 4) of
+    (x, y, A, b) (Fisher inverse at the final parameters), ok (K,) bool."""
     K, n, _ = stamp.shape
     m = n * n
     npar = 5 if fit_sigma else 4
@@ -126,7 +169,7 @@ def _fit(stamp, w0, r0, c0, x, y, s, noise, gain, fit_sigma=False, iters=10, tol
         k = p.shape[0]
         if fit_sigma:
             s2 = np.concatenate([p[:, 4], p[:, 4]])
-        P1, D1, S1 = _profiles(p[:, :2].T.ravel(), st, n, s2, fit_sigma)
+        P1, D1, S1 = psf_profiles(p[:, :2].T.ravel(), st, n, s2, fit_sigma)
         px, py, dpx, dpy = P1[:k], P1[k:], D1[:k], D1[k:]
         J = np.empty((k, npar, n, n))      # parameter-major: each derivative image contiguous
         A = p[:, 2:3]
@@ -215,10 +258,11 @@ def _fit(stamp, w0, r0, c0, x, y, s, noise, gain, fit_sigma=False, iters=10, tol
     return x, y, A, b, s_out, cov, ok
 
 
-def _stamps(R, valid, r, c, h, img=None, sat=None):
-    """(K, n, n) stamps of R and of the usable pixels (inside the frame, ``valid`` (None = all) and, with ``img``
-    and ``sat``, img < sat: not saturated) centred on pixels (r, c), n = 2h + 1, and the stamps' first row and
-    column."""
+def cut_stamps(R, valid, r, c, h, img=None, sat=None):
+    """(K, n, n) stamps of the (H, W) image R centred on pixels (r, c) ((K,) int), n = 2h + 1, with their usable
+    pixels ((K, n, n) float64, 1 = usable: inside the frame, ``valid`` ((H, W) bool, None = all) and, with ``img``
+    and ``sat``, img < sat: not saturated) and the stamps' first row and column ((K,) int; pixels outside the
+    frame repeat the nearest edge pixel's value, unusable)."""
     H, W = R.shape
     n = 2 * h + 1
     rr = r[:, None] - h + np.arange(n)[None, :]

@@ -17,8 +17,9 @@ import math
 import numpy as np
 import pytest
 
-from dualsight.kernels.detect_local import (LocalDetectConfig, crb_sigma_px, detect_real, interpolate_tiles,
-                                            psf_kernel_1d, sharpness_limit, tile_background)
+from dualsight.kernels.detect_background import interpolate_tiles, tile_background
+from dualsight.kernels.detect_local import LocalDetectConfig, detect_real
+from dualsight.kernels.detect_psf import crb_sigma_px, psf_kernel_1d, sharpness_limit
 from dualsight.kernels.starfield import SensorConfig, render_star_fields
 
 W, H = 1024, 768
@@ -549,13 +550,13 @@ def test_sil_star_job_can_use_the_real_sensor_detector():
 
 # ============================================================================================ speed-path exactness
 def test_exact_median_and_clipped_std_of_a_sample():
-    """The noise sample's statistics (detect_background._median, _robust_std): the median equals np.median for
+    """The noise sample's statistics (detect_background.median_1d, robust_std): the median equals np.median for
     odd and even sizes, ties, and samples whose strided subsample misrepresents them (the bracketed selection
     must fall back); the clipped, truncation-corrected standard deviation equals a direct implementation of its
     definition (median / 1.4826 MAD and 2 clipped mean / std windows on every 4th value, the 3rd window on all
     values, std x 1/sqrt(0.98657^2)) and, on a large normal sample with a 2 % bright tail, the true sigma to
     the precision of the all-value estimator."""
-    from dualsight.kernels.detect_background import _median, _robust_std
+    from dualsight.kernels.detect_background import median_1d, robust_std
 
     rng = np.random.default_rng(11)
     samples = [rng.normal(0, 1, n) for n in (8, 9, 4095, 4096, 4097, 48_705, 48_706)]
@@ -564,7 +565,7 @@ def test_exact_median_and_clipped_std_of_a_sample():
     spiky[::16] = 1e6                                                             # the subsample sees only spikes
     samples.append(spiky)
     for v in samples:
-        assert _median(v) == float(np.median(v)), v.size
+        assert median_1d(v) == float(np.median(v)), v.size
     corr = 1.0 / math.sqrt(1.0 - 2 * 3.0 * math.exp(-4.5) / math.sqrt(2 * math.pi) / math.erf(3 / math.sqrt(2)))
 
     def direct(v):
@@ -578,12 +579,12 @@ def test_exact_median_and_clipped_std_of_a_sample():
         return sd
 
     for v in samples[2:7] + [rng.normal(0, 1, 2500), spiky]:
-        assert _robust_std(v) == pytest.approx(direct(v), rel=1e-9)
+        assert robust_std(v) == pytest.approx(direct(v), rel=1e-9)
     errs = []
     for k in range(40):
         v = rng.normal(5.0, 2.0, 48_000)
         v[:960] += rng.uniform(20, 2000, 960)
-        errs.append(_robust_std(v) / 2.0 - 1)
+        errs.append(robust_std(v) / 2.0 - 1)
     # all-value clipped std of 47,040 normal values: relative error ~1 / sqrt(2 N 0.9) ~ 0.34 %; every-4th: 0.7 %
     assert abs(np.mean(errs)) < 0.002 and 0.002 < np.std(errs) < 0.0045
 
@@ -593,7 +594,7 @@ def test_psf_fit_stops_at_the_least_squares_minimum():
     minimum: the Newton step computed here from chi^2 by finite differences of an independent model (math.erf
     pixel integrals, fixed PSF width) is under 3e-3 px at every converged fit, and the positions are within 0.2 px
     of the truth for SNR >= 20 stars."""
-    from dualsight.kernels.detect_psf import _fit
+    from dualsight.kernels.detect_psf import fit_psf
 
     rng = np.random.default_rng(12)
     K, n, s, noise = 60, 5, 0.65, 3.0
@@ -612,7 +613,7 @@ def test_psf_fit_stops_at_the_least_squares_minimum():
     w0 = np.ones((K, n, n))
     x0 = c0 + h + 0.5 + rng.uniform(-0.3, 0.3, K)
     y0 = r0 + h + 0.5 + rng.uniform(-0.3, 0.3, K)
-    x, y, A, bb, _, _, ok = _fit(st, w0, r0, c0, x0, y0, np.full(K, s), np.full(K, noise), None)
+    x, y, A, bb, _, _, ok = fit_psf(st, w0, r0, c0, x0, y0, np.full(K, s), np.full(K, noise), None)
     assert ok.sum() >= 55
     e = 1e-4
     for k in np.flatnonzero(ok):
@@ -632,18 +633,18 @@ def test_psf_fit_stops_at_the_least_squares_minimum():
 
 
 def test_filtered_noise_is_the_map_with_the_edges_exact():
-    """_filter's Z and its noise sigma_F (evaluated at pixels, no map): Z x sigma_F is the correlation of R with
+    """matched_filter's Z and its noise sigma_F (evaluated at pixels, no map): Z x sigma_F is the correlation of R with
     the pixel-integrated Gaussian kernel (numpy, R = 0 outside the frame) at every sampled pixel, edges and
     corners included, and sigma_F = max(sigma, floor) x ratio x e(r) x e(c), e(i) = sqrt(sum over the kernel's
     in-frame taps of k^2 / sum k^2) (math.erf kernel); on white noise the measured ratio is sqrt(sum k^2)."""
-    from dualsight.kernels.detect_candidates import _filter
+    from dualsight.kernels.detect_candidates import matched_filter
 
     rng = np.random.default_rng(13)
     Hs, Ws, s = 192, 256, 0.8
     R = rng.normal(0, 2.0, (Hs, Ws)).astype(np.float32)
     sig = (2.0 + rng.uniform(0, 0.5, (Hs, Ws))).astype(np.float32)
     sig[5, 7] = 0.01                                                   # under the floor
-    Z, ratio, sf = _filter(R, sig, s, np.float32(0.29))
+    Z, ratio, sf = matched_filter(R, sig, s, np.float32(0.29))
     hk = math.ceil(3 * s)
     k = np.array([_Phi((i + 0.5) / s) - _Phi((i - 0.5) / s) for i in range(-hk, hk + 1)])
     k /= k.sum()
@@ -688,7 +689,7 @@ def test_local_maxima_compare_all_eight_neighbours():
     pixels with Z >= OpenCV's 3 x 3 dilation of Z, frame edges and corners included."""
     import cv2
 
-    from dualsight.kernels.detect_candidates import _candidates
+    from dualsight.kernels.detect_candidates import find_candidates
 
     rng = np.random.default_rng(14)
     Hs, Ws = 64, 80
@@ -701,7 +702,7 @@ def test_local_maxima_compare_all_eight_neighbours():
                 not (r + 1 < Hs and Z[r + 1, c]) and not (c + 1 < Ws and Z[r, c + 1]):
             Z[r, c] = rng.choice([6.0, 9.0, 12.0, 15.0])
     cfg = LocalDetectConfig(connectivity=4)
-    pr, pc, npix, n_large = _candidates(Z, cfg)
+    pr, pc, npix, n_large = find_candidates(Z, cfg)
     want = (Z > 5) & (Z >= cv2.dilate(Z, np.ones((3, 3), np.uint8)))
     assert sorted(zip(pr.tolist(), pc.tolist())) == sorted(zip(*map(list, np.nonzero(want))))
     assert (npix == 1).all() and n_large == 0
@@ -739,21 +740,21 @@ def test_tile_statistics_use_every_pixel_in_the_last_window():
 
 
 def test_psf_profiles_are_the_pixel_integrals_and_their_derivatives():
-    """detect_psf._profiles (the fit's model): pixel fractions equal math.erf pixel integrals of the Gaussian to
+    """detect_psf.psf_profiles (the fit's model): pixel fractions equal math.erf pixel integrals of the Gaussian to
     2e-7 (Abramowitz & Stegun 7.1.26), and the x and sigma derivatives equal central finite differences."""
-    from dualsight.kernels.detect_psf import _profiles
+    from dualsight.kernels.detect_psf import psf_profiles
 
     rng = np.random.default_rng(16)
     K, n = 50, 7
     c0 = rng.integers(0, 100, K).astype(float)
     x = c0 + rng.uniform(0, n, K)
     s = rng.uniform(0.3, 2.5, K)
-    P, dP, sP = _profiles(x, c0, n, s)
+    P, dP, sP = psf_profiles(x, c0, n, s)
     ref = np.array([[_Phi((c0[k] + j + 1 - x[k]) / s[k]) - _Phi((c0[k] + j - x[k]) / s[k]) for j in range(n)]
                     for k in range(K)])
     np.testing.assert_allclose(P, ref, atol=2e-7)
     h = 1e-5
-    np.testing.assert_allclose(dP, (_profiles(x + h, c0, n, s)[0] - _profiles(x - h, c0, n, s)[0]) / (2 * h),
+    np.testing.assert_allclose(dP, (psf_profiles(x + h, c0, n, s)[0] - psf_profiles(x - h, c0, n, s)[0]) / (2 * h),
                                atol=1e-5)
-    np.testing.assert_allclose(sP, (_profiles(x, c0, n, s + h)[0] - _profiles(x, c0, n, s - h)[0]) / (2 * h),
+    np.testing.assert_allclose(sP, (psf_profiles(x, c0, n, s + h)[0] - psf_profiles(x, c0, n, s - h)[0]) / (2 * h),
                                atol=1e-5)

@@ -19,6 +19,9 @@ import numpy as np
 import pytest
 
 from dualsight.kernels import detect_local as dl
+from dualsight.kernels.detect_background import clipped_stats
+from dualsight.kernels.detect_candidates import find_candidates
+from dualsight.kernels.detect_psf import fit_psf, psf_profiles
 
 ROOT = Path(__file__).resolve().parents[1]
 ESA = (Path(os.environ["DUALSIGHT_SHARED"]) if os.environ.get("DUALSIGHT_SHARED") else ROOT.parent / "shared") \
@@ -35,8 +38,8 @@ def _stars(K, s, seed, n=7, noise=3.0):
     y = r0 + h + 0.5 + rng.uniform(-0.5, 0.5, K)
     F = rng.uniform(200, 5000, K)
     b = rng.uniform(0, 5, K)
-    px, _, _ = dl._profiles(x, c0, n, np.full(K, s))
-    py, _, _ = dl._profiles(y, r0, n, np.full(K, s))
+    px, _, _ = psf_profiles(x, c0, n, np.full(K, s))
+    py, _, _ = psf_profiles(y, r0, n, np.full(K, s))
     st = F[:, None, None] * py[:, :, None] * px[:, None, :] + b[:, None, None] + rng.normal(0, noise, (K, n, n))
     w0 = np.ones((K, n, n))
     w0[rng.random((K, n, n)) < 0.03] = 0.0                      # a few excluded pixels
@@ -50,10 +53,10 @@ def _stars(K, s, seed, n=7, noise=3.0):
 def test_batched_psf_fit_equals_the_per_star_fits(fit_sigma, gain):
     s = 0.9
     st, w0, r0, c0, x0, y0, noise = _stars(40, s, seed=7 + fit_sigma)
-    batch = dl._fit(st, w0, r0, c0, x0, y0, np.full(40, s), noise, gain, fit_sigma=fit_sigma)
+    batch = fit_psf(st, w0, r0, c0, x0, y0, np.full(40, s), noise, gain, fit_sigma=fit_sigma)
     assert batch[-1].sum() >= 35                                   # the fits converge
     for k in range(40):
-        one = dl._fit(st[k:k + 1], w0[k:k + 1], r0[k:k + 1], c0[k:k + 1], x0[k:k + 1], y0[k:k + 1],
+        one = fit_psf(st[k:k + 1], w0[k:k + 1], r0[k:k + 1], c0[k:k + 1], x0[k:k + 1], y0[k:k + 1],
                       np.full(1, s), noise[k:k + 1], gain, fit_sigma=fit_sigma)
         for a, b in zip(batch, one):
             np.testing.assert_allclose(a[k:k + 1], b, rtol=1e-9, atol=1e-9, equal_nan=True)
@@ -124,7 +127,7 @@ def test_candidates_equal_the_project_labellers(connectivity, k_sigma):
     Z[0, :] = 9.0                                              # foreground along the frame's edges
     Z[:, -1] = 9.0
     cfg = dl.LocalDetectConfig(k_sigma=k_sigma, connectivity=connectivity, max_blob_pixels=500)
-    got = dl._candidates(Z, cfg)
+    got = find_candidates(Z, cfg)
     ref = _candidates_with_project_labeller(Z, cfg)
     assert got[3] == ref[3] and ref[3] >= 1
     og, orf = np.lexsort((got[1], got[0])), np.lexsort((ref[1], ref[0]))
@@ -144,8 +147,8 @@ def test_tile_statistics_counts_equal_the_float32_comparisons(dtype):
         rows.append(v)
     rows.append(np.full(1024, 7.0))                            # a constant tile
     s = np.sort(np.clip(np.array(rows), 0, top).astype(dtype), axis=1, kind="stable")
-    fast = dl._clipped_stats(s, 3.0, 3)
-    ref = dl._clipped_stats(s.astype(np.float32), 3.0, 3)     # float path: float32 comparisons
+    fast = clipped_stats(s, 3.0, 3)
+    ref = clipped_stats(s.astype(np.float32), 3.0, 3)     # float path: float32 comparisons
     for a, b in zip(fast, ref):
         np.testing.assert_array_equal(a, b)
 
