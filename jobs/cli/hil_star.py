@@ -44,6 +44,12 @@ import json
 import sys
 from pathlib import Path
 
+from dualsight.errors import InputError
+from dualsight.jobs.reports import fit_distortion as fd_report
+from dualsight.nav.distortion_procedure import FULL_CONFIG, MIN_STARS
+from dualsight.scene.calibration import write_camera_toml
+from dualsight.scene.camera import read_toml
+
 
 def register(subparsers) -> None:
     """Add the ``hil`` command group to the top-level sub-parsers of ``dualsight``."""
@@ -185,8 +191,7 @@ def cmd_hil_star(args) -> int:
     from dualsight.warehouse.query import connect, run_report
 
     if args.fit_distortion or args.output is not None or args.force:     # lens distortion from the sky
-        from dualsight.jobs.kinds import fit_distortion
-        return fit_distortion.cmd_fit_distortion(args)
+        return cmd_fit_distortion(args)
     t_start = time.perf_counter()
     spec = star_spec_from_args(args)
     if args.sweep:
@@ -252,3 +257,81 @@ def cmd_hil_star_sweep(args, base, t_start: float) -> int:
                        time.perf_counter() - t_start, run_id, lake, kept, tuple(sw.SCHEMAS), query=sw.PRIMARY),
           file=sys.stderr)
     return 1 if n_err else 0
+
+
+# ============================================================================================ --fit-distortion
+def check_fit_output(args) -> Path:
+    """The ``-o`` of ``--fit-distortion``, refused before any work when missing, a folder, in a missing folder,
+    or an existing file without ``--force``."""
+    out = args.output
+    if out is None:
+        raise InputError("needs -o/--output CAMERA.toml (the fitted camera file to write)", source="--fit-distortion")
+    if out.is_dir():
+        raise InputError("is a folder; give the camera file's name, e.g. fitted.toml", source=str(out))
+    if not out.parent.is_dir():
+        raise InputError(f"folder {out.parent} does not exist; create it first", source=str(out))
+    if out.exists() and not args.force:
+        raise InputError("exists; give --force to overwrite it", source=str(out))
+    return out
+
+
+def write_fitted_camera(rep, output: Path, camera_file: Path, images: list) -> Path:
+    """The camera file of a ``--fit-distortion`` fit ``rep`` (``nav.distortion_procedure.FitReport``):
+    ``[camera]`` + ``[distortion_fit]``, comments with what was fitted and the rms (scene/calibration.py's
+    writer: tomli-w, a temporary name renamed)."""
+    fit, cam0 = rep.fit, rep.camera_in
+    src = read_toml(camera_file).get("camera", {})
+    n_img = rep.n_images
+    where = str(Path(images[0]).parent) if images else "?"
+    comment = "\n".join([
+        f"Fitted by `dualsight hil star --fit-distortion` from {fit.n_stars} identified stars in {fit.n_frames} "
+        f"solved frames",
+        f"  ({n_img} images in {where}; input camera file {camera_file}).",
+        f"Fitted: {fd_report.what_was_fitted(cam0)}.",
+        "  " + fd_report.fit_line(fit) + ".",
+        f"rms residual {rep.rms_before_px:.3f} px before (input camera, attitudes re-fitted), {fit.rms_px:.3f} px "
+        f"after; {int((~fit.inlier).sum())} stars rejected as outliers (> {FULL_CONFIG.reject_sigma:g} sigma).",
+        f"Re-solved with this camera: {int(rep.final.solved.sum())}/{n_img} frames, "
+        f"{int(rep.final.stars.sum())} stars identified."])
+    table = {"method": "nav/distortion_fit.py: Levenberg-Marquardt, OpenCV radial model, Huber + rejection",
+             "input_camera": str(camera_file), "images": n_img, "frames_used": fit.n_frames,
+             "stars_used": fit.n_stars, "stars_rejected": int((~fit.inlier).sum()),
+             "fitted": ["fx=fy", "k1", "k2"], "std": fit.std, "rms_before_px": rep.rms_before_px,
+             "rms_after_px": fit.rms_px, "sigma_px": fit.sigma_px, "reject_sigma": FULL_CONFIG.reject_sigma,
+             "min_stars": MIN_STARS, "frames_solved_after": int(rep.final.solved.sum())}
+    notes = f"k1, k2, fx = fy fitted from {fit.n_stars} stars in {fit.n_frames} frames (hil star --fit-distortion)"
+    return write_camera_toml(rep.camera, output, extra={"distortion_fit": table}, name=src.get("name"),
+                             notes=notes, comment=comment)
+
+
+def cmd_fit_distortion(args) -> int:
+    """``hil star --fit-distortion``: focal length and lens distortion from the sky (jobs/kinds/fit_distortion.py).
+
+    Refusals (one line ``dualsight: error: ...``, exit status 2, nothing written): ``--fit-distortion`` without
+    ``-o``; ``-o`` or ``--force`` without ``--fit-distortion``; ``--sweep`` or ``--overlay-dir`` with it; ``-o``
+    naming an existing file without ``--force``, a folder, or a file in a missing folder (these before any work);
+    too few stars identified by a whole-field pass.  Unreadable images are named on stderr and left out (exit
+    status 1 after writing, as ``hil star``).  ``--lake``, ``--run``, ``--workers`` ... are not used.  Progress
+    (one line per pass) goes to stderr, the summary to stdout; ``--json`` prints one JSON object instead
+    (jobs/reports/fit_distortion.py: ``summary_json``) and no progress."""
+    from dualsight.jobs.kinds import fit_distortion           # Taichi (the hil_star chain)
+
+    if not args.fit_distortion:
+        raise InputError("-o/--output and --force go with --fit-distortion", source="hil star")
+    if getattr(args, "sweep", None):
+        raise InputError("fits one camera with one set of settings; drop --sweep", source="--fit-distortion")
+    if args.overlay_dir is not None:
+        raise InputError("draws no overlays; run hil star with the fitted camera for them", source="--fit-distortion")
+    out = check_fit_output(args)
+    spec = star_spec_from_args(args)
+    n = len(spec.images)
+    rep = fit_distortion.fit_from_spec(
+        spec, progress=None if args.json else (lambda event, value: print(fd_report.progress_line(event, value, n),
+                                                                          file=sys.stderr)),
+        warn=lambda e: print(f"dualsight: {e}; skipped, the other images go on", file=sys.stderr))
+    try:
+        write_fitted_camera(rep, out, args.camera, [e.path for e in spec.images])
+    except OSError as e:
+        raise InputError(f"cannot write the camera file ({e.strerror or e})", source=str(out)) from None
+    print(json.dumps(fd_report.summary_json(rep, out), indent=1) if args.json else fd_report.summary_text(rep, out))
+    return 1 if any(rep.errors) else 0
