@@ -106,7 +106,9 @@ def run_sql_arrow(lake: Lake | Path | str, sql: str, *, warn=None):
     con, statements = _read_only_statements(lake, sql, warn)
     try:
         for st in statements[:-1]:
-            con.execute(st)
+            done = getattr(con.execute(st), "complete", None)   # DuckDB 2 wants a pending result finished
+            if done is not None:
+                done()
         return con.sql(statements[-1]).to_arrow_table()
     except duckdb.Error as e:
         raise InputError(f"{type(e).__name__}: {_first_line(e)}", source="sql") from None
