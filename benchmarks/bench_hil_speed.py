@@ -117,6 +117,7 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
     from dualsight.kernels import detect_local as dl
     from dualsight.nav import star_solution as ss
     from dualsight.nav.observations import observations
+    from dualsight.nav.starid import identify as vote_identify
     from dualsight.scene.camera import Camera
 
     from dualsight.scene.units import angle_between
@@ -161,8 +162,8 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
                 with T.stage("observations"):
                     obs = observations(det, 1, cam, max_obs=rt.settings.max_obs)
                 with T.stage("voting"):
-                    ident = ss.vote_identify(obs.vec, obs.valid, ctx.catalog.unit, ctx.pairs.i, ctx.pairs.j,
-                                             ctx.pairs.angle, rt.voting, cat_vmag=ctx.catalog.vmag, engine=engine)
+                    ident = vote_identify(obs.vec, obs.valid, ctx.catalog.unit, ctx.pairs.i, ctx.pairs.j,
+                                          ctx.pairs.angle, rt.voting, cat_vmag=ctx.catalog.vmag, engine=engine)
                 with T.stage("attitude"):
                     w = ss.centroid_weights(det, obs, rt.settings.centroid_floor_px)
                     sol = ss.solve(obs, ident, ctx.catalog.unit, None, weights=w)

@@ -254,7 +254,7 @@ def check_against_job(spec, answers) -> float:
     """Largest angle (arcsec) between our in-process boresights and the hil_star job's own compute_shard rows
     (the same spec): 0 when the benchmark runs exactly the job's chain; inf when one solved and the other not."""
     from dualsight.jobs.kinds import hil_star as hs
-    from dualsight.scene.attitude import angle_between
+    from dualsight.scene.units import angle_between
 
     ctx = hs.make_context(spec)
     t = hs.compute_shard(spec, np.arange(len(answers), dtype=np.int64), ctx)["hil_star"]
@@ -290,8 +290,8 @@ def run_cedar(py: Path, paths, pixels, camera, args) -> dict:
 # ============================================================================================ scoring, table
 def errors_arcsec(A, A_true):
     """(boresight angle, roll difference) in arcsec of an ICRS -> camera matrix against the truth."""
-    from dualsight.scene.attitude import angle_between
     from dualsight.scene.pointing import roll_deg
+    from dualsight.scene.units import angle_between
 
     if A is None or A_true is None:
         return None, None

@@ -137,7 +137,7 @@ def v7_frames(cat, frames, seed=5):
 def hil7_workload(frames: int) -> dict:
     from dualsight.catalogs.pair_cache import load_pair_catalog
     from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
-    from dualsight.nav.starid import VotingConfig
+    from dualsight.nav.voting_config import VotingConfig
 
     cat = load_star_catalog(StarCatalogConfig(mag_limit=7.0))
     pairs = load_pair_catalog(cat, 14 * DEG)
@@ -172,7 +172,8 @@ def save_inputs(names, cases: int, folder: Path) -> list[str]:
 def time_engines(path: str, batches, repeats: int, threads: int):
     """Time both engines on the saved inputs; one line per (workload, config, batch)."""
     from dualsight.kernels.voting import n_threads
-    from dualsight.nav.starid import VotingConfig, identify
+    from dualsight.nav.starid import identify
+    from dualsight.nav.voting_config import VotingConfig
 
     d = np.load(path)
     name = Path(path).stem

@@ -37,9 +37,9 @@ from pydantic import Field
 
 from dualsight.config import check_fields
 from dualsight.kernels.blobs import label_blobs
+from dualsight.nav.blobber_names import AreaCurve, Estimator, Target
 from dualsight.nav.range import range_eq1, range_oblique
 
-from dualsight.nav.blobber_names import ESTIMATORS, TARGETS, AreaCurve, Estimator, Target  # noqa: F401
 _DEFAULT_CURVE = {"paper": "mean", "subpixel": "relopt"}
 
 

@@ -31,10 +31,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from dualsight.scene.units import ARCSEC  # re-exported: jobs import it from here
+from dualsight.scene.units import ARCSEC
 
 __all__ = ["error_matrix", "axis_errors", "total_error_angle", "classify",
-           "SUCCESS", "NO_SOLUTION", "CONFIDENT_WRONG", "STATUS_NAMES", "ARCSEC"]
+           "SUCCESS", "NO_SOLUTION", "CONFIDENT_WRONG", "STATUS_NAMES"]
 
 SUCCESS, NO_SOLUTION, CONFIDENT_WRONG = 0, 1, 2
 STATUS_NAMES = ("success", "no_solution", "confident_wrong")

@@ -1,6 +1,6 @@
 """Scores of the hardware-in-the-loop runs against independently known truth.
 
-Star tracker (one real frame), all angles between unit vectors (``scene.attitude.angle_between``):
+Star tracker (one real frame), all angles between unit vectors (``scene.units.angle_between``):
 
     boresight error   angle between the solved camera +z axis (third row of A_est) and the truth's
                       (third row of the truth matrix); ``boresight_error_radec`` uses the truth file's
@@ -28,9 +28,10 @@ import math
 
 import numpy as np
 
-from dualsight.nav.errors import ARCSEC, STATUS_NAMES, axis_errors, classify, total_error_angle
-from dualsight.scene.attitude import angle_between, radec_to_unit, unit_to_radec
+from dualsight.nav.errors import STATUS_NAMES, axis_errors, classify, total_error_angle
+from dualsight.scene.attitude import radec_to_unit, unit_to_radec
 from dualsight.scene.pointing import roll_deg
+from dualsight.scene.units import ARCSEC, angle_between
 
 __all__ = ["TRUTH_MATCH_PX", "TRUTH_ID_ARCSEC", "FILE_LIMIT_ARCSEC", "ALTAZ_LIMIT_ARCSEC", "status_limit_arcsec",
            "truth_star_checks", "truth_star_counts", "score_star_frame", "residual_stats", "score_range"]

@@ -20,7 +20,7 @@ from dualsight.nav.attitude import solve_identified
 from dualsight.nav.errors import axis_errors, classify, total_error_angle
 from dualsight.nav.observations import Observations, ragged_rank
 from dualsight.nav.starid import identify as vote_identify
-from dualsight.scene.attitude import angle_between
+from dualsight.scene.units import angle_between
 
 __all__ = ["identify", "Solution", "solve", "centroid_weights"]
 

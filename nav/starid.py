@@ -50,14 +50,13 @@ from .attitude import solve_identified
 from .attitude_check import confirm_by_attitude
 from .candidates import assign_identities, assign_identities_taichi
 from .chance import catalog_density, chance_probability, pair_hypotheses
-from .pair_index import VotingIndex, pair_arrays, voting_index
+from .pair_index import VotingIndex, voting_index
 from .residual_check import drop_blends, residual_check
 from .verify import accept, verify, verify_accept_taichi
 from .votes import observed_pairs, vote, vote_taichi
-from .voting_config import ACCEPT_RULES, VotingConfig
+from .voting_config import VotingConfig
 
-__all__ = ["VotingConfig", "Identification", "VotingIndex", "identify", "pair_arrays", "voting_index",
-           "ACCEPT_RULES", "ENGINES"]
+__all__ = ["Identification", "identify", "ENGINES"]
 
 ENGINES = ("taichi", "numpy")
 """Implementations of steps 1-5 (:func:`identify`'s ``engine``): ``"taichi"`` (default), the kernels of

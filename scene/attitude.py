@@ -2,14 +2,12 @@
 
 Attitude matrices ``A`` map inertial (ICRS) vectors into the camera frame: ``v_cam = A @ v_icrs``
 (DESIGN.md conventions).  All functions are vectorised over a leading batch axis; angles in radians.
-The angle between two directions is :func:`dualsight.scene.units.angle_between` (re-exported here).
+The angle between two directions is :func:`dualsight.scene.units.angle_between`.
 """
 
 from __future__ import annotations
 
 import numpy as np
-
-from dualsight.scene.units import angle_between  # noqa: F401  (re-export: jobs import it from here)
 
 
 def rot_axis(axis: int, angle: np.ndarray) -> np.ndarray:

@@ -41,8 +41,8 @@ from dualsight.nav.attitude import solve_identified
 from dualsight.nav.errors import axis_errors
 from dualsight.nav.residual_check import residual_check
 from dualsight.nav.star_solution import identify
-from dualsight.nav.starid import VotingConfig
 from dualsight.nav.starid import identify as vote_identify
+from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.units import ARCSEC
 
 from test_nav_star import CAM, TOL, _fields, _pair_catalog, _sphere_catalog  # noqa: E402  (shared test helpers)

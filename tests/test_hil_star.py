@@ -25,12 +25,13 @@ from dualsight.jobs.kinds import hil_star as hs
 from dualsight.jobs.cli.main import main
 from dualsight.jobs.kinds.hil_truth import Site, resolve_star_truths
 from dualsight.jobs.engine.runner import run_job
-from dualsight.scene.attitude import angle_between, radec_to_unit, rot_axis, unit_to_radec
+from dualsight.scene.attitude import radec_to_unit, rot_axis, unit_to_radec
 from dualsight.kernels.background import bin_size, subtract_background
 from dualsight.scene.camera import Camera
 from dualsight.scene.pointing import roll_deg
 from dualsight.scene.skytruth import load_truth_json
 from dualsight.scene.timescale import julian_year, observation_epoch
+from dualsight.scene.units import angle_between
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import connect, run_report, run_sql
 

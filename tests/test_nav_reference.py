@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from dualsight.nav.attitude import solve_identified
-from dualsight.nav.starid import VotingConfig, VotingIndex, identify, voting_index
+from dualsight.nav.pair_index import VotingIndex, voting_index
+from dualsight.nav.starid import identify
+from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.units import ARCSEC, angle_between
 
 from test_nav_star import CAM, TOL, _fields, _pair_catalog, _sphere_catalog  # noqa: E402  (shared test helpers)

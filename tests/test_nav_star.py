@@ -14,8 +14,9 @@ import pytest
 
 from dualsight.nav.attitude import solve_identified
 from dualsight.nav.errors import CONFIDENT_WRONG, SUCCESS, axis_errors, classify, total_error_angle
-from dualsight.nav.starid import Identification, VotingConfig, identify
+from dualsight.nav.starid import Identification, identify
 from dualsight.nav.votes import pair_windows
+from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.attitude import euler123_to_dcm, random_euler123
 from dualsight.scene.camera import Camera
 from dualsight.scene.units import ARCSEC

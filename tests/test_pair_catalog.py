@@ -262,7 +262,8 @@ def test_memory_mapped_pairs_vote_like_in_memory_ones(tmp_path):
     sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
     from test_nav_star import CAM, TOL, _fields, _sphere_catalog
 
-    from dualsight.nav.starid import VotingConfig, identify
+    from dualsight.nav.starid import identify
+    from dualsight.nav.voting_config import VotingConfig
 
     cat = _sphere_catalog(11, 3000)
     pc = load_pair_catalog(FakeStars(cat), CAM.fov_rad[2], cache_dir=tmp_path)

@@ -33,7 +33,9 @@ import dualsight.kernels
 from dualsight.jobs.kinds import star
 from dualsight.kernels import voting as kvoting
 from dualsight.kernels import voting_select as kselect
-from dualsight.nav.starid import VotingConfig, identify, voting_index
+from dualsight.nav.pair_index import voting_index
+from dualsight.nav.starid import identify
+from dualsight.nav.voting_config import VotingConfig
 
 FIELDS = ("ids", "accepted", "T", "vote_ids", "votes", "verify_votes", "rejected", "n_attitude_matches",
           "p_chance")     # p_chance: its hypothesis count reads the vote's own windows (NaN = no answer, equal)

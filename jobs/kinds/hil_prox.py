@@ -65,7 +65,8 @@ from dualsight.errors import ConfigError, ImageError
 from dualsight.jobs.engine.specs import validate
 from dualsight.jobs.kinds.hil_common import (Frozen, ImageEntry, check_unchanged, fixed_point, n_cases, rows_table,
                                       spec_base)
-from dualsight.nav.blobber import ESTIMATORS, TARGETS, BlobberConfig, run_blobber
+from dualsight.nav.blobber import BlobberConfig, run_blobber
+from dualsight.nav.blobber_names import ESTIMATORS, TARGETS
 from dualsight.nav.hil_score import score_range
 from dualsight.scene.camera import Camera
 from dualsight.kernels.imageio import read_image

@@ -73,12 +73,13 @@ from dualsight.kernels.detect_local import LocalDetectConfig, detect_real, subtr
 from dualsight.nav import hil_score
 from dualsight.nav.observations import observations
 from dualsight.nav.star_solution import centroid_weights, identify, solve
-from dualsight.nav.starid import VotingConfig
-from dualsight.scene.attitude import angle_between, unit_to_radec
+from dualsight.nav.voting_config import VotingConfig
+from dualsight.scene.attitude import unit_to_radec
 from dualsight.kernels.background import background_model, subtract_background
 from dualsight.scene.camera import Camera
 from dualsight.kernels.imageio import read_image
 from dualsight.scene.pointing import roll_deg
+from dualsight.scene.units import angle_between
 
 NAME = "hil_star"
 PRIMARY = "hil_star"

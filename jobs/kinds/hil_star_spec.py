@@ -19,9 +19,9 @@ from dualsight.jobs.engine.specs import dataclass_from_table, dataclass_to_table
 from dualsight.jobs.kinds.hil_common import Frozen, ImageEntry, fixed_point
 from dualsight.kernels.detect import DetectConfig
 from dualsight.kernels.detect_local import LocalDetectConfig
-from dualsight.nav.errors import ARCSEC
-from dualsight.nav.starid import VotingConfig
+from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.camera import Camera
+from dualsight.scene.units import ARCSEC
 
 __all__ = ["METHODS", "MAX_VOTE_CELLS", "StarSettings", "Matched", "StarTruth", "HilStarSpec", "normalise_settings",
            "settings_from_table", "spec_from_dict", "normalise_run"]

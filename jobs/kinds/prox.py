@@ -39,10 +39,11 @@ from dualsight.jobs.engine.specs import preset_and_config, validate
 from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.kernels.points import apply_sensor, render
 from dualsight.nav.blobber import BlobberConfig, run_blobber
-from dualsight.scene.attitude import angle_between, quat_to_dcm, random_quaternions
+from dualsight.scene.attitude import quat_to_dcm, random_quaternions
 from dualsight.scene.camera import read_toml
 from dualsight.scene.motion import frame_poses, place_body
 from dualsight.scene.satellite import satellite_from_dict
+from dualsight.scene.units import angle_between
 
 NAME = "prox"
 PRIMARY = "prox_cases"

@@ -52,8 +52,8 @@ from dualsight.kernels.sensor_config import SensorConfig, with_psf_digest
 from dualsight.nav.errors import STATUS_NAMES
 from dualsight.nav.observations import observations
 from dualsight.nav.star_solution import centroid_weights, identify, solve
-from dualsight.nav.starid import VotingConfig
 from dualsight.nav.truth_match import match_truth
+from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.attitude import euler123_to_dcm, quat_to_dcm, quaternions_from_uniforms
 from dualsight.scene.camera import Camera
 from dualsight.scene.case_rng import streams as case_streams

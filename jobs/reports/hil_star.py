@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dualsight.nav.errors import ARCSEC
+from dualsight.scene.units import ARCSEC
 
 __all__ = ["fetch", "to_json", "summary_line", "table6_text", "text_report", "write_overlays", "licence_credit"]
 
