@@ -80,7 +80,8 @@ def worker(B, repeats):
     import cv2
     from dualsight.kernels import _runtime
     from dualsight.kernels.detect import DetectConfig, detect_stars, render_and_detect_ideal
-    from dualsight.kernels.starfield import SensorConfig, flux_from_magnitude, render_star_fields
+    from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
+    from dualsight.kernels.starfield import render_star_fields
 
     threads = int(os.environ.get("DUALSIGHT_TI_THREADS", "0")) or os.cpu_count()
     cv2.setNumThreads(threads)

@@ -52,8 +52,9 @@ class Background:
     with its half-pixel convention, held constant beyond the outer block centres); ``r`` (H, 2) int32 the
     two block rows around image row y and ``w`` (H, 2) float64 their weights, rounded to float32 values:
     both products are then exact in float64 and the sum is rounded once, so every evaluation (this class's
-    :meth:`grid` and :meth:`subtract`, the labeller's Taichi kernels, :func:`dualsight.kernels.labelling.label_frames` with
-    ``background=``) gives the same bits, whatever order or fused multiply-add the compiler picks.
+    :meth:`grid` and :meth:`subtract`, the labeller's Taichi kernels,
+    :func:`dualsight.kernels.labelling.label_frames` with ``background=``) gives the same bits, whatever order or
+    fused multiply-add the compiler picks.
     ``levels`` (B,) float64: the median of each frame's block medians (ADU).
     """
 

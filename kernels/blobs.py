@@ -15,9 +15,9 @@ image value, ``w`` the coverage (1 when no coverage image is given):
 
 import numpy as np
 
-from dualsight.kernels.labelling import NSTAT, STAT_NAMES, label_frames
+from dualsight.kernels.labelling import NSTAT, label_frames
 
-__all__ = ["NSTAT", "STAT_NAMES", "label_blobs"]
+__all__ = ["label_blobs"]
 
 
 def label_blobs(images, threshold=0.0, coverage=None, connectivity: int = 8, *, return_mask: bool = False,

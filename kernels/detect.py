@@ -44,6 +44,7 @@ from dualsight.kernels._runtime import KernelCache
 from dualsight.kernels.background import row_medians
 from dualsight.kernels.digest import patch_digest_taichi
 from dualsight.kernels.labelling import Components, find, label_frames, label_segments, union
+from dualsight.kernels.sensor_config import MAX_ADU, SensorConfig
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +52,7 @@ __all__ = ["DetectConfig", "Detections", "detect_stars", "render_and_detect_idea
 
 
 # ============================================================================ data
-_ADU = Annotated[float, Field(ge=-sf.MAX_ADU, le=sf.MAX_ADU)]
+_ADU = Annotated[float, Field(ge=-MAX_ADU, le=MAX_ADU)]
 _DETECT_UNITS = {"threshold_adu": "ADU", "k_sigma": "sigma", "background_adu": "ADU", "noise_sigma_adu": "ADU",
                  "min_pixels": "px", "background_step": "px"}
 
@@ -63,7 +64,7 @@ class DetectConfig:
     Every field's range is part of its type (pydantic ``Field``), checked both when a TOML table is
     validated (``dualsight.jobs.engine.specs.validate``) and when the dataclass is built in Python
     (:func:`dualsight.config.check_fields`).  ADU bounds are the full scale of the deepest
-    ADC allowed, 2^24 (:data:`dualsight.kernels.starfield.MAX_ADU`); pixel counts are bounded by the
+    ADC allowed, 2^24 (:data:`dualsight.kernels.sensor_config.MAX_ADU`); pixel counts are bounded by the
     largest frame, 65536^2 = 2^32 pixels.
 
     Attributes
@@ -84,10 +85,10 @@ class DetectConfig:
         [1, 65536] (the largest image side).
     """
 
-    threshold_adu: Annotated[float, Field(ge=0, le=sf.MAX_ADU)] = 0.0
+    threshold_adu: Annotated[float, Field(ge=0, le=MAX_ADU)] = 0.0
     k_sigma: Annotated[float, Field(ge=0, le=1000.0)] = 5.0
     background_adu: _ADU | None = None
-    noise_sigma_adu: Annotated[float, Field(ge=0, le=sf.MAX_ADU)] | None = None
+    noise_sigma_adu: Annotated[float, Field(ge=0, le=MAX_ADU)] | None = None
     min_pixels: Annotated[int, Field(ge=1, le=2 ** 32)] = 2
     max_blobs_per_frame: Annotated[int, Field(ge=1, le=10 ** 6)] = 256
     connectivity: Literal[4, 8] = 8
@@ -377,7 +378,7 @@ def detect_stars(images: np.ndarray, cfg: DetectConfig = DetectConfig(), backgro
 
 
 def render_and_detect_ideal(x, y, flux_e, valid, width: int, height: int,
-                            sensor: sf.SensorConfig = sf.SensorConfig(), detect: DetectConfig = DetectConfig(),
+                            sensor: SensorConfig = SensorConfig(), detect: DetectConfig = DetectConfig(),
                             seeds=None, *, dtype=np.uint16, digest: bool = False):
     """Detections of noise-free star fields without rendering the empty sky (sparse fast path).
 

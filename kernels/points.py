@@ -1,6 +1,6 @@
 """Proximity-operations renderers (Taichi CPU), batched over B frames: ``paper`` and ``accurate``.
 
-One module per stage; this one only dispatches (:func:`render`) and keeps the historic import names:
+One module per stage; this one only dispatches (:func:`render`):
 
 =====================  ==========================================================================
 stage                  module
@@ -27,12 +27,9 @@ Outputs are float32 ``image`` (B, H, W) -- sum of coverage x Eq. 3 intensity -- 
 """
 
 from dualsight.kernels.prox_raster import render_mesh
-from dualsight.kernels.prox_sensor import apply_sensor, gaussian_weights
 from dualsight.kernels.prox_splat import render_points
-from dualsight.kernels.prox_triangles import prepare_triangles
 
-__all__ = ["MODES", "render", "render_points", "render_mesh", "prepare_triangles", "apply_sensor",
-           "gaussian_weights"]
+__all__ = ["MODES", "render"]
 
 MODES = ("paper", "accurate")
 

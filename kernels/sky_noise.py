@@ -24,14 +24,17 @@ def _stray_tables_for(base_e: float, m0: int, m1: int, step: float):
             np.ascontiguousarray(np.concatenate([g for _, g in parts])), off)
 
 
-def _stray_tables(cfg: SensorConfig, W: int, H: int):
-    """Poisson CDF tables of the sky pixels' lambdas under stray light, on a grid: (cdf, guide, offsets, m0,
-    1 / step) for lambda = base_e + m * step, m = m0 .. floor(max stray / step) over the stray plane's range
-    in the frame.  The step is the finest of 1/16, 1/4, 1 e- whose tables hold at most
-    MAX_STRAY_TABLE_ENTRIES entries (finer grids cost more in cache misses than they save: measured on 1024 x
-    768 frames, 1/16 e- adds ~3 ms/frame to the plain sky's table sampler, 1/64 and 1 e- ~35); none (one
-    dummy entry) when shot noise or stray light is off or even 1 e- is too fine (then every pixel takes the
-    PTRS sampler)."""
+def stray_tables(cfg: SensorConfig, W: int, H: int):
+    """Poisson CDF tables of the sky pixels' lambdas (e-) under stray light in a W x H px frame, on a grid
+    lambda = base_e + m * step, m = m0 .. floor(max stray / step) over the stray plane's range in the frame:
+    (cdf (N,) float64, guide (N,) int32: the tables one after another, each as
+    :func:`dualsight.kernels.rng.poisson_table_np` gives it; offsets (M + 1,) int64: table m0 + j is
+    [offsets[j], offsets[j + 1]); m0 int; 1 / step float, e-^-1), the stray-light tables of the render kernel
+    (:func:`dualsight.kernels.starfield.render_star_fields`).  The step is the finest of 1/16, 1/4, 1 e- whose
+    tables hold at most MAX_STRAY_TABLE_ENTRIES entries (finer grids cost more in cache misses than they save:
+    measured on 1024 x 768 frames, 1/16 e- adds ~3 ms/frame to the plain sky's table sampler, 1/64 and 1 e- ~35);
+    none (one dummy entry) when shot noise or stray light is off or even 1 e- is too fine (then every pixel takes
+    the PTRS sampler)."""
     none = (np.ones(1), np.zeros(1, np.int32), np.zeros(1, np.int64), 0, 1.0)
     if not (cfg.shot_noise and cfg.has_stray_light):
         return none

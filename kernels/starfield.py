@@ -16,29 +16,30 @@ Signal model (electrons, per pixel (r, c) of case b)::
 
 Stage 1, the signal S (Gaussian PSFs of standard deviation ``psf_sigma_px`` integrated exactly over each
 pixel, in a window of half-width ``ceil(psf_window_sigma * sigma + 1)`` px, so at most 2 * Phi(-psf_window_sigma)
-of the flux (6.3e-5 for 4 sigma) falls outside per axis), is :mod:`dualsight.kernels.star_psf`.  This module
-holds the sensor model (:class:`SensorConfig`), stage 2 (the ``finalize`` kernel: charge, noise, ADC) and
-:func:`render_star_fields`, which runs both.
+of the flux (6.3e-5 for 4 sigma) falls outside per axis), is :mod:`dualsight.kernels.star_psf` (other PSF models,
+smear and bright objects: :mod:`dualsight.kernels.psf_models`).  This module holds stage 2 (the ``finalize``
+kernel: charge, noise, ADC) and :func:`render_star_fields`, which runs both; the sensor model is
+:class:`dualsight.kernels.sensor_config.SensorConfig`, the noise tables :mod:`dualsight.kernels.sky_noise`.
 
 Random numbers come from :mod:`dualsight.kernels.rng` (a counter-based hash of (case seed, stream,
 pixel index)), never from ``ti.random``: a case renders bit-identically whatever batch, position or
 thread computes it.  Sky pixels (no star light, not hot, no stray light: most of a star field) with
 quantised ADU draw their final value in one uniform, by inversion of the tabulated exact CDF of shot noise +
-read noise + ADC (:func:`sky_adu_table`, through a direct guide table: no transcendental call per pixel); one
-64-bit hash serves 4 neighbouring pixels, 16 bits each, and a pixel whose 2^-16 cell holds a CDF step draws
-53 more bits (``rng.inverse_table_bits``: the same distribution as a 53-bit uniform; 7-10 % of the noisy
-preset's time per case, measured with benchmarks/bench_noise_path.py).
+read noise + ADC (:func:`dualsight.kernels.sky_noise.sky_adu_table`, through a direct guide table: no
+transcendental call per pixel); one 64-bit hash serves 4 neighbouring pixels, 16 bits each, and a pixel whose
+2^-16 cell holds a CDF step draws 53 more bits (``rng.inverse_table_bits``: the same distribution as a 53-bit
+uniform; 7-10 % of the noisy preset's time per case, measured with benchmarks/bench_noise_path.py).
 Other pixels: shot noise is exact Poisson, by inversion of a tabulated CDF for pixels at the sky level,
 otherwise sequential inversion below 10 e- and PTRS rejection (Hörmann 1993) above; read noise is N(0, 1) by
 inversion (Wichura's AS241).  Without shot noise, dark current and sky background are their means only.
 Hot pixels (fraction p <= HOT_GEOMETRIC_MAX) are drawn along each row by the geometric gaps of their
 Bernoulli process (one draw per hot pixel), above that by one draw per pixel.
 
-Magnitudes: ``flux_from_magnitude`` uses ``F = zero_mag_rate_e_per_s * 10^(-0.4 m) * exposure_s``.  The
-default zero point, 1.5e6 e-/s for a V = 0 star, is a round figure for a ~1 cm^2 clear aperture
-(e.g. 17 mm f/1.4): about 1000 photons s^-1 cm^-2 A^-1 at V = 0 (Bessell, Castelli & Plez 1998, A&A 333,
-231: 3.63e-9 erg s^-1 cm^-2 A^-1 at 550 nm) over a ~3000 A silicon pass band at ~50 % quantum efficiency.
-It is a config field; set it from your optics.
+Magnitudes: :func:`dualsight.kernels.sensor_config.flux_from_magnitude` uses
+``F = zero_mag_rate_e_per_s * 10^(-0.4 m) * exposure_s``.  The default zero point, 1.5e6 e-/s for a V = 0 star,
+is a round figure for a ~1 cm^2 clear aperture (e.g. 17 mm f/1.4): about 1000 photons s^-1 cm^-2 A^-1 at V = 0
+(Bessell, Castelli & Plez 1998, A&A 333, 231: 3.63e-9 erg s^-1 cm^-2 A^-1 at 550 nm) over a ~3000 A silicon pass
+band at ~50 % quantum efficiency.  It is a config field; set it from your optics.
 
 Noise-free frames never need to be materialised for detection: see
 ``dualsight.kernels.detect.render_and_detect_ideal`` (same pixels, only the patches around stars).
@@ -55,13 +56,10 @@ import taichi as ti
 
 from dualsight.kernels import psf_models, rng, star_psf
 from dualsight.kernels._runtime import KernelCache
-from dualsight.kernels.sky_noise import (_SKY_ADU_SIGMAS, MAX_SKY_ADU_WORK, MAX_STRAY_TABLE_ENTRIES,  # noqa: F401
-                                         _stray_tables, sky_adu_table)
-from dualsight.kernels.sensor_config import (QUANT_EPS_ADU, MAX_ADU, MAX_CHARGE_E, BrightObject,  # noqa: F401  (re-exported)
-                                             SensorConfig, flux_from_magnitude)
+from dualsight.kernels.sensor_config import QUANT_EPS_ADU, SensorConfig
+from dualsight.kernels.sky_noise import sky_adu_table, stray_tables
 
-__all__ = ["SensorConfig", "flux_from_magnitude", "render_star_fields", "false_star_lists",
-           "append_false_stars", "release_scratch"]
+__all__ = ["render_star_fields", "false_star_lists", "append_false_stars", "release_scratch"]
 
 MAX_CHUNK_PIXELS = 1 << 26  # pixels per kernel call: 256 MB float32 scratch at most, indices fit in int32
 _FRAC_DRAW = 4095  # STREAM_SHOT draw of the stray light's sub-grid Poisson part (PTRS uses draws < 2000)
@@ -386,10 +384,11 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
     ----------
     x, y : (B, S) float, star positions in continuous pixel coordinates (col, row) from the top-left
         corner (the top-left pixel's centre is (0.5, 0.5)); stars may lie partly or fully off the image.
-    flux_e : (B, S) float, total electrons of each star during the exposure (see :func:`flux_from_magnitude`).
+    flux_e : (B, S) float, total electrons of each star during the exposure
+        (see :func:`~dualsight.kernels.sensor_config.flux_from_magnitude`).
     valid : (B, S) bool (or None = all); invalid, non-finite or non-positive-flux stars are skipped.
     width, height : frame size (px).
-    cfg : :class:`SensorConfig`.
+    cfg : :class:`~dualsight.kernels.sensor_config.SensorConfig`.
     seeds : (B,) uint64 per-case seeds; required when any random effect is on (else ignored).
     dtype : np.uint16 (default) or np.float32 output; both hold ADU (integers when cfg.quantize).
     out : optional preallocated (B, H, W) C-contiguous array of ``dtype`` to write into.
@@ -430,7 +429,7 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
     hot_seed = cfg.hot_pixel_seed
     # Poisson CDF table of the sky level (dark + background), shared by most pixels; exact inversion
     use_table = cfg.shot_noise and 0.0 < cfg.base_e <= 1e6
-    tcdf, tguide, toff, tm0, tinv = _stray_tables(cfg, W, H)
+    tcdf, tguide, toff, tm0, tinv = stray_tables(cfg, W, H)
     cdf, guide = rng.poisson_table_np(cfg.base_e) if use_table else (np.ones(1), np.zeros(1, np.int32))
     sky = None if cfg.has_stray_light else sky_adu_table(cfg)   # the sky pixels' ADU in one draw
     # hot pixels up to HOT_GEOMETRIC_MAX: by their geometric gaps along each row; above, one draw per pixel

@@ -168,7 +168,7 @@ def _phi(x):
 
 
 def test_sensor_limit_by_hand():
-    from dualsight.kernels.starfield import SensorConfig
+    from dualsight.kernels.sensor_config import SensorConfig
 
     s = SensorConfig(psf_sigma_px=0.05, read_noise_e=10.0, quantize=False, exposure_s=0.1,
                      zero_mag_rate_e_per_s=1.5e6)

@@ -17,7 +17,7 @@ from dualsight.jobs.kinds import prox
 from dualsight.jobs.engine.specs import dataclass_from_table
 from dualsight.config import allowed_range
 from dualsight.kernels.detect import DetectConfig
-from dualsight.kernels.starfield import SensorConfig
+from dualsight.kernels.sensor_config import SensorConfig
 from dualsight.nav.blobber import BlobberConfig
 from dualsight.nav.voting_config import MAX_TOLERANCE_RAD, VotingConfig
 from dualsight.scene.camera import Camera

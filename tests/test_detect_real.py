@@ -20,7 +20,8 @@ import pytest
 from dualsight.kernels.detect_background import interpolate_tiles, tile_background
 from dualsight.kernels.detect_local import LocalDetectConfig, detect_real
 from dualsight.kernels.detect_psf import crb_sigma_px, psf_kernel_1d, sharpness_limit
-from dualsight.kernels.starfield import SensorConfig, render_star_fields
+from dualsight.kernels.sensor_config import SensorConfig
+from dualsight.kernels.starfield import render_star_fields
 
 W, H = 1024, 768
 GAUSS = SensorConfig(quantize=False, gain_e_per_adu=1.0, full_well_e=1e12, bit_depth=24, bias_adu=1000.0)

@@ -63,7 +63,8 @@ def sky(tmp_path_factory):
     fit starts from); without coefficients and the true fx."""
     from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
     from dualsight.jobs.kinds.star import psf_margin_px
-    from dualsight.kernels.starfield import SensorConfig, flux_from_magnitude, render_star_fields
+    from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
+    from dualsight.kernels.starfield import render_star_fields
     from dualsight.scene.starfield_geometry import stars_in_field
 
     tmp = tmp_path_factory.mktemp("distortion")

@@ -441,7 +441,8 @@ def test_synthetic_frame_round_trip(tmp_path):
     boresight within a few arcsec of the attitude it was rendered with."""
     from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
     from dualsight.jobs.kinds.star import psf_margin_px
-    from dualsight.kernels.starfield import SensorConfig, flux_from_magnitude, render_star_fields
+    from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
+    from dualsight.kernels.starfield import render_star_fields
     from dualsight.scene.starfield_geometry import stars_in_field
 
     cam = Camera.from_toml(CAMERA)

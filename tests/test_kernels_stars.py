@@ -22,8 +22,8 @@ from dualsight.kernels import rng as krng
 from dualsight.kernels.detect import (DetectConfig, Detections, detect_stars, estimate_background,
                                       render_and_detect_ideal)
 from dualsight.kernels.background import row_medians
-from dualsight.kernels.starfield import (SensorConfig, false_star_lists, flux_from_magnitude,
-                                         render_star_fields)
+from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
+from dualsight.kernels.starfield import false_star_lists, render_star_fields
 
 _N = int(os.environ.get("DUALSIGHT_HYPOTHESIS_EXAMPLES", "0"))  # > 0: deeper runs (nightly, by hand)
 HSET = settings(max_examples=_N or 6, deadline=None, suppress_health_check=[HealthCheck.too_slow])

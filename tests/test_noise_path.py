@@ -19,7 +19,9 @@ import pytest
 
 from dualsight.kernels import rng as krng
 from dualsight.kernels import starfield as sf
-from dualsight.kernels.starfield import SensorConfig, render_star_fields
+from dualsight.kernels.sensor_config import SensorConfig
+from dualsight.kernels.sky_noise import sky_adu_table
+from dualsight.kernels.starfield import render_star_fields
 
 
 def chi2_limit(dof: int, z: float = 5.0) -> float:
@@ -94,7 +96,7 @@ SKY_CONFIGS = {
 @pytest.mark.parametrize("name", sorted(SKY_CONFIGS))
 def test_sky_adu_table_is_the_exact_pmf(name):
     cfg = SKY_CONFIGS[name]
-    cdf, guide, a0 = sf.sky_adu_table(cfg)
+    cdf, guide, a0 = sky_adu_table(cfg)
     pmf = exact_sky_pmf(cfg)
     table = np.diff(np.concatenate([[0.0], cdf]))
     for a, p in pmf.items():
@@ -108,7 +110,7 @@ def test_sky_adu_table_is_the_exact_pmf(name):
 @pytest.mark.parametrize("name", sorted(SKY_CONFIGS))
 def test_rendered_sky_histogram_matches_the_exact_pmf(name):
     cfg = SKY_CONFIGS[name]
-    assert sf.sky_adu_table(cfg) is not None  # the tabulated path is what is tested
+    assert sky_adu_table(cfg) is not None  # the tabulated path is what is tested
     v = _sky(cfg).astype(np.int64).ravel()
     n = v.size
     pmf = exact_sky_pmf(cfg)
@@ -144,8 +146,8 @@ def test_table_and_per_effect_samplers_agree(monkeypatch):
 
 
 def test_no_table_for_continuous_adu_or_stray_light():
-    assert sf.sky_adu_table(dataclasses.replace(SKY_CONFIGS["noisy_sensor"], quantize=False)) is None
-    assert sf.sky_adu_table(SensorConfig()) is None  # no random effect
+    assert sky_adu_table(dataclasses.replace(SKY_CONFIGS["noisy_sensor"], quantize=False)) is None
+    assert sky_adu_table(SensorConfig()) is None  # no random effect
 
 
 def test_star_pixels_keep_their_signal_through_the_table_path():

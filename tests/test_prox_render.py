@@ -19,6 +19,9 @@ import numpy as np
 import pytest
 
 from dualsight.kernels import points as KP
+from dualsight.kernels.prox_raster import render_mesh
+from dualsight.kernels.prox_sensor import apply_sensor
+from dualsight.kernels.prox_splat import render_points
 from dualsight.scene import primitives as prim
 from dualsight.scene.attitude import quat_to_dcm, random_quaternions
 from dualsight.scene.camera import Camera
@@ -158,18 +161,18 @@ def test_eq3_single_point_by_hand():
     assert NL > 0 and RV > 0
     I_hand = Ia * 0.3 + Il * (0.7 * NL + 0.5 * RV ** 7)   # Eq. 3
     cloud = SimpleNamespace(points=p[None], normals=N[None], component=np.zeros(1, np.int32))
-    img, cov = KP.render_points(cloud, mat, np.eye(3)[None, None], np.zeros((1, 1, 3)), L, CAM, Ia, Il)
+    img, cov = render_points(cloud, mat, np.eye(3)[None, None], np.zeros((1, 1, 3)), L, CAM, Ia, Il)
     u, v = F * p[0] / p[2] + 512, F * p[1] / p[2] + 384
     assert cov.sum() == 1 and cov[0, int(v), int(u)] == 1        # lands in pixel (floor u, floor v)
     assert img[0, int(v), int(u)] == pytest.approx(I_hand, rel=1e-5)
     # zero normal (cuboid edge point): ambient only; light behind the surface: ambient only
     for nrm, L2 in ((np.zeros(3), L), (N, -L)):
         cloud = SimpleNamespace(points=p[None], normals=nrm[None], component=np.zeros(1, np.int32))
-        img, _ = KP.render_points(cloud, mat, np.eye(3)[None, None], np.zeros((1, 1, 3)), L2, CAM, Ia, Il)
+        img, _ = render_points(cloud, mat, np.eye(3)[None, None], np.zeros((1, 1, 3)), L2, CAM, Ia, Il)
         assert img[0, int(v), int(u)] == pytest.approx(Ia * 0.3, rel=1e-6)
     # a back-facing point (N.V < 0) is not drawn
     cloud = SimpleNamespace(points=p[None], normals=-N[None], component=np.zeros(1, np.int32))
-    img, cov = KP.render_points(cloud, mat, np.eye(3)[None, None], np.zeros((1, 1, 3)), L, CAM, Ia, Il)
+    img, cov = render_points(cloud, mat, np.eye(3)[None, None], np.zeros((1, 1, 3)), L, CAM, Ia, Il)
     assert cov.sum() == 0
 
 
@@ -182,7 +185,7 @@ def test_eq3_flat_face_accurate_per_pixel():
     mesh = prim.cuboid_mesh((0.4, 0.3, 0.01))
     L = np.array([0.2, -0.5, -1.0]); L /= np.linalg.norm(L)
     mat = np.array([[0.2, 0.9, 0.6, 15.0]])
-    img, cov = KP.render_mesh(mesh, mat, R[None], t[None], L, CAM, 0.5, 1.3)
+    img, cov = render_mesh(mesh, mat, R[None], t[None], L, CAM, 0.5, 1.3)
     N = R @ np.array([0, 0, -1.0])                     # the face towards the camera
     d0 = N @ (t + R @ np.array([0, 0, -0.005]))        # plane N.x = d0
     rng = np.random.default_rng(0)
@@ -281,14 +284,14 @@ def test_frame_independent_of_batch(mode):
 def test_sensor_effects():
     img = np.zeros((3, 64, 80), np.float32)
     img[:, 30:34, 40:44] = 100.0
-    blurred = KP.apply_sensor(img, psf_sigma_px=1.5)
+    blurred = apply_sensor(img, psf_sigma_px=1.5)
     assert blurred.sum() == pytest.approx(img.sum(), rel=1e-5)                 # flux kept
     assert blurred.max() < 100.0
-    q = KP.apply_sensor(img, gain=3.0, bits=8)
+    q = apply_sensor(img, gain=3.0, bits=8)
     assert q.max() == 255.0 and np.array_equal(q, np.round(q))
-    noisy = KP.apply_sensor(np.zeros((2, 256, 256), np.float32), read_noise=2.0, seeds=[7, 8])
+    noisy = apply_sensor(np.zeros((2, 256, 256), np.float32), read_noise=2.0, seeds=[7, 8])
     assert noisy[0].std() == pytest.approx(2.0, rel=0.03) and abs(noisy[0].mean()) < 0.05
-    again = KP.apply_sensor(np.zeros((1, 256, 256), np.float32), read_noise=2.0, seeds=[8])
+    again = apply_sensor(np.zeros((1, 256, 256), np.float32), read_noise=2.0, seeds=[8])
     assert np.array_equal(again[0], noisy[1])                                   # same seed, same noise
     assert not np.array_equal(noisy[0], noisy[1])
 
@@ -299,7 +302,7 @@ def test_read_noise_is_the_counter_based_rng_stream():
     from dualsight.kernels import rng
     seeds = np.array([7, 2**64 - 5, 123456789], np.uint64)
     H, W = 40, 56
-    got = KP.apply_sensor(np.zeros((3, H, W), np.float32), read_noise=2.5, seeds=seeds)
+    got = apply_sensor(np.zeros((3, H, W), np.float32), read_noise=2.5, seeds=seeds)
     idx = np.arange(H * W, dtype=np.uint64)[None]
     key0 = rng.stream_key_np(seeds[:, None], rng.STREAM_PROX_READ, 0)
     u1, u2 = rng.u01_key_np(key0, idx), rng.u01_key_np(rng.derived_key_np(key0), idx)

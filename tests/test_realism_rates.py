@@ -35,6 +35,7 @@ import numpy as np
 import pytest
 
 from dualsight.jobs.kinds import star
+from dualsight.kernels import psf_models
 from dualsight.kernels import starfield as kstar
 
 N_CASES = 64
@@ -135,8 +136,8 @@ def _run(spec, case_ids=None):
         snr = f.flux_e / np.sqrt(f.flux_e + ne * _pixel_var(spec.sensor, f.x, f.y))
         good = f.valid & (f.x > 5) & (f.x < W - 5) & (f.y > 5) & (f.y < H - 5) & (snr >= 10)
         if spec.sensor.bright_objects:      # stars on or next to the Moon's disk are not expected
-            bx, by, _, br, _ = kstar.psf_models.bright_object_sources(spec.sensor.bright_objects, spec.sensor,
-                                                                      spec.camera, out["draw"]["A_true"])
+            bx, by, _, br, _ = psf_models.bright_object_sources(spec.sensor.bright_objects, spec.sensor,
+                                                                spec.camera, out["draw"]["A_true"])
             dm = np.hypot(f.x[:, :, None] - bx[:, None, :], f.y[:, :, None] - by[:, None, :]) - br[:, None, :]
             good &= dm.min(-1) > 25
             large.append(out["rendered"].detections.large_blobs)

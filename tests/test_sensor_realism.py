@@ -15,7 +15,8 @@ import pytest
 from dualsight.errors import ConfigError
 from dualsight.jobs.engine.specs import dataclass_from_table
 from dualsight.kernels.detect import render_and_detect_ideal
-from dualsight.kernels.starfield import SensorConfig, render_star_fields
+from dualsight.kernels.sensor_config import SensorConfig
+from dualsight.kernels.starfield import render_star_fields
 from dualsight.scene.camera import Camera
 
 CONT = SensorConfig(quantize=False, gain_e_per_adu=1.0, full_well_e=1e12, bit_depth=24, psf_window_sigma=8.0)

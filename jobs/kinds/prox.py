@@ -37,7 +37,8 @@ from dualsight.catalogs.areas import area_table
 from dualsight.errors import ConfigError
 from dualsight.jobs.engine.specs import preset_and_config, validate
 from dualsight.kernels.digest import frame_digest, to_int64
-from dualsight.kernels.points import apply_sensor, render
+from dualsight.kernels.points import render
+from dualsight.kernels.prox_sensor import apply_sensor
 from dualsight.nav.blobber import BlobberConfig, run_blobber
 from dualsight.scene.attitude import quat_to_dcm, random_quaternions
 from dualsight.scene.camera import read_toml

@@ -48,7 +48,7 @@ from dualsight.kernels import detect as kdetect
 from dualsight.kernels import starfield as kstar
 from dualsight.kernels.detect import DetectConfig
 from dualsight.kernels.digest import frame_digest_taichi
-from dualsight.kernels.sensor_config import SensorConfig, with_psf_digest
+from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude, with_psf_digest
 from dualsight.nav.errors import STATUS_NAMES
 from dualsight.nav.observations import observations
 from dualsight.nav.star_solution import centroid_weights, identify, solve
@@ -441,7 +441,7 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
     t0 = time.perf_counter_ns()
     draw = draw_cases(spec, case_ids)
     cat = ctx.catalog
-    flux = kstar.flux_from_magnitude(cat.vmag.astype(np.float64), spec.sensor)
+    flux = flux_from_magnitude(cat.vmag.astype(np.float64), spec.sensor)
     field_ = stars_in_field(draw["A_true"], cat.unit, flux, spec.camera, psf_margin_px(spec.sensor, spec.camera))
     t["sample"] = time.perf_counter_ns() - t0
 
