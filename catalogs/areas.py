@@ -44,7 +44,8 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from dualsight.catalogs.cache import read_parquet_or_none, resolve_cache_dir, short_hash, write_parquet_atomic
+from dualsight.catalogs.cache import resolve_cache_dir, short_hash
+from dualsight.catalogs.parquet_cache import read_parquet_or_none, write_parquet_atomic
 from dualsight.scene import primitives as prim
 from dualsight.scene.attitude import quat_to_dcm, random_quaternions
 from dualsight.scene.motion import euler_deg_to_local_to_parent

