@@ -396,7 +396,12 @@ class Lake:
         """
         from dualsight.warehouse.query import run_sql_arrow
 
-        table = run_sql_arrow(self._store(), query, warn=self._warn or _warn_damaged)
+        found: list[str] = []
+        try:
+            table = run_sql_arrow(self._store(), query, warn=self._warn or found.append)
+        finally:
+            for message in found:                       # named at the caller's line
+                warnings.warn(f"dualsight: {message}", UserWarning, stacklevel=2)
         if not pandas:
             return table
         try:
@@ -417,9 +422,6 @@ class Lake:
     def __repr__(self) -> str:
         return f"dualsight.Lake({os.fspath(self.root)!r})"
 
-
-def _warn_damaged(message: str) -> None:
-    warnings.warn(f"dualsight: {message}", UserWarning, stacklevel=4)
 
 
 # ============================================================================================ run
