@@ -9,7 +9,6 @@ catalog's magnitudes directly on the 0.1 mag grid; the sensor formula written ou
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,8 +16,8 @@ import pytest
 from dualsight.catalogs import auto_limit as al
 from dualsight.catalogs.stars import MIN_STARS, StarCatalogConfig, johnson_v, load_star_catalog, read_hip2
 from dualsight.scene.camera import Camera
+from helpers import ROOT, phi, run_cli, shared_real
 
-ROOT = Path(__file__).resolve().parents[1]
 ESA = Camera.from_toml(ROOT / "examples" / "cameras" / "esa_tetra3.toml")
 
 
@@ -163,10 +162,6 @@ def test_bad_target(bad):
 
 
 # ------------------------------------------------------------------------------------ the sensor
-def _phi(x):
-    return 0.5 * (1 + math.erf(x / math.sqrt(2)))
-
-
 def test_sensor_limit_by_hand():
     from dualsight.kernels.sensor_config import SensorConfig
 
@@ -176,8 +171,8 @@ def test_sensor_limit_by_hand():
     assert al.sensor_limit_v(s, 5.0, 1) == pytest.approx(-2.5 * math.log10(50.0 / 1.5e5), abs=1e-9)
     s2 = SensorConfig(psf_sigma_px=0.8, read_noise_e=5.0, shot_noise=True, sky_background_e=100.0,
                       dark_current_e_per_s=0.0, gain_e_per_adu=2.0, quantize=True)
-    q0 = 2 * _phi(0.5 / 0.8) - 1
-    q1 = _phi(1.5 / 0.8) - _phi(0.5 / 0.8)
+    q0 = 2 * phi(0.5 / 0.8) - 1
+    q1 = phi(1.5 / 0.8) - phi(0.5 / 0.8)
     p3 = q0 * q1                                           # 3rd brightest pixel of a centred star: a side one
     sigma = math.sqrt(25.0 + 100.0 + 4.0 / 12)
     want = -2.5 * math.log10(5 * sigma / (1.5e6 * 0.1 * p3))
@@ -186,7 +181,7 @@ def test_sensor_limit_by_hand():
     assert al.sensor_limit_v(SensorConfig(quantize=False)) is None                    # no noise: sees all
     ideal = SensorConfig()                                  # quantised: one ADU step (5 e-) on the 1st-3rd pixel
     assert al.sensor_limit_v(ideal, 5.0, 1) == pytest.approx(
-        -2.5 * math.log10(5.0 / (1.5e5 * (2 * _phi(0.5 / 0.8) - 1) ** 2)), abs=1e-9)
+        -2.5 * math.log10(5.0 / (1.5e5 * (2 * phi(0.5 / 0.8) - 1) ** 2)), abs=1e-9)
 
 
 # ------------------------------------------------------------------------------------ hil star settings
@@ -225,23 +220,13 @@ def test_cli_default_is_auto():
 
 def test_hil_star_header_states_the_automatic_depth(tmp_path):
     """`hil star` without --mag-limit uses the camera's automatic limit and says so in its header."""
-    import contextlib
-    import io
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    import test_hil_star as th
-
-    from dualsight.jobs.cli.main import main
-
-    if not th.ESA.is_dir():
-        pytest.skip(f"real ESA frames not found in {th.ESA}")
-    frame = sorted(th.ESA.glob("*.tiff"))[0]
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
-        rc = main(["hil", "star", str(frame), "--camera", str(ROOT / "examples" / "cameras" / "esa_tetra3.toml"),
-                   "--no-lake", "--no-compare"])
-    head = out.getvalue().splitlines()[0]
+    frames = shared_real() / "esa_tetra3"
+    if not frames.is_dir():
+        pytest.skip(f"real ESA frames not found in {frames}")
+    frame = sorted(frames.glob("*.tiff"))[0]
+    rc, out, _ = run_cli(["hil", "star", frame, "--camera", ROOT / "examples" / "cameras" / "esa_tetra3.toml",
+                          "--no-lake", "--no-compare"])
+    head = out.splitlines()[0]
     want = al.auto_mag_limit(ESA, target_per_field=al.HIL_TARGET_PER_FIELD)
     assert rc == 0 and head.startswith(f"catalog to V {want:.1f} (auto: "), head
 

@@ -7,7 +7,6 @@ cv2.FileStorage), and synthetic boards rendered through a known Camera (ray-trac
 from __future__ import annotations
 
 import math
-import os
 import shutil
 import tomllib
 from pathlib import Path
@@ -20,13 +19,7 @@ from dualsight.errors import ConfigError, InputError
 from dualsight.scene.calibration import (CalibrationResult, calibrate_chessboard, calibrate_main, parse_board,
                                          read_camera_toml, toml_dumps, write_camera_toml)
 from dualsight.scene.camera import Camera
-
-
-def shared_real() -> Path:
-    env = os.environ.get("DUALSIGHT_SHARED")
-    base = Path(env) if env else Path(__file__).resolve().parents[1].parent / "shared"
-    return base / "data" / "real"
-
+from helpers import run_cli, shared_real
 
 CHESS = shared_real() / "opencv_chessboard"
 YML = CHESS / "left_intrinsics.yml"
@@ -182,22 +175,6 @@ def test_unknown_pitch_is_flagged_in_the_file(tmp_path, real_result):
     assert raw["calibration"]["pixel_pitch_known"] is False and "placeholder" in raw["camera"]["notes"]
     assert real_result.focal_length_mm is None
     assert Camera.from_toml(out) == real_result.camera
-
-
-def run_cli(argv) -> tuple[int, str, str]:
-    """``dualsight <argv>``; (exit status, stdout, stderr)."""
-    import contextlib
-    import io
-
-    from dualsight.jobs.cli import main as cli
-
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            rc = cli.main([str(a) for a in argv])
-        except SystemExit as e:             # argparse errors
-            rc = int(e.code)
-    return rc, out.getvalue(), err.getvalue()
 
 
 @needs_chess

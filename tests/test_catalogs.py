@@ -218,7 +218,7 @@ def test_cache_dir_env(monkeypatch, tmp_path):
     assert cache_mod.cache_dir() == tmp_path / "mine"
 
 
-def test_star_cache_reused_and_keyed(cat_dir, cat55, monkeypatch):
+def test_star_cache_reused_and_keyed(cat_dir, cat55, no_rebuild):
     files = sorted(p.name for p in cat_dir.glob("stars-*.parquet"))
     name = stars_mod.star_cache_path(StarCatalogConfig(), cat_dir).name
     assert name in files and f"v{stars_mod.FORMAT_VERSION}" in name and StarCatalogConfig().key() in name
@@ -226,9 +226,7 @@ def test_star_cache_reused_and_keyed(cat_dir, cat55, monkeypatch):
     assert StarCatalogConfig(mag_limit=5.0).key() != StarCatalogConfig().key()
     assert not list(cat_dir.glob(".*tmp")), "no temporary files left behind"
 
-    def no_build(*a, **k):
-        raise AssertionError("rebuilt although cached")
-    monkeypatch.setattr(stars_mod, "build_star_catalog", no_build)
+    no_rebuild(stars_mod, "build_star_catalog")
     again = load_star_catalog(StarCatalogConfig(), cache_dir=cat_dir)
     for f in ("hip", "ra", "dec", "vmag", "hpmag", "bv", "unit"):
         a, b = getattr(cat55, f), getattr(again, f)
@@ -317,15 +315,13 @@ def test_dubhe_merak(cat55, paper_pairs):
     assert abs(pc.angle[k[0]] - truth) < 0.1 * ARCSEC
 
 
-def test_pair_cache(cat55, cat_dir, paper_pairs, monkeypatch):
+def test_pair_cache(cat55, cat_dir, paper_pairs, no_rebuild):
     fov, pc = paper_pairs
     path = pair_cache_path(cat55, fov, cat_dir)
     assert path.is_file() and f"pairs-v{pairs_mod.FORMAT_VERSION}-" in path.name
     assert pair_cache_path(cat55, fov * 0.5, cat_dir) != path
 
-    def no_build(*a, **k):
-        raise AssertionError("rebuilt although cached")
-    monkeypatch.setattr(pairs_mod, "build_pair_catalog", no_build)
+    no_rebuild(pairs_mod, "build_pair_catalog")
     again = load_pair_catalog(cat55, fov, cache_dir=cat_dir)
     for f in ("i", "j", "angle"):
         assert getattr(again, f).dtype == getattr(pc, f).dtype and np.array_equal(getattr(again, f), getattr(pc, f))

@@ -17,6 +17,7 @@ from dualsight.errors import InputError
 from dualsight.jobs.engine.runner import EngineError, run_job
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import run_sql
+from helpers import esa_spec, hil_star_rows, shared_real
 
 pytest.importorskip("dask.distributed")
 ENV = dict(os.environ, TI_SKIP_VERSION_CHECK="ON", DUALSIGHT_TI_THREADS="1", OMP_NUM_THREADS="1")
@@ -142,17 +143,15 @@ def test_scheduler_dying_mid_run_then_resume(tmp_path):
 def test_hil_star_on_the_cluster_equals_in_process(tmp_path, cluster):
     """The 8 real ESA frames (shards of 3 images) on the loopback cluster: every image and star row equal the
     in-process run's, timing columns excepted."""
-    sys.path.insert(0, str(Path(__file__).parent))
-    import test_hil_star as th
-
-    if not th.ESA.is_dir():
-        pytest.skip(f"real ESA frames not found in {th.ESA}")
-    spec = th._esa_spec()
+    esa = shared_real() / "esa_tetra3"
+    if not esa.is_dir():
+        pytest.skip(f"real ESA frames not found in {esa}")
+    spec = esa_spec()
     run_job("hil_star", spec, n_cases=8, lake=Lake(tmp_path / "local"), run_id="h", workers=1, progress=False)
     m = run_job("hil_star", spec, n_cases=8, lake=Lake(tmp_path / "dask"), run_id="h", shard_size=3,
                 scheduler=cluster.address, progress=False)
     assert m["status"] == "complete" and m["n_shards"] == 3
-    a, b = th._rows(tmp_path / "local", "h"), th._rows(tmp_path / "dask", "h")
+    a, b = hil_star_rows(tmp_path / "local", "h"), hil_star_rows(tmp_path / "dask", "h")
     assert len(a["hil_star"]) == 8 and sum(r["identified"] for r in a["hil_star"]) == 8
     assert a == b
 

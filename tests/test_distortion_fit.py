@@ -10,8 +10,6 @@ the truth file is computed by nav/hil_score.py, not by the fit).
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import math
 from pathlib import Path
@@ -20,10 +18,10 @@ import cv2
 import numpy as np
 import pytest
 
-from dualsight.jobs.cli.main import main
 from dualsight.nav import distortion_fit as dfit
 from dualsight.scene.attitude import quat_to_dcm, random_quaternions, unit_to_radec
 from dualsight.scene.camera import Camera
+from helpers import run_cli
 
 W, H = 1024, 768
 HFOV_DEG = 30.0                                  # horizontal field; diagonal 37.0 deg
@@ -32,13 +30,6 @@ K1, K2 = -0.22, 0.05                             # barrel: the corners move 15.4
 N_FRAMES = 12
 FX_GIVEN = round(0.99 * FX, 1)                   # the camera file's focal length: 1 % short
 SOLVE = ["--mag-limit", "6.0", "--epoch", "2000", "--no-compare"]
-
-
-def run_cli(argv) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        rc = main([str(a) for a in argv])
-    return rc, out.getvalue(), err.getvalue()
 
 
 def write_camera(path: Path, fx: float, distortion=None) -> Path:

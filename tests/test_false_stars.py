@@ -45,7 +45,7 @@ from dualsight.nav.starid import identify as vote_identify
 from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.units import ARCSEC
 
-from test_nav_star import CAM, TOL, _fields, _pair_catalog, _sphere_catalog  # noqa: E402  (shared test helpers)
+from helpers import CAM, TOL, pair_catalog, sphere_catalog, star_fields, unit
 
 N_FRAMES = 200
 
@@ -259,10 +259,10 @@ def test_planted_offset_inside_tolerance_is_rejected():
     """Synthetic fields (1 arcsec noise, tolerance 10 arcsec): one star moved by 12 arcsec, inside the
     attitude check's 20 arcsec radius, is accepted without the residual test (in every case) and
     rejected with it (measured: 1 of 100, a four-star field, untested), the true stars are kept."""
-    cat = _sphere_catalog(11, 3000)
-    pi, pj, pa = _pair_catalog(cat, CAM.fov_rad[2])
+    cat = sphere_catalog(11, 3000)
+    pi, pj, pa = pair_catalog(cat, CAM.fov_rad[2])
     rng = np.random.default_rng(21)
-    A, obs, valid, truth = _fields(rng, cat, 100, sigma=1.0 * ARCSEC, n_false=(0, 0), n_drop=(0, 0))
+    A, obs, valid, truth = star_fields(rng, cat, 100, sigma=1.0 * ARCSEC, n_false=(0, 0), n_drop=(0, 0))
     s = 2
     v = obs[:, s]
     t = np.cross(v, rng.normal(size=v.shape))
@@ -368,15 +368,11 @@ def test_chance_formula():
     assert chance.chance_probability(base["n"], base["m"], base["h"] / 2, base["rho"], r)[0] < p0
     assert chance.chance_probability(np.array([2]), base["m"], base["h"], base["rho"], r)[0] == 1.0
     # density: a cap around a dense spot, floored at the sky's mean
-    cat = _sphere_catalog(3, 3000)
-    dense = np.concatenate([cat, _unit(cat[0] + 0.01 * np.random.default_rng(4).normal(size=(200, 3)))])
-    center = np.stack([cat[0], _unit(np.array([0.3, -0.2, 0.9]))])
+    cat = sphere_catalog(3, 3000)
+    dense = np.concatenate([cat, unit(cat[0] + 0.01 * np.random.default_rng(4).normal(size=(200, 3)))])
+    center = np.stack([cat[0], unit(np.array([0.3, -0.2, 0.9]))])
     d = chance.catalog_density(dense, center, np.array([0.2, 1e-6]))
     assert d[0] > 3 * 3200 / (4 * np.pi) and d[1] == pytest.approx(3200 / (4 * np.pi))      # dense; floored
-
-
-def _unit(v):
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
 def test_widen_schedule_and_blocks():

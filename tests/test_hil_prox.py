@@ -33,9 +33,8 @@ from dualsight.scene.camera import Camera
 from dualsight.scene.segment import binarize
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import connect, run_report
-from test_hil_star import lake_rows, run_cli, shared_real
+from helpers import ROOT, lake_rows, run_cli, shared_real
 
-ROOT = Path(__file__).resolve().parents[1]
 TARGET_CHESS = ROOT / "examples" / "targets" / "opencv_chessboard.toml"
 TARGET_3U = ROOT / "examples" / "targets" / "cubesat_3u_analog.toml"
 CAM_HIL = ROOT / "examples" / "cameras" / "paper_hil_prox.toml"

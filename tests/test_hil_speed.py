@@ -12,8 +12,6 @@ No timing is asserted here: each faster path is checked against the slower one i
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,10 +20,9 @@ from dualsight.kernels import detect_local as dl
 from dualsight.kernels.detect_background import clipped_stats
 from dualsight.kernels.detect_candidates import find_candidates
 from dualsight.kernels.detect_psf import fit_psf, psf_profiles
+from helpers import ROOT, shared_real
 
-ROOT = Path(__file__).resolve().parents[1]
-ESA = (Path(os.environ["DUALSIGHT_SHARED"]) if os.environ.get("DUALSIGHT_SHARED") else ROOT.parent / "shared") \
-    / "data" / "real" / "esa_tetra3"
+ESA = shared_real() / "esa_tetra3"
 
 
 def _stars(K, s, seed, n=7, noise=3.0):
@@ -181,7 +178,7 @@ def test_voting_engine_starts_taichi_only_for_long_runs():
     import sys
 
     code = ("import os\n"
-            "from dualsight.jobs import hil_star as hs\n"
+            "from dualsight.jobs.kinds import hil_star as hs\n"
             "from dualsight.kernels._runtime import is_initialised\n"
             "n = hs.TAICHI_VOTING_MIN_FRAMES * (os.cpu_count() or 1)\n"
             "print(hs.voting_engine(1), is_initialised(), hs.voting_engine(n - 1), is_initialised(),"

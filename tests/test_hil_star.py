@@ -8,9 +8,7 @@ synthetic frame rendered at a known attitude (runs without the real data).
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import json
 import math
 import os
@@ -22,41 +20,23 @@ import pytest
 
 from dualsight.errors import ConfigError
 from dualsight.jobs.kinds import hil_star as hs
-from dualsight.jobs.cli.main import main
-from dualsight.jobs.kinds.hil_truth import Site, resolve_star_truths
 from dualsight.jobs.engine.runner import run_job
 from dualsight.scene.attitude import radec_to_unit, rot_axis, unit_to_radec
 from dualsight.kernels.background import bin_size, subtract_background
 from dualsight.scene.camera import Camera
 from dualsight.scene.pointing import roll_deg
-from dualsight.scene.skytruth import load_truth_json
 from dualsight.scene.timescale import julian_year, observation_epoch
 from dualsight.scene.units import angle_between
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import connect, run_report, run_sql
+from helpers import ROOT, esa_spec, hil_star_rows, run_cli, shared_real
 
-ROOT = Path(__file__).resolve().parents[1]
 CAMERA = ROOT / "examples" / "cameras" / "esa_tetra3.toml"
 ARCSEC = math.pi / (180 * 3600)
-
-
-def shared_real() -> Path:                     # $DUALSIGHT_SHARED/data/real or ../shared/data/real
-    env = os.environ.get("DUALSIGHT_SHARED")
-    return (Path(env) if env else ROOT.parent / "shared") / "data" / "real"
-
-
 ESA = shared_real() / "esa_tetra3"
 TRUTH = ESA / "truth.json"
 SITE = ["--lat", "52.08", "--lon", "4.37"]          # esa_tetra3/README.md: fitted, unpublished site
 needs_esa = pytest.mark.skipif(not TRUTH.exists(), reason=f"ESA tetra3 frames not found at {ESA}")
-
-
-def run_cli(argv) -> tuple[int, str, str]:
-    """``dualsight <argv>`` -> (exit status, stdout, stderr), captured by hand (module-scoped fixtures too)."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        rc = main([str(a) for a in argv])
-    return rc, out.getvalue(), err.getvalue()
 
 
 # ============================================================================================ ESA frames
@@ -478,29 +458,6 @@ def test_synthetic_frame_round_trip(tmp_path):
 
 
 # ============================================================================================ the engine's job kind
-def _esa_spec(names=None) -> dict:
-    paths = [ESA / n for n in names] if names else sorted(ESA.glob("*.tiff"))
-    settings = hs.settings_from_table(None, epoch_jyear=2019.6)
-    truths = resolve_star_truths(paths, load_truth_json(TRUTH), Site(52.08, 4.37))
-    return hs.build_spec(paths, Camera.from_toml(CAMERA), settings, truths)
-
-
-def lake_rows(lake: Path, run_id: str, order: dict[str, str], timing=()) -> dict[str, list[dict]]:
-    """Every row of the datasets ``order`` ({dataset: ORDER BY}) of a run (SQL over the lake), ``timing``
-    columns dropped."""
-    con = connect(lake)
-    out = {}
-    for ds, by in order.items():
-        cur = con.execute(f"SELECT * EXCLUDE (run) FROM {ds} WHERE run = ? ORDER BY {by}", [run_id])
-        cols = [d[0] for d in cur.description]
-        out[ds] = [{c: v for c, v in zip(cols, r) if c not in timing} for r in cur.fetchall()]
-    return out
-
-
-def _rows(lake: Path, run_id: str) -> dict[str, list[dict]]:
-    return lake_rows(lake, run_id, {"hil_star": "case_id", "hil_star_stars": "case_id, det_index"}, hs.TIMING_COLUMNS)
-
-
 def test_spec_round_trip_and_errors_name_the_field(tmp_path):
     img = tmp_path / "frame.png"
     cv2.imwrite(str(img), np.zeros((768, 1024), np.uint8))
@@ -537,37 +494,37 @@ def test_spec_round_trip_and_errors_name_the_field(tmp_path):
 def test_local_workers_and_shards_give_the_in_process_rows(tmp_path):
     """The 8 frames with 2 spawned local workers and 3 images per shard (3 shards) against one in-process shard:
     every column of every image and star row equal, timing columns excepted."""
-    spec = _esa_spec()
+    spec = esa_spec()
     lake = Lake(tmp_path / "lake")
     m1 = run_job("hil_star", spec, n_cases=8, lake=lake, run_id="inproc", workers=1, progress=False)
     m2 = run_job("hil_star", spec, n_cases=8, lake=lake, run_id="pool", workers=2, shard_size=3, progress=False)
     assert m1["status"] == m2["status"] == "complete"
     assert (m1["n_shards"], m2["n_shards"]) == (1, 3) and m2["stats"]["identified"] == 8
-    a, b = _rows(lake.root, "inproc"), _rows(lake.root, "pool")
+    a, b = hil_star_rows(lake.root, "inproc"), hil_star_rows(lake.root, "pool")
     assert len(a["hil_star"]) == 8 and len(a["hil_star_stars"]) > 100
     assert a == b
 
 
 @needs_esa
 def test_resume_recomputes_a_deleted_shard_with_the_same_rows(tmp_path):
-    spec = _esa_spec()
+    spec = esa_spec()
     lake = Lake(tmp_path / "lake")
     m = run_job("hil_star", spec, n_cases=8, lake=lake, run_id="r", workers=1, shard_size=3, progress=False)
     assert m["status"] == "complete" and m["n_shards"] == 3
-    before = _rows(lake.root, "r")
+    before = hil_star_rows(lake.root, "r")
     for ds in hs.SCHEMAS:
         lake.shard_path(ds, "r", 1).unlink()
-    assert len(_rows(lake.root, "r")["hil_star"]) == 5           # images 3-5 are gone
+    assert len(hil_star_rows(lake.root, "r")["hil_star"]) == 5           # images 3-5 are gone
     m = run_job("hil_star", spec, n_cases=8, lake=lake, run_id="r", workers=1, progress=False)
     assert m["status"] == "complete" and m["executions"][-1]["resumed_shards"] == 2
-    assert _rows(lake.root, "r") == before
+    assert hil_star_rows(lake.root, "r") == before
 
 
 @needs_esa
 def test_an_image_changed_after_planning_gives_an_error_row(tmp_path):
     frame = tmp_path / "frame.tiff"
     frame.write_bytes((ESA / "2019-07-29T204726_Alt60_Azi135_Try1.tiff").read_bytes())
-    d = _esa_spec()
+    d = esa_spec()
     d = hs.build_spec([frame], d["camera"], d["settings"])
     spec = hs.spec_from_dict(d)
     ctx = hs.make_context(spec)

@@ -2,31 +2,19 @@
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from dualsight.jobs.kinds import hil_star_sweep as sw
-from dualsight.jobs.cli.main import main
 from dualsight.warehouse.query import run_sql
 
-sys.path.insert(0, str(Path(__file__).parent))
-import test_hil_star as th  # noqa: E402
+from helpers import ROOT, run_cli, shared_real
 
-CAMERA = Path(__file__).parents[1] / "examples" / "cameras" / "esa_tetra3.toml"
-
-
-def _cli(argv):
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        rc = main([str(a) for a in argv])
-    return rc, out.getvalue(), err.getvalue()
+CAMERA = ROOT / "examples" / "cameras" / "esa_tetra3.toml"
+ESA = shared_real() / "esa_tetra3"
 
 
 def _A(ra_deg: float, dec_deg: float) -> list[float]:
@@ -70,13 +58,13 @@ def test_sweep_keys_are_checked():
 
 
 def test_sweep_over_the_esa_frames_matches_single_runs_and_truth(tmp_path):
-    if not th.ESA.is_dir():
-        pytest.skip(f"real ESA frames not found in {th.ESA}")
-    frames = sorted(th.ESA.glob("*.tiff"))[:4]
-    truth = th.ESA / "truth.json"
+    if not ESA.is_dir():
+        pytest.skip(f"real ESA frames not found in {ESA}")
+    frames = sorted(ESA.glob("*.tiff"))[:4]
+    truth = ESA / "truth.json"
     lake = tmp_path / "lake"
     common = ["--camera", CAMERA, "--truth", truth, "--no-compare", "--lake", lake, "--workers", "1"]
-    rc, out, err = _cli(["hil", "star", *frames, *common, "--sweep", "k-sigma=5,60", "--run", "sw", "--json"])
+    rc, out, err = run_cli(["hil", "star", *frames, *common, "--sweep", "k-sigma=5,60", "--run", "sw", "--json"])
     assert rc == 0, err
     summary = json.loads(out)
     assert [d["label"] for d in summary][0] == "k-sigma=5"           # the default beats a 60-sigma threshold
@@ -85,7 +73,7 @@ def test_sweep_over_the_esa_frames_matches_single_runs_and_truth(tmp_path):
     assert len(rows) == 2 * len(frames)
     # each variant's rows are exactly what a plain `hil star` run with those settings gives
     for v, ks in enumerate((5, 60)):
-        rc, _, err = _cli(["hil", "star", *frames, *common, "--k-sigma", ks, "--run", f"one{v}"])
+        rc, _, err = run_cli(["hil", "star", *frames, *common, "--k-sigma", ks, "--run", f"one{v}"])
         assert rc == 0, err
         _, single = run_sql(lake, f"SELECT {v}, case_id, identified, ra_rad, dec_rad, stars_identified, status "
                                   f"FROM hil_star WHERE run = 'one{v}' ORDER BY case_id")
@@ -105,24 +93,24 @@ def test_sweep_over_the_esa_frames_matches_single_runs_and_truth(tmp_path):
             ok += math.degrees(math.acos(min(1.0, float(z @ zt)))) * 3600 < 100
         assert d["success_rate"] == pytest.approx(ok / len(frames))
     # the same sweep again is the same run, resumed with nothing to do
-    rc, out2, _ = _cli(["hil", "star", *frames, *common, "--sweep", "k-sigma=5,60", "--run", "sw", "--json"])
+    rc, out2, _ = run_cli(["hil", "star", *frames, *common, "--sweep", "k-sigma=5,60", "--run", "sw", "--json"])
     assert rc == 0 and json.loads(out2) == summary
 
 
 def test_sweep_over_the_detectors_matches_single_runs(tmp_path):
     """``--sweep detector=local,global``: each variant's row is the plain run's with ``--detector``."""
-    if not th.ESA.is_dir():
-        pytest.skip(f"real ESA frames not found in {th.ESA}")
-    frames = sorted(th.ESA.glob("*.tiff"))[:1]
+    if not ESA.is_dir():
+        pytest.skip(f"real ESA frames not found in {ESA}")
+    frames = sorted(ESA.glob("*.tiff"))[:1]
     lake = tmp_path / "lake"
     common = ["--camera", CAMERA, "--no-compare", "--lake", lake, "--workers", "1"]
-    rc, _, err = _cli(["hil", "star", *frames, *common, "--sweep", "detector=local,global", "--run", "sd"])
+    rc, _, err = run_cli(["hil", "star", *frames, *common, "--sweep", "detector=local,global", "--run", "sd"])
     assert rc == 0, err
     _, rows = run_sql(lake, "SELECT variant, stars_detected, ra_rad, dec_rad FROM hil_sweep WHERE run = 'sd' "
                             "ORDER BY variant")
     assert len(rows) == 2 and rows[0][1] > 2 * rows[1][1]               # the local detector finds far more
     for v, det in enumerate(("local", "global")):
-        rc, _, err = _cli(["hil", "star", *frames, *common, "--detector", det, "--run", f"d{v}"])
+        rc, _, err = run_cli(["hil", "star", *frames, *common, "--detector", det, "--run", f"d{v}"])
         assert rc == 0, err
         _, single = run_sql(lake, f"SELECT {v}, stars_detected, ra_rad, dec_rad FROM hil_star WHERE run = 'd{v}'")
         assert [tuple(r) for r in single] == [tuple(rows[v])]

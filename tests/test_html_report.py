@@ -36,15 +36,11 @@ def screenshot(page: Path, tmp: Path, png: Path):
 
 
 @pytest.fixture(scope="module")
-def lake(tmp_path_factory):
-    lake = tmp_path_factory.mktemp("lake")
-    assert main(["star", "run", "--cases", "40", "--lake", str(lake), "--run", "s", "--workers", "1",
-                 "--no-progress"]) == 0
-    assert main(["prox", "sweep", "--preset", "paper", "--orientations", "2", "--lake", str(lake), "--run", "p",
-                 "--workers", "1", "--no-progress"]) == 0
-    assert main(["prox", "trajectory", "--preset", "paper", "--frames", "12", "--lake", str(lake), "--run", "t",
-                 "--workers", "1", "--no-progress"]) == 0
-    return lake
+def lake(make_lake):
+    return make_lake("lake",
+                     ["star", "run", "--cases", "40", "--run", "s"],
+                     ["prox", "sweep", "--preset", "paper", "--orientations", "2", "--run", "p"],
+                     ["prox", "trajectory", "--preset", "paper", "--frames", "12", "--run", "t"])
 
 
 @pytest.mark.parametrize("run, figures", [

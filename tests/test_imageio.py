@@ -6,7 +6,6 @@ with a reason when absent.  The other truths are synthetic arrays written by Ope
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
@@ -16,13 +15,7 @@ import pytest
 from dualsight.errors import ImageError, InputError
 from dualsight.kernels.imageio import (Image, calibrate_frame, effective_bit_depth, list_images, read_image,
                                      read_images)
-
-
-def shared_real() -> Path:
-    env = os.environ.get("DUALSIGHT_SHARED")
-    base = Path(env) if env else Path(__file__).resolve().parents[1].parent / "shared"
-    return base / "data" / "real"
-
+from helpers import shared_real
 
 ESA = shared_real() / "esa_tetra3"
 CHESS = shared_real() / "opencv_chessboard"

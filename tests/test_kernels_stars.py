@@ -24,14 +24,11 @@ from dualsight.kernels.detect import (DetectConfig, Detections, detect_stars, es
 from dualsight.kernels.background import row_medians
 from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
 from dualsight.kernels.starfield import false_star_lists, render_star_fields
+from helpers import phi
 
 _N = int(os.environ.get("DUALSIGHT_HYPOTHESIS_EXAMPLES", "0"))  # > 0: deeper runs (nightly, by hand)
 HSET = settings(max_examples=_N or 6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 CONT = SensorConfig(quantize=False, gain_e_per_adu=1.0, full_well_e=1e12, bit_depth=24)  # continuous, linear
-
-
-def _phi(z):
-    return 0.5 * (1.0 + math.erf(z / math.sqrt(2.0)))
 
 
 def _grid_stars(rng, B, W, H, step=40, margin=20):
@@ -54,8 +51,8 @@ def test_pixel_values_are_exact_gaussian_integrals():
     cfg = dataclasses.replace(CONT, psf_sigma_px=sigma)
     img = render_star_fields([[xc]], [[yc]], [[flux]], None, 21, 15, cfg, dtype=np.float32)[0]
     for r, c in [(7, 10), (6, 10), (8, 11), (7, 13), (3, 10)]:
-        truth = flux * ((_phi((c + 1 - xc) / sigma) - _phi((c - xc) / sigma))
-                        * (_phi((r + 1 - yc) / sigma) - _phi((r - yc) / sigma)))
+        truth = flux * ((phi((c + 1 - xc) / sigma) - phi((c - xc) / sigma))
+                        * (phi((r + 1 - yc) / sigma) - phi((r - yc) / sigma)))
         assert img[r, c] == pytest.approx(truth, rel=2e-6, abs=1e-4)
 
 

@@ -12,7 +12,7 @@ from dualsight.nav.errors import (CONFIDENT_WRONG, NO_SOLUTION, STATUS_NAMES, SU
 from dualsight.scene.attitude import quat_to_dcm, random_quaternions, rot_axis
 from dualsight.scene.units import ARCSEC
 
-from test_nav_star import _rotation, _unit  # noqa: E402  (shared test helpers)
+from helpers import rotation, unit
 
 
 # ------------------------------------------------------------------------------------------ SVD
@@ -22,7 +22,7 @@ def test_svd_recovers_rotation_from_noiseless_vectors():
     rng = np.random.default_rng(1)
     B, S = 64, 7
     A_true = quat_to_dcm(random_quaternions(rng, B))
-    ref = _unit(rng.normal(size=(B, S, 3)))
+    ref = unit(rng.normal(size=(B, S, 3)))
     obs = np.einsum("bij,bsj->bsi", A_true, ref)
     w = rng.uniform(0.1, 2.0, (B, S))
     A, ok = svd_attitude(obs, ref, w)
@@ -34,7 +34,7 @@ def test_svd_recovers_rotation_from_noiseless_vectors():
 def test_svd_padding_and_degenerate_cases():
     rng = np.random.default_rng(2)
     A_true = quat_to_dcm(random_quaternions(rng, 4))
-    ref = _unit(rng.normal(size=(4, 5, 3)))
+    ref = unit(rng.normal(size=(4, 5, 3)))
     obs = np.einsum("bij,bsj->bsi", A_true, ref)
     w = np.ones((4, 5))
     w[0, 3:] = 0.0
@@ -57,7 +57,7 @@ def test_svd_non_finite_case_fails_alone():
 
     rng = np.random.default_rng(3)
     A_true = quat_to_dcm(random_quaternions(rng, 3))
-    ref = _unit(rng.normal(size=(3, 6, 3)))
+    ref = unit(rng.normal(size=(3, 6, 3)))
     obs = np.einsum("bij,bsj->bsi", A_true, ref)
     w = np.ones((3, 6))
     w[0, 2] = np.inf
@@ -76,11 +76,11 @@ def test_svd_noise_matches_markley_covariance():
     B, S, sigma = 4000, 8, 2e-4
     A_true = quat_to_dcm(random_quaternions(rng, 1))[0]
     # a fixed field of 8 stars within ~8 deg of the boresight, re-observed with fresh noise each trial
-    r_cam = _unit(np.concatenate([rng.uniform(-0.14, 0.14, (S, 2)), np.ones((S, 1))], axis=1))
+    r_cam = unit(np.concatenate([rng.uniform(-0.14, 0.14, (S, 2)), np.ones((S, 1))], axis=1))
     ref = np.broadcast_to(r_cam @ A_true, (B, S, 3)).copy()       # ICRS: A^T b
     noise = rng.normal(scale=sigma, size=(B, S, 3))
     noise -= np.sum(noise * r_cam, axis=-1, keepdims=True) * r_cam  # perpendicular to b (QUEST model)
-    obs = _unit(r_cam + noise)
+    obs = unit(r_cam + noise)
     A, ok, cov = svd_attitude(obs, ref, np.full((B, S), sigma**-2), return_cov=True)
     assert ok.all()
     Th = A_true @ np.swapaxes(A, 1, 2)                     # camera-frame error rotation
@@ -128,8 +128,8 @@ def test_total_angle_and_180_degree_trap():
     rng = np.random.default_rng(6)
     A_true = quat_to_dcm(random_quaternions(rng, 4))
     angles = np.array([1e-7, 0.3, 2.0, np.pi])
-    axes = _unit(rng.normal(size=(4, 3)))
-    Th = np.stack([_rotation(ax, t) for ax, t in zip(axes, angles)])
+    axes = unit(rng.normal(size=(4, 3)))
+    Th = np.stack([rotation(ax, t) for ax, t in zip(axes, angles)])
     A_est = A_true @ np.swapaxes(Th, 1, 2)                 # so that A_est^T A_true = Th
     np.testing.assert_allclose(total_error_angle(A_est, A_true), angles, rtol=1e-7, atol=1e-9)
     # 180 deg about x: every phi is ~0, yet the case must fail

@@ -14,7 +14,7 @@ from dualsight.nav.starid import identify
 from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.units import ARCSEC, angle_between
 
-from test_nav_star import CAM, TOL, _fields, _pair_catalog, _sphere_catalog  # noqa: E402  (shared test helpers)
+from helpers import CAM, TOL, pair_catalog, sphere_catalog, star_fields
 
 
 # ------------------------------------------------------------------------------ slow reference
@@ -156,10 +156,10 @@ SLOW_CASES = {   # name: (preset, options) of the reference comparison
 def slow_inputs():
     """12 fields on a 3000-star sphere (~13 stars in view): false stars, drops, a NaN-padded case,
     an empty case, a two-star case and a three-star case."""
-    cat = _sphere_catalog(31, 3000)
-    pi, pj, pa = _pair_catalog(cat, CAM.fov_rad[2])
+    cat = sphere_catalog(31, 3000)
+    pi, pj, pa = pair_catalog(cat, CAM.fov_rad[2])
     rng = np.random.default_rng(32)
-    A, obs, valid, truth = _fields(rng, cat, 12, S=16, sigma=2.0 * ARCSEC)
+    A, obs, valid, truth = star_fields(rng, cat, 12, S=16, sigma=2.0 * ARCSEC)
     obs[~valid] = np.nan
     valid[3] = False
     valid[4, 2:] = False

@@ -17,73 +17,8 @@ from dualsight.nav.errors import CONFIDENT_WRONG, SUCCESS, axis_errors, classify
 from dualsight.nav.starid import Identification, identify
 from dualsight.nav.votes import pair_windows
 from dualsight.nav.voting_config import VotingConfig
-from dualsight.scene.attitude import euler123_to_dcm, random_euler123
-from dualsight.scene.camera import Camera
 from dualsight.scene.units import ARCSEC
-
-CAM = Camera.pinhole(1024, 768, 4.65e-6, 17e-3)     # the reference's star SIL camera: 15.9 x 12.0 deg
-TOL = 5e-5                                            # 10 arcsec: ~1 arcsec perturbations in the fields
-
-
-# ------------------------------------------------------------------------------------------ helpers
-
-
-def _unit(v):
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _rotation(axis, angle):
-    """Active rotation matrix (Rodrigues) of ``angle`` about unit ``axis``."""
-    k = _unit(np.asarray(axis, float))
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
-
-
-def _sphere_catalog(seed, n):
-    return _unit(np.random.default_rng(seed).normal(size=(n, 3)))
-
-
-def _pair_catalog(cat, max_angle):
-    """All pairs i < j closer than ``max_angle``, ascending by angle (plain numpy, no dualsight code)."""
-    n = len(cat)
-    dots = np.clip(cat @ cat.T, -1.0, 1.0)
-    i, j = np.nonzero(np.triu(dots > np.cos(max_angle), k=1))
-    ang = np.arctan2(np.linalg.norm(np.cross(cat[i], cat[j]), axis=1), np.sum(cat[i] * cat[j], axis=1))
-    keep = ang < max_angle
-    o = np.argsort(ang[keep], kind="stable")
-    assert n < 2**31
-    return i[keep][o].astype(np.int32), j[keep][o].astype(np.int32), ang[keep][o]
-
-
-def _fields(rng, cat, B, S=24, sigma=1.0 * ARCSEC, n_false=(0, 3), n_drop=(1, 2), only=None):
-    """Random attitudes and the observed stars of a 1024x768, 17 mm camera.
-
-    Returns A_true (B,3,3), obs (B,S,3), valid (B,S), truth (B,S) catalog row or -1 (false star).
-    Every true star is perturbed by ``sigma`` (rad, per axis); ``n_drop`` stars are removed (keeping
-    >= 3), ``n_false`` false stars are added at random pixels; order = random "brightness".
-    ``only`` = keep exactly this many true stars and no false ones.
-    """
-    A = euler123_to_dcm(random_euler123(rng, B))          # the reference's attitude sampling
-    obs = np.zeros((B, S, 3))
-    valid = np.zeros((B, S), bool)
-    truth = np.full((B, S), -1)
-    for b in range(B):                                   # test-data generation, not a hot path
-        v = cat @ A[b].T
-        px, front = CAM.project(v)
-        inn = rng.permutation(np.nonzero(front & CAM.in_image(px))[0])
-        if only is not None:
-            inn, nf = inn[:only], 0
-        else:
-            nd = rng.integers(n_drop[0], n_drop[1] + 1)
-            inn = inn[:max(len(inn) - nd, min(len(inn), 3))]
-            nf = rng.integers(n_false[0], n_false[1] + 1)
-        tv = _unit(v[inn] + rng.normal(scale=sigma, size=(len(inn), 3)))
-        fv = CAM.backproject(np.stack([rng.uniform(0, CAM.width, nf), rng.uniform(0, CAM.height, nf)], -1))
-        allv = np.concatenate([tv, fv])
-        ids = np.concatenate([inn, np.full(nf, -1)])
-        o = rng.permutation(len(allv))[:S]
-        obs[b, :len(o)], valid[b, :len(o)], truth[b, :len(o)] = allv[o], True, ids[o]
-    return A, obs, valid, truth
+from helpers import CAM, TOL, pair_catalog, sphere_catalog, star_fields
 
 
 def _outcome(ident, obs, cat, A_true):
@@ -94,8 +29,8 @@ def _outcome(ident, obs, cat, A_true):
 @pytest.fixture(scope="module")
 def sky():
     """~3000 random stars, ~13 in a 15.9 x 12.0 deg field, and their pairs within the diagonal FOV."""
-    cat = _sphere_catalog(11, 3000)
-    pi, pj, pa = _pair_catalog(cat, CAM.fov_rad[2])
+    cat = sphere_catalog(11, 3000)
+    pi, pj, pa = pair_catalog(cat, CAM.fov_rad[2])
     return SimpleNamespace(cat=cat, i=pi, j=pj, angle=pa)
 
 
@@ -137,10 +72,10 @@ def test_pair_windows_match_brute_force(sky):
 @pytest.mark.parametrize("once", [False, True])
 def test_voting_round_matches_brute_force(once):
     rng = np.random.default_rng(7)
-    cat = _sphere_catalog(8, 1500)
-    pi, pj, pa = _pair_catalog(cat, CAM.fov_rad[2])
+    cat = sphere_catalog(8, 1500)
+    pi, pj, pa = pair_catalog(cat, CAM.fov_rad[2])
     tol = 1e-3                                           # wide: many candidates, repeats and ties
-    A, obs, valid, truth = _fields(rng, cat, 6, S=8, sigma=1e-5, n_false=(1, 1), n_drop=(0, 0))
+    A, obs, valid, truth = star_fields(rng, cat, 6, S=8, sigma=1e-5, n_false=(1, 1), n_drop=(0, 0))
     assert valid.sum(1).min() >= 3
     cfg = VotingConfig.paper(tol, vote_once_per_pair=once, max_stars=8)
     ident = identify(obs, valid, cat, pi, pj, pa, cfg)
@@ -177,7 +112,7 @@ def test_identify_synthetic_fields(sky, preset, sigma_arcsec, tol):
     """
     rng = np.random.default_rng(8)
     B = 200
-    A, obs, valid, truth = _fields(rng, sky.cat, B, sigma=sigma_arcsec * ARCSEC)
+    A, obs, valid, truth = star_fields(rng, sky.cat, B, sigma=sigma_arcsec * ARCSEC)
     cfg = getattr(VotingConfig, preset)(tol)
     ident = identify(obs, valid, sky.cat, sky.i, sky.j, sky.angle, cfg)
     assert isinstance(ident, Identification)
@@ -195,7 +130,7 @@ def test_identify_synthetic_fields(sky, preset, sigma_arcsec, tol):
 
 def test_pair_catalog_object_is_accepted(sky):
     rng = np.random.default_rng(9)
-    A, obs, valid, truth = _fields(rng, sky.cat, 8)
+    A, obs, valid, truth = star_fields(rng, sky.cat, 8)
     cfg = VotingConfig.robust(TOL)
     a = identify(obs, valid, sky.cat, sky.i, sky.j, sky.angle, cfg)
     b = identify(obs, valid, sky.cat, SimpleNamespace(i=sky.i, j=sky.j, angle=sky.angle), cfg=cfg)
@@ -207,7 +142,7 @@ def test_pair_catalog_object_is_accepted(sky):
 def test_batch_equals_single_cases(sky, preset):
     rng = np.random.default_rng(10)
     B = 10
-    A, obs, valid, truth = _fields(rng, sky.cat, B, S=16)
+    A, obs, valid, truth = star_fields(rng, sky.cat, B, S=16)
     obs[~valid] = np.nan                                  # padding may be NaN
     valid[3] = False                                      # an empty case
     # tiny memory bound: one case per chunk and the candidate lists split into pieces
@@ -233,7 +168,7 @@ def test_two_star_fields_are_not_confidently_wrong(sky):
     verification (T = 0); robust finds no strict maximum at all.
     """
     rng = np.random.default_rng(11)
-    A, obs, valid, truth = _fields(rng, sky.cat, 300, S=4, only=2)
+    A, obs, valid, truth = star_fields(rng, sky.cat, 300, S=4, only=2)
     for cfg in (VotingConfig.paper(TOL), VotingConfig.robust(TOL)):
         ident = identify(obs, valid, sky.cat, sky.i, sky.j, sky.angle, cfg)
         st = _outcome(ident, obs, sky.cat, A)
@@ -249,7 +184,7 @@ def test_sparse_fields_robust_never_confidently_wrong(sky):
     """
     rng = np.random.default_rng(12)
     for n in (3, 4):
-        A, obs, valid, truth = _fields(rng, sky.cat, 150, S=6, only=n)
+        A, obs, valid, truth = star_fields(rng, sky.cat, 150, S=6, only=n)
         ident = identify(obs, valid, sky.cat, sky.i, sky.j, sky.angle, VotingConfig.robust(TOL))
         st = _outcome(ident, obs, sky.cat, A)
         assert (st != CONFIDENT_WRONG).all()
@@ -271,7 +206,7 @@ def test_false_stars_alone_give_no_solution(sky):
 def test_attitude_check_reidentifies_faint_stars(sky):
     """With max_stars = 5 voting sees five stars; the attitude check identifies the rest."""
     rng = np.random.default_rng(14)
-    A, obs, valid, truth = _fields(rng, sky.cat, 40, n_false=(0, 0), n_drop=(0, 0))
+    A, obs, valid, truth = star_fields(rng, sky.cat, 40, n_false=(0, 0), n_drop=(0, 0))
     many = valid.sum(1) >= 8
     cfg = VotingConfig.robust(TOL, max_stars=5)
     ident = identify(obs, valid, sky.cat, sky.i, sky.j, sky.angle, cfg)

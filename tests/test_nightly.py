@@ -14,9 +14,7 @@ range scale moves the mean range bias by 0.05 with a standard error of ~0.004 ov
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import json
 import math
 import shutil
@@ -27,7 +25,6 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from dualsight.jobs.cli import main as cli
 from dualsight.jobs.nightly import run as nightly, stats as st
 from dualsight.jobs.nightly import store
 from dualsight.jobs.nightly import suite as ns
@@ -35,6 +32,7 @@ from dualsight.jobs.kinds import prox, star
 from dualsight.jobs.engine.lakecheck import check_run
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import run_sql
+from helpers import run_cli
 
 STAR_JOB = {"name": "star", "kind": "star", "spec": "paper", "cases": 2000, "seed": 1}
 SWEEP_JOB = {"name": "sweep", "kind": "prox_sweep", "spec": "accurate", "cases": 220, "seed": 1}
@@ -274,13 +272,6 @@ def test_a_5_percent_range_scale_in_the_blobber_turns_red(lake, monkeypatch):
 
 
 # ============================================================================================ command line
-def run_cli(argv) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        rc = cli.main([str(a) for a in argv])
-    return rc, out.getvalue(), err.getvalue()
-
-
 TINY = """
 name = "tiny"
 [[job]]

@@ -22,6 +22,7 @@ from dualsight.kernels import starfield as sf
 from dualsight.kernels.sensor_config import SensorConfig
 from dualsight.kernels.sky_noise import sky_adu_table
 from dualsight.kernels.starfield import render_star_fields
+from helpers import phi
 
 
 def chi2_limit(dof: int, z: float = 5.0) -> float:
@@ -41,10 +42,6 @@ def chi2(obs: np.ndarray, expected: np.ndarray, min_expected: float = 5.0) -> tu
         e[i] += e[-1]
         o, e = o[:-1], e[:-1]
     return float(((o - e) ** 2 / e).sum()), int(o.size - 1)
-
-
-def _phi(x: float) -> float:
-    return 0.5 * (1.0 + math.erf(x / math.sqrt(2.0)))
 
 
 def exact_sky_pmf(cfg: SensorConfig) -> dict[int, float]:
@@ -68,8 +65,8 @@ def exact_sky_pmf(cfg: SensorConfig) -> dict[int, float]:
         hi = min(top, int(mid + 15 * R / g) + 2)
         for a in range(lo, hi + 1):
             # y in [a, a + 1) <=> z in [((a - b - eps) g - e) / R, ((a + 1 - b - eps) g - e) / R)
-            up = 1.0 if a >= top else _phi(((a + 1 - b - 1e-9) * g - e) / R)
-            dn = 0.0 if a <= 0 else _phi(((a - b - 1e-9) * g - e) / R)
+            up = 1.0 if a >= top else phi(((a + 1 - b - 1e-9) * g - e) / R)
+            dn = 0.0 if a <= 0 else phi(((a - b - 1e-9) * g - e) / R)
             pmf[a] = pmf.get(a, 0.0) + p * (up - dn)
     return pmf
 

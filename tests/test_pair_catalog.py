@@ -11,7 +11,6 @@ duplicated stars) check the (i, j) tie-break.
 from __future__ import annotations
 
 import json
-import sys
 
 import numpy as np
 import pytest
@@ -171,13 +170,7 @@ def cached(tmp_path):
     return stars, theta, ref, pc, tmp_path
 
 
-def _no_build(monkeypatch):
-    def no_build(*a, **k):
-        raise AssertionError("rebuilt although cached")
-    monkeypatch.setattr(pairs_mod, "build_pair_catalog", no_build)
-
-
-def test_cache_round_trip_is_memory_mapped(cached, monkeypatch, capsys):
+def test_cache_round_trip_is_memory_mapped(cached, no_rebuild, capsys):
     stars, theta, ref, pc, d = cached
     _assert_same(pc, ref)
     files = pair_cache_files(stars, theta, d)
@@ -186,7 +179,7 @@ def test_cache_round_trip_is_memory_mapped(cached, monkeypatch, capsys):
     man = json.loads(files[-1].read_text())
     assert man["pairs"] == len(ref[0]) and man["format"] == pairs_mod.FORMAT_VERSION
     assert not [p for p in d.iterdir() if p.name.startswith(".")]            # no temporary left
-    _no_build(monkeypatch)
+    no_rebuild(pairs_mod, "build_pair_catalog")
     again = load_pair_catalog(stars, theta, cache_dir=d)
     _assert_same(again, ref)
     for name in ("i", "j", "angle"):
@@ -259,16 +252,15 @@ def test_a_killed_build_is_cleaned_up_and_rebuilt(cached, capsys):
 def test_memory_mapped_pairs_vote_like_in_memory_ones(tmp_path):
     """identify() over the read-only memory-mapped arrays (VotingIndex, numpy votes, the Taichi kernels)
     gives exactly what the in-memory copies give."""
-    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
-    from test_nav_star import CAM, TOL, _fields, _sphere_catalog
+    from helpers import CAM, TOL, sphere_catalog, star_fields
 
     from dualsight.nav.starid import identify
     from dualsight.nav.voting_config import VotingConfig
 
-    cat = _sphere_catalog(11, 3000)
+    cat = sphere_catalog(11, 3000)
     pc = load_pair_catalog(FakeStars(cat), CAM.fov_rad[2], cache_dir=tmp_path)
     assert isinstance(pc.angle, np.memmap)
-    _, obs, valid, _ = _fields(np.random.default_rng(2), cat, 12)
+    _, obs, valid, _ = star_fields(np.random.default_rng(2), cat, 12)
     mem = [np.array(getattr(pc, f)) for f in ("i", "j", "angle")]
     fields = ("ids", "accepted", "T", "vote_ids", "votes")
     for cfg in (VotingConfig.paper(TOL), VotingConfig.robust(TOL)):

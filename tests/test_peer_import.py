@@ -12,7 +12,6 @@ import contextlib
 import io
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -20,20 +19,12 @@ import pytest
 
 from dualsight.errors import InputError
 from dualsight.jobs.kinds import peer_star as pi
-from dualsight.jobs.cli.main import main
 from dualsight.jobs.engine.lakecheck import check_run
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import run_sql
+from helpers import ROOT, run_cli, shared_real
 
-ROOT = Path(__file__).resolve().parents[1]
 CAMERA = ROOT / "examples" / "cameras" / "esa_tetra3.toml"
-
-
-def shared_real() -> Path:                     # $DUALSIGHT_SHARED/data/real or ../shared/data/real
-    env = os.environ.get("DUALSIGHT_SHARED")
-    return (Path(env) if env else ROOT.parent / "shared") / "data" / "real"
-
-
 ESA = shared_real() / "esa_tetra3"
 TRUTH = ESA / "truth.json"
 needs_esa = pytest.mark.skipif(not TRUTH.exists(), reason=f"ESA tetra3 frames not found at {ESA}")
@@ -174,11 +165,9 @@ def test_peer_rows_join_hil_star_frame_by_frame(tmp_path):
     truth = json.loads(TRUTH.read_text())
     names = sorted(truth)[:2]
     lake = tmp_path / "lake"
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        rc = main(["hil", "star", *[str(ESA / n) for n in names], "--camera", str(CAMERA), "--truth", str(TRUTH),
-                   "--lake", str(lake), "--run", "ds", "--no-compare", "--no-progress", "--workers", "1"])
-    assert rc == 0, err.getvalue()
+    rc, _, err = run_cli(["hil", "star", *[ESA / n for n in names], "--camera", CAMERA, "--truth", TRUTH,
+                          "--lake", lake, "--run", "ds", "--no-compare", "--no-progress", "--workers", "1"])
+    assert rc == 0, err
     frames = [{"path": str(ESA / n), "solved": True, "ra_deg": truth[n]["ra_deg"], "dec_deg": truth[n]["dec_deg"],
                "roll_deg": (-truth[n]["roll_deg_tetra3"]) % 360, "stars_matched": truth[n]["matches"],
                "time_ms": 50.0 + k} for k, n in enumerate(names)][::-1]

@@ -15,19 +15,18 @@ from dualsight.jobs.kinds import prox
 from dualsight.jobs.cli.main import main
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import run_sql
-from test_star_job import _snapshot
+from helpers import snapshot
 
 RANGES = ["1.585", "6.31", "25.12"]
 
 
 @pytest.fixture(scope="module")
-def lake(tmp_path_factory):
-    root = tmp_path_factory.mktemp("prox")
-    assert main(["prox", "sweep", "--preset", "accurate", "--ranges", *RANGES, "--orientations", "40",
-                 "--lake", str(root), "--run", "acc", "--workers", "1", "--no-progress"]) == 0
-    assert main(["prox", "trajectory", "--preset", "paper", "--frames", "12", "--lake", str(root), "--run", "traj",
-                 "--workers", "1", "--no-progress", "--video", str(root / "traj.avi")]) == 0
-    return root
+def lake(make_lake):
+    return make_lake("prox",
+                     ["prox", "sweep", "--preset", "accurate", "--ranges", *RANGES, "--orientations", "40",
+                      "--run", "acc"],
+                     ["prox", "trajectory", "--preset", "paper", "--frames", "12", "--run", "traj",
+                      "--video", "{lake}/traj.avi"])
 
 
 def test_sweep_rows_and_truth(lake):
@@ -144,11 +143,11 @@ def test_replay_refuses_a_tampered_row(lake, tmp_path, capsys):
 def test_bad_input_leaves_lake_untouched(lake, tmp_path, capsys, toml, needle):
     cfg = tmp_path / "bad.toml"
     cfg.write_text(toml + "\n")
-    before = _snapshot(lake)
+    before = snapshot(lake)
     assert main(["prox", "sweep", "--config", str(cfg), "--lake", str(lake), "--run", "bad", "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert needle in err
-    assert _snapshot(lake) == before
+    assert snapshot(lake) == before
 
 
 def test_bad_satellite_file_names_key(lake, tmp_path, capsys):
@@ -156,9 +155,9 @@ def test_bad_satellite_file_names_key(lake, tmp_path, capsys):
     sat.write_text("[camera]\nwidth = 1024\nheight = 768\npixel_pitch_um = 4.65\nfocal_length_mm = 6\n"
                    "light_direction = [0, 0, -1]\n[body]\nposition = [0, 0, 2]\n"
                    "[[component]]\nshape = 'pyramid'\nsize = [0.1, 0.1, 0.1]\n")
-    before = _snapshot(lake)
+    before = snapshot(lake)
     assert main(["prox", "sweep", "--satellite", str(sat), "--lake", str(lake), "--run", "bad2",
                  "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "component" in err and "shape" in err and str(sat) in err
-    assert _snapshot(lake) == before
+    assert snapshot(lake) == before

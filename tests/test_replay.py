@@ -14,6 +14,7 @@ from dualsight.jobs.cli.main import main
 from dualsight.jobs.engine.runner import run_job
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import run_sql
+from helpers import esa_spec, shared_real
 
 rerun_chunk = pytest.importorskip("rerun.chunk")
 
@@ -33,11 +34,8 @@ def column(rows: list[dict], suffix: str):
 
 
 @pytest.fixture(scope="module")
-def star_lake(tmp_path_factory):
-    lake = tmp_path_factory.mktemp("lake")
-    assert main(["star", "run", "--preset", "paper", "--cases", "40", "--seed", "3", "--lake", str(lake), "--run", "s",
-                 "--workers", "1", "--no-progress"]) == 0
-    return lake
+def star_lake(make_lake):
+    return make_lake("lake", ["star", "run", "--preset", "paper", "--cases", "40", "--seed", "3", "--run", "s"])
 
 
 def test_star_cases_chosen_by_sql_are_recorded_with_their_numbers(star_lake, tmp_path):
@@ -101,14 +99,10 @@ def test_selftest_and_predicate_errors(tmp_path, capsys):
 
 
 def test_hil_star_frame_is_reread_verified_and_recorded(tmp_path):
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    import test_hil_star as th
-
-    if not th.ESA.is_dir():
-        pytest.skip(f"real ESA frames not found in {th.ESA}")
-    spec = th._esa_spec()
+    esa = shared_real() / "esa_tetra3"
+    if not esa.is_dir():
+        pytest.skip(f"real ESA frames not found in {esa}")
+    spec = esa_spec()
     run_job("hil_star", spec, n_cases=8, lake=Lake(tmp_path / "l"), run_id="h", workers=1, progress=False)
     _, rows = run_sql(tmp_path / "l", "SELECT s.case_id, count(*) FROM hil_star_stars s WHERE s.run = 'h' "
                                       "AND s.x_px IS NOT NULL GROUP BY ALL ORDER BY 1 LIMIT 1")
@@ -207,14 +201,10 @@ def test_a_trajectory_replays_as_one_recording_on_the_frame_time_line(tmp_path):
 
 
 def test_a_tampered_hil_image_digest_fails_the_replay(tmp_path, capsys):
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    import test_hil_star as th
-
-    if not th.ESA.is_dir():
-        pytest.skip(f"real ESA frames not found in {th.ESA}")
-    spec = th._esa_spec()
+    esa = shared_real() / "esa_tetra3"
+    if not esa.is_dir():
+        pytest.skip(f"real ESA frames not found in {esa}")
+    spec = esa_spec()
     run_job("hil_star", spec, n_cases=2, lake=Lake(tmp_path / "l"), run_id="h", workers=1, progress=False)
     _, rows = run_sql(tmp_path / "l", "SELECT image_digest FROM hil_star WHERE run = 'h' AND case_id = 1")
     _tamper(tmp_path / "l", "h", "hil_star", 1, "image_digest", rows[0][0] ^ 1)

@@ -7,7 +7,6 @@ time (Meeus, Astronomical Algorithms, Eq. 12.4) and Bennett's refraction formula
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -18,13 +17,7 @@ from dualsight.scene.attitude import radec_to_unit
 from dualsight.scene.skytruth import (altaz_from_filename, angle_deg, attitude_from_altaz, boresight_from_altaz,
                                       load_truth_json)
 from dualsight.scene.units import angle_between
-
-
-def shared_real() -> Path:
-    env = os.environ.get("DUALSIGHT_SHARED")
-    base = Path(env) if env else Path(__file__).resolve().parents[1].parent / "shared"
-    return base / "data" / "real"
-
+from helpers import shared_real
 
 TRUTH = shared_real() / "esa_tetra3" / "truth.json"
 SITE = dict(lat_deg=52.08, lon_deg=4.37, alt_m=0.0)  # esa_tetra3/README.md: fitted, unpublished site

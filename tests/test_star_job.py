@@ -17,21 +17,13 @@ import pytest
 from dualsight.jobs.cli.main import main
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import run_sql
-
-
-def _snapshot(root: Path) -> dict:
-    if not root.exists():
-        return {}
-    return {str(p.relative_to(root)): p.stat().st_mtime_ns for p in root.rglob("*") if p.is_file()}
+from helpers import snapshot
 
 
 @pytest.fixture(scope="module")
-def small_run(tmp_path_factory):
-    lake = tmp_path_factory.mktemp("lake")
-    rc = main(["star", "run", "--preset", "paper", "--cases", "60", "--seed", "3", "--lake", str(lake),
-               "--run", "small", "--workers", "1", "--no-progress", "--shard-size", "25"])
-    assert rc == 0
-    return lake
+def small_run(make_lake):
+    return make_lake("lake", ["star", "run", "--preset", "paper", "--cases", "60", "--seed", "3", "--run", "small",
+                              "--shard-size", "25"])
 
 
 def test_run_writes_every_case_once(small_run):
@@ -161,21 +153,21 @@ def test_bad_input_clear_error_and_lake_untouched(small_run, tmp_path, capsys, a
                                         "focal_length_mm = -17\n")
     (tmp_path / "dim.toml").write_text("[catalog]\nmag_limit = -1.0\n")
     (tmp_path / "unknown.toml").write_text("[voting]\ntolerence_arcsec = 20\n")
-    before = _snapshot(small_run)
+    before = snapshot(small_run)
     argv = ["star", "run", "--lake", str(small_run), "--run", "small", "--no-progress", "--workers", "1"]
     argv += [a.format(dir=tmp_path) for a in args]
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert needle in err and "error" in err
-    assert _snapshot(small_run) == before
+    assert snapshot(small_run) == before
 
 
 def test_existing_run_with_other_settings_is_refused(small_run, capsys):
-    before = _snapshot(small_run)
+    before = snapshot(small_run)
     assert main(["star", "run", "--lake", str(small_run), "--run", "small", "--cases", "61", "--seed", "3",
                  "--no-progress", "--workers", "1"]) == 2
     assert "other settings (cases 60 -> 61)" in capsys.readouterr().err
-    assert _snapshot(small_run) == before
+    assert snapshot(small_run) == before
 
 
 def test_sigkill_then_resume_has_exactly_n_cases(tmp_path):

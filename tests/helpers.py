@@ -1,0 +1,158 @@
+"""Plain helpers shared by the test modules (fixtures live in ``conftest.py``).
+
+``tests/`` is on ``sys.path`` while pytest runs (it holds ``conftest.py``), so a test module imports these with
+``from helpers import ...``.  Keep here only what more than one test module uses; a helper of one module stays
+in that module.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from dualsight.scene.attitude import euler123_to_dcm, random_euler123
+from dualsight.scene.camera import Camera
+from dualsight.scene.units import ARCSEC
+
+ROOT = Path(__file__).resolve().parents[1]
+"""The repository's root (the folder holding ``pyproject.toml``)."""
+
+
+def shared_real() -> Path:
+    """The real data: ``$DUALSIGHT_SHARED/data/real``, else ``../shared/data/real`` next to the repository.
+
+    The folder may be absent: each test module names what it needs and skips with its own reason."""
+    env = os.environ.get("DUALSIGHT_SHARED")
+    return (Path(env) if env else ROOT.parent / "shared") / "data" / "real"
+
+
+def run_cli(argv) -> tuple[int, str, str]:
+    """``dualsight <argv>`` in this process -> (exit status, stdout, stderr), captured by hand (so that
+    module-scoped fixtures can use it too).  An argparse error (``SystemExit``) gives its exit status."""
+    from dualsight.jobs.cli.main import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            rc = main([str(a) for a in argv])
+        except SystemExit as e:             # argparse errors (2), --help (0)
+            rc = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    return rc, out.getvalue(), err.getvalue()
+
+
+def snapshot(root: Path) -> dict:
+    """{file relative to ``root``: (size, mtime in ns)} of every file under ``root`` ({} when it does not
+    exist): equal before and after a command that must not write."""
+    if not root.exists():
+        return {}
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns) for p in root.rglob("*")
+            if p.is_file()}
+
+
+def lake_rows(lake: Path, run_id: str, order: dict[str, str], timing=()) -> dict[str, list[dict]]:
+    """Every row of the datasets ``order`` ({dataset: ORDER BY}) of a run (SQL over the lake), ``timing``
+    columns dropped."""
+    from dualsight.warehouse.query import connect
+
+    con = connect(lake)
+    out = {}
+    for ds, by in order.items():
+        cur = con.execute(f"SELECT * EXCLUDE (run) FROM {ds} WHERE run = ? ORDER BY {by}", [run_id])
+        cols = [d[0] for d in cur.description]
+        out[ds] = [{c: v for c, v in zip(cols, r) if c not in timing} for r in cur.fetchall()]
+    return out
+
+
+def esa_spec(names=None) -> dict:
+    """The ``hil star`` job spec of the ESA tetra3 frames (all, or those ``names``) with their truth file and the
+    tripod's site, default settings at epoch 2019.6.  The caller skips when the frames are absent."""
+    from dualsight.jobs.kinds import hil_star as hs
+    from dualsight.jobs.kinds.hil_truth import Site, resolve_star_truths
+    from dualsight.scene.skytruth import load_truth_json
+
+    esa = shared_real() / "esa_tetra3"
+    paths = [esa / n for n in names] if names else sorted(esa.glob("*.tiff"))
+    settings = hs.settings_from_table(None, epoch_jyear=2019.6)
+    truths = resolve_star_truths(paths, load_truth_json(esa / "truth.json"), Site(52.08, 4.37))
+    return hs.build_spec(paths, Camera.from_toml(ROOT / "examples" / "cameras" / "esa_tetra3.toml"), settings, truths)
+
+
+def hil_star_rows(lake: Path, run_id: str) -> dict[str, list[dict]]:
+    """The ``hil_star`` and ``hil_star_stars`` rows of a run (:func:`lake_rows`), timing columns dropped."""
+    from dualsight.jobs.kinds import hil_star as hs
+
+    return lake_rows(lake, run_id, {"hil_star": "case_id", "hil_star_stars": "case_id, det_index"}, hs.TIMING_COLUMNS)
+
+
+def phi(x: float) -> float:
+    """The standard normal distribution function."""
+    return 0.5 * (1.0 + math.erf(x / math.sqrt(2.0)))
+
+
+def unit(v):
+    """``v`` scaled to unit length along its last axis."""
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+# ------------------------------------------------------------- synthetic star fields (the star-identification tests)
+CAM = Camera.pinhole(1024, 768, 4.65e-6, 17e-3)     # the reference's star SIL camera: 15.9 x 12.0 deg
+TOL = 5e-5                                            # 10 arcsec: ~1 arcsec perturbations in the fields
+
+
+def rotation(axis, angle):
+    """Active rotation matrix (Rodrigues) of ``angle`` about unit ``axis``."""
+    k = unit(np.asarray(axis, float))
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def sphere_catalog(seed, n):
+    return unit(np.random.default_rng(seed).normal(size=(n, 3)))
+
+
+def pair_catalog(cat, max_angle):
+    """All pairs i < j closer than ``max_angle``, ascending by angle (plain numpy, no dualsight code)."""
+    n = len(cat)
+    dots = np.clip(cat @ cat.T, -1.0, 1.0)
+    i, j = np.nonzero(np.triu(dots > np.cos(max_angle), k=1))
+    ang = np.arctan2(np.linalg.norm(np.cross(cat[i], cat[j]), axis=1), np.sum(cat[i] * cat[j], axis=1))
+    keep = ang < max_angle
+    o = np.argsort(ang[keep], kind="stable")
+    assert n < 2**31
+    return i[keep][o].astype(np.int32), j[keep][o].astype(np.int32), ang[keep][o]
+
+
+def star_fields(rng, cat, B, S=24, sigma=1.0 * ARCSEC, n_false=(0, 3), n_drop=(1, 2), only=None):
+    """Random attitudes and the observed stars of a 1024x768, 17 mm camera.
+
+    Returns A_true (B,3,3), obs (B,S,3), valid (B,S), truth (B,S) catalog row or -1 (false star).
+    Every true star is perturbed by ``sigma`` (rad, per axis); ``n_drop`` stars are removed (keeping
+    >= 3), ``n_false`` false stars are added at random pixels; order = random "brightness".
+    ``only`` = keep exactly this many true stars and no false ones.
+    """
+    A = euler123_to_dcm(random_euler123(rng, B))          # the reference's attitude sampling
+    obs = np.zeros((B, S, 3))
+    valid = np.zeros((B, S), bool)
+    truth = np.full((B, S), -1)
+    for b in range(B):                                   # test-data generation, not a hot path
+        v = cat @ A[b].T
+        px, front = CAM.project(v)
+        inn = rng.permutation(np.nonzero(front & CAM.in_image(px))[0])
+        if only is not None:
+            inn, nf = inn[:only], 0
+        else:
+            nd = rng.integers(n_drop[0], n_drop[1] + 1)
+            inn = inn[:max(len(inn) - nd, min(len(inn), 3))]
+            nf = rng.integers(n_false[0], n_false[1] + 1)
+        tv = unit(v[inn] + rng.normal(scale=sigma, size=(len(inn), 3)))
+        fv = CAM.backproject(np.stack([rng.uniform(0, CAM.width, nf), rng.uniform(0, CAM.height, nf)], -1))
+        allv = np.concatenate([tv, fv])
+        ids = np.concatenate([inn, np.full(nf, -1)])
+        o = rng.permutation(len(allv))[:S]
+        obs[b, :len(o)], valid[b, :len(o)], truth[b, :len(o)] = allv[o], True, ids[o]
+    return A, obs, valid, truth
