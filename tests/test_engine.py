@@ -24,9 +24,10 @@ import pytest
 from dualsight.errors import InputError
 from dualsight.jobs.kinds import selftest
 from dualsight.jobs.engine.runner import default_shard_size, run_job
-from dualsight.warehouse.lake import Lake, LakeError, ShardInfo, check_run_id, verify_shard
+from dualsight.warehouse.lake import Lake, LakeError
+from dualsight.warehouse.paths import check_run_id
+from dualsight.warehouse.shards import ShardInfo, verify_shard
 from dualsight.warehouse.query import run_sql
-from helpers import snapshot
 
 ENV = dict(os.environ, TI_SKIP_VERSION_CHECK="ON", PYTHONUNBUFFERED="1")
 
@@ -63,6 +64,11 @@ def assert_exact(lake: Path, run: str, seed: int, n: int):
 def cli(*args, timeout=120) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "dualsight", *args], capture_output=True, text=True, env=ENV,
                           timeout=timeout)
+
+
+def snapshot(root: Path) -> dict:
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns) for p in root.rglob("*")
+            if p.is_file()} if root.exists() else {}
 
 
 # ============================================================================================ lake

@@ -41,35 +41,15 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from dualsight.errors import InputError
-from dualsight.warehouse.shards import META_KEY, ShardInfo, read_shard_meta, verify_shard  # noqa: F401
+from dualsight.warehouse.paths import RUN_ID_RE, check_run_id, os_error_text
+from dualsight.warehouse.shards import META_KEY, ShardInfo, read_shard_meta, verify_shard
 
 MANIFEST_VERSION = 2
-RUN_ID_PATTERN = r"[A-Za-z0-9._-]{1,64}"
-_RUN_ID = re.compile(RUN_ID_PATTERN)
 MAX_MANIFEST_BYTES = 64 * 2**20
 
 
 class LakeError(InputError):
     """The lake cannot be written or read as asked (read-only, full, locked, damaged)."""
-
-
-def default_lake() -> Path:
-    """``$DUALSIGHT_LAKE`` or ``./lake``."""
-    return Path(os.environ.get("DUALSIGHT_LAKE", "lake"))
-
-
-def check_run_id(run_id) -> str:
-    """``run_id`` if it matches ``[A-Za-z0-9._-]{1,64}`` in full (no newline, no path), else InputError."""
-    if not isinstance(run_id, str) or not _RUN_ID.fullmatch(run_id) or run_id in (".", ".."):
-        raise InputError(f"run id {run_id!r} must match {RUN_ID_PATTERN} in full (letters, digits, '.', '_', '-'; "
-                         "1 to 64 characters)", source="--run")
-    return run_id
-
-
-def os_error_text(e: OSError) -> str:
-    """``No space left on device`` etc. for an OSError, naming the path when known."""
-    what = e.strerror or type(e).__name__
-    return f"{e.filename}: {what}" if getattr(e, "filename", None) else what
 
 
 class RunLock:
@@ -390,7 +370,7 @@ class Lake:
         if not d.is_dir():
             return []
         return sorted(p.name[:-5] for p in d.glob("*.json") if not p.name.startswith(".")
-                      and _RUN_ID.fullmatch(p.name[:-5]))
+                      and RUN_ID_RE.fullmatch(p.name[:-5]))
 
     def list_manifests(self) -> list[dict]:
         """Valid manifests, sorted by run id (damaged ones are reported by :meth:`scan`)."""

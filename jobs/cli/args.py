@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from dualsight.errors import InputError
+from dualsight.warehouse.paths import RUN_ID_PATTERN, check_run_id, default_lake
 
 
 class Parser(argparse.ArgumentParser):
@@ -18,8 +19,6 @@ class Parser(argparse.ArgumentParser):
 
 def run_id_arg(text: str) -> str:
     """argparse type for --run: the full-match run id check (an empty or multi-line id is refused)."""
-    from dualsight.warehouse.lake import RUN_ID_PATTERN, check_run_id
-
     try:
         return check_run_id(text)
     except InputError:
@@ -41,14 +40,12 @@ def positive_int(lo: int, hi: int):
 
 
 def _lake_arg(p: argparse.ArgumentParser):
-    from dualsight.warehouse.lake import default_lake
-
     p.add_argument("--lake", type=Path, default=None,
                    help=f"lake folder (default: $DUALSIGHT_LAKE or ./lake, now {default_lake()})")
 
 
 def _lake(args):
-    from dualsight.warehouse.lake import Lake, default_lake
+    from dualsight.warehouse.lake import Lake          # pyarrow
 
     return Lake(args.lake if args.lake is not None else default_lake())
 

@@ -26,6 +26,7 @@ from pathlib import Path
 from dualsight.errors import InputError
 from dualsight.jobs.cli.args import (Parser, _lake, _lake_arg, _latest_run, add_run_args,  # noqa: F401
                                       positive_int, run_id_arg)
+from dualsight.warehouse.paths import os_error_text
 
 # The one table from commands to job kinds (jobs/engine/runner.py JOB_KINDS maps kinds to modules).
 COMMAND_KINDS = {
@@ -167,8 +168,6 @@ def main(argv=None) -> int:
     except BrokenPipeError:
         return 0
     except OSError as e:
-        from dualsight.warehouse.lake import os_error_text
-
         print(f"dualsight: error: {os_error_text(e)}", file=sys.stderr)
         return 2
     except MemoryError:

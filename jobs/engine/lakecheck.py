@@ -14,7 +14,8 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from dualsight.errors import InputError
-from dualsight.warehouse.lake import Lake, LakeError, ShardInfo
+from dualsight.warehouse.lake import Lake, LakeError
+from dualsight.warehouse.shards import ShardInfo
 
 
 def check_run(lake: Lake, run_id: str) -> dict:

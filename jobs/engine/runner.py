@@ -47,7 +47,9 @@ import numpy as np
 
 from dualsight.errors import InputError
 from dualsight.version import code_version
-from dualsight.warehouse.lake import Lake, LakeError, ShardInfo, check_run_id, os_error_text
+from dualsight.warehouse.lake import Lake, LakeError
+from dualsight.warehouse.paths import check_run_id, os_error_text
+from dualsight.warehouse.shards import ShardInfo
 
 JOB_KINDS = {
     "star": "dualsight.jobs.kinds.star",

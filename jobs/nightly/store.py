@@ -19,7 +19,8 @@ import numpy as np
 import pyarrow as pa
 
 from dualsight.errors import InputError
-from dualsight.warehouse.lake import Lake, ShardInfo, write_json_atomic
+from dualsight.warehouse.lake import Lake, write_json_atomic
+from dualsight.warehouse.shards import ShardInfo
 
 DATASET = "nightly_verdicts"
 SCHEMA = pa.schema([

@@ -18,7 +18,6 @@ order).  Nothing in the report is an order statistic (median, percentile), so no
 
 from __future__ import annotations
 
-import re
 import sys
 from pathlib import Path
 
@@ -27,7 +26,8 @@ import duckdb
 from dualsight.errors import InputError
 from dualsight.jobs.kinds.star_summaries import DATASET as SUMMARIES
 from dualsight.jobs.kinds.star_summaries import merge_sql
-from dualsight.warehouse.lake import RUN_ID_PATTERN, Lake
+from dualsight.warehouse.lake import Lake
+from dualsight.warehouse.paths import is_run_id
 from dualsight.warehouse.query import connect, format_table, run_report
 
 REFERENCE = {"success_rate": 191 / 200, "confident_wrong_rate": 2 / 200, "mean_stars_generated": 11.4607,
@@ -37,7 +37,6 @@ REFERENCE = {"success_rate": 191 / 200, "confident_wrong_rate": 2 / 200, "mean_s
 #: The report's queries by their full-scan name; :func:`query_name` gives the file each path reads.
 QUERIES = ("star_summary", "star_table5", "star_error_vs_observed", "star_status", "star_stage_times", "star_robust")
 SOURCES = ("auto", "summaries", "scan")
-_RUN_ID = re.compile(RUN_ID_PATTERN)
 
 
 def query_name(name: str, source: str) -> str:
@@ -66,7 +65,7 @@ def open_summaries(lake: Lake, run_id: str, *, warn=None, locked: bool = True,
     extension access, configuration locked) once the table is loaded.
     """
     report = warn if warn is not None else _stderr
-    if not isinstance(run_id, str) or not _RUN_ID.fullmatch(run_id) or run_id in (".", ".."):
+    if not is_run_id(run_id):
         return None                 # not a run id (no path from it); the scan path reports "no star cases"
     h = lake.scan(run_id)
     cases = {p.name for p in h.files.get("star_cases", [])}
