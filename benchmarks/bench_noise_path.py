@@ -87,6 +87,7 @@ def stage_times(batch: int, batches: int, repeats: int) -> dict:
     from dualsight.kernels import starfield as sf
     from dualsight.kernels.digest import frame_digest_taichi as frame_digest
     from dualsight.kernels.labelling import label_frames, native_threshold
+    from dualsight.kernels.sensor_config import flux_from_magnitude
     from dualsight.nav.observations import observations
     from dualsight.nav.star_solution import identify, solve
     from dualsight.nav.truth_match import match_truth
@@ -113,7 +114,7 @@ def stage_times(batch: int, batches: int, repeats: int) -> dict:
             for bi, ids in enumerate(ids_all):
                 t = CLOCK()
                 draw = star.draw_cases(spec, ids)
-                flux = sf.flux_from_magnitude(cat.vmag.astype(np.float64), sen)
+                flux = flux_from_magnitude(cat.vmag.astype(np.float64), sen)
                 fld = stars_in_field(draw["A_true"], cat.unit, flux, cam, star.psf_margin_px(sen, cam))
                 acc["sample"] += _ms(t)
                 args = (fld.x, fld.y, fld.flux_e, fld.valid, cam.width, cam.height)

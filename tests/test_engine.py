@@ -28,6 +28,7 @@ from dualsight.warehouse.lake import Lake, LakeError
 from dualsight.warehouse.paths import check_run_id
 from dualsight.warehouse.shards import ShardInfo, verify_shard
 from dualsight.warehouse.query import run_sql
+from helpers import snapshot
 
 ENV = dict(os.environ, TI_SKIP_VERSION_CHECK="ON", PYTHONUNBUFFERED="1")
 
@@ -64,11 +65,6 @@ def assert_exact(lake: Path, run: str, seed: int, n: int):
 def cli(*args, timeout=120) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "dualsight", *args], capture_output=True, text=True, env=ENV,
                           timeout=timeout)
-
-
-def snapshot(root: Path) -> dict:
-    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns) for p in root.rglob("*")
-            if p.is_file()} if root.exists() else {}
 
 
 # ============================================================================================ lake

@@ -64,9 +64,9 @@ from pydantic import Field, field_validator, model_validator
 from dualsight.errors import InputError, read_user_file
 from dualsight.jobs.engine.specs import validate
 from dualsight.jobs.kinds.hil_common import Frozen, rows_table
-from dualsight.scene.attitude import angle_between, radec_to_unit, unit_to_radec
+from dualsight.scene.attitude import radec_to_unit, unit_to_radec
 from dualsight.scene.pointing import roll_deg as roll_of
-from dualsight.scene.units import ARCSEC, DEG
+from dualsight.scene.units import ARCSEC, DEG, angle_between
 
 NAME = "peer_star"
 PRIMARY = "peer_star"
