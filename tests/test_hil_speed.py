@@ -3,8 +3,10 @@
 No timing is asserted here: each faster path is checked against the slower one it replaces.
   * the PSF fit stops each star on its own convergence, so a star's fit does not depend on the batch it is in
     (a batch equals the per-star fits to 1e-9);
-  * the candidates found with OpenCV's connected components equal those of the project's labeller
-    (kernels/labelling.py), maxima, component sizes and deblending included, for 8 and 4 connectivity;
+  * the candidate search (kernels/detect_candidates.py) labels with OpenCV's connected components: they equal the
+    project's labeller's (kernels/labelling.py: foreground, count, partition), and the search given the
+    labeller's components instead finds the same candidates (maxima, component sizes and deblending included),
+    for 8 and 4 connectivity;
   * the tile statistics' searchsorted counts (8/16-bit frames) equal the float32 comparisons (bit for bit);
   * the hil_star rows are the same with the numpy and the Taichi voting engine (ESA frames).
 """
@@ -59,57 +61,21 @@ def test_batched_psf_fit_equals_the_per_star_fits(fit_sigma, gain):
             np.testing.assert_allclose(a[k:k + 1], b, rtol=1e-9, atol=1e-9, equal_nan=True)
 
 
-def _candidates_with_project_labeller(Z, cfg):
-    """The candidate search as it was with kernels.labelling.label_frames (the reference)."""
+def _labeller_components(Z, k_sigma, connectivity):
+    """What ``cv2.connectedComponents`` returns for the foreground Z > k_sigma, made by the project's labeller
+    (kernels/labelling.py) instead: (number of labels with the background's, (H, W) int32 labels, 0 = background)."""
     from dualsight.kernels.labelling import label_frames
 
-    H, W = Z.shape
-    comp = label_frames(Z[None], cfg.k_sigma, connectivity=cfg.connectivity)
-    if len(comp) == 0:
-        e = np.zeros(0, np.int64)
-        return e, e, e, 0
-    lens = (comp.run_c1 - comp.run_c0).astype(np.int64)
-    first = np.cumsum(lens) - lens
-    pr = np.repeat(comp.run_row.astype(np.int64), lens)
-    pc = np.repeat(comp.run_c0.astype(np.int64), lens) + (np.arange(int(lens.sum())) - np.repeat(first, lens))
-    cid = np.repeat(comp.run_label.astype(np.int64), lens)
-    z = Z[pr, pc]
-    peak = np.ones(pr.size, bool)
-    for dr in (-1, 0, 1):
-        for dc in (-1, 0, 1):
-            if dr or dc:
-                peak &= z >= Z[np.clip(pr + dr, 0, H - 1), np.clip(pc + dc, 0, W - 1)]
-    pr, pc, cid = pr[peak], pc[peak], cid[peak]
-    large = comp.npix > cfg.max_blob_pixels
-    keep = ~large[cid]
-    pr, pc, cid = pr[keep], pc[keep], cid[keep]
-    z = Z[pr, pc]
-    order = np.lexsort((pc, pr, -z, cid))
-    pr, pc, cid, z = pr[order], pc[order], cid[order], z[order]
-    first = np.ones(len(cid), bool)
-    first[1:] = cid[1:] != cid[:-1]
-    accept = first.copy()
-    multi = np.flatnonzero(~first)
-    if multi.size:
-        start = np.searchsorted(cid, cid[multi], side="left")
-        cnt = multi - start
-        j = np.repeat(multi, cnt)
-        i = np.repeat(start, cnt) + (np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt))
-        dy, dx = (pr[j] - pr[i]).astype(np.float64), (pc[j] - pc[i]).astype(np.float64)
-        far = np.hypot(dx, dy) >= cfg.deblend_min_sep_px
-        dip = np.full(j.size, np.inf)
-        for t in (0.25, 0.5, 0.75):
-            dip = np.minimum(dip, Z[np.rint(pr[i] + t * dy).astype(np.int64), np.rint(pc[i] + t * dx).astype(np.int64)])
-        sep = far & (dip < (1.0 - cfg.deblend_contrast) * z[j])
-        bad = np.zeros(len(cid), bool)
-        np.logical_or.at(bad, j, ~sep)
-        accept[multi] = ~bad[multi]
-    return pr[accept], pc[accept], comp.npix[cid[accept]].astype(np.int64), int(large.sum())
+    comp = label_frames(Z[None], k_sigma, connectivity=connectivity)
+    lab = np.zeros((1, *Z.shape), np.int32)
+    if len(comp):
+        comp.paint(lab, np.ones(len(comp.run_label), bool), comp.run_label.astype(np.int32) + 1)
+    return len(comp) + 1, lab[0]
 
 
 @pytest.mark.parametrize("connectivity", [8, 4])
 @pytest.mark.parametrize("k_sigma", [3.0, 5.0, 5.1])
-def test_candidates_equal_the_project_labellers(connectivity, k_sigma):
+def test_candidates_equal_the_project_labellers(connectivity, k_sigma, monkeypatch):
     import cv2
 
     rng = np.random.default_rng(11)
@@ -124,8 +90,30 @@ def test_candidates_equal_the_project_labellers(connectivity, k_sigma):
     Z[0, :] = 9.0                                              # foreground along the frame's edges
     Z[:, -1] = 9.0
     cfg = dl.LocalDetectConfig(k_sigma=k_sigma, connectivity=connectivity, max_blob_pixels=500)
+    n_ref, lab_ref = _labeller_components(Z, k_sigma, connectivity)
+
+    # the production candidate search as it runs (OpenCV), its call to cv2.connectedComponents recorded
+    seen = []
+    real = cv2.connectedComponents
+
+    def recorded(image, *a, **k):
+        n, lab = real(image, *a, **k)
+        seen.append((np.array(image, copy=True), n, lab.copy()))
+        return n, lab
+
+    monkeypatch.setattr(cv2, "connectedComponents", recorded)
     got = find_candidates(Z, cfg)
-    ref = _candidates_with_project_labeller(Z, cfg)
+    assert len(seen) == 1, "the candidate search no longer labels with cv2.connectedComponents"
+    fg, n_cv, lab_cv = seen[0]
+    # OpenCV's components are the labeller's: the same foreground (the float32 threshold), the same partition
+    assert np.array_equal(fg != 0, lab_ref > 0)
+    assert n_cv == n_ref > 30
+    pairs = np.unique(np.stack([lab_cv[lab_ref > 0], lab_ref[lab_ref > 0]]), axis=1)
+    assert pairs.shape[1] == n_ref - 1 and len(np.unique(pairs[0])) == len(np.unique(pairs[1])) == n_ref - 1
+
+    # the same production search with the labeller's components in place of OpenCV's gives the same candidates
+    monkeypatch.setattr(cv2, "connectedComponents", lambda image, *a, **k: (n_ref, lab_ref.copy()))
+    ref = find_candidates(Z, cfg)
     assert got[3] == ref[3] and ref[3] >= 1
     og, orf = np.lexsort((got[1], got[0])), np.lexsort((ref[1], ref[0]))
     assert len(og) == len(orf) > 30
