@@ -5,6 +5,7 @@ float32 temporaries per iteration, in a fresh process.  Untuned glibc maps each 
 of first touches per iteration, measured 2272); after ``import dualsight`` none fault.
 """
 
+import json
 import subprocess
 import sys
 import textwrap
@@ -52,9 +53,54 @@ def test_frame_temporaries_do_not_fault_after_import():
     assert faults(True, env_tune="0") >= 2 * PAGES     # the opt-out leaves glibc as it is
 
 
-def test_tune_is_idempotent_and_reports():
-    from dualsight import allocator
+THRESHOLDS = textwrap.dedent("""
+    import ctypes, json, os
+    os.environ["DUALSIGHT_MALLOC_TUNE"] = "0"
+    from dualsight import allocator            # the package's import calls tune(): a no-op under the opt-out
 
-    first = allocator.tune()
-    assert allocator.tune() is first
-    assert isinstance(first, bool)
+    class MallInfo2(ctypes.Structure):
+        _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                   "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+    libc = ctypes.CDLL(None)
+    libc.mallinfo2.restype = MallInfo2
+    libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+    libc.free.argtypes = [ctypes.c_void_p]
+    N = 24 << 20                    # below the tuned mmap threshold (32 MiB), far above glibc's default (128 KiB)
+
+    def malloc_counting_maps(n):
+        before = libc.mallinfo2().hblks
+        p = libc.malloc(n)
+        return p, libc.mallinfo2().hblks - before
+
+    out = {"opt_out": allocator.tune()}
+    held, out["maps_untuned"] = malloc_counting_maps(N)   # kept: freeing it would raise glibc's own threshold
+    allocator._done = None                               # the same process, now without the opt-out
+    os.environ["DUALSIGHT_MALLOC_TUNE"] = "1"
+    out["tuned"] = allocator.tune()
+    out["again"] = allocator.tune()
+    p, out["maps_tuned"] = malloc_counting_maps(N)
+    libc.free(p)
+    out["top_kept"] = libc.mallinfo2().keepcost          # the freed block at the heap's top: returned or kept
+    libc.free(held)
+    print(json.dumps(out))
+""")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt: Linux only")
+def test_tune_reports_and_changes_glibcs_thresholds():
+    """tune() reports True once glibc took both thresholds, and they act (mallinfo2, in a fresh process): a 24 MiB
+    block, mmapped before tune(), comes from the heap after it (mmap threshold 32 MiB), and freeing it at the
+    heap's top keeps the memory in the process (trim threshold 512 MiB) instead of returning it to the kernel."""
+    import ctypes
+
+    if not hasattr(ctypes.CDLL(None), "mallinfo2"):
+        pytest.skip("no mallinfo2 (glibc < 2.33)")
+    r = subprocess.run([sys.executable, "-c", THRESHOLDS], capture_output=True, text=True, check=True)
+    out = json.loads(r.stdout)
+    assert out["opt_out"] is False
+    if out["maps_untuned"] != 1:
+        pytest.skip(f"this libc does not mmap a 24 MiB block by default ({out})")
+    assert out["tuned"] is True and out["again"] is True, out      # reported, and once per process
+    assert out["maps_tuned"] == 0, out                              # the mmap threshold moved above 24 MiB
+    assert out["top_kept"] >= 24 << 20, out                         # the trim threshold moved above 24 MiB

@@ -59,8 +59,21 @@ def reference() -> dict:
 
 # ---------------------------------------------------------------------------------------------- real photos
 @needs_chess
-def test_reference_uses_fix_aspect_ratio(reference):
-    assert reference["flags"] == cv2.CALIB_FIX_ASPECT_RATIO == 2
+def test_calibration_is_opencvs_fit_with_the_references_flags(real_result, reference):
+    """The reference was fitted with CALIB_FIX_ASPECT_RATIO (flags 2: fx = fy); ours is fitted the same way and
+    equals OpenCV's own calibrateCamera on our corners with the reference's flags: camera matrix, distortion
+    and RMS (to the digits a multi-threaded solve repeats)."""
+    assert reference["flags"] == cv2.CALIB_FIX_ASPECT_RATIO == 2 and reference["K"][0, 0] == reference["K"][1, 1]
+    cam = real_result.camera
+    assert real_result.flags == reference["flags"] and cam.fx == pytest.approx(cam.fy, rel=1e-12)
+    obj = np.zeros((54, 3), np.float32)                  # the 9 x 6 inner corners, x fastest (OpenCV's order)
+    obj[:, :2] = np.mgrid[0:9, 0:6].T.reshape(-1, 2) * 0.025
+    corners = [(v.corners_px - 0.5).reshape(-1, 1, 2).astype(np.float32) for v in real_result.views]  # centres at 0
+    rms, K, dist, _, _ = cv2.calibrateCamera([obj] * len(corners), corners, reference["size"], np.eye(3), None,
+                                             flags=reference["flags"])
+    np.testing.assert_allclose(cam.opencv_matrix(), K, rtol=1e-7)
+    np.testing.assert_allclose(cam.distortion[:5], dist.ravel()[:5], rtol=1e-6, atol=1e-9)
+    assert real_result.rms_px == pytest.approx(rms, rel=1e-7)
 
 
 def test_real_calibration_matches_opencv_reference(real_result, reference):
