@@ -123,7 +123,9 @@ def test_bessell_table_spot_values():
     """Bessell (2000) Table 2 rows, re-read: BT-VT 0.50 -> B-V 0.465, V-Hp -0.108; BT-VT 1.00 -> 0.878, -0.155."""
     v = stars_mod.hp_to_v(np.array([5.0, 5.0, 5.0]), np.array([0.465, 0.878, np.nan]))
     np.testing.assert_allclose(v[:2], [5.0 - 0.108, 5.0 - 0.155], atol=1e-12)
-    assert np.isfinite(v[2])  # missing colour -> documented default
+    # missing colour -> the documented default B-V (stars.DEFAULT_BV = 0.54), not just any finite number
+    at = stars_mod.hp_to_v(np.array([5.0, 5.0]), np.array([0.54, 0.0]))
+    assert v[2] == at[0] != at[1]
 
 
 def test_missing_colour_is_nan_and_uses_default(cat55, raw_hip2):

@@ -149,7 +149,9 @@ def test_direct_construction_unchanged_for_good_values():
     assert VotingConfig() == VotingConfig.paper() and SensorConfig().psf_sigma_px == 0.8
     assert DetectConfig(max_blobs_per_frame=np.int64(3)).max_blobs_per_frame == 3   # numpy scalars as numbers
     assert type(DetectConfig(max_blobs_per_frame=np.int64(3)).max_blobs_per_frame) is int
-    assert StarCatalogConfig(mag_limit=6) == StarCatalogConfig(mag_limit=6.0)
+    six = StarCatalogConfig(mag_limit=6)                    # an int limit is kept as the float 6.0: the same
+    assert type(six.mag_limit) is float and six.mag_limit == 6.0    # config, hence the same catalog cache file
+    assert six.key() == StarCatalogConfig(mag_limit=6.0).key() != StarCatalogConfig(mag_limit=6.1).key()
     with pytest.raises(dataclasses.FrozenInstanceError):
         SensorConfig().psf_sigma_px = 2.0
 

@@ -98,6 +98,10 @@ def test_invalid_and_offimage_stars_are_skipped():
     img = render_star_fields(x, y, f, valid, 12, 12, CONT, dtype=np.float32)
     ref = render_star_fields(x[:, :1], y[:, :1], f[:, :1], None, 12, 12, CONT, dtype=np.float32)
     assert np.array_equal(img, ref)
+    # not vacuous: the one valid star is there, its flux on the 12 x 12 frame the Gaussian integral over it
+    s = CONT.psf_sigma_px
+    inside = (phi((12 - 5.5) / s) - phi(-5.5 / s)) ** 2
+    assert float(ref.sum(dtype=np.float64)) == pytest.approx(1000.0 * inside, rel=1e-5)
 
 
 # ----------------------------------------------------------------------------------------- centroids
