@@ -13,7 +13,7 @@ start-up (0.25-0.45 s per ``hil star`` process with the V 7 catalog) and no priv
 ``prev`` in chunks: walking the pairs in angle order, a star's previous pair is the previous occurrence inside
 the chunk (a stable sort of the chunk's endpoints by star) or, for its first occurrence in the chunk, the last
 pair of the earlier chunks that held it (one int64 per catalog star, carried from chunk to chunk).  The result
-equals :func:`dualsight.nav.pair_index._previous_occurrence` (tested).
+equals :func:`dualsight.nav.pair_index.previous_occurrence` (tested).
 
 Writes go to temporary names in the same folder and are renamed, so a killed build leaves no half file under
 the final name; a file whose shape, dtype or sampled stars disagree with the pairs is rebuilt.

@@ -8,6 +8,11 @@ once: both stars of every pair interleaved in one array (the stars of a window a
 slice) and, for the one-vote-per-pair option, each star's previous occurrence in the angle order.
 :func:`voting_index` keeps the last few indexes, so a job passing the same arrays batch after batch
 builds it once.
+
+Construction only computes (in memory).  For a cached, memory-mapped catalog
+(:func:`dualsight.catalogs.pair_cache.load_pair_catalog`) the two derived arrays can instead be mapped from
+files beside it, written once with bounded memory by whichever process needs them first: that is the explicit
+call :meth:`VotingIndex.load_or_build`, which the jobs make when they load their catalogs.
 """
 
 from __future__ import annotations
@@ -17,7 +22,9 @@ import threading
 
 import numpy as np
 
-__all__ = ["VotingIndex", "voting_index", "pair_arrays", "PAD"]
+from dualsight.catalogs import pair_voting_cache
+
+__all__ = ["VotingIndex", "voting_index", "pair_arrays", "previous_occurrence", "PAD"]
 
 PAD = 256
 """Zeros after the interleaved stars, so that a tile of up to ``PAD`` stars read from any window
@@ -44,7 +51,7 @@ def pair_arrays(pair_i, pair_j=None, pair_angle=None):
     return i, j, ang
 
 
-def _previous_occurrence(pi: np.ndarray, pj: np.ndarray) -> np.ndarray:
+def previous_occurrence(pi: np.ndarray, pj: np.ndarray) -> np.ndarray:
     """For each endpoint of each catalog pair, the index of the previous pair (in the catalog's
     angle order) that holds the same star, -1 if none; interleaved like :attr:`VotingIndex.stars_plus_one`
     (entry 2m = star ``pi[m]``, entry 2m + 1 = star ``pj[m]``).
@@ -89,33 +96,48 @@ class VotingIndex:
         ``[2 lo: 2 hi]``, and 0 is the vote tables' column of ignored stars.
     prev : (2M,) for each of those entries, the previous pair holding the same star (-1 = none);
         built on first use (by ``VotingConfig.vote_once_per_pair``; ~0.2 s for 2M pairs).
-    For a cached, memory-mapped catalog both come from files beside it, built once with bounded memory
-    (:mod:`dualsight.catalogs.pair_voting_cache`) and mapped read-only by every process.
+    From :meth:`load_or_build` on a cached, memory-mapped catalog both are instead read-only maps of files
+    beside it, built once with bounded memory (:mod:`dualsight.catalogs.pair_voting_cache`) and shared by
+    every process; the constructor itself reads and writes no file.
     tile_dtype : integer type of both (int32 unless the catalog has ~500M pairs).
 
     The pair arrays must not be modified while the index is in use.
     """
 
     def __init__(self, pair_i, pair_j=None, pair_angle=None):
-        raw_i = pair_i.i if pair_j is None and pair_angle is None else pair_i
-        i, j, ang = pair_arrays(pair_i, pair_j, pair_angle)
+        """The index of a pair catalog (three arrays, or one object with ``i, j, angle``), derived in memory."""
+        self._set(*pair_arrays(pair_i, pair_j, pair_angle))
+
+    def _set(self, i: np.ndarray, j: np.ndarray, ang: np.ndarray, derived=None) -> None:
+        """Fill the index from checked pair arrays (:func:`pair_arrays`); ``derived``: (stars_plus_one,
+        prev_padded) as :meth:`load_or_build` maps them, else both derived here in memory."""
         self.i, self.j, self.angle = i, j, ang
         self.star_range = (int(min(i.min(), j.min())), int(max(i.max(), j.max()))) if i.size else (0, -1)
         M2 = 2 * ang.size
-        self.tile_dtype = np.int32 if M2 + PAD < np.iinfo(np.int32).max // 2 else np.int64
+        self.tile_dtype = _tile_dtype(ang.size)
         self._prev_padded = None
-        # a cached (memory-mapped) catalog: both derived arrays from files beside it (catalogs/pair_voting_cache.py)
-        from dualsight.catalogs.pair_voting_cache import load_or_build
-
-        mapped = load_or_build(raw_i, i, j, self.tile_dtype, PAD)
-        if mapped is not None:
-            self.stars_plus_one, self._prev_padded = mapped
+        if derived is not None:
+            self.stars_plus_one, self._prev_padded = derived
             return
         s = np.zeros(M2 + PAD, self.tile_dtype)
         s[0:M2:2] = i
         s[1:M2:2] = j
         s[:M2] += 1
         self.stars_plus_one = s
+
+    @classmethod
+    def load_or_build(cls, pair_i, pair_j=None, pair_angle=None) -> "VotingIndex":
+        """The index of a pair catalog with its derived arrays from files: for a cached, memory-mapped catalog
+        (its ``i`` array the map of ``<stem>.i.npy``), ``<stem>.vstars.npy`` and ``<stem>.vprev.npy`` mapped
+        read-only, written first (chunk by chunk, atomically) when missing, damaged or of other pairs
+        (:func:`dualsight.catalogs.pair_voting_cache.load_or_build`).  Otherwise (arrays in memory, or a
+        folder that is not writable) the same index derived in memory, as the constructor builds it.  The
+        values are the same either way."""
+        raw_i = pair_i.i if pair_j is None and pair_angle is None else pair_i
+        i, j, ang = pair_arrays(pair_i, pair_j, pair_angle)
+        index = cls.__new__(cls)
+        index._set(i, j, ang, pair_voting_cache.load_or_build(raw_i, i, j, _tile_dtype(ang.size), PAD))
+        return index
 
     def __len__(self) -> int:
         return int(self.angle.size)
@@ -125,13 +147,18 @@ class VotingIndex:
         """(2M + pad,) :attr:`prev`, then zeros."""
         if self._prev_padded is None:
             p = np.zeros(2 * self.angle.size + PAD, self.tile_dtype)
-            p[:2 * self.angle.size] = _previous_occurrence(self.i, self.j)
+            p[:2 * self.angle.size] = previous_occurrence(self.i, self.j)
             self._prev_padded = p
         return self._prev_padded
 
     @property
     def prev(self) -> np.ndarray:
         return self.prev_padded[:2 * self.angle.size]
+
+
+def _tile_dtype(n_pairs: int):
+    """Integer type of the interleaved stars and ``prev`` of ``n_pairs`` pairs: int32 unless ~500M pairs."""
+    return np.int32 if 2 * n_pairs + PAD < np.iinfo(np.int32).max // 2 else np.int64
 
 
 _INDEX_CACHE: list = []          # [(input arrays, fingerprint, VotingIndex)], most recently used first
@@ -170,7 +197,9 @@ def voting_index(pair_i, pair_j=None, pair_angle=None) -> VotingIndex:
     (which the cache holds, so an identity is never reused while cached) and checked against a
     fingerprint of their shapes and of 64 sampled values each.  Arrays edited in place after a call
     are not detected beyond that fingerprint: build a new :class:`VotingIndex` (or pass new arrays).
-    Thread-safe (a lock; the first call on a catalog builds its index under it).
+    Thread-safe (a lock; the first call on a catalog builds its index under it).  The index is derived in
+    memory (no file is read or written); a job whose catalog is cached passes the index of
+    :meth:`VotingIndex.load_or_build` instead.
     """
     if isinstance(pair_i, VotingIndex):
         return pair_i

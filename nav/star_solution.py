@@ -19,6 +19,7 @@ import numpy as np
 from dualsight.nav.attitude import solve_identified
 from dualsight.nav.errors import axis_errors, classify, total_error_angle
 from dualsight.nav.observations import Observations, ragged_rank
+from dualsight.nav.pair_index import VotingIndex
 from dualsight.nav.starid import identify as vote_identify
 from dualsight.scene.units import angle_between
 
@@ -30,12 +31,16 @@ def identify(obs: Observations, cat_unit: np.ndarray, pairs, voting, cat_vmag: n
     """Identities of the observed stars by geometric voting: ``nav.starid.identify``.
 
     cat_unit : (N, 3) ICRS unit vectors of the catalog; pairs : the pair catalog (``catalogs.pairs``:
-    ``i``, ``j`` catalog rows and ``angle`` (rad), sorted by angle); voting : ``VotingConfig``.
+    ``i``, ``j`` catalog rows and ``angle`` (rad), sorted by angle) or its ``nav.pair_index.VotingIndex``
+    (e.g. :meth:`~dualsight.nav.pair_index.VotingIndex.load_or_build`'s, passed as is); voting : ``VotingConfig``.
     Returns ``nav.starid.Identification`` ((B, S) ``ids``, ``accepted``, ``votes``, ``verify_votes``; (B,) ``T``
     and ``p_chance``, the answer's chance-match probability, ``nav.chance``).  cat_vmag : optional (N,) V
     magnitudes of the catalog, for the blend test (only doubles of similar brightness are ambiguous).
     chance : compute ``p_chance`` (False skips it: NaN).  engine : "taichi" or "numpy" (bit-identical).
     """
+    if isinstance(pairs, VotingIndex):
+        return vote_identify(obs.vec, obs.valid, cat_unit, pairs, cfg=voting, cat_vmag=cat_vmag, chance=chance,
+                             engine=engine)
     return vote_identify(obs.vec, obs.valid, cat_unit, pairs.i, pairs.j, pairs.angle, voting, cat_vmag=cat_vmag,
                          chance=chance, engine=engine)
 

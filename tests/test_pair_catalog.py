@@ -283,10 +283,10 @@ def test_derived_voting_arrays_in_chunks_equal_the_in_memory_derivation(cached):
     """``prev`` written chunk by chunk (the last pair of each star carried between chunks: chunks of 7, 64 and
     all pairs) equals the one-sort derivation, and the interleaved stars are i + 1, j + 1 then zeros."""
     from dualsight.catalogs import pair_voting_cache as pvc
-    from dualsight.nav.pair_index import PAD, _previous_occurrence
+    from dualsight.nav.pair_index import PAD, previous_occurrence
 
     stars, theta, ref, pc, d = cached
-    want = _previous_occurrence(np.asarray(pc.i), np.asarray(pc.j))
+    want = previous_occurrence(np.asarray(pc.i), np.asarray(pc.j))
     assert (want >= 0).sum() > 1000 and (want == -1).any()
     for chunk in (7, 64, len(pc)):
         pvc.write_prev(d / f"p{chunk}.npy", pc.i, pc.j, np.int32, PAD, chunk=chunk)
@@ -301,25 +301,28 @@ def test_derived_voting_arrays_in_chunks_equal_the_in_memory_derivation(cached):
 
 
 def test_a_cached_catalogs_index_maps_its_derived_files_and_rebuilds_damaged_ones(cached):
-    """The VotingIndex of a cached catalog maps ``<stem>.vstars.npy`` / ``.vprev.npy`` (built once, then reused
-    by every process) with the same values as an in-memory index; a truncated or foreign file is rebuilt."""
+    """VotingIndex.load_or_build of a cached catalog maps ``<stem>.vstars.npy`` / ``.vprev.npy`` (built once, then
+    reused by every process) with the same values as an in-memory index; a truncated or foreign file is rebuilt.
+    The constructor alone writes no file."""
     from dualsight.catalogs import pair_voting_cache as pvc
     from dualsight.nav.pair_index import VotingIndex
 
     stars, theta, ref, pc, d = cached
     mem = VotingIndex(np.array(pc.i), np.array(pc.j), np.array(pc.angle))
-    idx = VotingIndex(pc.i, pc.j, pc.angle)
+    VotingIndex(pc.i, pc.j, pc.angle)
     vs, vp = pvc.derived_paths(pc.i)
+    assert not vs.exists() and not vp.exists()
+    idx = VotingIndex.load_or_build(pc.i, pc.j, pc.angle)
     assert vs.exists() and vp.exists()
     assert isinstance(idx.stars_plus_one, np.memmap) and isinstance(idx.prev_padded, np.memmap)
     np.testing.assert_array_equal(idx.stars_plus_one, mem.stars_plus_one)
     np.testing.assert_array_equal(idx.prev_padded, mem.prev_padded)
     t0 = vs.stat().st_mtime_ns
-    VotingIndex(pc)                                          # the catalog object too; the files are reused
+    VotingIndex.load_or_build(pc)                            # the catalog object too; the files are reused
     assert vs.stat().st_mtime_ns == t0
     with open(vp, "r+b") as f:                               # truncated (a killed copy, a full disk)
         f.truncate(vp.stat().st_size - 8)
     np.save(vs, np.zeros_like(np.load(vs)))                  # another catalog's stars
-    again = VotingIndex(pc.i, pc.j, pc.angle)
+    again = VotingIndex.load_or_build(pc.i, pc.j, pc.angle)
     np.testing.assert_array_equal(again.stars_plus_one, mem.stars_plus_one)
     np.testing.assert_array_equal(again.prev_padded, mem.prev_padded)

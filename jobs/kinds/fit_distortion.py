@@ -85,7 +85,7 @@ def fit_from_spec(spec, progress=None, warn=None) -> FitReport:
         if e and warn is not None:
             warn(e)
     try:
-        rep = fit_camera_from_sky(pix, rt.camera, ctx.catalog, ctx.pairs, rt.voting,
+        rep = fit_camera_from_sky(pix, rt.camera, ctx.catalog, ctx.index, rt.voting,
                                   batch_size=spec.settings.batch_size, A_true=true_attitudes(spec), progress=progress)
     except TooFewStars as e:
         raise InputError(f"only {e.stars} stars identified in {e.solved} solved of {e.frames} frames; the fit needs "

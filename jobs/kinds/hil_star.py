@@ -72,6 +72,7 @@ from dualsight.kernels.detect import DetectConfig, detect_stars
 from dualsight.kernels.detect_local import LocalDetectConfig, detect_real, subtract_local_background
 from dualsight.nav import hil_score
 from dualsight.nav.observations import observations
+from dualsight.nav.pair_index import VotingIndex
 from dualsight.nav.star_solution import centroid_weights, identify, solve
 from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.attitude import unit_to_radec
@@ -126,11 +127,13 @@ def runtime_of(camera: dict, settings: StarSettings) -> Runtime:
 
 @dataclass
 class Context:
-    """Per-process state: the stages' configs, the star catalog and its pair catalog."""
+    """Per-process state: the stages' configs, the star catalog, its pair catalog and the pair catalog's voting
+    index (``VotingIndex.load_or_build``: its derived arrays mapped from the cache)."""
 
     rt: Runtime
     catalog: object
     pairs: object
+    index: object
 
 
 def make_context(spec: HilStarSpec) -> Context:
@@ -140,7 +143,8 @@ def make_context(spec: HilStarSpec) -> Context:
 def context_of(rt: Runtime) -> Context:
     """The per-process state of stage configs ``rt``: the star catalog and its pair catalog (from the cache)."""
     cat = load_star_catalog(rt.catalog)
-    return Context(rt, cat, load_pair_catalog(cat, pair_angle(rt.camera)))
+    pairs = load_pair_catalog(cat, pair_angle(rt.camera))
+    return Context(rt, cat, pairs, VotingIndex.load_or_build(pairs))
 
 
 FRAME_PLANES = 6
@@ -319,7 +323,7 @@ def solve_frames(frames: np.ndarray, results: list[ImageResult], truths: list[St
     cat_unit = ctx.catalog.unit
     obs = observations(det, B, rt.camera, max_obs=rt.settings.max_obs)
     engine = voting_engine(B if n_images is None else n_images)
-    ident = identify(obs, cat_unit, ctx.pairs, rt.voting, cat_vmag=ctx.catalog.vmag, engine=engine)
+    ident = identify(obs, cat_unit, ctx.index, rt.voting, cat_vmag=ctx.catalog.vmag, engine=engine)
     t2 = time.perf_counter_ns()
     floor = rt.settings.centroid_floor_px
     w = centroid_weights(det, obs, floor) if floor is not None else None
@@ -327,7 +331,7 @@ def solve_frames(frames: np.ndarray, results: list[ImageResult], truths: list[St
     t3 = time.perf_counter_ns()
     alt = None
     if rt.alt_voting is not None:
-        ident_a = identify(obs, cat_unit, ctx.pairs, rt.alt_voting, cat_vmag=ctx.catalog.vmag, engine=engine)
+        ident_a = identify(obs, cat_unit, ctx.index, rt.alt_voting, cat_vmag=ctx.catalog.vmag, engine=engine)
         alt = (ident_a, solve(obs, ident_a, cat_unit, None, weights=w))
     t4 = time.perf_counter_ns()
     share = {"t_detect_ns": (t1 - t0) // B, "t_identify_ns": (t2 - t1) // B, "t_attitude_ns": (t3 - t2) // B,

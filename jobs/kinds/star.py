@@ -51,6 +51,7 @@ from dualsight.kernels.digest import frame_digest_taichi
 from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude, with_psf_digest
 from dualsight.nav.errors import STATUS_NAMES
 from dualsight.nav.observations import observations
+from dualsight.nav.pair_index import VotingIndex
 from dualsight.nav.star_solution import centroid_weights, identify, solve
 from dualsight.nav.truth_match import match_truth
 from dualsight.nav.voting_config import VotingConfig
@@ -281,10 +282,12 @@ def start_run(plan: StarRun, lake, *, workers: int | None = None, scheduler: str
 # ------------------------------------------------------------------------------------------ context
 @dataclass(frozen=True)
 class StarContext:
-    """Per-process state: the star catalog and its pair catalog (read from the cache)."""
+    """Per-process state: the star catalog, its pair catalog (read from the cache) and the pair catalog's voting
+    index (its derived arrays mapped from the cache, written there first if missing: ``VotingIndex.load_or_build``)."""
 
     catalog: object
     pairs: object
+    index: object
 
 
 def pair_angle(camera: Camera) -> float:
@@ -294,7 +297,8 @@ def pair_angle(camera: Camera) -> float:
 
 def make_context(spec: StarSpec) -> StarContext:
     cat = load_star_catalog(spec.catalog)
-    return StarContext(cat, load_pair_catalog(cat, pair_angle(spec.camera)))
+    pairs = load_pair_catalog(cat, pair_angle(spec.camera))
+    return StarContext(cat, pairs, VotingIndex.load_or_build(pairs))
 
 
 # ------------------------------------------------------------------------------------------ cases
@@ -452,7 +456,7 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
     t1 = time.perf_counter_ns()
     obs = observations(r.detections, B, spec.camera)
     # the reference's method: its chance probability is not stored (p_chance is the robust method's)
-    ident = identify(obs, cat.unit, ctx.pairs, spec.voting, cat_vmag=cat.vmag, chance=False)
+    ident = identify(obs, cat.unit, ctx.index, spec.voting, cat_vmag=cat.vmag, chance=False)
     t["identify"] = time.perf_counter_ns() - t1
 
     t2 = time.perf_counter_ns()
@@ -465,7 +469,7 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
     alt = None
     if spec.robust is not None:   # dualsight's method beside the reference's, on the same detections
         t3 = time.perf_counter_ns()
-        ident_r = identify(obs, cat.unit, ctx.pairs, spec.robust, cat_vmag=cat.vmag)
+        ident_r = identify(obs, cat.unit, ctx.index, spec.robust, cat_vmag=cat.vmag)
         alt = (ident_r, solve(obs, ident_r, cat.unit, draw["A_true"], spec.error_frame, weights=weights))
         t["robust"] = time.perf_counter_ns() - t3
 
