@@ -93,14 +93,15 @@ def spacing(surface_resolution: float) -> float:
     return 1.0 / math.sqrt(float(surface_resolution))
 
 
-def _grid(length: float, d: float) -> np.ndarray:
-    """floor(L/d) + 1 coordinates exactly d apart, centred on [-L/2, L/2]."""
+def centred_grid(length: float, d: float) -> np.ndarray:
+    """(floor(L/d) + 1,) float64 coordinates (m) exactly ``d`` apart, centred on [-L/2, L/2] (L = ``length``, m)."""
     n = int(math.floor(length / d + 1e-9))
     return (np.arange(n + 1) - n / 2.0) * d
 
 
-def _strictly_inside(c: np.ndarray, half: float, d: float) -> np.ndarray:
-    """Coordinates not on the end points +-half (grid points on an edge belong to the edge)."""
+def strictly_inside(c: np.ndarray, half: float, d: float) -> np.ndarray:
+    """The coordinates of ``c`` (m) not on the end points +-``half`` (grid points on an edge belong to the edge;
+    ``d`` the grid's spacing, m, sets the tolerance)."""
     return c[np.abs(c) < half - 1e-9 * max(d, 1.0)]
 
 
@@ -136,8 +137,8 @@ def cuboid_points(size, surface_resolution: float, *, rotation=None, position=No
     L = np.asarray(size, dtype=np.float64).reshape(3)
     d = spacing(surface_resolution)
     half = L / 2.0
-    grids = [_grid(L[i], d) for i in range(3)]
-    inner = [_strictly_inside(grids[i], half[i], d) for i in range(3)]
+    grids = [centred_grid(L[i], d) for i in range(3)]
+    inner = [strictly_inside(grids[i], half[i], d) for i in range(3)]
     pts, nrm = [], []
     # corners
     corners = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T * half
@@ -248,7 +249,7 @@ def cylinder_points(diameter: float, length: float, surface_resolution: float, *
         pts.append(c)
         nrm.append(n)
     n_around = int(round(2.0 * math.pi * r / d))
-    zs = _grid(L, d)
+    zs = centred_grid(L, d)
     if n_around >= 1 and zs.size:
         phi = 2.0 * math.pi * np.arange(n_around) / n_around
         P, Z = np.meshgrid(phi, zs, indexing="ij")

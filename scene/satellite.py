@@ -371,14 +371,14 @@ def _surface_point_count(c: ComponentConfig) -> int:
     d = prim.spacing(c.surface_resolution)
     if c.shape == "cuboid":
         L = np.asarray(c.size)
-        n_in = [prim._strictly_inside(prim._grid(L[i], d), L[i] / 2, d).size for i in range(3)]
+        n_in = [prim.strictly_inside(prim.centred_grid(L[i], d), L[i] / 2, d).size for i in range(3)]
         return 2 * (n_in[0] * n_in[1] + n_in[1] * n_in[2] + n_in[0] * n_in[2])
     if c.shape == "sphere":
         r = c.size[0] / 2
         return len(prim.deserno_sphere(int(round(4 * math.pi * r * r * c.surface_resolution))))
     r, L = c.size[0] / 2, c.size[1]
     caps = 2 * len(prim.deserno_disc(int(round(math.pi * r * r * c.surface_resolution))))
-    side = int(round(2 * math.pi * r / d)) * prim._grid(L, d).size
+    side = int(round(2 * math.pi * r / d)) * prim.centred_grid(L, d).size
     return caps + side
 
 

@@ -7,11 +7,13 @@ radius of the robust voting.
 
 from __future__ import annotations
 
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 
 from dualsight.errors import ConfigError, InputError
+from dualsight.scene.skytruth import altaz_from_filename
 
 __all__ = ["julian_year", "observation_epoch"]
 
@@ -19,8 +21,6 @@ __all__ = ["julian_year", "observation_epoch"]
 def julian_year(time_utc: str) -> float:
     """Julian epoch (J2000.0 + days / 365.25) of an ISO UTC time such as "2019-07-29T20:47:26" (UTC ~ TT
     to a minute, immaterial for proper motion).  InputError (``--time``) for a malformed time."""
-    from datetime import datetime, timezone
-
     try:
         t = datetime.fromisoformat(str(time_utc).replace("Z", "+00:00"))
     except ValueError:
@@ -37,8 +37,6 @@ def observation_epoch(paths, time_utc: str | None = None) -> float | None:
     rounded to 0.1 yr (proper motions reach ~1 arcsec/yr for a few V < 7 stars, so 0.05 yr is
     negligible, and the catalog cache is reused).  None when the time is unknown.
     """
-    from dualsight.scene.skytruth import altaz_from_filename
-
     if time_utc is not None:
         return round(julian_year(time_utc), 1)
     years = []
