@@ -1,20 +1,18 @@
-"""Taichi CPU kernels, batched over cases (leaves: arrays in, arrays out).
+"""The leaf layer: batched array kernels (Taichi on the CPU, numpy, OpenCV) and the few readers they need.
 
-Modules, one stage each:
+Star tracker: ``sensor_config`` (the sensor model) -> ``star_psf`` / ``psf_models`` -> ``starfield`` (render,
+with ``sky_noise``'s tables) -> ``detect`` (global threshold; smooth background: ``background``) or
+``detect_local`` (real sensors: ``detect_background`` -> ``detect_candidates`` -> ``detect_psf``) -> ``voting``,
+``voting_select``.  Proximity: ``points`` -> ``prox_*``; ``blobs``.  Shared: ``labelling`` (the one labeller),
+``rng``, ``digest``, ``imageio`` and ``psf_image`` (file readers), ``_runtime`` (lazy Taichi start, KernelCache).
 
-* star tracker: ``star_psf`` (PSF splat) -> ``starfield`` (sensor model, noise, ADC; ``render_star_fields``)
-  -> ``detect`` (threshold, label, centroid; and the sparse noise-free path ``render_and_detect_ideal``)
-  -> ``voting`` (geometric voting, step 1: vote counting) -> ``voting_select`` (steps 2-5: candidates,
-  verification, acceptance);
-* proximity: ``points`` (entry point, ``render``) dispatching to ``prox_splat`` (``paper``) or
-  ``prox_triangles`` + ``prox_raster`` (``accurate``), both shading by ``prox_shading`` (Eqs. 2-3) with
-  ``prox_geometry``; ``prox_sensor`` (blur, read noise, quantisation); ``blobs`` (the blobber's labelling);
-* shared: ``labelling`` (the one connected-component labeller), ``rng`` (the one counter-based random
-  number generator), ``_runtime`` (lazy Taichi start, ``KernelCache``).
+Imports allowed: numpy, taichi, OpenCV, pydantic (the configs' field bounds), astropy (``imageio`` only, for FITS)
+and, of the project, only the root utilities ``dualsight.errors``, ``dualsight.config``, ``dualsight.version`` and
+``dualsight.allocator``.
 
-Importing this package only sets Taichi's environment (no version check over the network, no banner on
-stdout, which would corrupt ``--json`` output); the runtime itself is initialised lazily by
-:func:`dualsight.kernels._runtime.ensure_init` at the first kernel call.
+Importing the package only sets Taichi's environment before any module imports taichi (no banner on stdout,
+which would corrupt ``--json`` output; no version check over the network); the runtime starts at the first
+kernel call (:func:`dualsight.kernels._runtime.ensure_init`).
 """
 
 import os as _os

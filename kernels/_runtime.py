@@ -21,6 +21,8 @@ import os
 import threading
 from pathlib import Path
 
+import numpy as np
+
 #: Taichi 1.7's CPU backend hands a range-for to its thread pool in tasks of at least 512 consecutive
 #: iterations (its adaptive block size, min(1024, max(512, n / (32 threads))); ``loop_config(block_dim=)``
 #: does not lower it), so a loop of fewer than 1024 iterations runs on ONE thread.  A loop that must
@@ -102,8 +104,6 @@ class KernelCache:
         self._lock = threading.Lock()
 
     def get(self, name: str, dtype=None, serial: bool = False):
-        import numpy as np
-
         key = (name, None if dtype is None else np.dtype(dtype).str, bool(serial))
         k = self._built.get(key)
         if k is None:
@@ -161,8 +161,6 @@ _SCALARS = (int, float, bool)
 def _signature(args) -> tuple | None:
     """The plan key of a call: (dtype number, ndim) per C-contiguous numpy array, the type of each Python or
     numpy scalar; None when an argument is anything else."""
-    import numpy as np
-
     sig = []
     for a in args:
         t = type(a)

@@ -18,6 +18,8 @@ reproducibility, not a cryptographic hash.
 
 import numpy as np
 
+from dualsight.kernels._runtime import KernelCache
+
 __all__ = ["splitmix64", "frame_digest", "frame_digest_taichi", "patch_digest", "patch_digest_taichi", "to_int64"]
 
 _C1, _C2, _C3 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
@@ -158,6 +160,9 @@ def _build_row_sums(dtype):
     return row_sums
 
 
+_KERNELS = KernelCache({"patch_sums": _build_patch_sums, "row_sums": _build_row_sums})   # each built on first use
+
+
 def frame_digest_taichi(frames: np.ndarray, sky=0) -> np.ndarray:
     """:func:`frame_digest` as a Taichi kernel: the same (B,) uint64 digests, bit for bit (integer sums
     mod 2^64 do not depend on their order).  One pass over the pixels, parallel over rows, splitmix64
@@ -171,22 +176,9 @@ def frame_digest_taichi(frames: np.ndarray, sky=0) -> np.ndarray:
     u = u.reshape(B, frames.shape[1], -1)                     # (B, H, W C): channels innermost, as p
     sky_bits = np.ascontiguousarray(_bits(np.broadcast_to(np.asarray(sky, dtype=frames.dtype), (B,))))
     rows = np.empty(u.shape[:2], np.uint64)
-    _kernels().get("row_sums", u.dtype)(u, sky_bits, rows)
+    _KERNELS.get("row_sums", u.dtype)(u, sky_bits, rows)
     with np.errstate(over="ignore"):
         return rows.sum(axis=1, dtype=np.uint64)
-
-
-_KERNELS = None
-
-
-def _kernels():
-    """The module's kernel cache (made on first use: the CLI imports this module without running a kernel)."""
-    global _KERNELS
-    if _KERNELS is None:
-        from dualsight.kernels._runtime import KernelCache
-
-        _KERNELS = KernelCache({"patch_sums": _build_patch_sums, "row_sums": _build_row_sums})
-    return _KERNELS
 
 
 def patch_digest_taichi(values_f32: np.ndarray, dtype, poff: np.ndarray, boxes: np.ndarray,
@@ -202,7 +194,7 @@ def patch_digest_taichi(values_f32: np.ndarray, dtype, poff: np.ndarray, boxes: 
     out = np.zeros(n_frames, np.uint64)
     if len(boxes):
         sky_bits = int(_bits(np.asarray(sky, dtype=dt).reshape(1))[0])
-        _kernels().get("patch_sums", dt)(np.ascontiguousarray(values_f32, np.float32), np.asarray(poff, np.int64),
+        _KERNELS.get("patch_sums", dt)(np.ascontiguousarray(values_f32, np.float32), np.asarray(poff, np.int64),
                                        boxes, int(width), sky_bits, sums)
         with np.errstate(over="ignore"):
             np.add.at(out, np.asarray(patch_frame, np.int64), sums)
