@@ -11,7 +11,7 @@
 The limit is the smallest V on a 0.1 mag grid whose mean count per field reaches the target, then
 
 * capped by the sensor's sensitivity when known (``sensor_v``: the faintest V it detects, e.g.
-  :func:`sensor_limit_v` for a simulated :class:`~dualsight.kernels.starfield.SensorConfig`): stars the
+  :func:`sensor_limit_v` for a simulated :class:`~dualsight.kernels.sensor_config.SensorConfig`): stars the
   camera cannot see only add false catalog pairs;
 * capped by the catalog's completeness (``complete_v``, default :data:`HIPPARCOS_COMPLETE_V` = 8.0): beyond
   it the camera sees stars the catalog lacks, and a fainter cut adds stars unevenly over the sky;
@@ -189,7 +189,7 @@ def _grid_down(v: float) -> float:
 
 # ============================================================================================ the sensor
 def sensor_limit_v(sensor, k_sigma: float = 5.0, min_pixels: int = 3, threshold_adu: float = 0.0) -> float | None:
-    """Faintest Johnson V a simulated sensor detects (:class:`~dualsight.kernels.starfield.SensorConfig`
+    """Faintest Johnson V a simulated sensor detects (:class:`~dualsight.kernels.sensor_config.SensorConfig`
     with the detector's ``k_sigma``, ``min_pixels``, ``threshold_adu``), None when unbounded (no noise).
 
     A star of magnitude V gives F(V) = ``zero_mag_rate_e_per_s`` 10^(-0.4 V) ``exposure_s`` electrons

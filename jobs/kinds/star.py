@@ -19,7 +19,7 @@ Spec (TOML; every table optional, defaults = preset ``paper``)::
     compare_robust = true         # dualsight's robust identification beside the reference's on every case
     [camera]   ... (scene/camera.py)
     [catalog]  mag_limit = 5.5, epoch_jyear = 2000.0
-    [sensor]   ... (kernels/starfield.py SensorConfig)
+    [sensor]   ... (kernels/sensor_config.py SensorConfig)
     [detect]   ... (kernels/detect.py DetectConfig)
     [voting]   ... (nav/starid.py VotingConfig; angles as *_arcsec)
     [robust]   ... (the same keys, for the robust method)
@@ -84,7 +84,7 @@ PRESETS = {
 PRESETS["noisy"] = {**PRESETS["paper"], "batch_size": 16,           # full frames: 16 x 1024 x 768 per batch
                    "sensor": {"shot_noise": True, "read_noise_e": 10.0,
                               "sky_background_e": 50.0, "dark_current_e_per_s": 20.0}}
-# Sensor presets on the reference's camera (kernels/starfield.py SensorConfig; "paper" above: ideal images,
+# Sensor presets on the reference's camera (kernels/sensor_config.py SensorConfig; "paper" above: ideal images,
 # slight defocus, 12-bit ADC that saturates the brightest stars at 20 ke-).
 # "ideal": the paper's sensor without saturation (full well never reached, 16-bit ADC): optics and algorithms only.
 PRESETS["ideal"] = {**PRESETS["paper"], "sensor": {"full_well_e": 1e12, "bit_depth": 16}}
