@@ -1,14 +1,15 @@
-"""Camera calibration from chessboard photos, and camera files.
+"""Camera calibration from chessboard photos.
 
-Method: Zhang (2000) / Bouguet's Camera Calibration Toolbox (2013) as OpenCV implements it:
-``cv2.findChessboardCorners`` (inner corners), ``cv2.cornerSubPix`` (11x11 window, as OpenCV's
-``samples/cpp/calibration.cpp``), then ``cv2.calibrateCameraExtended`` (closed-form initialisation
-and Levenberg-Marquardt over intrinsics, distortion k1, k2, p1, p2, k3 and one board pose per image).
+Method: Zhang (2000) / Bouguet's Camera Calibration Toolbox (2013) as OpenCV implements it: the inner corners of
+every photo (:mod:`dualsight.scene.chessboard`: ``cv2.findChessboardCorners`` + ``cv2.cornerSubPix``), then
+``cv2.calibrateCameraExtended`` (closed-form initialisation and Levenberg-Marquardt over intrinsics, distortion
+k1, k2, p1, p2, k3 and one board pose per image).
 The default flags, ``cv2.CALIB_FIX_ASPECT_RATIO`` (= 2, with aspect ratio fx/fy = 1), are the ones of
 OpenCV's reference calibration of its ``left*.jpg`` samples (``left_intrinsics.yml``: ``flags: 2``).
-The two steps are separate functions: :func:`find_view` (one photo -> its corners; the per-case work of the
-``calibrate`` job kind, jobs/kinds/calibrate.py) and :func:`solve_calibration` (all views -> the camera);
-:func:`calibrate_chessboard` does both in-process.
+The two steps are separate functions: :func:`dualsight.scene.chessboard.find_view` (one photo -> its corners;
+the per-case work of the ``calibrate`` job kind, jobs/kinds/calibrate.py) and :func:`solve_calibration` (all
+views -> the camera); :func:`calibrate_chessboard` does both in-process, and :func:`calibrate_main` also writes
+the camera file (:func:`dualsight.scene.camera_file.write_camera_toml`).
 
 Conventions
     The resulting :class:`~dualsight.scene.camera.Camera` uses dualsight's pixel convention (pixel
@@ -17,18 +18,11 @@ Conventions
     (origin at the first detected inner corner, x along the board's ``board[0]`` corners, z into the
     board) into the camera frame (+x right, +y down, +z out through the lens) -- the same camera frame
     as dualsight's.
-
-Camera files
-    :func:`write_camera_toml` writes the ``[camera]`` table the simulator reads
-    (:meth:`Camera.from_toml`) and, for a calibration, a ``[calibration]`` table with the fit quality
-    and the per-image board poses (``[[calibration.views]]``), serialised by tomli-w, into an existing
-    folder (none is created).  :func:`read_camera_toml` reads both.
 """
 
 from __future__ import annotations
 
 import math
-import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,24 +30,20 @@ from typing import Iterable
 
 import numpy as np
 
-from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.errors import ConfigError, ImageError, InputError
-from dualsight.scene.camera import Camera, read_toml
-from dualsight.kernels.imageio import Image, list_images, read_image
+from dualsight.kernels.imageio import list_images
+from dualsight.scene.camera import Camera
+from dualsight.scene.camera_file import write_camera_toml
+from dualsight.scene.chessboard import FIND_FLAGS_DEFAULT, ViewCorners, board_points, find_view
 
-#: Corner detection flags of OpenCV's calibration sample.
-FIND_FLAGS_DEFAULT = 1 | 2 | 8  # CALIB_CB_ADAPTIVE_THRESH | CALIB_CB_NORMALIZE_IMAGE | CALIB_CB_FAST_CHECK
+__all__ = ["CALIB_FLAGS_DEFAULT", "PLACEHOLDER_PITCH_M", "BoardView", "CalibrationResult", "check_settings",
+           "parse_board", "calibrate_chessboard", "solve_calibration", "calibrate_main", "format_summary"]
+
 #: cv2.CALIB_FIX_ASPECT_RATIO, as in OpenCV's reference left_intrinsics.yml ("flags: 2").
 CALIB_FLAGS_DEFAULT = 2
+
 #: Placeholder pixel pitch (m) when the caller does not know it; only fx, fy (pixels) are measured.
 PLACEHOLDER_PITCH_M = 1e-6
-
-_FLAG_NAMES = {  # cv2.CALIB_* bits, for the camera file
-    1: "CALIB_USE_INTRINSIC_GUESS", 2: "CALIB_FIX_ASPECT_RATIO", 4: "CALIB_FIX_PRINCIPAL_POINT",
-    8: "CALIB_ZERO_TANGENT_DIST", 16: "CALIB_FIX_FOCAL_LENGTH", 32: "CALIB_FIX_K1", 64: "CALIB_FIX_K2",
-    128: "CALIB_FIX_K3", 2048: "CALIB_FIX_K4", 4096: "CALIB_FIX_K5", 8192: "CALIB_FIX_K6",
-    16384: "CALIB_RATIONAL_MODEL",
-}
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,7 +66,6 @@ class BoardView:
     distance_m: float
     rms_px: float
     corners_px: np.ndarray
-
 
 @dataclass(frozen=True, eq=False)
 class CalibrationResult:
@@ -122,69 +111,6 @@ class CalibrationResult:
 
 
 # ---------------------------------------------------------------------------------------------- calibration
-def board_points(board: tuple[int, int], square_m: float) -> np.ndarray:
-    """(N, 3) float32 inner-corner coordinates on the board plane (m), OpenCV's order:
-    x fastest along ``board[0]``, z = 0; N = board[0] * board[1]."""
-    nx, ny = board
-    g = np.zeros((nx * ny, 3), np.float32)
-    g[:, :2] = np.mgrid[0:nx, 0:ny].T.reshape(-1, 2) * square_m
-    return g
-
-
-def find_corners(gray8: np.ndarray, board: tuple[int, int], find_flags: int = FIND_FLAGS_DEFAULT,
-                 window: int = 11) -> np.ndarray | None:
-    """Sub-pixel inner corners of a chessboard in an 8-bit gray image.
-
-    Returns
-    -------
-    (N, 2) float32 corners (col, row) in OpenCV's convention (pixel centres at integers), or None
-    when the board is not found.
-    """
-    import cv2
-
-    ok, c = cv2.findChessboardCorners(gray8, tuple(board), flags=find_flags)
-    if not ok or c is None:
-        return None
-    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 1e-4)  # as OpenCV's calibration sample
-    c = cv2.cornerSubPix(gray8, c, (window, window), (-1, -1), crit)
-    return c.reshape(-1, 2)
-
-
-@dataclass(frozen=True, eq=False)
-class ViewCorners:
-    """What one photo gave: its size, and the board's inner corners or why there are none.
-
-    Attributes
-    ----------
-    path : the image file.
-    width, height, bit_depth : the image (None when it could not be read).
-    corners : (N, 2) float32 corners (col, row) in OpenCV's convention (pixel centres at integers), or
-        None when the board was not found or the image could not be read.
-    error : why the image could not be read (None if it was).
-    digest : the decoded frame's digest as int64 (:mod:`dualsight.kernels.digest`), None if unread.
-    """
-
-    path: Path
-    width: int | None = None
-    height: int | None = None
-    bit_depth: int | None = None
-    corners: np.ndarray | None = None
-    error: str | None = None
-    digest: int | None = None
-
-
-def find_view(path: str | Path, board: tuple[int, int] = (9, 6), find_flags: int = FIND_FLAGS_DEFAULT) -> ViewCorners:
-    """Read one photo (gray; 16-bit / float scaled to 8 bit) and find the board's sub-pixel inner corners."""
-    path = Path(path)
-    try:
-        img = read_image(path, as_gray=True)
-    except ImageError as e:
-        return ViewCorners(path, error=e.detail)
-    return ViewCorners(path, img.width, img.height, img.bit_depth or 8,
-                       find_corners(_to_gray8(img), board, find_flags),
-                       digest=int(to_int64(frame_digest(img.pixels[None]))[0]))
-
-
 def check_settings(board, square_m, pixel_pitch_m=None) -> tuple[int, int]:
     """Validated board (two integers >= 2); ConfigError for a bad board, square or pixel pitch."""
     board = _check_board(board)
@@ -194,7 +120,6 @@ def check_settings(board, square_m, pixel_pitch_m=None) -> tuple[int, int]:
     if pixel_pitch_m is not None and not (math.isfinite(pixel_pitch_m) and pixel_pitch_m > 0):
         raise ConfigError(f"pixel pitch must be > 0 m, got {pixel_pitch_m!r}", field="--pixel-pitch")
     return board
-
 
 def calibrate_chessboard(paths: Iterable[str | Path], board: tuple[int, int] = (9, 6), square_m: float = 0.025,
                          pixel_pitch_m: float | None = None, flags: int = CALIB_FLAGS_DEFAULT,
@@ -224,7 +149,6 @@ def calibrate_chessboard(paths: Iterable[str | Path], board: tuple[int, int] = (
     views = [find_view(p, board, find_flags) for p in paths]
     return solve_calibration(views, board=board, square_m=square_m, pixel_pitch_m=pixel_pitch_m, flags=flags,
                              aspect_ratio=aspect_ratio, min_views=min_views)
-
 
 def solve_calibration(views: Iterable[ViewCorners], board: tuple[int, int] = (9, 6), square_m: float = 0.025,
                       pixel_pitch_m: float | None = None, flags: int = CALIB_FLAGS_DEFAULT, aspect_ratio: float = 1.0,
@@ -294,7 +218,6 @@ def solve_calibration(views: Iterable[ViewCorners], board: tuple[int, int] = (9,
                              unreadable=tuple(unreadable), board=board, square_m=float(square_m), flags=int(flags),
                              pixel_pitch_known=pixel_pitch_m is not None, std=std)
 
-
 def calibrate_main(folder: str | Path, board="9x6", square: float = 0.025, output: str | Path | None = None,
                    pixel_pitch_um: float | None = None, *, quiet: bool = False) -> CalibrationResult:
     """In-process calibration of a folder (the ``dualsight calibrate`` command runs the same steps as a job of
@@ -315,7 +238,6 @@ def calibrate_main(folder: str | Path, board="9x6", square: float = 0.025, outpu
         print(format_summary(result) + (f"\nwrote {output}" if output is not None else ""))
     return result
 
-
 def parse_board(board) -> tuple[int, int]:
     """"9x6" (or (9, 6)) -> (9, 6): inner corners per row and per column."""
     if isinstance(board, str):
@@ -324,7 +246,6 @@ def parse_board(board) -> tuple[int, int]:
             raise ConfigError(f"must look like 9x6 (inner corners), got {board!r}", field="--board")
         board = (int(m.group(1)), int(m.group(2)))
     return _check_board(board)
-
 
 def format_summary(result: CalibrationResult) -> str:
     """Readable multi-line summary of a calibration."""
@@ -352,128 +273,6 @@ def format_summary(result: CalibrationResult) -> str:
         lines.append(f"unreadable: {p.name}: {why}")
     return "\n".join(lines)
 
-
-# ---------------------------------------------------------------------------------------------- camera files
-def write_camera_toml(result_or_camera: CalibrationResult | Camera, path: str | Path, extra: dict | None = None,
-                      *, name: str | None = None, notes: str | None = None, comment: str | None = None) -> Path:
-    """Write a camera file: ``[camera]`` (what :meth:`Camera.from_toml` reads) and, for a
-    calibration, ``[calibration]`` with ``[[calibration.views]]``.
-
-    Parameters
-    ----------
-    result_or_camera : a :class:`CalibrationResult` or a :class:`Camera`.
-    path : output file, in an existing folder (none is created: InputError otherwise); written to a
-        temporary name and renamed, so it is never half-written.
-    extra : further top-level keys/tables (e.g. ``{"source": {"images": "..."}}``); may not
-        redefine ``camera`` or ``calibration``.
-    name, notes : optional ``camera.name`` / ``camera.notes`` strings.
-    comment : text for the header comment (one or more lines).
-    """
-    path = Path(path)
-    result = result_or_camera if isinstance(result_or_camera, CalibrationResult) else None
-    camera = result.camera if result is not None else result_or_camera
-    if not isinstance(camera, Camera):
-        raise TypeError(f"expected a CalibrationResult or Camera, got {type(result_or_camera).__name__}")
-    cam = {}
-    if name is not None:
-        cam["name"] = str(name)
-    if result is not None and not result.pixel_pitch_known:
-        auto = ("pixel pitch unknown at calibration: pixel_pitch_um is a placeholder; "
-                "fx, fy (px) are the measured quantities")
-        notes = f"{notes}; {auto}" if notes else auto
-    if notes is not None:
-        cam["notes"] = str(notes)
-    cam.update(camera.to_dict())
-    doc = {"camera": cam}
-    if result is not None:
-        doc["calibration"] = calibration_table(result)
-    for k, v in (extra or {}).items():
-        if k in doc:
-            raise ConfigError(f"extra may not redefine [{k}]", source=str(path), field=k)
-        doc[k] = v
-
-    fh, fv, fd = (math.degrees(a) for a in camera.fov_rad)
-    head = []
-    if comment:
-        head += [f"# {line}".rstrip() for line in str(comment).splitlines()]
-    head += [f"# dualsight camera file. Pixel coordinates from the image's top-left corner "
-             f"(cx = cx_opencv + 0.5).",
-             f"# focal length {camera.focal_length_m * 1e3:.4f} mm"
-             + ("" if result is None or result.pixel_pitch_known else " (placeholder pitch: not meaningful)")
-             + f"; field of view {fh:.3f} x {fv:.3f} deg, diagonal {fd:.3f} deg"]
-    text = "\n".join(head) + "\n\n" + toml_dumps(doc)
-    if not path.parent.is_dir():
-        raise InputError(f"folder {path.parent} does not exist (camera files are written only into existing "
-                         "folders)", source=str(path))
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
-    return path
-
-
-def calibration_table(result: CalibrationResult) -> dict:
-    """The ``[calibration]`` table of a camera file (plain TOML types)."""
-    import cv2
-
-    flags = [n for bit, n in _FLAG_NAMES.items() if result.flags & bit]
-    return {
-        "method": "chessboard (Zhang/Bouguet) via OpenCV findChessboardCorners + cornerSubPix + calibrateCamera",
-        "opencv_version": cv2.__version__,
-        "board_inner_corners": list(result.board),
-        "square_m": result.square_m,
-        "flags": result.flags,
-        "flag_names": flags,
-        "pixel_pitch_known": result.pixel_pitch_known,
-        "rms_px": result.rms_px,
-        "n_views": len(result.views),
-        "std": dict(result.std),
-        "not_found": [str(p.name) for p in result.not_found],
-        "unreadable": [f"{p.name}: {why}" for p, why in result.unreadable],
-        "views": [{"image": v.path.name, "rms_px": v.rms_px, "distance_m": v.distance_m,
-                   "rvec": [float(x) for x in v.rvec], "tvec_m": [float(x) for x in v.tvec]}
-                  for v in result.views],
-    }
-
-
-def read_camera_toml(path: str | Path) -> tuple[Camera, dict]:
-    """(Camera, the ``[calibration]`` table or {}) of a camera file."""
-    path = Path(path)
-    cam = Camera.from_toml(path)
-    cal = read_toml(path).get("calibration", {})
-    if not isinstance(cal, dict):
-        raise ConfigError("must be a table", source=str(path), field="calibration")
-    return cam, cal
-
-
-# ---------------------------------------------------------------------------------------------- TOML writer
-def toml_dumps(doc: dict) -> str:
-    """TOML text of nested dicts/lists of str, int, float, bool (tomli-w; numpy scalars and arrays, tuples and
-    paths converted to plain values first).  Dicts become tables, lists of dicts arrays of tables; floats
-    round-trip exactly, NaN/inf as ``nan``/``inf``."""
-    import tomli_w
-
-    return tomli_w.dumps(_plain(doc))
-
-
-def _plain(v):
-    if isinstance(v, dict):
-        return {str(k): _plain(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple, np.ndarray)):
-        return [_plain(x) for x in v]
-    if isinstance(v, (bool, np.bool_)):
-        return bool(v)
-    if isinstance(v, (int, np.integer)):
-        return int(v)
-    if isinstance(v, (float, np.floating)):
-        return float(v)
-    if isinstance(v, Path):
-        return str(v)
-    if isinstance(v, str):
-        return v
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
-# ---------------------------------------------------------------------------------------------- helpers
 def _check_board(board) -> tuple[int, int]:
     try:
         nx, ny = (int(x) for x in board)
@@ -484,15 +283,3 @@ def _check_board(board) -> tuple[int, int]:
         raise ConfigError(f"must be two integers >= 2 (inner corners per row x per column), got {board!r}",
                           field="--board")
     return nx, ny
-
-
-def _to_gray8(img: Image) -> np.ndarray:
-    """8-bit gray copy of an image for corner detection (16-bit/float scaled by their full scale)."""
-    a = img.pixels if img.pixels.ndim == 2 else img.pixels[..., 0]
-    if a.dtype == np.uint8:
-        return a
-    if img.bit_depth is None:  # float: assume [0, 1] unless larger values occur
-        scale = 255.0 / max(1.0, float(np.nanmax(a)))
-    else:
-        scale = 255.0 / img.full_scale
-    return np.clip(np.nan_to_num(a.astype(np.float64) * scale), 0, 255).astype(np.uint8)

@@ -1,4 +1,4 @@
-"""Chessboard calibration and camera files (scene/calibration.py).
+"""Chessboard calibration and camera files (scene/chessboard.py, scene/calibration.py, scene/camera_file.py).
 
 Truths: OpenCV's own reference calibration of its 13 sample photos (left_intrinsics.yml, read with
 cv2.FileStorage), and synthetic boards rendered through a known Camera (ray-traced from each pixel).
@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from dualsight.errors import ConfigError, InputError
-from dualsight.scene.calibration import (CalibrationResult, calibrate_chessboard, calibrate_main, parse_board,
-                                         read_camera_toml, toml_dumps, write_camera_toml)
+from dualsight.scene.calibration import CalibrationResult, calibrate_chessboard, calibrate_main, parse_board
 from dualsight.scene.camera import Camera
+from dualsight.scene.camera_file import read_camera_toml, toml_dumps, write_camera_toml
 from helpers import run_cli, shared_real
 
 CHESS = shared_real() / "opencv_chessboard"

@@ -72,6 +72,7 @@ def cmd_calibrate(args) -> int:
     from dualsight.jobs.kinds import calibrate as job
     from dualsight.jobs.kinds.hil_common import engine_lake, run_engine
     from dualsight.scene import calibration as cal
+    from dualsight.scene.camera_file import write_camera_toml
     from dualsight.kernels.imageio import list_images
     from dualsight.warehouse.query import connect, run_report
 
@@ -92,7 +93,7 @@ def cmd_calibrate(args) -> int:
     res = job.solve(spec, [dict(zip(cols, r)) for r in rows])
     if args.output is not None:
         try:
-            cal.write_camera_toml(res, args.output, name=Path(args.folder).name)
+            write_camera_toml(res, args.output, name=Path(args.folder).name)
         except OSError as e:          # the camera file could not be written
             raise InputError(f"cannot write the camera file ({e.strerror or e})", source=str(args.output)) from None
     if args.json:

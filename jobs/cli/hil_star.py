@@ -47,8 +47,8 @@ from pathlib import Path
 from dualsight.errors import InputError
 from dualsight.jobs.reports import fit_distortion as fd_report
 from dualsight.nav.distortion_procedure import FULL_CONFIG, MIN_STARS
-from dualsight.scene.calibration import write_camera_toml
 from dualsight.scene.camera import read_toml
+from dualsight.scene.camera_file import write_camera_toml
 
 
 def register(subparsers) -> None:
@@ -277,7 +277,7 @@ def check_fit_output(args) -> Path:
 
 def write_fitted_camera(rep, output: Path, camera_file: Path, images: list) -> Path:
     """The camera file of a ``--fit-distortion`` fit ``rep`` (``nav.distortion_procedure.FitReport``):
-    ``[camera]`` + ``[distortion_fit]``, comments with what was fitted and the rms (scene/calibration.py's
+    ``[camera]`` + ``[distortion_fit]``, comments with what was fitted and the rms (scene/camera_file.py's
     writer: tomli-w, a temporary name renamed)."""
     fit, cam0 = rep.fit, rep.camera_in
     src = read_toml(camera_file).get("camera", {})

@@ -1,7 +1,7 @@
 """Job kind ``calibrate``: chessboard photos -> inner corners per photo (the engine's cases) -> the camera.
 
 Case i = photo i of the spec's image list.  ``compute_shard`` reads each photo and finds the board's
-sub-pixel inner corners (:func:`dualsight.scene.calibration.find_view`: OpenCV ``findChessboardCorners`` +
+sub-pixel inner corners (:func:`dualsight.scene.chessboard.find_view`: OpenCV ``findChessboardCorners`` +
 ``cornerSubPix``), one ``calib_views`` row per photo (an unreadable photo or one changed since the run was
 planned gives a row with ``error`` set).  The calibration itself (one ``cv2.calibrateCameraExtended`` over
 every view) needs all photos at once: :func:`solve` runs it on the rows read back from the lake
@@ -34,6 +34,7 @@ from dualsight.errors import ConfigError, ImageError
 from dualsight.jobs.engine.specs import validate
 from dualsight.jobs.kinds.hil_common import Frozen, ImageEntry, check_unchanged, image_entries, n_cases, rows_table
 from dualsight.scene import calibration as cal
+from dualsight.scene.chessboard import FIND_FLAGS_DEFAULT, ViewCorners, find_view
 
 NAME = "calibrate"
 PRIMARY = "calib_views"
@@ -47,7 +48,7 @@ class CalibSpec(Frozen):
     pixel_pitch_um: float | None = Field(default=None, gt=0)
     flags: int = Field(default=cal.CALIB_FLAGS_DEFAULT, ge=0, lt=2**31)
     aspect_ratio: float = Field(default=1.0, gt=0)
-    find_flags: int = Field(default=cal.FIND_FLAGS_DEFAULT, ge=0, lt=2**31)
+    find_flags: int = Field(default=FIND_FLAGS_DEFAULT, ge=0, lt=2**31)
     min_views: int = Field(default=3, ge=1, le=100_000)
     images: tuple[ImageEntry, ...] = Field(min_length=1, max_length=1_000_000)
 
@@ -91,9 +92,9 @@ def compute_shard(spec: CalibSpec, case_ids: np.ndarray, ctx=None) -> dict[str, 
         t0 = time.perf_counter_ns()
         try:
             check_unchanged(entry)
-            v = cal.find_view(entry.path, spec.board, spec.find_flags)
+            v = find_view(entry.path, spec.board, spec.find_flags)
         except ImageError as e:
-            v = cal.ViewCorners(Path(entry.path), error=e.detail)
+            v = ViewCorners(Path(entry.path), error=e.detail)
         c = None if v.corners is None else np.asarray(v.corners, np.float64).ravel().tolist()
         rows.append({"case_id": int(k), "image": entry.name, "path": entry.path, "error": v.error,
                      "width": v.width, "height": v.height, "bit_depth": v.bit_depth, "image_digest": v.digest,
@@ -113,12 +114,12 @@ def progress_postfix(stats: dict) -> str:
     return f"board found in {stats.get('found', 0)}"
 
 
-def views_from_rows(rows: list[dict]) -> list[cal.ViewCorners]:
+def views_from_rows(rows: list[dict]) -> list[ViewCorners]:
     """``calib_views`` rows (case order) -> the corners of each photo."""
     out = []
     for r in rows:
         c = None if r["corners_px"] is None else np.asarray(r["corners_px"], np.float64).reshape(-1, 2).astype(np.float32)
-        out.append(cal.ViewCorners(Path(r["path"]), r["width"], r["height"], r["bit_depth"], c, r["error"]))
+        out.append(ViewCorners(Path(r["path"]), r["width"], r["height"], r["bit_depth"], c, r["error"]))
     return out
 
 

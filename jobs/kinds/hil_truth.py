@@ -151,7 +151,7 @@ def load_range_truth(spec, paths) -> tuple[list[float | None], str]:
             table[Path(k).name] = float(val)
         kind = "json"
     else:
-        from dualsight.scene.calibration import read_camera_toml
+        from dualsight.scene.camera_file import read_camera_toml
 
         _, cal = read_camera_toml(p)
         views = cal.get("views") or []
