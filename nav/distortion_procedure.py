@@ -10,7 +10,7 @@ rejection beyond 5 robust sigmas).  :func:`fit_camera_from_sky` runs the procedu
 
 1. Bootstrap, only when the camera has no distortion.  A strongly distorted wide lens (and a nominal focal
    length) moves the outer stars by many voting tolerances, so the frames are first solved from the stars of a
-   central disc (``nav.distortion_bootstrap.bootstrap_plan``: a disc holding ~10 catalog stars, voted with the
+   central disc (:func:`bootstrap_plan`: a disc holding ~10 catalog stars, voted with the
    tolerance that covers a 1 % focal error and a lens moving the corner by 3 % at its edge), k1 and the focal
    length are fitted from them (when at least :data:`MIN_STARS` stars remain and fit to under
    :data:`BOOTSTRAP_SIGMA_FRACTION` of the tolerance), and the disc grows by 1.5 per pass up to 70 % of the
@@ -36,14 +36,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dualsight.nav import distortion_fit as dfit
-from dualsight.nav.distortion_bootstrap import bootstrap_plan
 from dualsight.nav.errors import total_error_angle
 from dualsight.nav.observations import Observations
 from dualsight.nav.star_solution import identify, solve
 from dualsight.scene.camera import Camera
 
 __all__ = ["MIN_STARS", "FULL_ITERATIONS", "BOOTSTRAP_SIGMA_FRACTION", "FOCAL_SEARCH", "BOOTSTRAP_CONFIG",
-           "FULL_CONFIG", "FramePixels", "SolvePass", "PassLog", "FitReport", "TooFewStars", "solve_pass",
+           "FULL_CONFIG", "PLAUSIBLE_CORNER_DISTORTION", "PLAUSIBLE_FOCAL_ERROR", "BOOTSTRAP_STARS", "BootstrapPlan",
+           "model_error_px", "bootstrap_plan", "FramePixels", "SolvePass", "PassLog", "FitReport", "TooFewStars", "solve_pass",
            "identified_stars", "camera_with", "with_tolerance", "attitude_errors", "fit_camera_from_sky"]
 
 MIN_STARS = 30
@@ -57,12 +57,73 @@ voting tolerance (px) and it keeps at least MIN_STARS stars: right identificatio
 (~0.05-0.1 px), wrong ones made by chance within the tolerance only to a good fraction of it."""
 FOCAL_SEARCH = (1.0, 0.98, 1.02, 0.96, 1.04)
 """Focal-length scales tried, in this order, in the first central pass until one identifies enough stars for
-a fit: the bootstrap's tolerance covers a 1 % focal error (nav.distortion_bootstrap.PLAUSIBLE_FOCAL_ERROR), so
+a fit: the bootstrap's tolerance covers a 1 % focal error (:data:`PLAUSIBLE_FOCAL_ERROR`), so
 2 % steps cover a nominal focal length up to ~5 % off."""
 BOOTSTRAP_CONFIG = dfit.FitConfig(focal="common", fit_k1=True, fit_k2=False)
 """Fit of the central passes: k1 and the focal length (k2 is not determined by the centre of the field)."""
 FULL_CONFIG = dfit.FitConfig(focal="common", fit_k1=True, fit_k2=True)
 """Fit of the whole-field passes: k1, k2 and one focal length (fx = fy); principal point held."""
+
+
+# ============================================================================================ bootstrap plan
+# the central regions and the widened tolerance of step 1 (pure functions of the camera's numbers)
+PLAUSIBLE_CORNER_DISTORTION = 0.03
+"""Radial displacement at the image corner of a strongly distorted wide lens, as a fraction of the
+half-diagonal (3 %: e.g. 19 px of a 640 px half-diagonal)."""
+PLAUSIBLE_FOCAL_ERROR = 0.01
+"""Relative error of a nominal focal length (1 %: the ESA tetra3 frames' "35 mm" lens is 35.32 mm)."""
+BOOTSTRAP_STARS = 10.0
+"""Catalog stars expected, on average over the sky, in the first central disc (the robust voting verifies
+an attitude with 4 stars; 10 leaves room for the sky's variations and for missed detections)."""
+
+
+@dataclass(frozen=True)
+class BootstrapPlan:
+    """Central regions for solving frames with a camera model that lacks the distortion (and whose focal
+    length is only nominal): radii_px (K,) px from the principal point, smallest first; tolerance_rad the
+    voting tolerance of these passes (rad)."""
+
+    radii_px: np.ndarray
+    tolerance_rad: float
+
+
+def model_error_px(r_px, half_diagonal_px: float, *, focal_error: float = PLAUSIBLE_FOCAL_ERROR,
+                   corner_fraction: float = PLAUSIBLE_CORNER_DISTORTION):
+    """How far (px) a star at radius ``r_px`` from the principal point can be from where an undistorted
+    model with a nominal focal length puts it: ``focal_error * r + corner_fraction * R (r / R)^3``
+    (the focal-length error scales the radius; the k1 term of a lens moving the corner, radius R =
+    ``half_diagonal_px``, by ``corner_fraction * R``)."""
+    r = np.asarray(r_px, np.float64)
+    R = float(half_diagonal_px)
+    return focal_error * r + corner_fraction * R * (r / R) ** 3
+
+
+def bootstrap_plan(half_diagonal_px: float, focal_px: float, n_catalog: int, tolerance_rad: float, *,
+                   stars: float = BOOTSTRAP_STARS, growth: float = 1.5, stop_fraction: float = 0.7,
+                   max_tolerance_rad: float = math.pi / 180) -> BootstrapPlan:
+    """The central regions of the bootstrap (``hil star --fit-distortion`` with a camera file without
+    distortion), from the field size, the focal length (px), the catalog size and the voting tolerance.
+
+    * First radius r0: the disc about the boresight that holds ``stars`` catalog stars on average
+      (a cap of angular radius t holds n_catalog (1 - cos t) / 2 of them), r0 = f tan t, at most
+      ``stop_fraction`` R (R = ``half_diagonal_px``).
+    * Tolerance: the angle of an observed pair of stars in the disc is off by up to 2 e(r0) (two stars on
+      opposite sides at r0; e = :func:`model_error_px`) and by about e(r0) for a typical pair (about r0
+      apart); the passes vote with max(tolerance_rad, e(r0) / f), at most ``max_tolerance_rad`` (1 deg,
+      VotingConfig's bound).  Twice that lets random coincidences through: on 12 frames of a 30 deg field
+      with a 1 % focal error, 3 of 4 solutions at r0 were wrong at 2 e(r0) (444 arcsec), 0 of 3 at e(r0).
+    * Then the radius grows by ``growth`` while it stays under ``stop_fraction`` R (a fit between passes
+      removes most of the model error, so the same tolerance covers the wider disc); the whole field
+      follows with the voting tolerance as given.
+    """
+    R, f = float(half_diagonal_px), float(focal_px)
+    t = math.acos(max(-1.0, 1.0 - 2.0 * min(stars, n_catalog) / max(n_catalog, 1)))
+    r0 = min(f * math.tan(min(t, 1.5)), stop_fraction * R)
+    tol = min(max(tolerance_rad, float(model_error_px(r0, R)) / f), max_tolerance_rad)
+    radii = [r0]
+    while radii[-1] * growth < stop_fraction * R:
+        radii.append(radii[-1] * growth)
+    return BootstrapPlan(np.asarray(radii, np.float64), float(tol))
 
 
 # ============================================================================================ frames
