@@ -1,12 +1,19 @@
 """Command-line building blocks shared by every command group (so that no group imports ``jobs/cli/main.py``):
-the one-line-error parser, typed option parsers, the lake option and the shared run options."""
+the one-line-error parser, typed option parsers, the lake option and the shared run options; and what the HIL
+commands (``hil star``, ``hil prox``, ``calibrate``) share: their image and engine options, the image list of
+their arguments, the engine call with a temporary lake for ``--no-lake`` and the closing line."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import shutil
+import sys
+import tempfile
 from pathlib import Path
 
 from dualsight.errors import InputError
+from dualsight.kernels.imageio import list_images
 from dualsight.warehouse.paths import RUN_ID_PATTERN, check_run_id, default_lake
 
 
@@ -39,12 +46,14 @@ def positive_int(lo: int, hi: int):
     return parse
 
 
-def _lake_arg(p: argparse.ArgumentParser):
+def add_lake_arg(p: argparse.ArgumentParser):
+    """``--lake DIR`` (its help names the default lake now: ``$DUALSIGHT_LAKE`` or ``./lake``)."""
     p.add_argument("--lake", type=Path, default=None,
                    help=f"lake folder (default: $DUALSIGHT_LAKE or ./lake, now {default_lake()})")
 
 
-def _lake(args):
+def open_lake(args):
+    """The ``Lake`` of ``--lake`` (``args.lake``), else of the default lake folder."""
     from dualsight.warehouse.lake import Lake          # pyarrow
 
     return Lake(args.lake if args.lake is not None else default_lake())
@@ -59,7 +68,7 @@ def add_run_args(p: argparse.ArgumentParser, *, cases: bool = True):
                        help="number of cases, 1 to 1e9 (default: the preset's)")
     p.add_argument("--seed", type=positive_int(0, 2**63 - 1), default=None,
                    help="run seed: case i draws from default_rng([seed, i])")
-    _lake_arg(p)
+    add_lake_arg(p)
     p.add_argument("--run", type=run_id_arg, default=None,
                    help="run id, [A-Za-z0-9._-]{1,64} (default: <job>-<seed>-<cases>-<spec hash>); the same id "
                         "with the same settings resumes, with other settings is refused")
@@ -72,7 +81,8 @@ def add_run_args(p: argparse.ArgumentParser, *, cases: bool = True):
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def _latest_run(lake, kinds) -> str:
+def latest_run(lake, kinds) -> str:
+    """Id of the newest run (by creation time) of one of the job ``kinds`` in ``lake``; InputError when none."""
     runs = [m for m in lake.list_manifests() if m.get("kind") in kinds]
     if not runs:
         raise InputError(f"no {'/'.join(kinds)} run in {lake.root}; run one first", source="--run")
@@ -88,7 +98,7 @@ def add_image_args(p: argparse.ArgumentParser):
 def add_engine_args(p: argparse.ArgumentParser, *, prefix: str):
     """``--lake``, ``--run``, ``--no-lake``, ``--workers``, ``--scheduler``, ``--shard-size``, ``--no-progress``."""
     g = p.add_argument_group("engine and lake")
-    _lake_arg(g)
+    add_lake_arg(g)
     g.add_argument("--run", default=None,
                    help=f"run id (default {prefix}-<hash of the spec and code version>: the same images, settings "
                         "and code resume the same run)")
@@ -100,3 +110,50 @@ def add_engine_args(p: argparse.ArgumentParser, *, prefix: str):
     g.add_argument("--shard-size", type=int, default=None, help="images per shard file (default: automatic)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
 
+
+def expand_inputs(items) -> list[Path]:
+    """Image paths; a folder argument expands to its images (natural order).  Missing files are kept
+    (they become error rows)."""
+    out = []
+    for it in items:
+        p = Path(it)
+        out.extend(list_images(p) if p.is_dir() else [p])
+    return out
+
+
+@contextlib.contextmanager
+def engine_lake(args):
+    """The lake of a HIL command: ``--lake`` / $DUALSIGHT_LAKE / ./lake, or with ``--no-lake`` a temporary
+    folder deleted on exit.  Yields (Lake, kept: bool)."""
+    from dualsight.warehouse.lake import Lake          # pyarrow
+
+    if not getattr(args, "no_lake", False):
+        yield open_lake(args), True
+        return
+    tmp = tempfile.mkdtemp(prefix="dualsight-nolake-")
+    try:
+        yield Lake(Path(tmp)), False
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def run_engine(kind: str, spec: dict, n_cases: int, lake, args, *, label: str, progress_default: bool = True) -> dict:
+    """``run_job`` with the command's engine options; returns the manifest."""
+    from dualsight.jobs.engine.runner import run_job   # pyarrow
+
+    progress = progress_default and not getattr(args, "no_progress", False) and sys.stderr.isatty()
+    return run_job(kind, spec, n_cases=n_cases, lake=lake, run_id=getattr(args, "run", None),
+                   workers=getattr(args, "workers", None), scheduler=getattr(args, "scheduler", None),
+                   shard_size=getattr(args, "shard_size", None), progress=progress, label=label,
+                   source=label)
+
+
+def done_message(summary: str, elapsed_s: float, run_id: str, lake, kept: bool, datasets: tuple[str, ...],
+                 query: str) -> str:
+    """The closing stderr line of a HIL command: ``summary``, the time, and (lake kept) where the rows are,
+    with an SQL example over dataset ``query``."""
+    msg = f"{summary} ({elapsed_s:.1f} s)"
+    if kept:
+        msg += (f"; run {run_id} in {lake.root} (datasets {', '.join(datasets)})\n"
+                f"query: dualsight sql \"SELECT * FROM {query} WHERE run = '{run_id}'\" --lake {lake.root}")
+    return msg

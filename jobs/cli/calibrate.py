@@ -37,7 +37,7 @@ from pathlib import Path
 
 def register_calibrate(subparsers) -> None:
     """Add ``calibrate`` to the top-level sub-parsers of ``dualsight`` (jobs/cli/main.py)."""
-    from dualsight.jobs.kinds.hil_common import add_engine_args
+    from dualsight.jobs.cli.args import add_engine_args
 
     p = subparsers.add_parser("calibrate", help="camera calibration from chessboard photos -> camera file",
                               description="Calibrate a camera from photos of a flat chessboard (Zhang/Bouguet via "
@@ -70,7 +70,7 @@ def check_output(path: Path | None):
 def cmd_calibrate(args) -> int:
     from dualsight.errors import ImageError, InputError
     from dualsight.jobs.kinds import calibrate as job
-    from dualsight.jobs.kinds.hil_common import engine_lake, run_engine
+    from dualsight.jobs.cli.args import engine_lake, run_engine
     from dualsight.scene import calibration as cal
     from dualsight.scene.camera_file import write_camera_toml
     from dualsight.kernels.imageio import list_images

@@ -138,7 +138,7 @@ def cmd_hil_prox(args) -> int:
     from dualsight.errors import InputError
     from dualsight.jobs.kinds import hil_prox as hp
     from dualsight.jobs.reports import hil_prox as rep
-    from dualsight.jobs.kinds.hil_common import done_message, engine_lake, expand_inputs, run_engine
+    from dualsight.jobs.cli.args import done_message, engine_lake, expand_inputs, run_engine
     from dualsight.jobs.kinds.hil_truth import load_range_truth
     from dualsight.scene.camera import Camera
     from dualsight.warehouse.query import connect

@@ -149,7 +149,7 @@ def star_spec_from_args(args):
     before the lake is touched.  Its dict form is ``spec.to_dict()``."""
     from dualsight.errors import InputError
     from dualsight.jobs.kinds import hil_star as hs
-    from dualsight.jobs.kinds.hil_common import expand_inputs
+    from dualsight.jobs.cli.args import expand_inputs
     from dualsight.jobs.kinds.hil_truth import Site, resolve_star_truths
     from dualsight.scene.camera import Camera, read_toml
     from dualsight.scene.skytruth import load_truth_json
@@ -186,7 +186,7 @@ def cmd_hil_star(args) -> int:
 
     from dualsight.jobs.kinds import hil_star as hs
     from dualsight.jobs.reports import hil_star as rep
-    from dualsight.jobs.kinds.hil_common import done_message, engine_lake, run_engine
+    from dualsight.jobs.cli.args import done_message, engine_lake, run_engine
     from dualsight.scene.camera import Camera
     from dualsight.warehouse.query import connect, run_report
 
@@ -227,7 +227,7 @@ def cmd_hil_star_sweep(args, base, t_start: float) -> int:
     import time
 
     from dualsight.jobs.kinds import hil_star_sweep as sw
-    from dualsight.jobs.kinds.hil_common import done_message, engine_lake, run_engine
+    from dualsight.jobs.cli.args import done_message, engine_lake, run_engine
     from dualsight.scene.camera import read_toml
     from dualsight.warehouse.query import connect
 

@@ -24,8 +24,7 @@ import sys
 from pathlib import Path
 
 from dualsight.errors import InputError
-from dualsight.jobs.cli.args import (Parser, _lake, _lake_arg, _latest_run, add_run_args,  # noqa: F401
-                                      positive_int, run_id_arg)
+from dualsight.jobs.cli.args import Parser, add_lake_arg, add_run_args, latest_run, open_lake, positive_int, run_id_arg
 from dualsight.warehouse.paths import os_error_text
 
 # The one table from commands to job kinds (jobs/engine/runner.py JOB_KINDS maps kinds to modules).
@@ -54,13 +53,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_run_args(p)
     p.set_defaults(func=cmd_star_run)
     p = ssub.add_parser("report", help="reliability summary, Table 5, error vs stars observed")
-    _lake_arg(p)
+    add_lake_arg(p)
     p.add_argument("--run", type=run_id_arg, default=None, help="run id (default: the latest star run)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", type=Path, default=None, help="write Figures 9-10 (error vs stars observed) as PNG")
     p.set_defaults(func=cmd_star_report)
     p = ssub.add_parser("replay", help="re-render one case bit-identically and record it for rerun (.rrd)")
-    _lake_arg(p)
+    add_lake_arg(p)
     p.add_argument("--run", type=run_id_arg, required=True)
     p.add_argument("--case", type=positive_int(0, 10**9), required=True)
     p.add_argument("-o", "--output", type=Path, default=None, help="recording file (default: <run>-case<I>.rrd)")
@@ -72,7 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("sql", help="DuckDB SQL over the lake's views (one per dataset)")
     p.add_argument("query", help="SQL text, e.g. \"SELECT status, count(*) FROM star_cases GROUP BY ALL\"")
-    _lake_arg(p)
+    add_lake_arg(p)
     fmt = p.add_mutually_exclusive_group()
     fmt.add_argument("--json", action="store_true", help="rows as JSON objects")
     fmt.add_argument("--csv", action="store_true", help="CSV")
@@ -80,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("replay", help="replay cases of any run, chosen by --case or an SQL predicate, into rerun "
                                       "recordings; each case is verified against its row first")
-    _lake_arg(p)
+    add_lake_arg(p)
     p.add_argument("--run", type=run_id_arg, required=True)
     sel = p.add_mutually_exclusive_group(required=True)
     sel.add_argument("--case", type=positive_int(0, 10**9), default=None)
@@ -94,13 +93,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("report", help="one self-contained HTML page for any run: tables, the reference's "
                                       "figures, worst cases with thumbnails and replay commands, spec, timings")
-    _lake_arg(p)
+    add_lake_arg(p)
     p.add_argument("--run", type=run_id_arg, required=True)
     p.add_argument("--html", type=Path, required=True, help="page to write (its folder must exist)")
     p.set_defaults(func=cmd_report_html)
 
     p = sub.add_parser("runs", help="list the runs in the lake (damaged ones are named)")
-    _lake_arg(p)
+    add_lake_arg(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_runs)
 
@@ -116,7 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
     lsub = lake_p.add_subparsers(dest="lake_action", metavar="ACTION")
     p = lsub.add_parser("check", help="verify every run (manifest, shard metadata, row counts, duplicate cases); "
                                       "with --repair recompute damaged or missing shards")
-    _lake_arg(p)
+    add_lake_arg(p)
     p.add_argument("--repair", action="store_true", help="recompute damaged or missing shards, rebuild damaged "
                                                          "manifests from their spec copy")
     p.add_argument("--json", action="store_true")
@@ -128,10 +127,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _optional_registrations():
     """Command groups of the other jobs (each module adds its own sub-commands)."""
-    from dualsight.jobs.cli import calibrate as calibrate_cli, hil_star as cli_hil, prox as cli_prox
-    from dualsight.jobs.nightly import run as nightly
+    from dualsight.jobs.cli import calibrate as calibrate_cli, hil_star as cli_hil, nightly, peer, prox as cli_prox
 
-    return [cli_prox.register, cli_hil.register, calibrate_cli.register_calibrate, nightly.register]
+    return [cli_prox.register, cli_hil.register, calibrate_cli.register_calibrate, nightly.register, peer.register]
 
 
 def _help(p):
@@ -195,7 +193,7 @@ def cmd_star_run(args) -> int:
     # plan_run and start_run are what dualsight.run("star", ...) calls: same spec, identity, run id and rows
     plan = star.plan_run(args.preset, args.config, seed=args.seed, cases=args.cases, run_id=args.run)
     run_id, n_cases = plan.run_id, plan.n_cases
-    lake = _lake(args)
+    lake = open_lake(args)
     info = plan.catalog
     print(f"catalog: {info['stars']} stars to V {info['mag_limit']}, {info['pairs']:,} pairs closer than "
           f"{info['pair_max_angle_deg']:.2f} deg ({info['pair_catalog_bytes'] / 2**20:.2f} MiB, memory-mapped)",
@@ -219,7 +217,7 @@ def cmd_selftest_run(args) -> int:
         d["seed"] = args.seed
     if args.sleep_ms is not None:
         d["sleep_ms"] = args.sleep_ms
-    m = run_job(COMMAND_KINDS[("selftest", "run")], d, n_cases=args.cases or 1000, lake=_lake(args),
+    m = run_job(COMMAND_KINDS[("selftest", "run")], d, n_cases=args.cases or 1000, lake=open_lake(args),
                 run_id=args.run, workers=args.workers, scheduler=args.scheduler, shard_size=args.shard_size,
                 progress=not args.no_progress, source=source)
     print(f"run {m['run_id']}: {m['status']}, {m['n_cases']} cases", file=sys.stderr)
@@ -229,8 +227,8 @@ def cmd_selftest_run(args) -> int:
 def cmd_star_report(args) -> int:
     from dualsight.jobs.reports import star as star_report
 
-    lake = _lake(args)
-    run_id = args.run or _latest_run(lake, ["star"])
+    lake = open_lake(args)
+    run_id = args.run or latest_run(lake, ["star"])
     rep = star_report.build(lake, run_id)
     if args.plot:
         star_report.plot(rep, args.plot)
@@ -246,7 +244,7 @@ def cmd_star_report(args) -> int:
 def cmd_star_replay(args) -> int:
     from dualsight.jobs.replay import cases as replay
 
-    out = replay.replay_star_case(_lake(args), args.run, args.case, args.output)
+    out = replay.replay_star_case(open_lake(args), args.run, args.case, args.output)
     print(f"recording: {out}  (open with: rerun {out})")
     return 0
 
@@ -255,7 +253,7 @@ def cmd_star_replay(args) -> int:
 def cmd_sql(args) -> int:
     from dualsight.warehouse.query import format_table, run_sql
 
-    cols, rows = run_sql(_lake(args), args.query)
+    cols, rows = run_sql(open_lake(args), args.query)
     if args.json:
         print(json.dumps([dict(zip(cols, r)) for r in rows], default=str, indent=1))
     elif args.csv:
@@ -272,7 +270,7 @@ def cmd_sql(args) -> int:
 def cmd_report_html(args) -> int:
     from dualsight.jobs.reports.html import write_html
 
-    out = write_html(_lake(args), args.run, args.html)
+    out = write_html(open_lake(args), args.run, args.html)
     print(f"report: {out} ({out.stat().st_size / 2**20:.1f} MiB, self-contained)", file=sys.stderr)
     return 0
 
@@ -280,7 +278,7 @@ def cmd_report_html(args) -> int:
 def cmd_replay(args) -> int:
     from dualsight.jobs.replay.cases import replay_run
 
-    outs = replay_run(_lake(args), args.run, case=args.case, where=args.where, limit=args.limit, output=args.output)
+    outs = replay_run(open_lake(args), args.run, case=args.case, where=args.where, limit=args.limit, output=args.output)
     for o in outs:
         print(f"recording: {o}")
     print(f"{len(outs)} case(s) verified and recorded; open with: rerun {outs[0]}", file=sys.stderr)
@@ -291,7 +289,7 @@ def cmd_runs(args) -> int:
     from dualsight.warehouse.lake import run_records
     from dualsight.warehouse.query import format_table
 
-    lake = _lake(args)
+    lake = open_lake(args)
     rows, docs = [], []
     for r in run_records(lake):                        # what dualsight.Lake.runs() returns
         if r.damaged:
@@ -311,7 +309,7 @@ def cmd_runs(args) -> int:
 def cmd_lake_check(args) -> int:
     from dualsight.jobs.engine.lakecheck import check_lake, report_text
 
-    rows = check_lake(_lake(args), repair=args.repair, workers=args.workers)
+    rows = check_lake(open_lake(args), repair=args.repair, workers=args.workers)
     if args.json:
         print(json.dumps(rows, indent=1))
     else:

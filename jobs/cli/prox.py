@@ -11,7 +11,7 @@ from dualsight.errors import InputError
 
 
 def register(sub):
-    from dualsight.jobs.cli.args import _lake_arg, add_run_args
+    from dualsight.jobs.cli.args import add_lake_arg, add_run_args
 
     prox = sub.add_parser("prox", help="proximity operations: range sweeps, trajectories, reports, replay")
     psub = prox.add_subparsers(dest="action", metavar="ACTION")
@@ -36,7 +36,7 @@ def register(sub):
     p.set_defaults(func=cmd_trajectory, job="trajectory")
 
     p = psub.add_parser("report", help="Table 3 per true range (sweep) or per-axis errors (trajectory)")
-    _lake_arg(p)
+    add_lake_arg(p)
     p.add_argument("--run", default=None, help="run id (default: the latest prox run)")
     p.add_argument("--json", action="store_true")
     p.add_argument("--estimator", choices=["paper", "subpixel"], default=None,
@@ -52,7 +52,7 @@ def register(sub):
     p.set_defaults(func=cmd_resolvable)
 
     p = psub.add_parser("replay", help="re-render one case bit-identically and record it for rerun (.rrd)")
-    _lake_arg(p)
+    add_lake_arg(p)
     p.add_argument("--run", required=True)
     p.add_argument("--case", type=int, required=True)
     p.add_argument("-o", "--output", type=Path, default=None)
@@ -62,7 +62,7 @@ def register(sub):
 
 def _run(args, overrides: dict) -> dict:
     from dualsight.jobs.kinds import prox
-    from dualsight.jobs.cli.args import _lake
+    from dualsight.jobs.cli.args import open_lake
     from dualsight.jobs.engine.runner import run_job
 
     s = prox.resolve(args.preset, args.config, seed=args.seed, mode=getattr(args, "mode", None),
@@ -70,7 +70,7 @@ def _run(args, overrides: dict) -> dict:
     n = s.n_cases
     kind = f"prox_{s.job}"
     run_id = args.run or f"prox-{s.job}-{s.mode}-{s.seed}-{n}"
-    lake = _lake(args)
+    lake = open_lake(args)
     m = run_job(kind, s.to_dict(), n_cases=n, lake=lake, run_id=run_id, workers=args.workers, scheduler=args.scheduler,
                 shard_size=args.shard_size, progress=not args.no_progress, label=f"prox {s.job} {run_id}")
     print(f"run {run_id}: {m['status']}, {n} cases in {lake.root}", file=sys.stderr)
@@ -94,78 +94,13 @@ def cmd_trajectory(args) -> int:
     return 0
 
 
-def build_report(lake, run_id: str, estimator: str | None = None) -> dict:
-    from dualsight.warehouse.query import connect, run_report
-
-    m = lake.read_manifest(run_id)
-    if m is None or not str(m.get("kind", "")).startswith("prox"):
-        raise InputError(f"no prox run {run_id!r} in {lake.root}", source="--run")
-    if "prox_cases" not in lake.datasets():
-        raise InputError(f"no prox_cases dataset in {lake.root}", source="--lake")
-    con = connect(lake)
-    job = m["spec"]["job"]
-    est = estimator or ("subpixel" if m["spec"]["mode"] == "accurate" else "paper")
-    rep = {"run": run_id, "job": job, "mode": m["spec"]["mode"], "estimator": est}
-    if job == "sweep":
-        cols, rows = run_report(con, "prox_table3", run=run_id)
-        table = [dict(zip(cols, r)) for r in rows]
-        rep["table"] = (cols, rows)
-        rep["ranges"] = [{"true_range_m": r["true_range_m"], "cases": r["cases"],
-                          "avg_est_range_m": r[f"{est}_avg_est_m"], "avg_abs_error_m": r[f"{est}_avg_abs_err_m"],
-                          "avg_rel_error_pct": r[f"{est}_avg_rel_err_pct"],
-                          "within_min_max_pct": r[f"{est}_within_pct"],
-                          "paper": {k[6:]: v for k, v in r.items() if k.startswith("paper_")},
-                          "subpixel": {k[9:]: v for k, v in r.items() if k.startswith("subpixel_")},
-                          "reference": {k[4:]: v for k, v in r.items() if k.startswith("ref_")}}
-                         for r in table]
-    else:
-        cols, rows = run_report(con, "prox_trajectory", run=run_id)
-        rep["summary"] = dict(zip(cols, rows[0]))
-        fcols, frows = run_report(con, "prox_frames", run=run_id)
-        rep["frames"] = [dict(zip(fcols, r)) for r in frows]
-    tc, tr = run_report(con, "prox_stage_times", run=run_id)
-    rep["stage_ms"] = dict(zip(tc, tr[0]))
-    return rep
-
-
-def _fmt(v, nd=3):
-    return "-" if v is None or (isinstance(v, float) and v != v) else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))
-
-
-def report_text(rep: dict) -> str:
-    lines = [f"proximity {rep['job']} run {rep['run']} (renderer: {rep['mode']})", ""]
-    if rep["job"] == "sweep":
-        lines.append("Table 3 per true range: reference | paper estimator (Eq. 1) | subpixel estimator")
-        hdr = (f"{'range m':>8} {'n':>5} | {'ref est':>7} {'rel%':>6} {'in%':>6} | {'est':>7} {'abs m':>7} "
-               f"{'rel%':>6} {'in%':>6} | {'est':>7} {'abs m':>7} {'rel%':>6} {'in%':>6}")
-        lines += [hdr, "-" * len(hdr)]
-        for r in rep["ranges"]:
-            p, s, f = r["paper"], r["subpixel"], r["reference"]
-            lines.append(f"{r['true_range_m']:8.3f} {r['cases']:5d} | {_fmt(f.get('avg_est_m'), 3):>7} "
-                         f"{_fmt(f.get('avg_rel_err_pct'), 2):>6} {_fmt(f.get('within_pct'), 1):>6} | "
-                         f"{_fmt(p['avg_est_m']):>7} {_fmt(p['avg_abs_err_m']):>7} {_fmt(p['avg_rel_err_pct'], 2):>6} "
-                         f"{_fmt(p['within_pct'], 1):>6} | {_fmt(s['avg_est_m']):>7} {_fmt(s['avg_abs_err_m']):>7} "
-                         f"{_fmt(s['avg_rel_err_pct'], 2):>6} {_fmt(s['within_pct'], 1):>6}")
-    else:
-        s = rep["summary"]
-        lines.append(f"frames {s['frames']} (found {s['frames_found']}), true range {_fmt(s['min_range_m'], 2)}-"
-                     f"{_fmt(s['max_range_m'], 2)} m, direction error {_fmt(s['mean_direction_err_arcsec'], 1)} arcsec")
-        lines.append(f"{'estimator':>10} {'|dx| m':>8} {'|dy| m':>8} {'|dz| m':>8} {'range rel %':>12}")
-        for e in ("paper", "subpixel"):
-            lines.append(f"{e:>10} {_fmt(s[f'{e}_mean_abs_err_x_m'], 4):>8} {_fmt(s[f'{e}_mean_abs_err_y_m'], 4):>8} "
-                         f"{_fmt(s[f'{e}_mean_abs_err_z_m'], 4):>8} {_fmt(s[f'{e}_mean_rel_range_err_pct'], 2):>12}")
-    st = rep["stage_ms"]
-    lines += ["", f"time per case: render {_fmt(st['render_ms'])} ms, blobber {_fmt(st['blob_paper_ms'])} ms (paper) + "
-              f"{_fmt(st['blob_subpixel_ms'])} ms (subpixel), total {_fmt(st['total_ms'])} ms"]
-    return "\n".join(lines)
-
-
 def cmd_report(args) -> int:
-    from dualsight.jobs.cli.args import _lake, _latest_run
+    from dualsight.jobs.cli.args import latest_run, open_lake
+    from dualsight.jobs.reports import prox as prox_report      # DuckDB
 
-    lake = _lake(args)
-    run_id = args.run or _latest_run(lake, ["prox_sweep", "prox_trajectory"])
-    rep = build_report(lake, run_id, args.estimator)
+    lake = open_lake(args)
+    run_id = args.run or latest_run(lake, ["prox_sweep", "prox_trajectory"])
+    rep = prox_report.build_report(lake, run_id, args.estimator)
     if args.plot:
         from dualsight.viz.prox_figures import plot_sweep, plot_trajectory
 
@@ -174,17 +109,17 @@ def cmd_report(args) -> int:
         out = {k: v for k, v in rep.items() if k != "table"}
         print(json.dumps(out, indent=1, default=lambda o: None if o != o else float(o)))
     else:
-        print(report_text(rep))
+        print(prox_report.report_text(rep))
         if args.plot:
             print(f"\nfigure: {args.plot}")
     return 0
 
 
 def cmd_replay(args) -> int:
-    from dualsight.jobs.cli.args import _lake
+    from dualsight.jobs.cli.args import open_lake
     from dualsight.jobs.replay.prox import replay_prox_case
 
-    out = replay_prox_case(_lake(args), args.run, args.case, args.output)
+    out = replay_prox_case(open_lake(args), args.run, args.case, args.output)
     print(f"recording: {out}  (open with: rerun {out})")
     return 0
 

@@ -8,29 +8,21 @@
   run's rows are a function of its spec alone.
 * The spec dict's common part (:func:`spec_base`: camera table, settings table, image entries), the case
   count (:func:`n_cases`: one case per image) and the rows -> Arrow table of every HIL dataset (:func:`rows_table`).
-* The options of the HIL commands (:func:`add_image_args`, :func:`add_engine_args`), the call of the engine
-  with a temporary lake for ``--no-lake`` (:func:`engine_lake`, :func:`run_engine`) and the closing line
-  (:func:`done_message`).
+
+The HIL commands' options, their engine call and closing line are the command line's (jobs/cli/args.py).
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
-import shutil
-import sys
-import tempfile
 from pathlib import Path
 
 import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from dualsight.errors import ImageError
-from dualsight.jobs.cli.args import add_engine_args, add_image_args  # noqa: F401  (their home before)
-from dualsight.kernels.imageio import list_images
 
-__all__ = ["Frozen", "ImageEntry", "image_entries", "check_unchanged", "expand_inputs", "spec_base", "n_cases",
-           "rows_table", "add_image_args", "add_engine_args", "engine_lake", "run_engine", "done_message",
+__all__ = ["Frozen", "ImageEntry", "image_entries", "check_unchanged", "spec_base", "n_cases", "rows_table",
            "fixed_point"]
 
 
@@ -108,16 +100,6 @@ def check_unchanged(entry: ImageEntry):
                          "again); start a new run for the new file", source=entry.path)
 
 
-def expand_inputs(items) -> list[Path]:
-    """Image paths; a folder argument expands to its images (natural order).  Missing files are kept
-    (they become error rows)."""
-    out = []
-    for it in items:
-        p = Path(it)
-        out.extend(list_images(p) if p.is_dir() else [p])
-    return out
-
-
 def fixed_point(normalise, value, rounds: int = 4):
     """``normalise`` applied until the value stops changing (at most ``rounds`` times): canonical forms
     whose float conversions (um <-> m) could otherwise move the last digit on every round trip."""
@@ -127,44 +109,3 @@ def fixed_point(normalise, value, rounds: int = 4):
             return nxt
         value = nxt
     return value
-
-
-# ============================================================================================ CLI and engine
-@contextlib.contextmanager
-def engine_lake(args):
-    """The lake of a HIL command: ``--lake`` / $DUALSIGHT_LAKE / ./lake, or with ``--no-lake`` a temporary
-    folder deleted on exit.  Yields (Lake, kept: bool)."""
-    from dualsight.warehouse.lake import Lake
-
-    if not getattr(args, "no_lake", False):
-        from dualsight.jobs.cli.args import _lake
-
-        yield _lake(args), True
-        return
-    tmp = tempfile.mkdtemp(prefix="dualsight-nolake-")
-    try:
-        yield Lake(Path(tmp)), False
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-
-
-def run_engine(kind: str, spec: dict, n_cases: int, lake, args, *, label: str, progress_default: bool = True) -> dict:
-    """``run_job`` with the command's engine options; returns the manifest."""
-    from dualsight.jobs.engine.runner import run_job
-
-    progress = progress_default and not getattr(args, "no_progress", False) and sys.stderr.isatty()
-    return run_job(kind, spec, n_cases=n_cases, lake=lake, run_id=getattr(args, "run", None),
-                   workers=getattr(args, "workers", None), scheduler=getattr(args, "scheduler", None),
-                   shard_size=getattr(args, "shard_size", None), progress=progress, label=label,
-                   source=label)
-
-
-def done_message(summary: str, elapsed_s: float, run_id: str, lake, kept: bool, datasets: tuple[str, ...],
-                 query: str) -> str:
-    """The closing stderr line of a HIL command: ``summary``, the time, and (lake kept) where the rows are,
-    with an SQL example over dataset ``query``."""
-    msg = f"{summary} ({elapsed_s:.1f} s)"
-    if kept:
-        msg += (f"; run {run_id} in {lake.root} (datasets {', '.join(datasets)})\n"
-                f"query: dualsight sql \"SELECT * FROM {query} WHERE run = '{run_id}'\" --lake {lake.root}")
-    return msg

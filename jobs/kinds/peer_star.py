@@ -1,6 +1,7 @@
 """Import a peer solver's per-frame answers into the lake as dataset ``peer_star`` (one run per import).
 
-    python -m dualsight.jobs.kinds.peer_star --lake DIR [--run ID] [--method cedar-solve] ANSWERS.json
+    dualsight peer import ANSWERS.json [--method cedar-solve] [--run ID] [--lake DIR]     (jobs/cli/peer.py)
+    python -m dualsight.jobs.kinds.peer_star ...                                           (the same command)
 
 A peer (cedar-solve, through ``benchmarks/bench_peers.py``; never a dependency of dualsight) solves the same
 frames as ``dualsight hil star``; its answers become rows that SQL joins to ``hil_star`` frame by frame on
@@ -62,6 +63,7 @@ import pyarrow as pa
 from pydantic import Field, field_validator, model_validator
 
 from dualsight.errors import InputError, read_user_file
+from dualsight.jobs.cli.main import main as dualsight_main
 from dualsight.jobs.engine.specs import validate
 from dualsight.jobs.kinds.hil_common import Frozen, rows_table
 from dualsight.scene.attitude import radec_to_unit, unit_to_radec
@@ -285,35 +287,13 @@ def import_answers(lake, answers, *, run_id: str | None = None, method: str | No
                    source=str(answers))
 
 
-# ============================================================================================ CLI
+# ============================================================================================ entry
 def main(argv=None) -> int:
-    """``python -m dualsight.jobs.kinds.peer_star``: 0 imported, 2 bad input (one line, lake untouched)."""
-    from dualsight.jobs.cli.args import Parser, _lake_arg, _lake, run_id_arg
-
-    p = Parser(prog="python -m dualsight.jobs.kinds.peer_star",
-               description="Import a peer solver's per-frame answers (JSON) into the lake as dataset peer_star.")
-    p.add_argument("answers", type=Path, help="answers file (JSON; layout: jobs/kinds/peer_star.py)")
-    p.add_argument("--method", default=None, help="peer name, e.g. cedar-solve (when the file does not name it)")
-    p.add_argument("--run", type=run_id_arg, default=None, help="run id (default peer-star-<spec hash>)")
-    _lake_arg(p)
-    args = p.parse_args(argv)
-    try:
-        lake = _lake(args)
-        m = import_answers(lake, args.answers, run_id=args.run, method=args.method)
-    except InputError as e:
-        print(f"dualsight: error: {' '.join(str(e).split())}", file=sys.stderr)
-        return 2
-    except OSError as e:
-        from dualsight.warehouse.paths import os_error_text
-
-        print(f"dualsight: error: {os_error_text(e)}", file=sys.stderr)
-        return 2
-    st = m.get("stats") or {}
-    print(f"{m['spec']['method']}: {st.get('frames', m['n_cases'])} frames, {st.get('solved', '?')} solved; run "
-          f"{m['run_id']} in {lake.root} (dataset peer_star)\n"
-          f"query: dualsight sql \"SELECT * FROM peer_star WHERE run = '{m['run_id']}'\" --lake {lake.root}",
-          file=sys.stderr)
-    return 0
+    """``python -m dualsight.jobs.kinds.peer_star ARGS`` is ``dualsight peer import ARGS`` (jobs/cli/peer.py: the
+    one command line's command and error handling): 0 imported, 2 bad input (one line, lake untouched).  Kept for
+    benchmarks/peers/README.md and tests/test_peer_import.py, which call it so; the only import of the command
+    line by a job kind."""
+    return dualsight_main(["peer", "import", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -124,11 +124,11 @@ def _areas_png(spec) -> bytes:
 
 
 def _prox(lake, con, m, run_id):
-    from dualsight.jobs.cli import prox as cli_prox
+    from dualsight.jobs.reports.prox import build_report
     from dualsight.jobs.kinds import prox
     from dualsight.viz import prox_figures
 
-    rep = cli_prox.build_report(lake, run_id)
+    rep = build_report(lake, run_id)
     spec = prox.spec_from_dict(m["spec"])
     secs = []
     if rep["job"] == "sweep":
