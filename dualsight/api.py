@@ -166,9 +166,9 @@ def solve(image: str | os.PathLike | np.ndarray, camera: str | os.PathLike | Cam
     ----------
     image : an image file (PNG, JPEG, TIFF, FITS; colour is converted to gray, 16-bit files holding shifted
         12-bit values are shifted back, as ``hil star`` reads them), or a 2-D (H, W) numpy array of ADC counts
-        of any integer or float dtype (uint8, uint16, float32 and float64 go in as they are; other integers as
-        uint16 when they fit, else float64; float16 as float32).  Values at ``2**camera.bit_depth - 1`` and
-        above count as saturated.
+        of any integer or float dtype (uint8, uint16, float32 and float64 go in as they are, other integers as
+        float64, float16 as float32: the detector gives the same answer for the same values in any of them).
+        Values at ``2**camera.bit_depth - 1`` and above count as saturated.
     camera : a camera file (TOML with a ``[camera]`` table, e.g. examples/cameras/esa_tetra3.toml), a
         :class:`dualsight.scene.camera.Camera`, or a ``[camera]`` table as a dict.  Its width and height must
         be the image's.
@@ -250,14 +250,11 @@ def _frame(a: np.ndarray, cam: Camera) -> np.ndarray:
         out = a
     elif kind == "f":                                   # float16: exact in float32; longer floats: float64
         out = a.astype(np.float32 if a.dtype.itemsize < 4 else np.float64)
-    else:
+    else:                                               # other integers: exact in float64 up to 2^53
         lo, hi = (int(a.min()), int(a.max())) if a.size else (0, 0)
-        if 0 <= lo and hi <= 0xFFFF:
-            out = a.astype(np.uint16)
-        elif -2**53 <= lo and hi <= 2**53:
-            out = a.astype(np.float64)
-        else:
+        if not (-2**53 <= lo and hi <= 2**53):
             raise ImageError(f"values {lo} .. {hi} are beyond 2^53 (not exact as float64)", source="image")
+        out = a.astype(np.float64)
     if out.dtype.kind == "f":
         bad = int(np.count_nonzero(~np.isfinite(out)))
         if bad:

@@ -323,10 +323,10 @@ def test_rendered_frame_from_array_and_file_as_hil_star(rendered):
 def test_any_integer_or_float_dtype(rendered):
     counts, cam = rendered["counts"], rendered["camera"]
     ref = dualsight.solve(counts, cam, epoch=2019.6)
-    for dtype in (np.int32, np.int64, np.uint32):               # integers that fit go in as uint16: bit for bit
+    for dtype in (np.int32, np.int64, np.uint32, np.float32, np.float64):   # the same values: bit for bit
         sol = dualsight.solve(counts.astype(dtype), cam, epoch=2019.6)
         assert np.array_equal(sol.attitude, ref.attitude) and sol.stars == ref.stars, dtype
-    for dtype in (np.float16, np.float32, np.float64):          # floats: the same sky within the centroid noise
+    for dtype in (np.float16,):                                 # values above 2048 rounded to even: ~ the same
         sol = dualsight.solve(counts.astype(dtype), cam, epoch=2019.6)
         assert sol.identified and boresight_arcsec(sol.attitude, ref.attitude) < 1.0, dtype
         assert {s.hip for s in sol.stars} == {s.hip for s in ref.stars}, dtype
