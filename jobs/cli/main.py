@@ -17,6 +17,7 @@ lake untouched.  The lake defaults to ``$DUALSIGHT_LAKE`` or ``./lake``.
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import os
 import signal
@@ -257,8 +258,6 @@ def cmd_sql(args) -> int:
     if args.json:
         print(json.dumps([dict(zip(cols, r)) for r in rows], default=str, indent=1))
     elif args.csv:
-        import csv
-
         w = csv.writer(sys.stdout)
         w.writerow(cols)
         w.writerows(rows)
