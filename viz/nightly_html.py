@@ -11,6 +11,8 @@ import html
 import math
 from pathlib import Path
 
+from dualsight.viz.figures import pyplot, save_figure
+
 RED = ("REGRESSION", "not comparable", "no baseline", "failed")
 COLOURS = {"identical": "#2e7d32", "ok": "#43a047", "improved": "#1e88e5", "info": "#9e9e9e",
            "skipped": "#9e9e9e", "changed": "#fb8c00"}
@@ -27,11 +29,7 @@ def _colour(verdict: str) -> str:
 def trend_figure(rows: list[dict], path: Path, max_panels: int = 120):
     """Small multiples: per (job, metric) the fixed-seed and fresh-seed values over the nights, the baseline
     as a grey step line, each point coloured by its verdict (red: regression / not comparable)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     nights = sorted({r["night"] for r in rows})
     xi = {n: i for i, n in enumerate(nights)}
     panels: dict = {}
@@ -74,8 +72,7 @@ def trend_figure(rows: list[dict], path: Path, max_panels: int = 120):
                  "green identical/ok, blue improved, red regression, purple not comparable / no baseline, "
                  "grey info)", fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.97))
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    save_figure(fig, path, dpi=80)
 
 
 def _cell(v) -> str:

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dualsight.viz.figures import pyplot, save_figure
+
 
 def _display(image: np.ndarray) -> tuple[np.ndarray, float, float]:
     """Square-root stretch from 1 noise sigma above the sky (median; sigma = 1.4826 MAD) to the
@@ -53,9 +55,7 @@ def star_overlay(path: str | Path, image: np.ndarray, *, detections: np.ndarray 
         its error (error / |offset|, median over the stars), i.e. the panel shows the offsets' directions
         with their true angular lengths.
     """
-    from dualsight.viz.prox_figures import _plt, save_figure
-
-    plt = _plt()
+    plt = pyplot()
     disp, _, _ = _display(image)
     H, W = disp.shape[:2]
     fig = plt.figure(figsize=(13.2, 6.9), dpi=dpi)

@@ -1,6 +1,6 @@
-"""Figures of proximity runs: Fig. 7 (range estimates with min/max bars per true range) and Fig. 6
-(trajectory: true vs estimated position per axis); and the two helpers every report figure uses
-(:func:`_plt`: matplotlib without a display, :func:`save_figure`)."""
+"""Figures of proximity runs: Fig. 7 (range estimates with min/max bars per true range), Fig. 6 (trajectory: true
+vs estimated position per axis) and Fig. 1 (the target's projected-area curves).  Never calls back into ``jobs``.
+"""
 
 from __future__ import annotations
 
@@ -8,33 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from dualsight.errors import output_path
+from dualsight.viz.figures import pyplot, save_figure
 
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def save_figure(fig, path: Path, dpi: int = 110) -> Path:
-    """Write ``fig`` as ``path`` (its folder must exist) and close it; returns the path."""
-    plt = _plt()
-    try:
-        path = output_path(path)
-    except Exception:
-        plt.close(fig)
-        raise
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return path
+__all__ = ["plot_sweep", "plot_trajectory", "areas_figure"]
 
 
 def plot_sweep(rep: dict, path: Path) -> Path:
-    plt = _plt()
+    plt = pyplot()
     r = np.array([x["true_range_m"] for x in rep["ranges"]])
     fig, ax = plt.subplots(figsize=(7.5, 5), constrained_layout=True)
     ax.plot(r, r, "k-", lw=1, label="true range")
@@ -55,7 +35,7 @@ def plot_sweep(rep: dict, path: Path) -> Path:
 
 
 def plot_trajectory(rep: dict, path: Path) -> Path:
-    plt = _plt()
+    plt = pyplot()
     fr = rep["frames"]
     k = np.array([f["frame"] for f in fr])
     fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True, constrained_layout=True)
@@ -67,4 +47,21 @@ def plot_trajectory(rep: dict, path: Path) -> Path:
     axes[0].legend()
     axes[-1].set_xlabel("frame")
     fig.suptitle(f"Trajectory {rep['run']} (renderer: {rep['mode']})")
+    return save_figure(fig, path)
+
+
+def areas_figure(table, path: Path) -> Path:
+    """Figure 1: projected area over the smallest face against axis ratio (min, mean, max curves).
+
+    ``table``: a projected-area table (``catalogs.areas.area_table``: ``samples_ratio``, ``samples_area`` of
+    the random orientations, and per axis-ratio bin ``ratio``, ``a_min``, ``a_mean``, ``a_max``)."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
+    ax.plot(table.samples_ratio, table.samples_area, ".", ms=1.5, color="0.75", label="random orientations")
+    for name, style in (("a_min", "b--"), ("a_mean", "k-"), ("a_max", "r--")):
+        ax.plot(table.ratio, getattr(table, name), style, label=name.replace("a_", "A ") + " / A0")
+    ax.set_xlabel("silhouette axis ratio (major / minor)")
+    ax.set_ylabel("projected area / smallest face A0")
+    ax.set_title("Projected-area curves (cf. reference Figure 1)")
+    ax.legend()
     return save_figure(fig, path)

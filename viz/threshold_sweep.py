@@ -6,7 +6,8 @@ estimate over the images as a line, and the true range (one dashed line when eve
 truth, else a marker per image).  Bottom panel: the average relative error (%) and the share of images
 whose true range lies inside the min/max bars (%), per threshold.
 
-Draws arrays only; never calls back into ``jobs`` (DESIGN.md).
+Draws arrays (:func:`threshold_sweep_figure`) or a run's query results (:func:`hil_prox_figure`); never calls
+back into ``jobs`` (DESIGN.md).
 """
 
 from __future__ import annotations
@@ -14,6 +15,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+
+from dualsight.viz.figures import pyplot, save_figure
+
+__all__ = ["threshold_sweep_figure", "hil_prox_figure"]
 
 
 def threshold_sweep_figure(path: str | Path, thresholds, range_m, range_min_m, range_max_m, truth_m=None, *,
@@ -29,11 +34,7 @@ def threshold_sweep_figure(path: str | Path, thresholds, range_m, range_min_m, r
     sweep : optional rows with ``threshold``, ``avg_rel_error_pct`` and ``within_min_max_pct`` (the run's
         warehouse/sql/hil_prox_sweep.sql); without them the bottom panel is computed from the arrays.
     """
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     th = np.asarray(thresholds, dtype=float)
     est = np.atleast_2d(np.asarray(range_m, dtype=float))
     lo = np.atleast_2d(np.asarray(range_min_m, dtype=float))
@@ -100,6 +101,27 @@ def threshold_sweep_figure(path: str | Path, thresholds, range_m, range_min_m, r
         b.set_xlabel("binary threshold")
     else:
         a.set_xlabel("binary threshold")
-    from dualsight.viz.prox_figures import save_figure
-
     return save_figure(fig, path, dpi=dpi)
+
+
+def hil_prox_figure(data: dict, path: str | Path, title: str = "") -> Path:
+    """:func:`threshold_sweep_figure` of a ``hil_prox`` run from its query results: ``data["cases"]`` (one row per
+    image: ``case_id``, ``image``, ``error``, ``truth_range_m``; warehouse/sql/hil_prox_case_rows.sql),
+    ``data["rows"]`` (image x threshold: ``case_id``, ``threshold``, ``range_m``, ``range_min_m``,
+    ``range_max_m``; hil_prox_rows.sql) and ``data["sweep"]`` (hil_prox_sweep.sql).  Images that could not be
+    read are left out."""
+    th = np.array(sorted({r["threshold"] for r in data["rows"] if r["threshold"] is not None}))
+    good = [c for c in data["cases"] if not c["error"]]
+    by_case: dict = {}
+    for r in data["rows"]:
+        by_case.setdefault(r["case_id"], []).append(r)
+    idx = {t: i for i, t in enumerate(th)}
+    est, lo, hi = (np.full((len(good), len(th)), np.nan) for _ in range(3))
+    for i, c in enumerate(good):
+        for row in by_case.get(c["case_id"], []):
+            j = idx[row["threshold"]]
+            for arr, key in ((est, "range_m"), (lo, "range_min_m"), (hi, "range_max_m")):
+                arr[i, j] = np.nan if row[key] is None else row[key]
+    truth = np.array([np.nan if c["truth_range_m"] is None else c["truth_range_m"] for c in good])
+    return threshold_sweep_figure(path, th, est, lo, hi, truth, labels=[c["image"] for c in good],
+                                  sweep=data["sweep"], title=title)

@@ -42,6 +42,8 @@ import sys
 import time
 from pathlib import Path
 
+from dualsight.viz.threshold_sweep import hil_prox_figure
+
 _FLAGS = {"thresholds": "--threshold", "open_px": "--open", "close_px": "--close", "border_px": "--border",
           "roi_px": "--roi",
           "estimator": "--estimator", "blob": "--blob", "area_curve": "--area-curve", "min_pixels": "--min-pixels",
@@ -165,7 +167,7 @@ def cmd_hil_prox(args) -> int:
         if c["error"]:
             print(f"dualsight: {c['path']}: {c['error']}", file=sys.stderr)
     if args.plot is not None:
-        rep.plot(data, args.plot, title=f"{target['name']}: {len(paths)} image(s)" + (f", run {run_id}" if kept else ""))
+        hil_prox_figure(data, args.plot, title=f"{target['name']}: {len(paths)} image(s)" + (f", run {run_id}" if kept else ""))
     if args.json:
         a0 = next((r["A0_m2"] for r in data["rows"] if r["A0_m2"] is not None), None)
         tgt = dict(spec.target.to_dict(), file=str(args.target), A0_m2=a0, table_samples=spec.settings.table_samples)

@@ -26,6 +26,7 @@ from pathlib import Path
 
 from dualsight.errors import InputError
 from dualsight.jobs.cli.args import Parser, add_lake_arg, add_run_args, latest_run, open_lake, positive_int, run_id_arg
+from dualsight.viz.star_figures import error_vs_observed_figure
 from dualsight.warehouse.paths import os_error_text
 
 # The one table from commands to job kinds (jobs/engine/runner.py JOB_KINDS maps kinds to modules).
@@ -232,7 +233,7 @@ def cmd_star_report(args) -> int:
     run_id = args.run or latest_run(lake, ["star"])
     rep = star_report.build(lake, run_id)
     if args.plot:
-        star_report.plot(rep, args.plot)
+        error_vs_observed_figure(rep["json"], args.plot)
     if args.json:
         print(json.dumps(rep["json"], indent=1))
     else:

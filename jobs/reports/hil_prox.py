@@ -4,16 +4,20 @@
   (``hil_prox_rows.sql``) and the sweep (``hil_prox_sweep.sql``, the reference's Figure 8 numbers);
 * :func:`json_document`: the CLI's ``--json`` object;
 * :func:`text_report`: the per-image table at one threshold (``hil_prox_images.sql``) and the sweep table;
-* :func:`plot`: Figure 8 (viz/threshold_sweep.py) from the rows.
+* the threshold choices over a run's rows (:func:`best_threshold`, :func:`oracle_threshold`,
+  :func:`stable_threshold`, :func:`cross_validated_error`): nav/threshold_choice.py over the rows' arrays.
+
+Figure 8 from the same rows: viz/threshold_sweep.py's ``hil_prox_figure``.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
-__all__ = ["fetch", "best_threshold", "json_document", "text_report", "plot"]
+from dualsight.nav import threshold_choice as tc
+
+__all__ = ["fetch", "oracle_threshold", "stable_threshold", "cross_validated_error", "best_threshold",
+           "json_document", "text_report"]
 
 
 def _dicts(cols, rows) -> list[dict]:
@@ -30,10 +34,15 @@ def fetch(con, run_id: str) -> dict:
 
 
 def oracle_threshold(sweep: list[dict]) -> dict | None:
-    """The sweep row with the smallest average relative error: chosen WITH the truth, so its error is an
-    optimistic bound, not what a user without truth would get (None without truth)."""
-    ok = [s for s in sweep if s.get("avg_rel_error_pct") is not None]
-    return min(ok, key=lambda s: s["avg_rel_error_pct"]) if ok else None
+    """The sweep row with the smallest average relative error (``nav.threshold_choice.oracle_threshold``):
+    chosen WITH the truth, so its error is an optimistic bound (None without truth)."""
+    t = tc.oracle_threshold([s["threshold"] for s in sweep],
+                            [np.nan if s.get("avg_rel_error_pct") is None else s["avg_rel_error_pct"] for s in sweep])
+    return _row_at(sweep, t)
+
+
+def _row_at(sweep: list[dict], threshold: float | None) -> dict | None:
+    return next((s for s in sweep if s["threshold"] == threshold), None) if threshold is not None else None
 
 
 def _range_grid(rows: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -55,46 +64,25 @@ def _range_grid(rows: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def stable_threshold(rows: list[dict]) -> float | None:
-    """The threshold chosen without the truth: where the images' range estimates change least with the
-    threshold (smallest mean |d ln range| to the neighbouring thresholds over the images with a blob at
-    both), the middle of the flattest part of the sweep.  rows : the ``hil_prox`` rows of one run.
-    None with fewer than 3 thresholds."""
+    """The threshold chosen without the truth (``nav.threshold_choice.stable_threshold``) over the ``hil_prox``
+    rows of one run (image x threshold, as ``hil_prox_rows.sql`` gives them).  None with fewer than 3
+    thresholds."""
     th, est, _ = _range_grid(rows)
-    if len(th) < 3:
-        return None
-    with np.errstate(invalid="ignore", divide="ignore"):
-        d = np.abs(np.diff(np.log(est), axis=1))                    # (N, T - 1)
-        step = np.nanmean(d, axis=0)                                # per interval
-    left = np.concatenate([[np.nan], step])
-    right = np.concatenate([step, [np.nan]])
-    score = np.nanmean(np.stack([left, right]), axis=0)
-    found = np.isfinite(est).mean(axis=0)
-    score = np.where(found >= 0.5 * found.max(), score, np.nan)     # a threshold that loses the target is no choice
-    return float(th[int(np.nanargmin(score))]) if np.isfinite(score).any() else None
+    return tc.stable_threshold(th, est)
 
 
 def cross_validated_error(rows: list[dict]) -> float | None:
-    """Leave-one-image-out error of choosing the threshold with the truth: for each image with a truth,
-    pick the threshold with the smallest mean relative error over the OTHER images, and take this image's
-    relative error there (no blob counts as 100 %).  Returns the mean, in %, or None (fewer than 2 images
-    with a truth)."""
-    th, est, truth = _range_grid(rows)
-    keep = np.isfinite(truth)
-    est, truth = est[keep], truth[keep]
-    n = len(truth)
-    if n < 2:
-        return None
-    rel = np.where(np.isfinite(est), np.abs(est - truth[:, None]) / truth[:, None], 1.0)   # (n, T)
-    others = (rel.sum(axis=0)[None, :] - rel) / (n - 1)                                      # (n, T)
-    pick = np.argmin(others, axis=1)
-    return float(100.0 * rel[np.arange(n), pick].mean())
+    """Leave-one-image-out error (%) of choosing the threshold with the truth
+    (``nav.threshold_choice.cross_validated_error``) over the ``hil_prox`` rows of one run; None with fewer
+    than 2 images with a truth."""
+    _, est, truth = _range_grid(rows)
+    return tc.cross_validated_error(est, truth)
 
 
 def best_threshold(sweep: list[dict], rows: list[dict] | None = None) -> dict | None:
     """The threshold a user without truth would use (:func:`stable_threshold` over ``rows``), as its sweep
     row; without ``rows`` or with fewer than 3 thresholds, None."""
-    t = stable_threshold(rows) if rows else None
-    return next((s for s in sweep if s["threshold"] == t), None) if t is not None else None
+    return _row_at(sweep, stable_threshold(rows) if rows else None)
 
 
 def _r(v, nd=6):
@@ -185,22 +173,3 @@ def text_report(con, run_id: str, data: dict, settings) -> str:
                        f"{oracle['avg_rel_error_pct']:.2f} %; leave-one-image-out error of that choice: "
                        + ("-" if cv is None else f"{cv:.2f} %"))
     return "\n".join(out)
-
-
-def plot(data: dict, path: Path, title: str = "") -> Path:
-    """Figure 8 of the reference (viz/threshold_sweep.py) from a run's rows and sweep."""
-    from dualsight.viz.threshold_sweep import threshold_sweep_figure
-
-    th = np.array(sorted({r["threshold"] for r in data["rows"] if r["threshold"] is not None}))
-    good = [c for c in data["cases"] if not c["error"]]
-    rows = _by_case(data["rows"])
-    idx = {t: i for i, t in enumerate(th)}
-    est, lo, hi = (np.full((len(good), len(th)), np.nan) for _ in range(3))
-    for i, c in enumerate(good):
-        for row in rows.get(c["case_id"], []):
-            j = idx[row["threshold"]]
-            for arr, key in ((est, "range_m"), (lo, "range_min_m"), (hi, "range_max_m")):
-                arr[i, j] = np.nan if row[key] is None else row[key]
-    truth = np.array([np.nan if c["truth_range_m"] is None else c["truth_range_m"] for c in good])
-    return threshold_sweep_figure(path, th, est, lo, hi, truth, labels=[c["image"] for c in good],
-                                  sweep=data["sweep"], title=title)

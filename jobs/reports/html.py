@@ -9,48 +9,25 @@ PNG; the worst cases are re-rendered (simulations) or re-read (real images) into
 from __future__ import annotations
 
 import json
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from dualsight.catalogs.areas import area_table
 from dualsight.errors import InputError
+from dualsight.jobs.reports import hil_prox as hil_prox_report
+from dualsight.jobs.reports import star as star_report
+from dualsight.jobs.reports.prox import build_report
+from dualsight.kernels.imageio import read_image
 from dualsight.viz import html_page as H
+from dualsight.viz import prox_figures
+from dualsight.viz.figures import png_bytes, thumbnail_png
+from dualsight.viz.star_figures import error_vs_observed_figure
+from dualsight.viz.threshold_sweep import hil_prox_figure
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import connect, run_report
 
 GALLERY = 6
-
-
-def _png(draw) -> bytes:
-    """Bytes of the PNG that ``draw(path)`` writes."""
-    with tempfile.TemporaryDirectory() as d:
-        p = Path(d) / "f.png"
-        draw(p)
-        return p.read_bytes()
-
-
-def _thumb(image: np.ndarray, width: int = 280, centre=None, half: float | None = None) -> bytes:
-    """A small 8-bit PNG of a frame: max-pooled (so one-pixel stars stay visible), or with ``centre`` (x, y px)
-    and ``half`` a crop of +-half px around it, enlarged; square-root stretch of the 99.9th percentile."""
-    import cv2
-
-    img = np.asarray(image, dtype=np.float32)
-    if centre is not None and half and np.all(np.isfinite(centre)):
-        h = int(max(16, min(half, max(img.shape))))
-        x0, y0 = int(centre[0]) - h, int(centre[1]) - h
-        img = np.pad(img, h)[y0 + h: y0 + 3 * h, x0 + h: x0 + 3 * h]
-        interp = cv2.INTER_NEAREST
-    else:
-        f = max(1, int(np.ceil(img.shape[1] / width)))
-        H_, W_ = -(-img.shape[0] // f) * f, -(-img.shape[1] // f) * f
-        img = np.pad(img, ((0, H_ - img.shape[0]), (0, W_ - img.shape[1]))).reshape(H_ // f, f, W_ // f, f).max((1, 3))
-        interp = cv2.INTER_AREA
-    hi = float(np.percentile(img, 99.9)) or float(img.max()) or 1.0
-    u8 = (np.sqrt(np.clip(img / hi, 0, 1)) * 255).astype(np.uint8)
-    height = max(1, round(u8.shape[0] * width / u8.shape[1]))
-    ok, buf = cv2.imencode(".png", cv2.resize(u8, (width, height), interpolation=interp))
-    return buf.tobytes()
 
 
 def _rows(con, sql: str, run_id: str):
@@ -72,8 +49,7 @@ def _gallery(items: list[tuple[bytes, str]], lake: Lake, run_id: str) -> str:
 
 # ----------------------------------------------------------------------------------------------- per kind
 def _star(lake, con, m, run_id):
-    from dualsight.jobs.kinds import star
-    from dualsight.jobs.reports import star as star_report
+    from dualsight.jobs.kinds import star                      # Taichi (re-renders the worst cases)
 
     rep = star_report.build(lake, run_id)      # per-shard summaries when the run has them, else a full scan
     t = rep["tables"]
@@ -82,7 +58,7 @@ def _star(lake, con, m, run_id):
             ("Table 5: stars and errors of the successful cases", H.table(*t["star_table5"])),
             ("Reference method beside dualsight's robust voting", H.table(*t["star_robust"])),
             ("Figures 9 and 10: error against stars observed",
-             H.figure(_png(lambda p: star_report.plot(rep, p)), "fig9-10", "Mean error per axis and RSS error "
+             H.figure(png_bytes(lambda p: error_vs_observed_figure(rep["json"], p)), "fig9-10", "Mean error per axis and RSS error "
                       "against the number of stars observed"))]
     cols, rows = _rows(con, "SELECT case_id, status, T, n_observed, err_total_rad * 206264.806 AS err_arcsec "
                             "FROM star_cases WHERE run = $run ORDER BY (status = 'success'), "
@@ -94,39 +70,15 @@ def _star(lake, con, m, run_id):
     if len(ids):
         images = star.compute_batch(spec, ctx, ids, keep_images=True)["rendered"].images
         for img, r in zip(images, rows):
-            items.append((_thumb(img), f"case {r[0]}: {r[1]}, T={r[2]}, {r[3]} stars observed, "
+            items.append((thumbnail_png(img), f"case {r[0]}: {r[1]}, T={r[2]}, {r[3]} stars observed, "
                                        f"error {H.fmt(r[4])} arcsec"))
     secs.append(("Worst cases (failures first, then largest attitude error)", _gallery(items, lake, run_id)))
     secs.append(("Time per case by stage", H.table(*t["star_stage_times"])))
     return secs
 
 
-def _areas_png(spec) -> bytes:
-    """Figure 1: projected area over the smallest face against axis ratio (min, mean, max curves)."""
-    from dualsight.catalogs.areas import area_table
-    from dualsight.viz.prox_figures import _plt
-
-    t = area_table(spec.satellite, n=spec.areas["samples"], bin_width=spec.areas["bin_width"])
-
-    def draw(path):
-        plt = _plt()
-        fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
-        ax.plot(t.samples_ratio, t.samples_area, ".", ms=1.5, color="0.75", label="random orientations")
-        for name, style in (("a_min", "b--"), ("a_mean", "k-"), ("a_max", "r--")):
-            ax.plot(t.ratio, getattr(t, name), style, label=name.replace("a_", "A ") + " / A0")
-        ax.set_xlabel("silhouette axis ratio (major / minor)")
-        ax.set_ylabel("projected area / smallest face A0")
-        ax.set_title("Projected-area curves (cf. reference Figure 1)")
-        ax.legend()
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-    return _png(draw)
-
-
 def _prox(lake, con, m, run_id):
-    from dualsight.jobs.reports.prox import build_report
-    from dualsight.jobs.kinds import prox
-    from dualsight.viz import prox_figures
+    from dualsight.jobs.kinds import prox                      # Taichi (re-renders the worst cases)
 
     rep = build_report(lake, run_id)
     spec = prox.spec_from_dict(m["spec"])
@@ -134,18 +86,19 @@ def _prox(lake, con, m, run_id):
     if rep["job"] == "sweep":
         secs.append(("Table 3: range estimates per true range", _report_table(con, "prox_table3", run_id)))
         secs.append(("Figure 7: estimated against true range",
-                     H.figure(_png(lambda p: prox_figures.plot_sweep(rep, p)), "fig7", "Mean range estimate "
+                     H.figure(png_bytes(lambda p: prox_figures.plot_sweep(rep, p)), "fig7", "Mean range estimate "
                               "per true range, both estimators, with the reference's")))
         order = "abs(subpixel_range_est_m - true_range_m) / true_range_m DESC NULLS FIRST"
     else:
         secs.append(("Trajectory errors", _report_table(con, "prox_trajectory", run_id)))
         secs.append(("Figure 6: true and estimated position per axis",
-                     H.figure(_png(lambda p: prox_figures.plot_trajectory(rep, p)), "fig6", "Position per axis "
+                     H.figure(png_bytes(lambda p: prox_figures.plot_trajectory(rep, p)), "fig6", "Position per axis "
                               "over the frames")))
         order = "subpixel_pos_err_m DESC NULLS FIRST"
     try:
-        secs.append(("Figure 1: projected-area curves of the target", H.figure(_areas_png(spec), "fig1",
-                                                                              "A/A0 against axis ratio")))
+        table = area_table(spec.satellite, n=spec.areas["samples"], bin_width=spec.areas["bin_width"])
+        secs.append(("Figure 1: projected-area curves of the target",
+                     H.figure(png_bytes(lambda p: prox_figures.areas_figure(table, p)), "fig1", "A/A0 against axis ratio")))
     except (AttributeError, TypeError, ValueError) as e:
         secs.append(("Figure 1: projected-area curves of the target", H.pre(f"not available: {e}")))
     cols, rows = _rows(con, f"SELECT case_id, true_range_m, found, subpixel_range_est_m, cob_x_px, cob_y_px, "
@@ -158,7 +111,7 @@ def _prox(lake, con, m, run_id):
         images = prox.compute_batch(spec, ctx, ids, keep_images=True)["images"]
         for img, r in zip(images, rows):
             ok = r[2] and r[4] is not None and r[6] is not None
-            thumb = _thumb(img, centre=(r[4], r[5]), half=1.5 * r[6] + 8) if ok else _thumb(img)
+            thumb = thumbnail_png(img, centre=(r[4], r[5]), half=1.5 * r[6] + 8) if ok else thumbnail_png(img)
             items.append((thumb, f"case {r[0]}: true {H.fmt(r[1])} m, found {r[2]}, "
                                  f"subpixel estimate {H.fmt(r[3])} m" + (" (crop around the blob)" if ok else "")))
     secs.append(("Worst cases (largest range error)", _gallery(items, lake, run_id)))
@@ -167,13 +120,11 @@ def _prox(lake, con, m, run_id):
 
 
 def _hil_images(lake, m, run_id, cases: list[tuple[int, str]]):
-    from dualsight.kernels.imageio import read_image
-
     items = []
     for case_id, cap in cases:
         try:
             path = m["spec"]["images"][case_id]["path"]
-            items.append((_thumb(read_image(Path(path), as_gray=True).adc_counts()), cap))
+            items.append((thumbnail_png(read_image(Path(path), as_gray=True).adc_counts()), cap))
         except (InputError, KeyError, IndexError, TypeError):
             continue
     return _gallery(items, lake, run_id)
@@ -191,13 +142,11 @@ def _hil_star(lake, con, m, run_id):
 
 
 def _hil_prox(lake, con, m, run_id):
-    from dualsight.jobs.reports import hil_prox as hil_prox_report
-
     data = hil_prox_report.fetch(con, run_id)
     secs = [("Threshold sweep", _report_table(con, "hil_prox_sweep", run_id))]
     if data["rows"]:
         secs.append(("Figure 8: range against binary threshold",
-                     H.figure(_png(lambda p: hil_prox_report.plot(data, p, title=run_id)), "fig8",
+                     H.figure(png_bytes(lambda p: hil_prox_figure(data, p, title=run_id)), "fig8",
                               "Estimated range per threshold")))
     secs.append(("Images", _hil_images(lake, m, run_id, [(c["case_id"], f"case {c['case_id']} {c.get('image')}")
                                                           for c in data["cases"][:GALLERY]])))

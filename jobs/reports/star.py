@@ -19,7 +19,6 @@ order).  Nothing in the report is an order statistic (median, percentile), so no
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 import duckdb
 
@@ -203,27 +202,3 @@ def text(rep: dict) -> str:
         format_table(*rep["tables"]["star_stage_times"], floatfmt="{:.3f}"),
     ]
     return "\n".join(lines)
-
-
-def plot(rep: dict, path: Path) -> Path:
-    """Figures 9 and 10 of the reference: mean error per axis and RSS against stars observed."""
-    from dualsight.viz.prox_figures import _plt, save_figure
-
-    plt = _plt()
-    rows = rep["json"]["error_vs_stars_observed"]
-    n = [r["stars_observed"] for r in rows]
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
-    for key, label in (("mean_err_x_arcsec", "x"), ("mean_err_y_arcsec", "y"), ("mean_err_z_arcsec", "z")):
-        a.plot(n, [r[key] for r in rows], "o-", label=label)
-    a.set_xlabel("stars observed")
-    a.set_ylabel("mean |error| (arcsec)")
-    a.set_title("Error per axis vs stars observed (cf. Fig. 9)")
-    a.legend()
-    b.bar(n, [r["mean_rss_arcsec"] for r in rows], color="tab:gray")
-    for x, r in zip(n, rows):
-        b.annotate(str(r["cases"]), (x, r["mean_rss_arcsec"]), ha="center", va="bottom", fontsize=7)
-    b.set_xlabel("stars observed (label: cases)")
-    b.set_ylabel("mean RSS error (arcsec)")
-    b.set_title("RSS error vs stars observed (cf. Fig. 10)")
-    fig.suptitle(f"run {rep['json']['run']}: {rep['json']['cases']} cases")
-    return save_figure(fig, path)
