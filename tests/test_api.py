@@ -103,7 +103,7 @@ def check_against_run_and_truth(sol, name: str, esa_run) -> float:
     R = np.asarray(esa_run["truth"][name]["R_icrs_to_cam"])
     err = boresight_arcsec(sol.attitude, R)
     assert err < 30.0, (name, err)                                  # hil star's own bound (measured 0.4-6.4)
-    assert rotation_angle_arcsec(sol.attitude, R) < 120.0, name     # roll included
+    assert rotation_angle_arcsec(sol.attitude, R) < 60.0, name      # roll included (measured 0.9-19)
     # the numbers the Solution states are the matrix's: boresight RA/Dec from its third row
     ra, dec = math.radians(sol.ra_deg), math.radians(sol.dec_deg)
     assert np.allclose(sol.attitude[2], [math.cos(dec) * math.cos(ra), math.cos(dec) * math.sin(ra), math.sin(dec)],
@@ -300,8 +300,8 @@ def test_rendered_frame_from_array_and_file_as_hil_star(rendered):
     from_file = dualsight.solve(rendered["tif"], CAMERA, epoch=2019.6)
     assert from_array.identified and from_array.image == "<array>" and from_file.image == "synthetic.tiff"
     assert np.array_equal(from_array.attitude, from_file.attitude) and from_array.stars == from_file.stars
-    assert boresight_arcsec(from_array.attitude, rendered["A"]) < 5.0
-    assert rotation_angle_arcsec(from_array.attitude, rendered["A"]) < 60.0
+    assert boresight_arcsec(from_array.attitude, rendered["A"]) < 5.0            # measured 0.61 arcsec
+    assert rotation_angle_arcsec(from_array.attitude, rendered["A"]) < 10.0      # measured 0.63 arcsec
     assert from_array.residual_median_arcsec < 5.0 and len(from_array.stars) >= 10
     lake = rendered["folder"] / "lake"
     rc, _, err = run_cli(["hil", "star", rendered["tif"], "--camera", CAMERA, "--epoch", "2019.6", "--lake", lake,
