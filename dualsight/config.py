@@ -13,27 +13,31 @@ Two paths read those annotations and nothing else:
 ``__post_init__`` keeps by hand only the rules that tie several fields together.
 
 It also holds :func:`validate` (a TOML/JSON table into a typed spec, strict, one-line errors naming the
-file and key) and :func:`plain_tree` (depth and value checks before pydantic sees a table).  This module
-imports pydantic and numpy only, so that every package validates its configs the same way: the kernels
-(whose config dataclasses live beside their kernels), scene, catalogs, nav and jobs.
+file and key), :func:`plain_tree` (depth and value checks before pydantic sees a table), the table <-> dataclass
+helpers (:func:`dataclass_from_table`, :func:`dataclass_to_table`: a table's keys are the dataclass's field
+names, and an angle field ``<name>_rad`` may be written ``<name>_arcsec`` or ``<name>_deg``) and
+:func:`check_range`.  It is the one configuration layer: this module imports pydantic and numpy only, so that
+every package validates its configs the same way: the kernels (whose config dataclasses live beside their
+kernels), scene, catalogs, nav and jobs.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import math
+import re
 import types
 import typing
-
-import json
 
 import numpy as np
 import pydantic
 
 from dualsight.errors import ConfigError
 
-__all__ = ["check_fields", "allowed_range", "validate", "plain_tree"]
+__all__ = ["check_fields", "allowed_range", "validate", "plain_tree", "printable_key", "friendly_key", "MAX_DEPTH",
+           "ANGLE_KEY_SUFFIXES", "dataclass_from_table", "dataclass_to_table", "check_range"]
 
 
 @functools.lru_cache(maxsize=None)
@@ -199,7 +203,7 @@ def _field_names(tp, loc) -> list[str]:
         args = [a for a in typing.get_args(tp) if a is not type(None)]
         if args and (dataclasses.is_dataclass(args[0]) or isinstance(args[0], type)):
             tp = args[0]
-    return sorted(_friendly(n) for n in _hints(tp))
+    return sorted(friendly_key(n) for n in _hints(tp))
 
 
 def _hints(tp) -> dict:
@@ -210,7 +214,8 @@ def _hints(tp) -> dict:
     return {}
 
 
-def _friendly(name: str) -> str:
+def friendly_key(name: str) -> str:
+    """A field name as a table may write it: ``<name>_rad`` -> ``<name>_arcsec|_deg|_rad`` (for "allowed keys")."""
     return name[:-4] + "_arcsec|_deg|_rad" if name.endswith("_rad") else name
 
 
@@ -218,3 +223,81 @@ def printable_key(key) -> str:
     """A key as it may appear in a one-line message (control characters escaped)."""
     k = str(key)
     return k if k.isprintable() else repr(k)[1:-1]
+
+
+# ============================================================================================ tables <-> dataclasses
+ANGLE_KEY_SUFFIXES = {"_arcsec": math.pi / (180.0 * 3600.0), "_deg": math.pi / 180.0}
+"""Key suffixes that fill a field ``<name>_rad`` with their factor to radians: the same values as
+``scene/units.py``'s ARCSEC and DEG (this root module imports no project package)."""
+
+
+def dataclass_from_table(cls, table: dict | None, *, source: str, section: str, base=None):
+    """Build frozen dataclass ``cls`` from a TOML table through :func:`validate` (pydantic, strict).
+
+    ``base``: an instance whose values replace the class defaults (e.g. a named method's settings).
+    Keys ``<name>_arcsec`` / ``<name>_deg`` fill the field ``<name>_rad`` (converted to radians); an error
+    about such a field names the key and the value as the user wrote them.
+    """
+    if table is not None and not isinstance(table, dict):
+        raise ConfigError("must be a table", source=source, field=section)
+    fields = {f.name for f in dataclasses.fields(cls) if f.init}
+    merged = dataclass_to_table(base) if base is not None else {}
+    written = {}                                   # field -> (key as written, scale)
+    for key, value in (table or {}).items():
+        name, scale = key, 1.0
+        if key not in fields:
+            for suffix, factor in ANGLE_KEY_SUFFIXES.items():
+                if key.endswith(suffix) and key[: -len(suffix)] + "_rad" in fields:
+                    name, scale = key[: -len(suffix)] + "_rad", factor
+                    break
+        if name not in fields:
+            raise ConfigError(f"unknown key; allowed keys: {', '.join(sorted(friendly_key(n) for n in fields))}",
+                              source=source, field=f"{section}.{printable_key(key)}")
+        if scale != 1.0:
+            if not _is_number(value):
+                raise ConfigError(f"must be a number, got {value!r}", source=source, field=f"{section}.{key}")
+            written[name] = (key, scale, value)
+            value = value * scale
+        merged[name] = value
+    try:
+        return validate(cls, merged, source=source, section=section)
+    except ConfigError as e:
+        fld = (e.field or "").removeprefix(section + ".")
+        if fld in written:
+            key, scale, value = written[fld]
+            detail = e.detail.split(", got ")[0]
+            detail = re.sub(r"(-?\d+(?:\.\d+)?(?:e-?\d+)?)", lambda m: f"{float(m.group(1)) / scale:.6g}", detail)
+            raise ConfigError(f"{detail} ({key.rsplit('_', 1)[1]}), got {value!r}", source=source,
+                              field=f"{section}.{key}") from None
+        raise
+
+
+def dataclass_to_table(obj) -> dict:
+    """Plain dict of a (nested) frozen dataclass, suitable for TOML/JSON.  Fields whose metadata has
+    ``omit_if_default`` are left out while they hold their default (a run's stored spec, and so its
+    identity, does not change when such an option is added)."""
+    out = {}
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if f.metadata.get("omit_if_default") and v == f.default:
+            continue                       # a newer option left at its default: older tables stay the same
+        if dataclasses.is_dataclass(v):
+            v = dataclass_to_table(v)
+        elif isinstance(v, tuple):
+            v = list(v)
+        out[f.name] = v
+    return out
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def check_range(value, lo, hi, field: str, *, lo_open=False, hi_open=False, source: str | None = None):
+    """Raise ConfigError unless lo <(=) value <(=) hi."""
+    ok = (value > lo if lo_open else value >= lo) and (value < hi if hi_open else value <= hi)
+    if not ok:
+        lb = "(" if lo_open else "["
+        rb = ")" if hi_open else "]"
+        raise ConfigError(f"must be in {lb}{lo}, {hi}{rb}, got {value!r}", source=source, field=field)
+    return value

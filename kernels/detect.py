@@ -62,7 +62,7 @@ class DetectConfig:
     """Star detection settings.
 
     Every field's range is part of its type (pydantic ``Field``), checked both when a TOML table is
-    validated (``dualsight.jobs.engine.specs.validate``) and when the dataclass is built in Python
+    validated (``dualsight.config.validate``) and when the dataclass is built in Python
     (:func:`dualsight.config.check_fields`).  ADU bounds are the full scale of the deepest
     ADC allowed, 2^24 (:data:`dualsight.kernels.sensor_config.MAX_ADU`); pixel counts are bounded by the
     largest frame, 65536^2 = 2^32 pixels.

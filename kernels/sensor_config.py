@@ -60,7 +60,7 @@ class SensorConfig:
     (every noise source off) that still quantises to 12-bit ADU.
 
     Every field's range is part of its type (pydantic ``Field``), checked both when a TOML table is
-    validated (``dualsight.jobs.engine.specs.validate``) and when the dataclass is built in Python
+    validated (``dualsight.config.validate``) and when the dataclass is built in Python
     (:func:`dualsight.config.check_fields`).
 
     Attributes

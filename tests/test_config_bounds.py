@@ -1,5 +1,5 @@
 """Every range of the stage configs is declared once, in the field types (pydantic ``Field`` / ``Literal``),
-and enforced on both paths: a TOML table through ``dualsight.jobs.engine.specs`` (one ConfigError naming the
+and enforced on both paths: a TOML table through ``dualsight.config`` (one ConfigError naming the
 file, the dotted key and the value) and a dataclass built directly in Python (a ValueError naming the
 field, the value and the allowed range)."""
 
@@ -14,7 +14,7 @@ import pytest
 from dualsight.catalogs.stars import StarCatalogConfig
 from dualsight.errors import ConfigError
 from dualsight.jobs.kinds import prox
-from dualsight.jobs.engine.specs import dataclass_from_table
+from dualsight.config import dataclass_from_table
 from dualsight.config import allowed_range
 from dualsight.kernels.detect import DetectConfig
 from dualsight.kernels.sensor_config import SensorConfig

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from dualsight.errors import ConfigError
-from dualsight.jobs.engine.specs import dataclass_from_table
+from dualsight.config import dataclass_from_table
 from dualsight.kernels.detect import render_and_detect_ideal
 from dualsight.kernels.sensor_config import SensorConfig
 from dualsight.kernels.starfield import render_star_fields

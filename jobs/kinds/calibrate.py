@@ -31,7 +31,7 @@ import pyarrow as pa
 from pydantic import Field
 
 from dualsight.errors import ConfigError, ImageError
-from dualsight.jobs.engine.specs import validate
+from dualsight.config import validate
 from dualsight.jobs.kinds.hil_common import Frozen, ImageEntry, check_unchanged, image_entries, n_cases, rows_table
 from dualsight.scene import calibration as cal
 from dualsight.scene.chessboard import FIND_FLAGS_DEFAULT, ViewCorners, find_view

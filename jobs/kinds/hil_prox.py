@@ -62,7 +62,7 @@ from pydantic import Field, field_validator, model_validator
 from dualsight.jobs.kinds.hil_defaults import DEFAULT_THRESHOLD
 from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.errors import ConfigError, ImageError
-from dualsight.jobs.engine.specs import validate
+from dualsight.config import validate
 from dualsight.jobs.kinds.hil_common import (Frozen, ImageEntry, check_unchanged, fixed_point, n_cases, rows_table,
                                       spec_base)
 from dualsight.nav.blobber import BlobberConfig, run_blobber

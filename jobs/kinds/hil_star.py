@@ -63,7 +63,7 @@ from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.catalogs.pair_cache import load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 from dualsight.errors import ImageError
-from dualsight.jobs.engine.specs import validate
+from dualsight.config import validate
 from dualsight.jobs.kinds.hil_common import ImageEntry, check_unchanged, n_cases, rows_table, spec_base
 from dualsight.jobs.kinds.hil_star_spec import (MAX_VOTE_CELLS, HilStarSpec, StarSettings, StarTruth,
                                           settings_from_table, spec_from_dict)

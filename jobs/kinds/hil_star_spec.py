@@ -15,7 +15,7 @@ from pydantic import Field, field_validator, model_validator
 
 from dualsight.catalogs.stars import StarCatalogConfig
 from dualsight.errors import ConfigError
-from dualsight.jobs.engine.specs import dataclass_from_table, dataclass_to_table, validate
+from dualsight.config import dataclass_from_table, dataclass_to_table, validate
 from dualsight.jobs.kinds.hil_common import Frozen, ImageEntry, fixed_point
 from dualsight.kernels.detect import DetectConfig
 from dualsight.kernels.detect_local import LocalDetectConfig

@@ -22,13 +22,13 @@ from dataclasses import dataclass
 
 import numpy as np
 import pyarrow as pa
+from pydantic import Field
 
+from dualsight.config import validate
 from dualsight.errors import ConfigError, InputError
 from dualsight.jobs.kinds import hil_star as hs
-from dualsight.jobs.kinds.hil_common import Frozen
+from dualsight.jobs.kinds.hil_common import Frozen, ImageEntry
 from dualsight.jobs.kinds.hil_star_spec import HilStarSpec, StarSettings, StarTruth
-from dualsight.jobs.kinds.hil_common import ImageEntry
-from pydantic import Field
 
 NAME = "hil_star_sweep"
 PRIMARY = "hil_sweep"
@@ -110,8 +110,6 @@ class SweepSpec(Frozen):
 
 
 def spec_from_dict(d: dict, source: str = "spec") -> SweepSpec:
-    from dualsight.jobs.engine.specs import validate
-
     m = validate(SweepSpec, d, source=source)
     if len(m.labels) != len(m.variants):
         raise ConfigError(f"must have one label per variant ({len(m.variants)}), got {len(m.labels)}",

@@ -64,7 +64,7 @@ from pydantic import Field, field_validator, model_validator
 
 from dualsight.errors import InputError, read_user_file
 from dualsight.jobs.cli.main import main as dualsight_main
-from dualsight.jobs.engine.specs import validate
+from dualsight.config import validate
 from dualsight.jobs.kinds.hil_common import Frozen, rows_table
 from dualsight.scene.attitude import radec_to_unit, unit_to_radec
 from dualsight.scene.pointing import roll_deg as roll_of

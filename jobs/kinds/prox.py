@@ -35,7 +35,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from dualsight.catalogs.areas import area_table
 from dualsight.errors import ConfigError
-from dualsight.jobs.engine.specs import preset_and_config, validate
+from dualsight.config import validate
+from dualsight.jobs.engine.specs import preset_and_config
 from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.kernels.points import render
 from dualsight.kernels.prox_sensor import apply_sensor
@@ -158,7 +159,7 @@ class ProxTable(BaseModel):
 
 
 def spec_from_dict(d: dict, source: str = "spec") -> ProxSpec:
-    """Validate a prox spec (pydantic, :func:`dualsight.jobs.engine.specs.validate`); errors name ``source`` and the key."""
+    """Validate a prox spec (pydantic, :func:`dualsight.config.validate`); errors name ``source`` and the key."""
     t = validate(ProxTable, d, source=source)
     sat = t.satellite
     if isinstance(sat, str):

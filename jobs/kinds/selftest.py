@@ -15,7 +15,7 @@ import numpy as np
 import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field
 
-from dualsight.jobs.engine.specs import validate
+from dualsight.config import validate
 
 NAME = "selftest"
 PRIMARY = "selftest_cases"

@@ -43,7 +43,8 @@ from dualsight.errors import ConfigError, InputError
 from dualsight.jobs.kinds import star_summaries
 from dualsight.jobs.kinds.star_tables import CASES_SCHEMA, DETECTIONS_SCHEMA, cases_table, detections_table
 from dualsight.jobs.engine.runner import prepare, run_job
-from dualsight.jobs.engine.specs import dataclass_from_table, dataclass_to_table, preset_and_config, validate
+from dualsight.config import dataclass_from_table, dataclass_to_table, validate
+from dualsight.jobs.engine.specs import preset_and_config
 from dualsight.kernels import detect as kdetect
 from dualsight.kernels import starfield as kstar
 from dualsight.kernels.detect import DetectConfig
@@ -153,7 +154,7 @@ def _sensor_table(sensor: SensorConfig) -> dict:
 
 class StarTable(BaseModel):
     """The top level of a star spec's TOML layout (pydantic); the sections are validated into their
-    dataclasses by :func:`dualsight.jobs.engine.specs.dataclass_from_table`."""
+    dataclasses by :func:`dualsight.config.dataclass_from_table`."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     seed: int = Field(1, ge=0, le=2**63 - 1)

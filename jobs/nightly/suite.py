@@ -48,7 +48,8 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from dualsight.errors import ConfigError
-from dualsight.jobs.engine.specs import deep_merge, preset_and_config, validate
+from dualsight.config import validate
+from dualsight.jobs.engine.specs import deep_merge, preset_and_config
 
 REPO = Path(__file__).resolve().parents[2]
 MC_KINDS = ("star", "prox_sweep", "prox_trajectory")
