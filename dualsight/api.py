@@ -46,7 +46,7 @@ if TYPE_CHECKING:                                   # heavy modules: imported wh
 
     from dualsight.warehouse.lake import RunRecord
 
-__all__ = ["solve", "Solution", "Star", "Timings", "Lake", "run", "SOLVE_SETTINGS"]
+__all__ = ["solve", "Solution", "Star", "Timings", "Lake", "run", "SOLVE_SETTINGS", "RUN_KINDS"]
 
 
 # ============================================================================================ solve
