@@ -10,21 +10,25 @@ The API's names are reachable from the root: ``dualsight.solve``,
 ``dualsight.Lake``, ``dualsight.run`` and the types they return
 (``Solution``, ``Star``, ``Timings``, ``RunRecord``).  This facade is the one
 deliberate place where the root package names things defined elsewhere
-(``dualsight/api.py``, ``warehouse/lake.py``).  They are resolved on first use
+(``dualsight/api.py``, ``warehouse/lake.py``, ``dualsight/version.py``).  They are resolved on first use
 by the module ``__getattr__`` below (PEP 562), never at import: every
 ``import dualsight.kernels.x`` runs this file first, and the kernels must not
 pull in the engine, the lake or the catalogs.
 """
 
 import importlib
-
-__version__ = "0.1.0"
+import os as _os
 
 from dualsight import allocator as _allocator
 
+# Process settings, before any module imports taichi: no banner on stdout (it would corrupt --json output),
+# no version check over the network.  Taichi itself starts lazily at the first kernel call.
+_os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
+_os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
 _allocator.tune()
 
 _FACADE = {
+    "__version__": "dualsight.version",
     "solve": "dualsight.api",
     "Solution": "dualsight.api",
     "Star": "dualsight.api",
@@ -35,7 +39,7 @@ _FACADE = {
 }
 """Facade name -> the module that defines it."""
 
-__all__ = ["__version__", *_FACADE]
+__all__ = list(_FACADE)
 
 
 def __getattr__(name: str):

@@ -13,6 +13,9 @@ import hashlib
 from importlib import import_module
 from pathlib import Path
 
+__version__ = "0.1.0"
+"""The package version (as in pyproject.toml); ``dualsight.__version__`` names this."""
+
 SUBPACKAGES = ("dualsight", "dualsight.scene", "dualsight.nav", "dualsight.kernels", "dualsight.catalogs",
                "dualsight.jobs", "dualsight.warehouse", "dualsight.viz")
 
@@ -20,8 +23,6 @@ SUBPACKAGES = ("dualsight", "dualsight.scene", "dualsight.nav", "dualsight.kerne
 @functools.lru_cache(maxsize=1)
 def code_version() -> str:
     """``"0.1.0+1a2b3c4d5e6f"``: package version plus a hash of the package's source files."""
-    from dualsight import __version__
-
     h = hashlib.sha256()
     for name in SUBPACKAGES:
         folder = Path(import_module(name).__file__).parent

@@ -10,12 +10,6 @@ Imports allowed: numpy, taichi, OpenCV, pydantic (the configs' field bounds), as
 and, of the project, only the root utilities ``dualsight.errors``, ``dualsight.config``, ``dualsight.version`` and
 ``dualsight.allocator``.
 
-Importing the package only sets Taichi's environment before any module imports taichi (no banner on stdout,
-which would corrupt ``--json`` output; no version check over the network); the runtime starts at the first
-kernel call (:func:`dualsight.kernels._runtime.ensure_init`).
+Taichi's environment (no banner, no version check) is set by the root package before any module can import
+taichi; the runtime starts at the first kernel call (:func:`dualsight.kernels._runtime.ensure_init`).
 """
-
-import os as _os
-
-_os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
-_os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
