@@ -7,15 +7,17 @@ principal point), a least-squares plane, the area of a disk and an ADC's full sc
 """
 
 import dataclasses
+import hashlib
 import math
 
 import numpy as np
 import pytest
 
 from dualsight.errors import ConfigError
-from dualsight.config import dataclass_from_table
 from dualsight.kernels.detect import render_and_detect_ideal
-from dualsight.kernels.sensor_config import SensorConfig
+from dualsight.jobs.engine.specs import deep_merge
+from dualsight.jobs.kinds.star import PRESETS as STAR_PRESETS, spec_from_dict as star_spec_from_dict
+from dualsight.kernels.sensor_config import SensorConfig, with_psf_digest
 from dualsight.kernels.starfield import render_star_fields
 from dualsight.scene.camera import Camera
 
@@ -235,14 +237,23 @@ def test_psf_image_from_png_and_one_line_errors(tmp_path):
     for name, arr in {**bad, "missing.npy": None}.items():
         if arr is not None:
             np.save(tmp_path / name, arr)
+        cfg = SensorConfig(psf_model="image", psf_image=str(tmp_path / name))     # the constructor reads nothing
         with pytest.raises(ValueError) as e:
-            SensorConfig(psf_model="image", psf_image=str(tmp_path / name))
+            with_psf_digest(cfg)
         msg = str(e.value)
         assert "psf_image" in msg and name in msg and "\n" not in msg, msg
+        table = deep_merge(STAR_PRESETS["paper"], {"sensor": {"psf_model": "image", "psf_image": str(tmp_path / name)}})
         with pytest.raises(ConfigError) as e:
-            dataclass_from_table(SensorConfig, {"psf_model": "image", "psf_image": str(tmp_path / name)},
-                                 source="spec.toml", section="sensor")
-        assert "spec.toml" in str(e.value) and name in str(e.value)
+            star_spec_from_dict(table, source="spec.toml")
+        assert "spec.toml" in str(e.value) and name in str(e.value) and "\n" not in str(e.value)
+    good = with_psf_digest(SensorConfig(psf_model="image", psf_image=str(tmp_path / "q.npy")))
+    unit = np.load(tmp_path / "q.npy") / np.load(tmp_path / "q.npy").sum()     # the spec hashes the unit-sum PSF
+    want = hashlib.sha256(f"{unit.shape[0]}x{unit.shape[1]}:".encode() + unit.astype("<f8").tobytes()).hexdigest()
+    assert good.psf_image_sha256 == want
+    assert with_psf_digest(dataclasses.replace(good, psf_image=str(tmp_path / "psf.png"))) is not None  # same PSF
+    np.save(tmp_path / "q.npy", q.astype(np.float64) + np.eye(*q.shape))                # the file changed under it
+    with pytest.raises(ValueError, match="not the one this spec was made with"):
+        with_psf_digest(good)
     with pytest.raises(ValueError, match="psf_image"):
         SensorConfig(psf_model="image")
     with pytest.raises(ValueError, match="psf_image"):
