@@ -158,7 +158,9 @@ def robust_std(v: np.ndarray, clip: float = 3.0, iters: int = 3, sub: int = 4) -
         if n < 8:
             break
         m = float(w.sum()) / n
-        c, sd = c + m, math.sqrt(max(float(np.dot(w, w)) / n - m * m, 0.0)) * corr
+        # einsum's own loop, not BLAS: a threaded ddot splits the sum by thread count, and a frame must give the
+        # same bits in a 1-thread worker as in a 2-thread process
+        c, sd = c + m, math.sqrt(max(float(np.einsum("i,i->", w, w)) / n - m * m, 0.0)) * corr
     return sd
 
 
