@@ -125,7 +125,7 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
     paths = frames() if paths is None else paths
     cam = Camera.from_toml(camera)
     from dualsight.jobs.cli.main import build_parser
-    from dualsight.jobs.cli.hil_star import star_spec_from_args
+    from dualsight.jobs.cli.hil_star_command import star_spec_from_args
     args = build_parser().parse_args(hil_cmd(paths, "--no-compare", *extra, camera=camera)[3:])
     spec = star_spec_from_args(args)                       # the CLI's own spec (robust voting, no comparison)
     ctx = hs.make_context(spec)

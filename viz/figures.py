@@ -1,6 +1,7 @@
-"""What every figure of dualsight shares: matplotlib without a display (:func:`pyplot`), writing a figure to a file
-(:func:`save_figure`) or to PNG bytes (:func:`png_bytes`), and a small PNG thumbnail of a frame
-(:func:`thumbnail_png`).  matplotlib and OpenCV are imported when a figure is drawn, not with this module.
+"""What every figure of dualsight shares: matplotlib without a display (:func:`pyplot`: the Agg backend, set when
+this module is imported), writing a figure to a file (:func:`save_figure`) or to PNG bytes (:func:`png_bytes`), and
+a small PNG thumbnail of a frame (:func:`thumbnail_png`, OpenCV imported when it is called).  The figure modules
+of viz import this one, so importing any of them imports matplotlib: the command line imports them when it draws.
 """
 
 from __future__ import annotations
@@ -8,26 +9,24 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 
-from dualsight.errors import output_path
+matplotlib.use("Agg")            # files only, never a window; before pyplot is imported
+import matplotlib.pyplot as plt  # noqa: E402
+
+from dualsight.errors import output_path  # noqa: E402
 
 __all__ = ["pyplot", "save_figure", "png_bytes", "thumbnail_png"]
 
 
 def pyplot():
     """``matplotlib.pyplot`` on the Agg backend (files only, never a window)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     return plt
 
 
 def save_figure(fig, path: Path, dpi: int = 110) -> Path:
     """Write ``fig`` as ``path`` (its folder must exist) and close it; returns the path."""
-    plt = pyplot()
     try:
         path = output_path(path)
     except Exception:

@@ -1,6 +1,7 @@
 """rerun recordings (.rrd) of single cases: the image, detections, identities, predictions, numbers.
 
-Draws arrays and query results only; never calls back into ``jobs``.
+Draws arrays and query results only; never calls back into ``jobs``.  Imports rerun (the replay commands
+import this module when they record).
 """
 
 from __future__ import annotations
@@ -8,17 +9,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
-
-def _rr():
-    import rerun as rr
-
-    return rr
+import rerun as rr
 
 
 def open_recording(path: Path | str, app_id: str = "dualsight"):
     """A rerun recording stream that saves to ``path``."""
-    rr = _rr()
     rec = rr.RecordingStream(app_id)
     rec.save(str(path))
     return rec
@@ -37,7 +32,6 @@ def log_attitudes(rec, attitudes: dict[str, np.ndarray | None]):
     attitudes : {name: (3, 3) DCM A (inertial -> camera; its rows are the camera axes in the inertial
     frame) or None}; entity ``attitude/<name>``, arrows x red, y green, z (boresight) blue.
     """
-    rr = _rr()
     for name, A in attitudes.items():
         if A is not None and np.all(np.isfinite(A)):
             rec.log(f"attitude/{name}", rr.Arrows3D(vectors=np.asarray(A, dtype=np.float64).reshape(3, 3),
@@ -47,7 +41,6 @@ def log_attitudes(rec, attitudes: dict[str, np.ndarray | None]):
 
 def log_scalars(rec, scalars: dict[str, float | None]):
     """Log finite numbers as time series ``metrics/<name>`` (plotted along the recording's time lines)."""
-    rr = _rr()
     for k, v in scalars.items():
         if v is not None and np.isfinite(v):
             rec.log(f"metrics/{k}", rr.Scalars(float(v)))
@@ -65,7 +58,6 @@ def log_star_case(rec, *, image: np.ndarray, det_xy: np.ndarray, det_labels: lis
     truth_xy : (G, 2) catalog stars projected with the true attitude (generated stars).
     attitudes : {"true": A, "estimated": A} (:func:`log_attitudes`).  scalars : numbers (:func:`log_scalars`).
     """
-    rr = _rr()
     rec.set_time("frame", sequence=frame)
     log_attitudes(rec, attitudes or {})
     log_scalars(rec, scalars or {})
@@ -90,7 +82,6 @@ def log_prox_frame(rec, *, image: np.ndarray, cob_xy, axes: np.ndarray | None, b
     positions : {name: (3,) target position in the camera frame (m)}, logged as ``scene/<name>``
         points (true and each estimator's), so a trajectory's frames trace both paths on the time line.
     """
-    rr = _rr()
     rec.set_time("frame", sequence=frame)
     colors = {"true": [80, 140, 255], "paper": [250, 210, 40], "subpixel": [40, 220, 40]}
     for name, p in (positions or {}).items():
@@ -114,7 +105,6 @@ def log_prox_frame(rec, *, image: np.ndarray, cob_xy, axes: np.ndarray | None, b
 def log_image_case(rec, *, image: np.ndarray | None, points: np.ndarray, labels: list[str], info_md: str,
                    frame: int = 0):
     """Log a real-image case: the frame (when readable), its detections (K, 2) px with labels, the row as text."""
-    rr = _rr()
     rec.set_time("frame", sequence=frame)
     if image is not None:
         rec.log("camera/image", rr.Image(_display(image)))

@@ -15,6 +15,7 @@ from pathlib import Path
 import duckdb
 
 from dualsight.errors import InputError
+from dualsight.scene.units import ARCSEC
 from dualsight.warehouse.lake import Lake
 
 
@@ -45,8 +46,6 @@ def connect(lake: Lake | Path | str, threads: int | None = None, *, warn=None,
                     f"union_by_name = true)")
         allowed.append((lake.root / ds).resolve().as_posix() + "/")
     # the one conversion of the report SQL to arcseconds, from the one units module
-    from dualsight.scene.units import ARCSEC
-
     con.execute(f"CREATE MACRO arcsec_per_rad() AS {1.0 / ARCSEC!r}")
     if locked:
         if allowed:

@@ -1,7 +1,7 @@
 """Command-line building blocks shared by every command group (so that no group imports ``jobs/cli/main.py``):
 the one-line-error parser, typed option parsers, the lake option and the shared run options; and what the HIL
-commands (``hil star``, ``hil prox``, ``calibrate``) share: their image and engine options, the image list of
-their arguments, the engine call with a temporary lake for ``--no-lake`` and the closing line."""
+commands (``hil star``, ``hil prox``, ``calibrate``) share: their image and engine options, the engine call with a
+temporary lake for ``--no-lake`` and the closing line.  Imports only what ``dualsight --help`` needs (no numpy)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ import tempfile
 from pathlib import Path
 
 from dualsight.errors import InputError
-from dualsight.kernels.imageio import list_images
 from dualsight.warehouse.paths import RUN_ID_PATTERN, check_run_id, default_lake
 
 
@@ -109,16 +108,6 @@ def add_engine_args(p: argparse.ArgumentParser, *, prefix: str):
                    "on a cluster; the lake and the images must be on storage every worker can read and write")
     g.add_argument("--shard-size", type=int, default=None, help="images per shard file (default: automatic)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
-
-
-def expand_inputs(items) -> list[Path]:
-    """Image paths; a folder argument expands to its images (natural order).  Missing files are kept
-    (they become error rows)."""
-    out = []
-    for it in items:
-        p = Path(it)
-        out.extend(list_images(p) if p.is_dir() else [p])
-    return out
 
 
 @contextlib.contextmanager

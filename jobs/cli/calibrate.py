@@ -31,14 +31,13 @@ the board is found in fewer than 3 of them (the message lists where it was not f
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
+
+from dualsight.jobs.cli.args import add_engine_args
 
 
 def register_calibrate(subparsers) -> None:
     """Add ``calibrate`` to the top-level sub-parsers of ``dualsight`` (jobs/cli/main.py)."""
-    from dualsight.jobs.cli.args import add_engine_args
-
     p = subparsers.add_parser("calibrate", help="camera calibration from chessboard photos -> camera file",
                               description="Calibrate a camera from photos of a flat chessboard (Zhang/Bouguet via "
                                           "OpenCV) and write a dualsight camera file.")
@@ -54,62 +53,9 @@ def register_calibrate(subparsers) -> None:
     p.set_defaults(func=cmd_calibrate)
 
 
-def check_output(path: Path | None):
-    """Refuse, before any work, an output whose folder does not exist or that is a folder."""
-    from dualsight.errors import InputError
-
-    if path is None:
-        return
-    if path.is_dir():
-        raise InputError("is a folder; give the camera file's name, e.g. camera.toml", source=str(path))
-    if not path.parent.is_dir():
-        raise InputError(f"folder {path.parent} does not exist; create it first (calibrate writes into existing "
-                         "folders only)", source=str(path))
-
-
 def cmd_calibrate(args) -> int:
-    from dualsight.errors import ImageError, InputError
-    from dualsight.jobs.kinds import calibrate as job
-    from dualsight.jobs.cli.args import engine_lake, run_engine
-    from dualsight.scene import calibration as cal
-    from dualsight.scene.camera_file import write_camera_toml
-    from dualsight.kernels.imageio import list_images
-    from dualsight.warehouse.query import connect, run_report
+    """``dualsight calibrate`` (the module docstring): run by jobs/cli/calibrate_command.py, imported when the
+    command runs (the calibrate kind: pyarrow, OpenCV)."""
+    from dualsight.jobs.cli import calibrate_command
 
-    board = cal.parse_board(args.board)
-    pitch_m = None if args.pixel_pitch_um is None else float(args.pixel_pitch_um) * 1e-6
-    cal.check_settings(board, args.square, pitch_m)
-    check_output(args.output)
-    paths = list_images(args.folder)
-    if not paths:
-        raise ImageError("no images (.png .jpg .jpeg .tif .tiff .fits .fit .fts) in this folder", source=str(args.folder))
-    spec_dict = job.build_spec(paths, board=board, square_m=args.square, pixel_pitch_um=args.pixel_pitch_um)
-    spec = job.spec_from_dict(spec_dict, source="calibrate")
-    with engine_lake(args) as (lake, kept):
-        manifest = run_engine("calibrate", spec_dict, job.n_cases(spec), lake, args, label="calibrate")
-        con = connect(lake)
-        cols, rows = run_report(con, "hil_calib_views", run=manifest["run_id"])
-        con.close()
-    res = job.solve(spec, [dict(zip(cols, r)) for r in rows])
-    if args.output is not None:
-        try:
-            write_camera_toml(res, args.output, name=Path(args.folder).name)
-        except OSError as e:          # the camera file could not be written
-            raise InputError(f"cannot write the camera file ({e.strerror or e})", source=str(args.output)) from None
-    if args.json:
-        c = res.camera
-        print(json.dumps({
-            "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width, "height": c.height,
-            "distortion": list(c.distortion), "rms_px": res.rms_px, "std": res.std,
-            "focal_length_mm": res.focal_length_mm,
-            "pixel_pitch_um": c.pixel_pitch_m * 1e6 if res.pixel_pitch_known else None,
-            "board": list(res.board), "square_m": res.square_m,
-            "views": [{"image": v.path.name, "distance_m": v.distance_m, "rms_px": v.rms_px} for v in res.views],
-            "not_found": [p.name for p in res.not_found],
-            "unreadable": [{"image": p.name, "reason": why} for p, why in res.unreadable],
-            "output": str(args.output) if args.output else None,
-            "run": manifest["run_id"] if kept else None}, indent=1))
-    else:
-        print(cal.format_summary(res) + (f"\nwrote {args.output}" if args.output is not None else "")
-              + (f"\nrun {manifest['run_id']} in {lake.root} (dataset calib_views)" if kept else ""))
-    return 0
+    return calibrate_command.run(args)

@@ -24,9 +24,14 @@ import signal
 import sys
 from pathlib import Path
 
+from dualsight.version import __version__
 from dualsight.errors import InputError
+from dualsight.jobs.cli import calibrate as cli_calibrate
+from dualsight.jobs.cli import hil_star as cli_hil_star
+from dualsight.jobs.cli import nightly as cli_nightly
+from dualsight.jobs.cli import peer as cli_peer
+from dualsight.jobs.cli import prox as cli_prox
 from dualsight.jobs.cli.args import Parser, add_lake_arg, add_run_args, latest_run, open_lake, positive_int, run_id_arg
-from dualsight.viz.star_figures import error_vs_observed_figure
 from dualsight.warehouse.paths import os_error_text
 
 # The one table from commands to job kinds (jobs/engine/runner.py JOB_KINDS maps kinds to modules).
@@ -42,8 +47,7 @@ COMMAND_KINDS = {
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from dualsight import __version__
-
+    """The ``dualsight`` parser: every command and command group, each with its ``func``."""
     parser = Parser(prog="dualsight", description="End-to-end test bench for a dual-use "
                                      "(star tracker + proximity navigation) small-satellite camera.")
     parser.add_argument("--version", action="version", version=f"dualsight {__version__}")
@@ -68,7 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_star_replay)
     star.set_defaults(func=lambda a: _help(star))
 
-    for register in _optional_registrations():
+    for register in (cli_prox.register, cli_hil_star.register, cli_calibrate.register_calibrate, cli_nightly.register,
+                     cli_peer.register):         # the command groups of the other modules of jobs/cli
         register(sub)
 
     p = sub.add_parser("sql", help="DuckDB SQL over the lake's views (one per dataset)")
@@ -127,20 +132,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _optional_registrations():
-    """Command groups of the other jobs (each module adds its own sub-commands)."""
-    from dualsight.jobs.cli import calibrate as calibrate_cli, hil_star as cli_hil, nightly, peer, prox as cli_prox
-
-    return [cli_prox.register, cli_hil.register, calibrate_cli.register_calibrate, nightly.register, peer.register]
-
-
 def _help(p):
     p.print_help()
     return 0
 
 
 def _on_sigterm(signum, frame):
-    from dualsight.jobs.engine.runner import Interrupted
+    from dualsight.jobs.engine.runner import Interrupted          # pyarrow
 
     raise Interrupted(f"signal {signum}")
 
@@ -211,14 +209,10 @@ def cmd_star_run(args) -> int:
 
 
 def cmd_selftest_run(args) -> int:
-    from dualsight.jobs.engine.specs import preset_and_config
-    from dualsight.jobs.engine.runner import run_job
+    from dualsight.jobs.engine.runner import run_job              # pyarrow
+    from dualsight.jobs.kinds import selftest                     # pyarrow
 
-    d, source = preset_and_config({"default": {"seed": 1}}, args.preset, args.config, default="default")
-    if args.seed is not None:
-        d["seed"] = args.seed
-    if args.sleep_ms is not None:
-        d["sleep_ms"] = args.sleep_ms
+    d, source = selftest.resolve_spec(args.preset, args.config, seed=args.seed, sleep_ms=args.sleep_ms)
     m = run_job(COMMAND_KINDS[("selftest", "run")], d, n_cases=args.cases or 1000, lake=open_lake(args),
                 run_id=args.run, workers=args.workers, scheduler=args.scheduler, shard_size=args.shard_size,
                 progress=not args.no_progress, source=source)
@@ -233,6 +227,8 @@ def cmd_star_report(args) -> int:
     run_id = args.run or latest_run(lake, ["star"])
     rep = star_report.build(lake, run_id)
     if args.plot:
+        from dualsight.viz.star_figures import error_vs_observed_figure   # matplotlib
+
         error_vs_observed_figure(rep["json"], args.plot)
     if args.json:
         print(json.dumps(rep["json"], indent=1))

@@ -4,7 +4,7 @@
                       [--workers N] [--fresh-seed S] [--no-progress]
     dualsight nightly history [--lake DIR] [--json] [--html FILE]
 
-The night itself is jobs/nightly/run.py's ``run_nightly`` (suite from jobs/nightly/suite.py); the lines printed
+The night itself is jobs/nightly/run.py's ``run_nightly`` (the suite: jobs/nightly/suite.py); the lines printed
 come from jobs/nightly/text.py, the page from viz/nightly_html.py over the verdicts kept in the lake
 (jobs/nightly/store.py).
 
@@ -21,9 +21,7 @@ from pathlib import Path
 
 from dualsight.errors import InputError
 from dualsight.jobs.cli.args import add_lake_arg, open_lake, positive_int
-from dualsight.jobs.nightly.suite import load_suite
 from dualsight.jobs.nightly.text import history_text, json_safe, verdicts_text
-from dualsight.viz.nightly_html import write_page
 
 
 def register(sub) -> None:
@@ -63,9 +61,8 @@ def cmd_nightly(args) -> int:
 
     if args.html is not None and not Path(args.html).parent.is_dir():
         raise InputError(f"folder {Path(args.html).parent} does not exist", source="--html")
-    suite = load_suite(args.suite)
     lake = open_lake(args)
-    s = run_nightly(suite, lake, accept=args.accept, workers=args.workers, fresh_seed=args.fresh_seed,
+    s = run_nightly(args.suite, lake, accept=args.accept, workers=args.workers, fresh_seed=args.fresh_seed,
                     progress=not args.no_progress and sys.stderr.isatty())
     if args.html is not None:
         png = _write_html(lake, args.html, night=s["night"])
@@ -86,6 +83,7 @@ def cmd_nightly(args) -> int:
 def _write_html(lake, path: Path, night: str | None = None) -> Path:
     """The nightly page of ``night`` (default: the last) with every night's trends; returns its PNG's path."""
     from dualsight.jobs.nightly import store                    # pyarrow
+    from dualsight.viz.nightly_html import write_page           # matplotlib
 
     rows, nights = store.history(lake)
     last = night or (nights[-1]["night"] if nights else None)

@@ -6,13 +6,11 @@ import json
 import sys
 from pathlib import Path
 
-
 from dualsight.errors import InputError
+from dualsight.jobs.cli.args import add_lake_arg, add_run_args, latest_run, open_lake
 
 
 def register(sub):
-    from dualsight.jobs.cli.args import add_lake_arg, add_run_args
-
     prox = sub.add_parser("prox", help="proximity operations: range sweeps, trajectories, reports, replay")
     psub = prox.add_subparsers(dest="action", metavar="ACTION")
 
@@ -61,9 +59,8 @@ def register(sub):
 
 
 def _run(args, overrides: dict) -> dict:
-    from dualsight.jobs.kinds import prox
-    from dualsight.jobs.cli.args import open_lake
-    from dualsight.jobs.engine.runner import run_job
+    from dualsight.jobs.engine.runner import run_job                      # pyarrow
+    from dualsight.jobs.kinds import prox                                 # Taichi
 
     s = prox.resolve(args.preset, args.config, seed=args.seed, mode=getattr(args, "mode", None),
                      satellite=str(args.satellite) if getattr(args, "satellite", None) else None, **overrides)
@@ -87,7 +84,7 @@ def cmd_sweep(args) -> int:
 def cmd_trajectory(args) -> int:
     out = _run(args, {"job": "trajectory", "frames": args.frames})
     if args.video:
-        from dualsight.jobs.replay.prox import write_trajectory_video
+        from dualsight.jobs.replay.prox import write_trajectory_video    # pyarrow, OpenCV
 
         path = write_trajectory_video(out["spec"], args.video, fps=args.fps)
         print(f"video: {path}", file=sys.stderr)
@@ -95,14 +92,13 @@ def cmd_trajectory(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from dualsight.jobs.cli.args import latest_run, open_lake
-    from dualsight.jobs.reports import prox as prox_report      # DuckDB
+    from dualsight.jobs.reports import prox as prox_report                # DuckDB
 
     lake = open_lake(args)
     run_id = args.run or latest_run(lake, ["prox_sweep", "prox_trajectory"])
     rep = prox_report.build_report(lake, run_id, args.estimator)
     if args.plot:
-        from dualsight.viz.prox_figures import plot_sweep, plot_trajectory
+        from dualsight.viz.prox_figures import plot_sweep, plot_trajectory   # matplotlib
 
         (plot_sweep if rep["job"] == "sweep" else plot_trajectory)(rep, args.plot)
     if args.json:
@@ -116,8 +112,7 @@ def cmd_report(args) -> int:
 
 
 def cmd_replay(args) -> int:
-    from dualsight.jobs.cli.args import open_lake
-    from dualsight.jobs.replay.prox import replay_prox_case
+    from dualsight.jobs.replay.prox import replay_prox_case              # pyarrow, DuckDB
 
     out = replay_prox_case(open_lake(args), args.run, args.case, args.output)
     print(f"recording: {out}  (open with: rerun {out})")
@@ -125,21 +120,10 @@ def cmd_replay(args) -> int:
 
 
 def cmd_resolvable(args) -> int:
-    from dualsight.nav.range import resolvable_range
-    from dualsight.scene.camera import Camera
+    from dualsight.jobs.reports import prox as prox_report                # DuckDB
 
     if not (args.size > 0):
         raise InputError(f"must be > 0 m, got {args.size}", source="--size")
-    cam = Camera.from_toml(args.camera) if args.camera else Camera.pinhole(1024, 768, 4.65e-6, 6e-3)
-    r = resolvable_range(cam, args.size)
-    out = {"size_m": args.size, "nearest_fits_frame_m": r.near_fit_m, "nearest_fills_frame_m": r.near_fill_m,
-           "farthest_2x2_px_m": r.far_m, "reference_convention_nearest_m": r.reference_near_m}
-    if args.json:
-        print(json.dumps(out, indent=1))
-    else:
-        print(f"object {args.size} m, camera {cam.width}x{cam.height} px, f = {cam.fx:.1f} px:\n"
-              f"  nearest (object fits the frame's short side): {r.near_fit_m:.4f} m\n"
-              f"  object fills the whole frame (long side):      {r.near_fill_m:.4f} m\n"
-              f"  farthest (object covers 2 x 2 pixels):         {r.far_m:.2f} m\n"
-              f"  the reference's 8.4 cm convention (h/2 over the full sensor height): {r.reference_near_m:.4f} m")
+    out, text = prox_report.resolvable_report(args.camera, args.size)
+    print(json.dumps(out, indent=1) if args.json else text)
     return 0

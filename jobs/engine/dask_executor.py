@@ -24,7 +24,7 @@ def task_token(lake_root: str, run_id: str, spec_hash: str) -> str:
 
 def run_on_dask(tasks, plan, lake, scheduler: str):
     """Yield journal entries as shards complete on the cluster at ``scheduler``."""
-    from dualsight.jobs.engine.runner import EngineError, execute_shard
+    from dualsight.jobs.engine.runner import EngineError, execute_shard   # pyarrow (and the runner imports this module)
 
     try:
         import dask.config

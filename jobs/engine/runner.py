@@ -27,6 +27,7 @@ worker are in flight, so planning and coordinating a 10^9-case run takes memory 
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import importlib
 import json
@@ -41,11 +42,15 @@ import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from dualsight.errors import InputError
+from dualsight.jobs.engine.dask_executor import run_on_dask
+from dualsight.jobs.engine.specs import check_memory
 from dualsight.version import code_version
 from dualsight.warehouse.lake import Lake, LakeError
 from dualsight.warehouse.paths import check_run_id, os_error_text
@@ -160,8 +165,6 @@ def execute_shard(task: ShardTask) -> dict:
 
 def versions() -> dict:
     """Versions of Python and the main packages, for the manifest."""
-    from importlib.metadata import PackageNotFoundError, version
-
     out = {"python": platform.python_version(), "dualsight": code_version()}
     for name in ("numpy", "taichi", "pyarrow", "duckdb", "astropy", "opencv-python-headless"):
         try:
@@ -184,8 +187,6 @@ def prepare(kind: str, spec_dict: dict, n_cases: int, *, source: str = "spec"):
     spec = mod.spec_from_dict(spec_dict, source)
     canonical = json.loads(json.dumps(spec.to_dict(), sort_keys=True))
     if hasattr(mod, "memory_estimate"):
-        from dualsight.jobs.engine.specs import check_memory
-
         check_memory(mod.memory_estimate(spec), source=source)
     return mod, spec, canonical, spec_hash(kind, canonical, n_cases)
 
@@ -333,8 +334,6 @@ def _run_locked(mod, plan: Plan, manifest: dict, lake: Lake, datasets, workers, 
 def _progress(plan: Plan, done: set[int], enabled: bool, desc: str):
     if not enabled:
         return None
-    from tqdm import tqdm
-
     already = sum(plan.info(s).case_stop - plan.info(s).case_start for s in done)
     return tqdm(total=plan.n_cases, initial=already, desc=desc, unit="case", dynamic_ncols=True, file=sys.stderr,
                 smoothing=0.1, mininterval=0.5)
@@ -347,8 +346,6 @@ _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "D
 def _execute(tasks, plan, lake, workers, threads_per_worker, scheduler, n_todo):
     """Yield journal entries of completed shards from the chosen executor."""
     if scheduler:
-        from dualsight.jobs.engine.dask_executor import run_on_dask
-
         yield from run_on_dask(tasks, plan, lake, scheduler)
         return
     if workers == 1 or n_todo == 1:
@@ -377,8 +374,6 @@ def _worker_init(parent_pid: int):
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     try:
-        import ctypes
-
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)   # PR_SET_PDEATHSIG = 1
     except (OSError, AttributeError):
         pass

@@ -32,7 +32,7 @@ from pydantic import Field
 
 from dualsight.errors import ConfigError, ImageError
 from dualsight.config import validate
-from dualsight.jobs.kinds.hil_common import Frozen, ImageEntry, check_unchanged, image_entries, n_cases, rows_table
+from dualsight.jobs.kinds.hil_common import Frozen, ImageEntry, check_unchanged, image_entries, rows_table
 from dualsight.scene import calibration as cal
 from dualsight.scene.chessboard import FIND_FLAGS_DEFAULT, ViewCorners, find_view
 
@@ -130,5 +130,5 @@ def solve(spec: CalibSpec, rows: list[dict]) -> cal.CalibrationResult:
                                  flags=spec.flags, aspect_ratio=spec.aspect_ratio, min_views=spec.min_views)
 
 
-__all__ = ["NAME", "PRIMARY", "SCHEMAS", "CalibSpec", "spec_from_dict", "build_spec", "n_cases", "make_context",
+__all__ = ["NAME", "PRIMARY", "SCHEMAS", "CalibSpec", "spec_from_dict", "build_spec", "make_context",
            "compute_shard", "shard_summary", "progress_postfix", "views_from_rows", "solve"]

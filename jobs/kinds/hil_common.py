@@ -8,6 +8,7 @@
   run's rows are a function of its spec alone.
 * The spec dict's common part (:func:`spec_base`: camera table, settings table, image entries), the case
   count (:func:`n_cases`: one case per image) and the rows -> Arrow table of every HIL dataset (:func:`rows_table`).
+* The images of a command's arguments (:func:`expand_inputs`: a folder expands to its images).
 
 The HIL commands' options, their engine call and closing line are the command line's (jobs/cli/args.py).
 """
@@ -21,9 +22,10 @@ import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from dualsight.errors import ImageError
+from dualsight.kernels.imageio import list_images
 
-__all__ = ["Frozen", "ImageEntry", "image_entries", "check_unchanged", "spec_base", "n_cases", "rows_table",
-           "fixed_point"]
+__all__ = ["Frozen", "ImageEntry", "image_entries", "check_unchanged", "expand_inputs", "spec_base", "n_cases",
+           "rows_table", "fixed_point"]
 
 
 class Frozen(BaseModel):
@@ -98,6 +100,16 @@ def check_unchanged(entry: ImageEntry):
     if st.st_size != entry.bytes or st.st_mtime_ns != entry.mtime_ns:
         raise ImageError(f"changed since the run was planned ({entry.bytes} -> {st.st_size} bytes, modified "
                          "again); start a new run for the new file", source=entry.path)
+
+
+def expand_inputs(items) -> list[Path]:
+    """Image paths; a folder argument expands to its images (natural order).  Missing files are kept
+    (they become error rows)."""
+    out = []
+    for it in items:
+        p = Path(it)
+        out.extend(list_images(p) if p.is_dir() else [p])
+    return out
 
 
 def fixed_point(normalise, value, rounds: int = 4):

@@ -63,13 +63,14 @@ from dualsight.jobs.kinds.hil_defaults import DEFAULT_THRESHOLD
 from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.errors import ConfigError, ImageError
 from dualsight.config import validate
-from dualsight.jobs.kinds.hil_common import (Frozen, ImageEntry, check_unchanged, fixed_point, n_cases, rows_table,
-                                      spec_base)
+from dualsight.jobs.kinds.hil_common import Frozen, ImageEntry, check_unchanged, fixed_point, rows_table, spec_base
+from dualsight.jobs.kinds.hil_common import n_cases  # noqa: F401  (a kind's n_cases: hil_prox.n_cases, tests)
 from dualsight.nav.blobber import BlobberConfig, run_blobber
 from dualsight.nav.blobber_names import ESTIMATORS, TARGETS
 from dualsight.nav.hil_score import score_range
 from dualsight.scene.camera import Camera
 from dualsight.kernels.imageio import read_image
+from dualsight.scene.satellite import load_satellite
 from dualsight.scene.segment import foreground_masks, score_image, undistort_image
 
 NAME = "hil_prox"
@@ -201,8 +202,7 @@ def parse_sweep(text: str) -> tuple[float, ...]:
 
 def target_spec(path: str | Path) -> dict:
     """The spec's ``target`` of a satellite TOML (scene/satellite.py): its name and components."""
-    from dualsight.catalogs.areas import shape_spec
-    from dualsight.scene.satellite import load_satellite
+    from dualsight.catalogs.areas import shape_spec         # pyarrow
 
     sat = load_satellite(path)
     return {"name": sat.name or Path(path).stem, "components": shape_spec(sat)}
@@ -407,6 +407,6 @@ def progress_postfix(stats: dict) -> str:
 
 
 __all__ = ["NAME", "PRIMARY", "SCHEMAS", "ProxSettings", "TargetSpec", "HilProxSpec", "settings_from_dict",
-           "spec_from_dict", "parse_sweep", "target_spec", "build_spec", "n_cases", "Target", "make_target",
+           "spec_from_dict", "parse_sweep", "target_spec", "build_spec", "Target", "make_target",
            "load_target", "make_context", "memory_estimate", "compute_shard", "process_image", "shard_summary",
-           "progress_postfix", "DEFAULT_THRESHOLD"]
+           "progress_postfix"]

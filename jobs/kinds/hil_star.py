@@ -59,14 +59,17 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyarrow as pa
 
+from dualsight.kernels._runtime import ensure_init, is_initialised
 from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.catalogs.pair_cache import load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 from dualsight.errors import ImageError
 from dualsight.config import validate
-from dualsight.jobs.kinds.hil_common import ImageEntry, check_unchanged, n_cases, rows_table, spec_base
-from dualsight.jobs.kinds.hil_star_spec import (MAX_VOTE_CELLS, HilStarSpec, StarSettings, StarTruth,
-                                          settings_from_table, spec_from_dict)
+from dualsight.jobs.kinds.hil_common import ImageEntry, check_unchanged, rows_table, spec_base
+from dualsight.jobs.kinds.hil_common import n_cases  # noqa: F401  (a kind's n_cases: hil_star.n_cases, tests)
+from dualsight.jobs.kinds.hil_star_spec import MAX_VOTE_CELLS, HilStarSpec, StarSettings, StarTruth
+from dualsight.jobs.kinds.hil_star_spec import settings_from_table  # noqa: F401  (hil_star.settings_from_table, tests)
+from dualsight.jobs.kinds.hil_star_spec import spec_from_dict  # noqa: F401  (the job-kind contract: the engine's)
 from dualsight.jobs.kinds.star import catalog_bytes, pair_angle
 from dualsight.kernels.detect import DetectConfig, detect_stars
 from dualsight.kernels.detect_local import LocalDetectConfig, detect_real, subtract_local_background
@@ -270,8 +273,6 @@ def voting_engine(n_images: int = 0) -> str:
     process, with the comparison on; the threshold is twice that.  Images per core stands for images per
     worker: the local executor runs one worker per core by default (a Dask cluster's workers may each see
     fewer; the most a wrong guess costs is one start)."""
-    from dualsight.kernels._runtime import ensure_init, is_initialised
-
     if not is_initialised() and n_images >= TAICHI_VOTING_MIN_FRAMES * (os.cpu_count() or 1):
         ensure_init()
     return "taichi" if is_initialised() else "numpy"
@@ -501,7 +502,6 @@ def progress_postfix(stats: dict) -> str:
     return f"identified {stats.get('identified', 0)}, errors {stats.get('errors', 0)}"
 
 
-__all__ = ["NAME", "PRIMARY", "SCHEMAS", "StarSettings", "StarTruth", "HilStarSpec", "settings_from_table",
-           "spec_from_dict", "build_spec", "n_cases", "make_context", "memory_estimate", "compute_shard",
+__all__ = ["NAME", "PRIMARY", "SCHEMAS", "build_spec", "make_context", "memory_estimate", "compute_shard",
            "shard_summary", "progress_postfix", "read_frame", "detect_frames", "runtime", "tables",
            "runtime_of", "context_of", "base_row", "solve_frames", "Runtime", "Context", "ImageResult", "StarRow"]

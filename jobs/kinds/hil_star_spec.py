@@ -13,6 +13,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
+from dualsight.catalogs.auto_limit import HIL_TARGET_PER_FIELD, auto_mag_limit, is_auto
 from dualsight.catalogs.stars import StarCatalogConfig
 from dualsight.errors import ConfigError
 from dualsight.config import dataclass_from_table, dataclass_to_table, validate
@@ -155,7 +156,6 @@ def normalise_settings(s: StarSettings, *, source: str, section: str | None = No
     :data:`~dualsight.catalogs.auto_limit.HIL_TARGET_PER_FIELD` stars per field), resolved to a number
     here; without a camera it stays "auto" until :func:`spec_from_dict` (which has the camera) resolves it,
     so a stored spec always holds the number."""
-    from dualsight.catalogs.auto_limit import HIL_TARGET_PER_FIELD, auto_mag_limit, is_auto
     def sec(name):
         return f"{section}.{name}" if section else name
 

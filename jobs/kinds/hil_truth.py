@@ -28,6 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from dualsight.errors import ConfigError, InputError
+from dualsight.scene.camera_file import read_camera_toml
+from dualsight.scene.skytruth import altaz_from_filename, attitude_from_altaz
 
 __all__ = ["Site", "resolve_star_truths", "load_range_truth"]
 
@@ -80,8 +82,6 @@ def resolve_star_truths(paths, truth_file: dict | None, site: Site | None) -> li
                      matched={k: [float(x) for x in m[k]] for k in ("row", "col", "ra_deg", "dec_deg", "mag")})
     if site is None:
         return out
-    from dualsight.scene.skytruth import altaz_from_filename, attitude_from_altaz
-
     want, times, alts, azs = [], [], [], []
     for k, p in enumerate(paths):
         t_, a_, z_ = site.time_utc, site.alt_deg, site.az_deg
@@ -151,8 +151,6 @@ def load_range_truth(spec, paths) -> tuple[list[float | None], str]:
             table[Path(k).name] = float(val)
         kind = "json"
     else:
-        from dualsight.scene.camera_file import read_camera_toml
-
         _, cal = read_camera_toml(p)
         views = cal.get("views") or []
         for i, vw in enumerate(views):

@@ -53,6 +53,7 @@ Angles are stored in radians (``*_rad``) except the rolls (``roll_deg``), as in 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import sys
 from pathlib import Path
@@ -105,7 +106,7 @@ class PeerFrame(Frozen):
     @field_validator("A")
     @classmethod
     def _rotation(cls, v):
-        from dualsight.jobs.kinds.hil_star_spec import check_rotation
+        from dualsight.jobs.kinds.hil_star_spec import check_rotation     # Taichi (the detectors' configs)
 
         return check_rotation(v)
 
@@ -175,8 +176,6 @@ class PeerSpec(Frozen):
 def load_answers(path, *, method: str | None = None) -> PeerSpec:
     """The validated spec of an answers file; ``method`` (``--method``) names the peer when the file does
     not, and must agree with it when it does.  InputError (one line, naming the file and the field)."""
-    import json
-
     path = Path(path)
     data = read_user_file(path, InputError, what="JSON answers file", max_bytes=MAX_FILE_BYTES)
     try:

@@ -16,6 +16,7 @@ import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field
 
 from dualsight.config import validate
+from dualsight.jobs.engine.specs import preset_and_config
 
 NAME = "selftest"
 PRIMARY = "selftest_cases"
@@ -36,6 +37,22 @@ class SelftestSpec(BaseModel):
 
     def to_dict(self) -> dict:
         return self.model_dump(mode="json")
+
+
+PRESETS = {"default": {"seed": 1}}
+"""The presets of ``dualsight selftest run --preset NAME`` (one: the default)."""
+
+
+def resolve_spec(preset: str | None, config, *, seed: int | None = None,
+                 sleep_ms: float | None = None) -> tuple[dict, str]:
+    """The spec dict of ``dualsight selftest run`` (the preset, the ``--config`` TOML over it, then the flags)
+    and the source name its errors give."""
+    d, source = preset_and_config(PRESETS, preset, config, default="default")
+    if seed is not None:
+        d["seed"] = seed
+    if sleep_ms is not None:
+        d["sleep_ms"] = sleep_ms
+    return d, source
 
 
 def spec_from_dict(d: dict, source: str = "spec") -> SelftestSpec:

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dualsight.jobs.engine.runner import job_module
 from dualsight.jobs.nightly import stats as st
 from dualsight.warehouse.query import run_report, sql_text
 
@@ -194,8 +195,6 @@ def throughput(manifest: dict) -> tuple[float | None, float | None, int | None]:
 def compare_job(src: MetricSource, lake, job, runs: dict, base: dict | None, tp_history: list[float],
                 min_s: float) -> list[dict]:
     """Every verdict row of one job (``runs``: {"fixed": run id, "fresh": run id | None, "fresh_seed"})."""
-    from dualsight.jobs.engine.runner import job_module
-
     name, kind = job.name, job.kind
     now_fixed, now_fresh = runs["fixed"], runs.get("fresh")
     m_now = lake.read_manifest(now_fixed)

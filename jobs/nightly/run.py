@@ -19,9 +19,14 @@ from __future__ import annotations
 import sys
 import time
 
+from dualsight.jobs.engine.runner import run_job
 from dualsight.jobs.nightly import store
+from dualsight.jobs.nightly.compare import MetricSource, compare_job, decide_all
 from dualsight.jobs.nightly.stats import RED
+from dualsight.jobs.nightly.suite import Suite, load_suite
 from dualsight.jobs.nightly.text import short_verdict
+from dualsight.warehouse.lake import LakeError
+from dualsight.warehouse.query import connect
 
 
 def _say(msg: str):
@@ -31,16 +36,14 @@ def _say(msg: str):
 # ============================================================================================ one night
 def run_nightly(suite, lake, *, accept: bool = False, workers: int | None = None, fresh_seed: int | None = None,
                 progress: bool = False, log=_say) -> dict:
-    """Run ``suite`` into ``lake`` as a new night and compare it; returns the night's summary.
+    """Run ``suite`` into ``lake`` as a new night and compare it; returns the night's summary.  ``suite``: a
+    ``Suite``, or what ``load_suite`` takes (standard, quick or a suite TOML file).
 
     Keys: night, suite, exit (0/1/2), message, verdicts (rows), runs {job: {...}}, failed {job: reason},
     alpha (per test), tests (m), family_alpha, elapsed_s, baseline (night or None), accepted (path or None).
     """
-    from dualsight.jobs.nightly.compare import MetricSource, compare_job, decide_all
-    from dualsight.jobs.engine.runner import run_job
-    from dualsight.warehouse.lake import LakeError
-    from dualsight.warehouse.query import connect
-
+    if not isinstance(suite, Suite):
+        suite = load_suite(suite)
     t0 = time.perf_counter()
     baseline = store.read_baseline(lake)
     night = store.night_id(lake)

@@ -19,7 +19,11 @@ import numpy as np
 import pyarrow as pa
 
 from dualsight.errors import InputError
+from dualsight.jobs.engine.runner import spec_hash, versions
+from dualsight.jobs.nightly.compare import throughput
+from dualsight.version import code_version
 from dualsight.warehouse.lake import Lake, write_json_atomic
+from dualsight.warehouse.query import connect, run_report
 from dualsight.warehouse.shards import ShardInfo
 
 DATASET = "nightly_verdicts"
@@ -71,9 +75,6 @@ def verdict_table(rows: list[dict], night: str, suite: str) -> pa.Table:
 
 def write_verdicts(lake: Lake, night: str, suite: str, rows: list[dict], summary: dict) -> str:
     """Write the night's verdicts as run ``nightly-<night>-verdicts`` of dataset ``nightly_verdicts``."""
-    from dualsight.jobs.engine.runner import spec_hash, versions
-    from dualsight.version import code_version
-
     rid = run_id(night, "verdicts")
     table = verdict_table(rows, night, suite)
     n = table.num_rows
@@ -119,8 +120,6 @@ def read_baseline(lake: Lake) -> dict | None:
 
 def accept(lake: Lake, night: str, suite: str, runs: dict, old: dict | None) -> Path:
     """Make ``night`` the baseline: its run ids per job, its throughputs appended to the history (atomic)."""
-    from dualsight.jobs.nightly.compare import throughput
-
     jobs, tp = {}, {}
     for name, r in runs.items():
         if r.get("fixed") is None:
@@ -145,8 +144,6 @@ def throughput_history(baseline: dict | None, job: str) -> list[float]:
 # ============================================================================================ history
 def history(lake: Lake) -> tuple[list[dict], list[dict]]:
     """(every verdict row, one summary row per night) from the nightly_verdicts dataset, by SQL."""
-    from dualsight.warehouse.query import connect, run_report
-
     if DATASET not in lake.datasets():
         raise InputError(f"no nightly verdicts in {lake.root}; run `dualsight nightly` first", source="--lake")
     con = connect(lake)

@@ -47,9 +47,15 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from dualsight.errors import ConfigError
 from dualsight.config import validate
+from dualsight.errors import ConfigError
 from dualsight.jobs.engine.specs import deep_merge, preset_and_config
+from dualsight.jobs.kinds.hil_truth import load_range_truth, resolve_star_truths
+from dualsight.kernels.imageio import list_images
+from dualsight.scene.calibration import calibrate_chessboard
+from dualsight.scene.camera import Camera, read_toml
+from dualsight.scene.skytruth import load_truth_json
+from dualsight.scene.timescale import observation_epoch
 
 REPO = Path(__file__).resolve().parents[2]
 MC_KINDS = ("star", "prox_sweep", "prox_trajectory")
@@ -157,8 +163,6 @@ def _resolve(text: str, base: Path) -> Path:
 
 def load_suite(which: str | Path | None) -> Suite:
     """``standard`` (built-in, the default), ``quick`` (examples/nightly/quick.toml) or a suite TOML file."""
-    from dualsight.scene.camera import read_toml
-
     name = str(which) if which is not None else "standard"
     if name == "standard":
         return build_suite(copy.deepcopy(STANDARD), source="suite standard (built-in)", base=REPO)
@@ -210,8 +214,6 @@ def _job(j: JobTable, i: int, source: str, base: Path) -> Job:
 
 
 def _images(text: str, base: Path) -> tuple[list[Path], str | None]:
-    from dualsight.kernels.imageio import list_images
-
     p = _resolve(text, base)
     if any(c in str(p) for c in "*?["):
         paths = [Path(x) for x in sorted(glob.glob(str(p)))]
@@ -224,7 +226,7 @@ def _images(text: str, base: Path) -> tuple[list[Path], str | None]:
 
 # ============================================================================================ Monte Carlo specs
 def _mc_module(kind: str):
-    from dualsight.jobs.kinds import prox, star
+    from dualsight.jobs.kinds import prox, star          # Taichi
 
     return star if kind == "star" else prox
 
@@ -289,11 +291,8 @@ def _mc_spec(kind: str, raw: dict, cases: int | None, seed: int | None, source: 
 
 # ============================================================================================ HIL specs
 def _hil_star(j: JobTable, paths, at: str, source: str, base: Path, check_only: bool = False) -> dict:
-    from dualsight.jobs.kinds import hil_star as hs
-    from dualsight.jobs.kinds.hil_truth import resolve_star_truths
-    from dualsight.scene.camera import Camera
-    from dualsight.scene.skytruth import load_truth_json
-    from dualsight.scene.timescale import observation_epoch
+    from dualsight.jobs.kinds import hil_star as hs       # Taichi
+    from dualsight.jobs.kinds.hil_star_spec import settings_from_table
 
     if j.camera is None:
         raise ConfigError("is required for hil_star jobs (a camera TOML file)", source=source, field=f"{at}.camera")
@@ -302,9 +301,9 @@ def _hil_star(j: JobTable, paths, at: str, source: str, base: Path, check_only: 
             raise ConfigError("is for hil_prox jobs only", source=source, field=f"{at}.{key}")
     camera = Camera.from_toml(_resolve(j.camera, base))
     epoch = (observation_epoch(paths, None) if paths else None) or 2000.0
-    settings = hs.settings_from_table(j.spec or None, source=f"{source} [{at}.spec]", mag_limit=7.0,
-                                      epoch_jyear=epoch, tolerance_arcsec=20.0, max_stars=25, k_sigma=5.0,
-                                      min_pixels=3)
+    settings = settings_from_table(j.spec or None, source=f"{source} [{at}.spec]", mag_limit=7.0,
+                                   epoch_jyear=epoch, tolerance_arcsec=20.0, max_stars=25, k_sigma=5.0,
+                                   min_pixels=3)
     if check_only:
         return {}
     truth = load_truth_json(_resolve(j.truth, base)) if j.truth is not None else None
@@ -312,10 +311,7 @@ def _hil_star(j: JobTable, paths, at: str, source: str, base: Path, check_only: 
 
 
 def _hil_prox(j: JobTable, paths, at: str, source: str, base: Path, check_only: bool = False) -> dict:
-    from dualsight.jobs.kinds import hil_prox as hp
-    from dualsight.jobs.kinds.hil_truth import load_range_truth
-    from dualsight.scene.calibration import calibrate_chessboard
-    from dualsight.scene.camera import Camera
+    from dualsight.jobs.kinds import hil_prox as hp      # Taichi
 
     if j.truth is not None:
         raise ConfigError("is for hil_star jobs; hil_prox takes range_truth or calibrate", source=source,

@@ -13,9 +13,13 @@ from pathlib import Path
 import numpy as np
 
 from dualsight.errors import InputError
+from dualsight.jobs.engine.runner import job_module
+from dualsight.kernels.digest import frame_digest, to_int64
+from dualsight.kernels.imageio import read_image
 from dualsight.scene.units import ARCSEC
+from dualsight.viz.recording import log_image_case, log_star_case, open_recording
 from dualsight.warehouse.lake import Lake
-from dualsight.warehouse.query import connect
+from dualsight.warehouse.query import connect, run_sql
 
 _TIMING = ("t_",)
 
@@ -82,8 +86,7 @@ def recompute_case(lake: Lake, run_id: str, case_id: int, job, dataset: str, kin
 def replay_star_case(lake: Lake, run_id: str, case_id: int, output: Path | None = None, rec=None) -> Path:
     """Re-render a star case, verify it against its row (image digest and every metric), and log it into
     ``rec`` (an open recording) or a new recording at ``output``."""
-    from dualsight.jobs.kinds import star
-    from dualsight.viz.recording import log_star_case, open_recording
+    from dualsight.jobs.kinds import star                     # Taichi
 
     manifest, spec, ctx, out, fresh = recompute_case(lake, run_id, case_id, star, "star_cases", ("star",))
     det = out["rendered"].detections
@@ -145,8 +148,6 @@ def select_cases(lake: Lake, run_id: str, *, case: int | None = None, where: str
     The predicate runs read-only (:func:`dualsight.warehouse.query.run_sql`) in
     ``SELECT case_id FROM <primary> WHERE run = '<run>' AND (<predicate>) ORDER BY case_id LIMIT <limit>``.
     """
-    from dualsight.warehouse.query import run_sql
-
     manifest = lake.read_manifest(run_id)
     if manifest is None:
         raise InputError(f"no run {run_id!r} in {lake.root}", source="--run")
@@ -169,8 +170,6 @@ def verify_case(lake: Lake, manifest: dict, case_id: int):
 
     Returns (spec, context, stored primary row, tables of the recomputed case).
     """
-    from dualsight.jobs.engine.runner import job_module
-
     mod = job_module(manifest["kind"])
     run_id = manifest["run_id"]
     stored = _stored_row(lake, manifest["primary"], run_id, case_id)
@@ -185,15 +184,10 @@ def verify_case(lake: Lake, manifest: dict, case_id: int):
 def replay_generic_case(lake: Lake, manifest: dict, case_id: int, output: Path, rec=None) -> Path:
     """Verify a case of any kind and record its image (re-read for real-image kinds; its digest must equal
     the row's ``image_digest``) and its row."""
-    from dualsight.kernels.digest import frame_digest, to_int64
-    from dualsight.viz.recording import log_image_case, open_recording
-
     spec, ctx, stored, tables = verify_case(lake, manifest, case_id)
     image, points, labels = None, np.zeros((0, 2)), []
     images = getattr(spec, "images", None)
     if images:
-        from dualsight.kernels.imageio import read_image
-
         try:
             img = read_image(Path(images[case_id].path), as_gray=("image_digest" not in stored
                                                                   or manifest["kind"] == "hil_star"))
@@ -238,8 +232,6 @@ def replay_run(lake: Lake, run_id: str, *, case: int | None = None, where: str |
         if single_file or not folder.parent.is_dir():
             raise InputError("folder does not exist (no folder is created but the one named)", source=str(folder))
         folder.mkdir()
-    from dualsight.viz.recording import open_recording
-
     rec = open_recording(output) if single_file else None
     out = []
     for c in cases:
@@ -248,7 +240,7 @@ def replay_run(lake: Lake, run_id: str, *, case: int | None = None, where: str |
         if kind == "star":
             replay_star_case(lake, run_id, c, path, rec=rec)
         elif kind in ("prox_sweep", "prox_trajectory"):
-            from dualsight.jobs.replay.prox import replay_prox_case
+            from dualsight.jobs.replay.prox import replay_prox_case   # it imports this module
 
             replay_prox_case(lake, run_id, c, path, rec=rec)
         else:

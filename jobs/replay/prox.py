@@ -9,14 +9,14 @@ import numpy as np
 
 from dualsight.errors import InputError, output_path
 from dualsight.jobs.replay.cases import recompute_case
+from dualsight.viz.recording import log_prox_frame, open_recording
 from dualsight.warehouse.lake import Lake
 
 
 def replay_prox_case(lake: Lake, run_id: str, case_id: int, output: Path | None = None, rec=None) -> Path:
     """Re-render a proximity case, verify it against its row (image digest and every metric), and log it
     into ``rec`` (an open recording) or a new recording at ``output``."""
-    from dualsight.jobs.kinds import prox
-    from dualsight.viz.recording import log_prox_frame, open_recording
+    from dualsight.jobs.kinds import prox                     # Taichi
 
     _, spec, ctx, out, fresh = recompute_case(lake, run_id, case_id, prox, "prox_cases",
                                               ("prox_sweep", "prox_trajectory"))

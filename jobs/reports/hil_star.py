@@ -19,7 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
+from dualsight.catalogs.auto_limit import describe_mag_limit
+from dualsight.errors import ImageError, output_path
+from dualsight.scene.starfield_geometry import catalog_in_image
 from dualsight.scene.units import ARCSEC
+from dualsight.viz.overlay import star_overlay
 
 __all__ = ["fetch", "to_json", "summary_line", "table6_text", "text_report", "write_overlays", "licence_credit"]
 
@@ -134,8 +138,6 @@ def text_report(con, run_id: str, docs: list[dict], settings, camera=None) -> st
     tol = st.voting["tolerance_rad"] / ARCSEC
     depth = f"catalog V <= {st.catalog['mag_limit']:g}"
     if camera is not None:
-        from dualsight.catalogs.auto_limit import describe_mag_limit
-
         depth = describe_mag_limit(camera, float(st.catalog["mag_limit"]))
     out = [f"{depth} at epoch {st.catalog['epoch_jyear']:g}, {st.method} voting "
            f"(tolerance {tol:.0f} arcsec, {st.voting['max_stars']} brightest vote)"
@@ -193,11 +195,8 @@ def write_overlays(spec, rows: list[dict], stars: dict[int, list[dict]], folder:
 
     The frame is re-read and its background subtraction and detection re-run (the same code and settings
     as the run, so the same detections); an image that changed since the run is skipped with a warning."""
-    from dualsight.catalogs.stars import load_star_catalog
-    from dualsight.errors import ImageError, output_path
-    from dualsight.jobs.kinds import hil_star as hs
-    from dualsight.scene.starfield_geometry import catalog_in_image
-    from dualsight.viz.overlay import star_overlay
+    from dualsight.catalogs.stars import load_star_catalog          # pyarrow
+    from dualsight.jobs.kinds import hil_star as hs                 # Taichi
 
     folder = output_path(folder, folder=True)
     rt = hs.runtime(spec)

@@ -1,15 +1,20 @@
 """The report of a proximity run (``dualsight prox report``, and the proximity sections of ``dualsight report``):
 Table 3 per true range for a sweep (``warehouse/sql/prox_table3.sql``: both estimators beside the reference's
 numbers), the per-axis errors and frames of a trajectory (``prox_trajectory.sql``, ``prox_frames.sql``) and the
-time per stage (``prox_stage_times.sql``), read back from the lake by SQL.
+time per stage (``prox_stage_times.sql``), read back from the lake by SQL; and what ``dualsight prox resolvable``
+prints (:func:`resolvable_report`, nav/range.py for a camera file).
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from dualsight.errors import InputError
+from dualsight.nav.range import resolvable_range
+from dualsight.scene.camera import Camera
 from dualsight.warehouse.query import connect, run_report
 
-__all__ = ["build_report", "report_text"]
+__all__ = ["build_report", "report_text", "resolvable_report"]
 
 
 def build_report(lake, run_id: str, estimator: str | None = None) -> dict:
@@ -79,3 +84,18 @@ def report_text(rep: dict) -> str:
     lines += ["", f"time per case: render {_fmt(st['render_ms'])} ms, blobber {_fmt(st['blob_paper_ms'])} ms (paper) + "
               f"{_fmt(st['blob_subpixel_ms'])} ms (subpixel), total {_fmt(st['total_ms'])} ms"]
     return "\n".join(lines)
+
+
+def resolvable_report(camera_file: Path | None, size_m: float) -> tuple[dict, str]:
+    """The nearest and farthest resolvable range of an object of size ``size_m`` (m) for the camera of
+    ``camera_file`` (default: the reference's Table 1 camera), as (JSON object, text)."""
+    cam = Camera.from_toml(camera_file) if camera_file else Camera.pinhole(1024, 768, 4.65e-6, 6e-3)
+    r = resolvable_range(cam, size_m)
+    out = {"size_m": size_m, "nearest_fits_frame_m": r.near_fit_m, "nearest_fills_frame_m": r.near_fill_m,
+           "farthest_2x2_px_m": r.far_m, "reference_convention_nearest_m": r.reference_near_m}
+    text = (f"object {size_m} m, camera {cam.width}x{cam.height} px, f = {cam.fx:.1f} px:\n"
+            f"  nearest (object fits the frame's short side): {r.near_fit_m:.4f} m\n"
+            f"  object fills the whole frame (long side):      {r.near_fill_m:.4f} m\n"
+            f"  farthest (object covers 2 x 2 pixels):         {r.far_m:.2f} m\n"
+            f"  the reference's 8.4 cm convention (h/2 over the full sensor height): {r.reference_near_m:.4f} m")
+    return out, text

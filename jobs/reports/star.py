@@ -25,6 +25,7 @@ import duckdb
 from dualsight.errors import InputError
 from dualsight.jobs.kinds.star_summaries import DATASET as SUMMARIES
 from dualsight.jobs.kinds.star_summaries import merge_sql
+from dualsight.scene.units import ARCSEC
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.paths import is_run_id
 from dualsight.warehouse.query import connect, format_table, run_report
@@ -97,9 +98,7 @@ def open_summaries(lake: Lake, run_id: str, *, warn=None, locked: bool = True,
         return None
     for m in h.problems:
         report(m)
-    from dualsight.scene.units import ARCSEC      # the same macro as warehouse.query.connect
-
-    con.execute(f"CREATE MACRO arcsec_per_rad() AS {1.0 / ARCSEC!r}")
+    con.execute(f"CREATE MACRO arcsec_per_rad() AS {1.0 / ARCSEC!r}")       # as warehouse.query.connect
     if locked:
         con.execute("SET enable_external_access = false")
         con.execute("SET autoinstall_known_extensions = false")
