@@ -105,7 +105,7 @@ def stage_times(batch: int, batches: int, repeats: int) -> dict:
     # warm-up: compile every kernel
     star.compute_batch(spec, ctx, ids_all[0])
     sf.render_star_fields(np.zeros((1, 1)), np.zeros((1, 1)), np.zeros((1, 1)), None, cam.width, cam.height, quiet,
-                          np.zeros(1, np.uint64))
+                          np.zeros(1, np.uint64), psf=ctx.psf)
     out = {s: [] for s in STAGES}
     with tempfile.TemporaryDirectory() as tmp:
         lake = Lake(tmp)
@@ -115,14 +115,14 @@ def stage_times(batch: int, batches: int, repeats: int) -> dict:
                 t = CLOCK()
                 draw = star.draw_cases(spec, ids)
                 flux = flux_from_magnitude(cat.vmag.astype(np.float64), sen)
-                fld = stars_in_field(draw["A_true"], cat.unit, flux, cam, star.psf_margin_px(sen, cam))
+                fld = stars_in_field(draw["A_true"], cat.unit, flux, cam, star.psf_margin_px(sen, cam, ctx.psf))
                 acc["sample"] += _ms(t)
                 args = (fld.x, fld.y, fld.flux_e, fld.valid, cam.width, cam.height)
                 t = CLOCK()
-                sf.render_star_fields(*args, quiet, draw["noise_seed"])
+                sf.render_star_fields(*args, quiet, draw["noise_seed"], psf=ctx.psf)
                 acc["render"] += _ms(t)
                 t = CLOCK()
-                img = sf.render_star_fields(*args, sen, draw["noise_seed"])
+                img = sf.render_star_fields(*args, sen, draw["noise_seed"], psf=ctx.psf)
                 acc["noise"] += _ms(t)
                 t = CLOCK()
                 frame_digest(img, np.asarray(sen.empty_pixel_adu()).astype(img.dtype))

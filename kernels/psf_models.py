@@ -22,8 +22,9 @@ thread (no atomics: a case's float sums do not depend on scheduling):
   resampled at its subpixel position: pixel (r, c) = F * P(c + 0.5 - x + hx, r + 0.5 - y + hy) with P
   bilinear between the image's samples (zero outside).  Bilinear weights sum to one, so the flux and the
   centroid are kept exactly; a second moment grows by phi (1 - phi) per axis (phi = the subpixel
-  phase, 1/6 on average), none at integer phase.  The file is read once per process (cached on its path,
-  size and modification time) by :func:`dualsight.kernels.psf_image.load_psf_image`.
+  phase, 1/6 on average), none at integer phase.  The renderer is handed the image as an array (the
+  ``psf`` argument, checked by :func:`dualsight.kernels.psf_image.check_psf`); it reads no file (the scene
+  layer does: :func:`dualsight.scene.psf_file.sensor_psf`, once per process).
 * **Bright extended objects** (``bright_objects`` with ``radius_px > 0``, e.g. the Moon): uniform disks,
   exact pixel areas as the defocus disk; the PSF (a few px) is neglected at their limb.  Bright points
   (``radius_px = 0``, planets) use the star PSF with a window of :data:`BRIGHT_WINDOW_SIGMA` sigma (their
@@ -56,7 +57,7 @@ import taichi as ti
 
 from dualsight.kernels import star_psf
 from dualsight.kernels._runtime import KernelCache
-from dualsight.kernels.psf_image import load_psf_image
+from dualsight.kernels.psf_image import check_psf
 
 __all__ = ["SMEAR_STEP_PX", "MAX_SMEAR_STEPS", "BRIGHT_WINDOW_SIGMA", "defocus_quadrature", "smear_vectors",
            "smear_steps", "bright_object_sources", "Sources", "prepare_sources", "splat_sources"]
@@ -200,10 +201,12 @@ class Sources:
                                      self.nsub))
 
 
-def prepare_sources(x, y, f, ok, cfg, camera=None, attitude=None) -> Sources:
+def prepare_sources(x, y, f, ok, cfg, camera=None, attitude=None, psf: np.ndarray | None = None) -> Sources:
     """The :class:`Sources` of validated star arrays (B, S) (stars and false stars), with the sensor's
     bright objects appended and smear chords computed (``camera`` needed for a rate or bright objects,
-    ``attitude`` (B, 3, 3) for bright objects)."""
+    ``attitude`` (B, 3, 3) for bright objects; ``psf``, the measured PSF as a (ny, nx) float64 array of unit
+    sum (fraction of a star's electrons per pixel, odd sides <= 64 px), for ``cfg.psf_model = "image"``,
+    else ignored)."""
     B, S = x.shape
     model = _MODEL_IDS[cfg.psf_model]
     star_rad = cfg.defocus_radius_px if (model == MODEL_DEFOCUS and not cfg.defocus_gaussian) else 0.0
@@ -229,7 +232,7 @@ def prepare_sources(x, y, f, ok, cfg, camera=None, attitude=None) -> Sources:
         qx, qy, qw = defocus_quadrature(cfg.defocus_radius_px, cfg.psf_sigma_px)
     else:
         qx, qy, qw = np.zeros(1), np.zeros(1), np.ones(1)
-    img = load_psf_image(cfg.psf_image) if model == MODEL_IMAGE else np.zeros((1, 1))
+    img = check_psf(psf, cfg.psf_model)   # a (1, 1) zero placeholder for the other models
     return Sources(x, y, f, ok, rad, wsig, dx, dy, smear_steps(dx, dy), model, qx, qy, qw, img)
 
 

@@ -1,10 +1,11 @@
-"""The star renderer's sensor model: :class:`SensorConfig` (every field's range in its type), the
-magnitude-to-electrons conversion and :func:`with_psf_digest`, the explicit step that reads a measured PSF
-file; importable without the render kernels (no Taichi: :mod:`dualsight.kernels.starfield` renders with it;
-the formulas and sources are in that module's docstring).  Constructing a :class:`SensorConfig` reads no file."""
+"""The star renderer's sensor model: :class:`SensorConfig` (every field's range in its type) and the
+magnitude-to-electrons conversion; importable without the render kernels (no Taichi:
+:mod:`dualsight.kernels.starfield` renders with it; the formulas and sources are in that module's docstring).
+Nothing here reads a file: a measured PSF (``psf_image``) is read by :mod:`dualsight.scene.psf_file` and
+handed to the renderer as an array."""
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 from typing import Annotated, Literal
 
 import numpy as np
@@ -12,7 +13,7 @@ from pydantic import ConfigDict, Field
 from typing_extensions import TypedDict
 
 from dualsight.config import check_fields
-from dualsight.kernels.psf_image import load_psf_image, psf_image_sha256
+from dualsight.kernels.psf_image import check_psf
 
 QUANT_EPS_ADU = 1e-9
 """ADU added before the ADC's floor, ADU = floor(e / gain + bias + QUANT_EPS_ADU): keeps a charge that is an exact
@@ -104,10 +105,13 @@ class SensorConfig:
         diffraction, charge diffusion).
     psf_image : path of the measured PSF (psf_model "image", and only then): a ``.npy`` array or a PNG,
         TIFF or FITS image, 2-D, odd sides <= 64 px, finite, >= 0, sampled on the sensor's pixels (1 to
-        4096 characters; relative to the working directory).  Read and checked by :func:`with_psf_digest`
-        (where the job layer builds the spec) and when rendering, not by the constructor.
+        4096 characters; relative to the working directory).  Read and checked by
+        :func:`dualsight.scene.psf_file.with_psf_digest` (where the job layer builds the spec) and loaded by
+        :func:`dualsight.scene.psf_file.sensor_psf` for the renderer (its ``psf`` argument), never by the
+        constructor or the kernels.
     psf_image_sha256 : SHA-256 of the PSF's content (:func:`dualsight.kernels.psf_image.psf_image_sha256`),
-        filled in by :func:`with_psf_digest` and kept in the spec, so a run's identity covers the file's
+        filled in by :func:`dualsight.scene.psf_file.with_psf_digest` and kept in the spec, so a run's identity
+        covers the file's
         content: a spec that states it (a stored run being resumed or replayed) fails in one line there if
         the file has changed since.
     rate_deg_s : body rate [wx, wy, wz] of the camera frame during the exposure (deg/s), each in [-100, 100];
@@ -227,13 +231,17 @@ class SensorConfig:
         """True if rendering needs the camera model (smear) or also the attitudes (bright objects)."""
         return self.has_smear or bool(self.bright_objects)
 
-    def psf_reach_px(self) -> float:
-        """How far (px) from a star's (mid-exposure) position its PSF puts light, smear excluded."""
+    def psf_reach_px(self, psf: np.ndarray | None = None) -> float:
+        """How far (px) from a star's (mid-exposure) position its PSF puts light, smear excluded.
+
+        psf : the measured PSF, a (ny, nx) float64 array of unit sum (fraction of a star's electrons per
+            pixel; :func:`dualsight.scene.psf_file.sensor_psf`), needed with ``psf_model = "image"`` (its
+            half-size sets the reach), else ignored."""
         g = self.psf_window_sigma * self.psf_sigma_px + 1.0
         if self.psf_model == "defocus":
             return self.defocus_radius_px + (g if self.defocus_gaussian else 1.0)
         if self.psf_model == "image":
-            img = load_psf_image(self.psf_image)
+            img = check_psf(psf, self.psf_model)
             return max(img.shape) // 2 + 1.0
         return g
 
@@ -256,30 +264,3 @@ def flux_from_magnitude(vmag, cfg: SensorConfig = SensorConfig()) -> np.ndarray:
     """
     m = np.asarray(vmag, dtype=np.float64)
     return cfg.zero_mag_rate_e_per_s * np.power(10.0, -0.4 * m) * cfg.exposure_s
-
-
-def with_psf_digest(cfg: SensorConfig, error=ValueError) -> SensorConfig:
-    """``cfg`` with the content hash of its measured PSF in ``psf_image_sha256``: the one step that reads the
-    ``psf_image`` file a spec names (the job layer calls it where it builds the spec, so the stored spec and the
-    run's hash cover the PSF's content, not only its path).
-
-    Without ``psf_image``: ``cfg`` itself, no I/O.  Otherwise the file is read and checked
-    (:func:`dualsight.kernels.psf_image.load_psf_image`, cached per process) and hashed
-    (:func:`~dualsight.kernels.psf_image.psf_image_sha256`); a ``cfg`` that already states the hash (a stored
-    spec being resumed or replayed) must state the file's.  ``error`` builds the exception raised, from its
-    one-line message, for a bad or missing file or a changed content (default ValueError; the job layer's names
-    the spec's source).
-    """
-    if cfg.psf_image is None:
-        return cfg
-    try:
-        got = psf_image_sha256(load_psf_image(cfg.psf_image))
-    except ValueError as e:
-        raise error(str(e)) from None
-    if cfg.psf_image_sha256 is None:
-        return replace(cfg, psf_image_sha256=got)
-    if cfg.psf_image_sha256 != got:
-        raise error(f"SensorConfig.psf_image_sha256: the PSF file {cfg.psf_image!r} is not the one this spec was "
-                    f"made with (content sha256 {got[:12]}..., the spec says {cfg.psf_image_sha256[:12]}...); "
-                    "restore the file or start a new run")
-    return cfg

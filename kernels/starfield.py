@@ -377,7 +377,7 @@ def prepare_stars(x, y, flux_e, valid, width, height, cfg, seeds):
 # ============================================================================ public API
 def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: SensorConfig = SensorConfig(),
                        seeds=None, *, dtype=np.uint16, out: np.ndarray | None = None, camera=None,
-                       attitude=None) -> np.ndarray:
+                       attitude=None, psf: np.ndarray | None = None) -> np.ndarray:
     """Render a batch of star-field frames (dense, full frame, all sensor effects).
 
     Parameters
@@ -395,6 +395,10 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
     camera : ``dualsight.scene.camera.Camera`` of the frames; needed when ``cfg.rate_deg_s`` (smear) or
         ``cfg.bright_objects`` is set (``cfg.needs_camera``), else ignored.
     attitude : (B, 3, 3) inertial -> camera rotation of each case; needed for ``cfg.bright_objects``.
+    psf : the measured PSF, a (ny, nx) float64 array of unit sum (the fraction of a star's electrons per pixel,
+        sampled on the sensor's pixels, odd sides <= 64 px, centred on its middle pixel); needed when
+        ``cfg.psf_model == "image"`` (the scene layer reads the file: ``dualsight.scene.psf_file.sensor_psf``),
+        else ignored.
 
     Returns
     -------
@@ -438,7 +442,7 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
     acdf, aguide, adu0 = sky if sky is not None else (np.ones(1), np.zeros(1, np.int32), 0.0)
     src = None
     if cfg.psf_model != "gaussian" or cfg.needs_camera:  # sub-sources (psf_models); else the plain Gaussian splat
-        src = psf_models.prepare_sources(x, y, f, ok, cfg, camera, attitude)
+        src = psf_models.prepare_sources(x, y, f, ok, cfg, camera, attitude, psf)
     stray = (int(cfg.has_stray_light),) + tuple(float(v) for v in cfg.stray_light_e)
     chunk = max(1, min(B, MAX_CHUNK_PIXELS // (H * W)))  # frames per kernel call (bounded scratch, i32 indices)
     with _scratch.lock:

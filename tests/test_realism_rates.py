@@ -37,6 +37,7 @@ import pytest
 from dualsight.jobs.kinds import star
 from dualsight.kernels import psf_models
 from dualsight.kernels import starfield as kstar
+from dualsight.scene.psf_file import sensor_psf
 
 N_CASES = 64
 BATCH = 16
@@ -99,7 +100,8 @@ def _n_eff(spec) -> float:
     cam = spec.camera
     img = kstar.render_star_fields(np.array([[cam.cx + 0.3]]), np.array([[cam.cy - 0.2]]), np.array([[1e5]]), None,
                                    cam.width, cam.height, s, np.array([1], np.uint64), camera=cam,
-                                   attitude=np.eye(3)[None], dtype=np.float32)[0].astype(np.float64)
+                                   attitude=np.eye(3)[None], dtype=np.float32,
+                                   psf=sensor_psf(spec.sensor))[0].astype(np.float64)
     return float(img.sum() ** 2 / (img ** 2).sum())
 
 

@@ -17,9 +17,10 @@ from dualsight.errors import ConfigError
 from dualsight.kernels.detect import render_and_detect_ideal
 from dualsight.jobs.engine.specs import deep_merge
 from dualsight.jobs.kinds.star import PRESETS as STAR_PRESETS, spec_from_dict as star_spec_from_dict
-from dualsight.kernels.sensor_config import SensorConfig, with_psf_digest
+from dualsight.kernels.sensor_config import SensorConfig
 from dualsight.kernels.starfield import render_star_fields
 from dualsight.scene.camera import Camera
+from dualsight.scene.psf_file import sensor_psf, with_psf_digest
 
 CONT = SensorConfig(quantize=False, gain_e_per_adu=1.0, full_well_e=1e12, bit_depth=24, psf_window_sigma=8.0)
 CAM = Camera.pinhole(256, 256, 5e-6, 5e-3)          # f = 1000 px, principal point (128, 128)
@@ -211,14 +212,16 @@ def test_measured_psf_image_keeps_its_own_moments(tmp_path):
     cell = 32
     x, y = _grid(rs, 6, cell)
     x[0], y[0] = 16.5, 16.5                                                # integer phase
-    F, mx, my, vxx, vyy, vxy = _cell_moments(_render(x, y, np.full(x.size, 1e5), cfg, 6 * cell, 6 * cell)[0], cell)
+    psf = sensor_psf(cfg)                                                  # the file, read by the scene layer
+    F, mx, my, vxx, vyy, vxy = _cell_moments(_render(x, y, np.full(x.size, 1e5), cfg, 6 * cell, 6 * cell, psf=psf)[0],
+                                             cell)
     ox, oy, pxx, pyy, pxy = _own_moments(P)
     fx, fy = np.mod(0.5 - x, 1.0), np.mod(0.5 - y, 1.0)
     assert np.allclose(F, 1e5, rtol=1e-5)
     assert np.allclose(mx, x + ox, atol=1e-4) and np.allclose(my, y + oy, atol=1e-4)
     assert np.allclose(vxx, pxx + fx * (1 - fx), atol=1e-4) and np.allclose(vyy, pyy + fy * (1 - fy), atol=1e-4)
     assert np.allclose(vxy, pxy, atol=1e-4)
-    img = _render([16.5], [16.5], [1e5], cfg, 32, 32)[0]
+    img = _render([16.5], [16.5], [1e5], cfg, 32, 32, psf=psf)[0]
     assert np.allclose(img[16 - 4:16 + 5, 16 - 6:16 + 7], 1e5 * P / P.sum(), rtol=1e-5, atol=1e-3)
 
 
@@ -229,9 +232,18 @@ def test_psf_image_from_png_and_one_line_errors(tmp_path):
     q = np.round(P / P.max() * 60000).astype(np.uint16)
     cv2.imwrite(str(tmp_path / "psf.png"), q)
     np.save(tmp_path / "q.npy", q.astype(np.float64))
-    a = _render([20.3], [17.8], [1e5], dataclasses.replace(CONT, psf_model="image", psf_image=str(tmp_path / "psf.png")), 40, 40)
-    b = _render([20.3], [17.8], [1e5], dataclasses.replace(CONT, psf_model="image", psf_image=str(tmp_path / "q.npy")), 40, 40)
+    ca, cb = (dataclasses.replace(CONT, psf_model="image", psf_image=str(tmp_path / n)) for n in ("psf.png", "q.npy"))
+    a = _render([20.3], [17.8], [1e5], ca, 40, 40, psf=sensor_psf(ca))
+    b = _render([20.3], [17.8], [1e5], cb, 40, 40, psf=sensor_psf(cb))
     assert np.array_equal(a, b)
+    # the renderer reads no file: it takes the PSF as a (ny, nx) float64 unit-sum array, one-line errors else
+    for psf, what in ((None, "needs the measured PSF"), (np.ones((3, 3)), "unit sum"),
+                      (np.ones((4, 3)) / 12, "odd sides"), (np.ones((3, 3), np.float32) / 9, "float64")):
+        with pytest.raises(ValueError, match=what) as e:
+            _render([20.3], [17.8], [1e5], cb, 40, 40, psf=psf)
+        assert "\n" not in str(e.value)
+    assert np.array_equal(_render([20.3], [17.8], [1e5], CONT, 40, 40, psf=sensor_psf(cb)),
+                          _render([20.3], [17.8], [1e5], CONT, 40, 40))            # ignored by the other models
     bad = {"even.npy": np.ones((8, 9)), "neg.npy": -np.ones((3, 3)), "nan.npy": np.full((3, 3), np.nan),
            "big.npy": np.ones((65, 65)), "flat.npy": np.ones(9), "zero.npy": np.zeros((3, 3))}
     for name, arr in {**bad, "missing.npy": None}.items():

@@ -49,7 +49,7 @@ from dualsight.kernels import detect as kdetect
 from dualsight.kernels import starfield as kstar
 from dualsight.kernels.detect import DetectConfig
 from dualsight.kernels.digest import frame_digest_taichi
-from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude, with_psf_digest
+from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
 from dualsight.nav.errors import STATUS_NAMES
 from dualsight.nav.observations import observations
 from dualsight.nav.pair_index import VotingIndex
@@ -59,6 +59,7 @@ from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.attitude import euler123_to_dcm, quat_to_dcm, quaternions_from_uniforms
 from dualsight.scene.camera import Camera
 from dualsight.scene.case_rng import streams as case_streams
+from dualsight.scene.psf_file import sensor_psf, with_psf_digest
 from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
 
 NAME = "star"
@@ -283,12 +284,15 @@ def start_run(plan: StarRun, lake, *, workers: int | None = None, scheduler: str
 # ------------------------------------------------------------------------------------------ context
 @dataclass(frozen=True)
 class StarContext:
-    """Per-process state: the star catalog, its pair catalog (read from the cache) and the pair catalog's voting
-    index (its derived arrays mapped from the cache, written there first if missing: ``VotingIndex.load_or_build``)."""
+    """Per-process state: the star catalog, its pair catalog (read from the cache), the pair catalog's voting
+    index (its derived arrays mapped from the cache, written there first if missing: ``VotingIndex.load_or_build``)
+    and the sensor's measured PSF, read once per process (``psf``: a read-only (ny, nx) float64 array of unit
+    sum, the fraction of a star's electrons per pixel, with ``psf_model = "image"``; else None)."""
 
     catalog: object
     pairs: object
     index: object
+    psf: np.ndarray | None = None
 
 
 def pair_angle(camera: Camera) -> float:
@@ -299,7 +303,8 @@ def pair_angle(camera: Camera) -> float:
 def make_context(spec: StarSpec) -> StarContext:
     cat = load_star_catalog(spec.catalog)
     pairs = load_pair_catalog(cat, pair_angle(spec.camera))
-    return StarContext(cat, pairs, VotingIndex.load_or_build(pairs))
+    psf = sensor_psf(spec.sensor, error=lambda msg: ConfigError(msg, source=spec.source, field="sensor"))
+    return StarContext(cat, pairs, VotingIndex.load_or_build(pairs), psf)
 
 
 # ------------------------------------------------------------------------------------------ cases
@@ -379,12 +384,14 @@ class Rendered:
     digest: np.ndarray
 
 
-def psf_margin_px(sensor: SensorConfig, camera: Camera | None = None) -> float:
+def psf_margin_px(sensor: SensorConfig, camera: Camera | None = None, psf: np.ndarray | None = None) -> float:
     """How far outside the frame (px) a star still puts light into it: the PSF's reach
     (``SensorConfig.psf_reach_px``: Gaussian window, defocus disk or PSF image) plus, with an angular rate
     and a camera, the longest smear over the field, ``|w| t (f (1 + (r/f)^2) + r)`` with r the half
-    diagonal (the image motion of a star at radius r under a rate w about any axis, small-angle)."""
-    reach = float(sensor.psf_reach_px())
+    diagonal (the image motion of a star at radius r under a rate w about any axis, small-angle).
+    ``psf``: the measured PSF ((ny, nx) float64, unit sum: ``StarContext.psf``), needed with
+    ``psf_model = "image"``."""
+    reach = float(sensor.psf_reach_px(psf))
     rate = getattr(sensor, "rate_deg_s", None)
     if rate is not None and camera is not None and any(rate):
         w = math.radians(math.hypot(*rate))
@@ -408,7 +415,7 @@ def local_detect_config(sensor: SensorConfig, detect_cfg: DetectConfig):
 
 def render_and_detect(field_: FieldStars, noise_seeds: np.ndarray, camera: Camera, sensor: SensorConfig,
                       detect_cfg: DetectConfig, keep_images: bool = False, attitude: np.ndarray | None = None,
-                      detector: str = "global") -> Rendered:
+                      detector: str = "global", psf: np.ndarray | None = None) -> Rendered:
     """Render the batch's star fields and detect/centroid the stars (Taichi kernels).
 
     attitude : (B, 3, 3) true attitudes (inertial -> camera), for the effects that need them (motion
@@ -416,14 +423,17 @@ def render_and_detect(field_: FieldStars, noise_seeds: np.ndarray, camera: Camer
     sparse path (render and label only the windows around stars: the same blobs as full frames).
     detector : "global" (kernels/detect.py: one level per frame, the reference's thresholding) or "local"
     (kernels/detect_local.py, as for real frames: tiled background, matched filter, PSF-fit centroids with
-    their uncertainty; always on full frames)."""
+    their uncertainty; always on full frames).
+    psf : the measured PSF, (ny, nx) float64 of unit sum (fraction of a star's electrons per pixel:
+    ``StarContext.psf``), needed with ``sensor.psf_model = "image"``, else ignored."""
     t0 = time.perf_counter_ns()
     if sensor.is_ideal and not keep_images and detector == "global":
         det, digest = kdetect.render_and_detect_ideal(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
                                                       camera.height, sensor, detect_cfg, noise_seeds, digest=True)
         return Rendered(det, None, time.perf_counter_ns() - t0, None, digest)
     images = kstar.render_star_fields(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
-                                      camera.height, sensor, noise_seeds, camera=camera, attitude=attitude)
+                                      camera.height, sensor, noise_seeds, camera=camera, attitude=attitude,
+                                      psf=psf)
     digest = frame_digest_taichi(images, np.asarray(sensor.empty_pixel_adu()).astype(images.dtype))  # Taichi runs
     t1 = time.perf_counter_ns()
     if detector == "local":
@@ -447,11 +457,12 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
     draw = draw_cases(spec, case_ids)
     cat = ctx.catalog
     flux = flux_from_magnitude(cat.vmag.astype(np.float64), spec.sensor)
-    field_ = stars_in_field(draw["A_true"], cat.unit, flux, spec.camera, psf_margin_px(spec.sensor, spec.camera))
+    field_ = stars_in_field(draw["A_true"], cat.unit, flux, spec.camera,
+                            psf_margin_px(spec.sensor, spec.camera, ctx.psf))
     t["sample"] = time.perf_counter_ns() - t0
 
     r = render_and_detect(field_, draw["noise_seed"], spec.camera, spec.sensor, spec.detect, keep_images=keep_images,
-                          attitude=draw["A_true"], detector=spec.detector)
+                          attitude=draw["A_true"], detector=spec.detector, psf=ctx.psf)
     t["render"], t["detect"] = r.t_render_ns, r.t_detect_ns
 
     t1 = time.perf_counter_ns()
