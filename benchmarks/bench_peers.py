@@ -105,7 +105,7 @@ def _last_line(text: str) -> str:
 def esa_inputs(args):
     if args.frames is None and not ESA.is_dir():
         raise BenchError(f"the ESA frames are not at {ESA}; give --frames and --camera (or set DUALSIGHT_SHARED)")
-    from dualsight.kernels.imageio import list_images
+    from dualsight.scene.imageio import list_images
 
     pattern = args.frames or str(ESA / "*.tiff")
     paths = list_images(Path(pattern)) if Path(pattern).is_dir() else sorted(Path(p) for p in glob.glob(pattern))

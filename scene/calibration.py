@@ -31,7 +31,7 @@ from typing import Iterable
 import numpy as np
 
 from dualsight.errors import ConfigError, ImageError, InputError
-from dualsight.kernels.imageio import list_images
+from dualsight.scene.imageio import list_images
 from dualsight.scene.camera import Camera
 from dualsight.scene.camera_file import write_camera_toml
 from dualsight.scene.chessboard import FIND_FLAGS_DEFAULT, ViewCorners, board_points, find_view

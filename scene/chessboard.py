@@ -18,7 +18,7 @@ import numpy as np
 
 from dualsight.errors import ImageError
 from dualsight.kernels.digest import frame_digest, to_int64
-from dualsight.kernels.imageio import Image, read_image
+from dualsight.scene.imageio import Image, read_image
 
 __all__ = ["FIND_FLAGS_DEFAULT", "board_points", "find_corners", "ViewCorners", "find_view"]
 

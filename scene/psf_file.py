@@ -20,7 +20,7 @@ import numpy as np
 from dualsight.errors import InputError, read_user_file
 from dualsight.kernels.psf_image import psf_image_sha256, unit_sum_psf
 from dualsight.kernels.sensor_config import SensorConfig
-from dualsight.kernels.imageio import read_image
+from dualsight.scene.imageio import read_image
 
 __all__ = ["load_psf_image", "with_psf_digest", "sensor_psf"]
 

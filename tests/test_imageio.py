@@ -1,4 +1,4 @@
-"""Image reading, bit-depth detection, dark/flat correction and error reporting (kernels/imageio.py).
+"""Image reading, bit-depth detection, dark/flat correction and error reporting (scene/imageio.py).
 
 Real frames are read from ../shared/data/real (or $DUALSIGHT_SHARED/data/real); tests that need them skip
 with a reason when absent.  The other truths are synthetic arrays written by OpenCV / astropy themselves.
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from dualsight.errors import ImageError, InputError
-from dualsight.kernels.imageio import (Image, calibrate_frame, effective_bit_depth, list_images, read_image,
+from dualsight.scene.imageio import (Image, calibrate_frame, effective_bit_depth, list_images, read_image,
                                      read_images)
 from helpers import shared_real
 
@@ -301,7 +301,7 @@ def test_jpeg_with_padding_after_the_end_marker_reads_and_a_truncated_one_is_ref
     import cv2
 
     from dualsight.errors import ImageError
-    from dualsight.kernels.imageio import read_image
+    from dualsight.scene.imageio import read_image
 
     rng = np.random.default_rng(3)
     img = (rng.random((48, 64)) * 255).astype(np.uint8)

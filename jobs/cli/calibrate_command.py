@@ -12,7 +12,7 @@ from dualsight.errors import ImageError, InputError
 from dualsight.jobs.cli.args import engine_lake, run_engine
 from dualsight.jobs.kinds import calibrate as job
 from dualsight.jobs.kinds.hil_common import n_cases
-from dualsight.kernels.imageio import list_images
+from dualsight.scene.imageio import list_images
 from dualsight.scene import calibration as cal
 from dualsight.scene.camera_file import write_camera_toml
 from dualsight.warehouse.query import connect, run_report

@@ -22,7 +22,7 @@ import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from dualsight.errors import ImageError
-from dualsight.kernels.imageio import list_images
+from dualsight.scene.imageio import list_images
 
 __all__ = ["Frozen", "ImageEntry", "image_entries", "check_unchanged", "expand_inputs", "spec_base", "n_cases",
            "rows_table", "fixed_point"]

@@ -2,7 +2,7 @@
 
 Processing of every image, for every threshold T (the reference's, in this order; scene/segment.py):
 
-1. read the file (kernels.imageio: PNG, JPEG, TIFF, FITS; 8/16-bit or float; mono or RGB; alpha dropped);
+1. read the file (scene.imageio: PNG, JPEG, TIFF, FITS; 8/16-bit or float; mono or RGB; alpha dropped);
 2. optional ``undistort``: remap to the ideal pinhole with the same fx, fy, cx, cy; pixels from outside
    the frame are filled with the background value (full scale when inverted, else 0); the blobber then
    uses the camera without distortion;
@@ -69,7 +69,7 @@ from dualsight.nav.blobber import BlobberConfig, run_blobber
 from dualsight.nav.blobber_names import ESTIMATORS, TARGETS
 from dualsight.nav.hil_score import score_range
 from dualsight.scene.camera import Camera
-from dualsight.kernels.imageio import read_image
+from dualsight.scene.imageio import read_image
 from dualsight.scene.satellite import load_satellite
 from dualsight.scene.segment import foreground_masks, score_image, undistort_image
 

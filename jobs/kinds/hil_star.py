@@ -1,6 +1,6 @@
 """Job kind ``hil_star``: the SIL star chain on real night-sky frames, scored against independent truth.
 
-    read (kernels.imageio) -> detect/centroid: local background, matched filter, hot pixels, saturation,
+    read (scene.imageio) -> detect/centroid: local background, matched filter, hot pixels, saturation,
     PSF fit (kernels.detect_local; or smooth background (kernels.background) + kernels.detect: "global")
     -> back-project (nav.observations) -> lost-in-space geometric voting -> SVD attitude (nav.star_solution)
     -> boresight RA/Dec and roll (scene.pointing), per-star residuals (reference Table 6)
@@ -81,7 +81,7 @@ from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.attitude import unit_to_radec
 from dualsight.kernels.background import background_model, subtract_background
 from dualsight.scene.camera import Camera
-from dualsight.kernels.imageio import read_image
+from dualsight.scene.imageio import read_image
 from dualsight.scene.pointing import roll_deg
 from dualsight.scene.units import angle_between
 

@@ -51,7 +51,7 @@ from dualsight.config import validate
 from dualsight.errors import ConfigError
 from dualsight.jobs.engine.specs import deep_merge, preset_and_config
 from dualsight.jobs.kinds.hil_truth import load_range_truth, resolve_star_truths
-from dualsight.kernels.imageio import list_images
+from dualsight.scene.imageio import list_images
 from dualsight.scene.calibration import calibrate_chessboard
 from dualsight.scene.camera import Camera, read_toml
 from dualsight.scene.skytruth import load_truth_json

@@ -15,7 +15,7 @@ import numpy as np
 from dualsight.errors import InputError
 from dualsight.jobs.engine.runner import job_module
 from dualsight.kernels.digest import frame_digest, to_int64
-from dualsight.kernels.imageio import read_image
+from dualsight.scene.imageio import read_image
 from dualsight.scene.units import ARCSEC
 from dualsight.viz.recording import log_image_case, log_star_case, open_recording
 from dualsight.warehouse.lake import Lake

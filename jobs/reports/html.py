@@ -18,7 +18,7 @@ from dualsight.errors import InputError
 from dualsight.jobs.reports import hil_prox as hil_prox_report
 from dualsight.jobs.reports import star as star_report
 from dualsight.jobs.reports.prox import build_report
-from dualsight.kernels.imageio import read_image
+from dualsight.scene.imageio import read_image
 from dualsight.viz import html_page as H
 from dualsight.viz import prox_figures
 from dualsight.viz.figures import png_bytes, thumbnail_png

@@ -1,6 +1,6 @@
-"""Reading real camera frames (PNG, JPEG, TIFF, FITS) for the hardware-in-the-loop path (and the measured PSF
-images of :mod:`dualsight.kernels.psf_image`).  numpy, OpenCV and, for FITS, astropy (both imported on first
-use); no project import but :mod:`dualsight.errors`.
+"""Reading real camera frames (PNG, JPEG, TIFF, FITS) for the hardware-in-the-loop path and calibration (and the
+measured PSF images of :mod:`dualsight.scene.psf_file`).  numpy, OpenCV and, for FITS, astropy (both imported on
+first use); no project import but :mod:`dualsight.errors`.
 
 Every failure is an :class:`dualsight.errors.ImageError` that names the file and what is wrong
 (missing, empty, truncated, not the format its name claims, unsupported extension), so that a
