@@ -86,7 +86,7 @@ def render(condition: str, n: int, seed: int = 11):
     hot_only = dataclasses.replace(spec.sensor, shot_noise=False, read_noise_e=0.0, sky_background_e=0.0,
                                    dark_current_e_per_s=0.0, false_stars_per_frame=0)
     z = np.zeros((n, 1))
-    hot = render_star_fields(z, z, z, None, W, H, hot_only, seeds) > 0
+    hot = render_star_fields(z, z, z, None, W, H, hot_only, seeds, psf=ctx.psf) > 0
     truth = {"x": f.x, "y": f.y, "valid": f.valid, "inside": f.inside & f.valid, "flux_e": f.flux_e,
              "glint_x": glints[0], "glint_y": glints[1], "hot": hot}
     return out["rendered"].images, truth, spec, out, ctx
