@@ -78,14 +78,14 @@ def _centroid_errors(det, x, y):
 
 def worker(B, repeats):
     import cv2
-    from dualsight.kernels import _runtime
+    from dualsight.kernels import taichi_runtime
     from dualsight.kernels.detect import DetectConfig, detect_stars, render_and_detect_ideal
     from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
     from dualsight.kernels.starfield import render_star_fields
 
     threads = int(os.environ.get("DUALSIGHT_TI_THREADS", "0")) or os.cpu_count()
     cv2.setNumThreads(threads)
-    _runtime.ensure_init()
+    taichi_runtime.ensure_init()
     x, y, mag = _cases(B)
     cfg = SensorConfig()
     f = flux_from_magnitude(mag, cfg)

@@ -48,7 +48,7 @@ def run_one(batch: int, repeats: int) -> dict:
 
     from dualsight.catalogs.areas import area_table
     from dualsight.kernels import points as KP
-    from dualsight.kernels._runtime import ensure_init
+    from dualsight.kernels.taichi_runtime import ensure_init
     from dualsight.kernels.blobs import label_blobs
     from dualsight.nav.blobber import BlobberConfig, run_blobber
     from dualsight.scene.attitude import quat_to_dcm, random_quaternions

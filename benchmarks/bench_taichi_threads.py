@@ -11,7 +11,7 @@ wall time and the process CPU time.
 
 * ``plain``: ``for i in range(256)``.
 * ``spread``: ``for t in range(256 * TASK_ITEMS)``, working where ``t % TASK_ITEMS == 0`` (the form
-  :data:`dualsight.kernels._runtime.TASK_ITEMS` documents; the vote kernel's per-thread slots use it).
+  :data:`dualsight.kernels.taichi_runtime.TASK_ITEMS` documents; the vote kernel's per-thread slots use it).
 
 A last check runs two Python threads of numpy sorts in one process, to tell a machine limit (cgroup,
 affinity) from Taichi's own scheduling.
@@ -19,12 +19,12 @@ affinity) from Taichi's own scheduling.
 ``--launch`` (also in the default run): the fixed cost of one kernel launch, per thread setting: a kernel
 whose loop over 1 item is parallel (the default) or serial (``ti.loop_config(serialize=True)``), with 2
 and with 10 numpy-array arguments; median microseconds of 2,000 launches.  This is what
-:class:`dualsight.kernels._runtime.KernelCache`'s serial variants and the packed argument tables of
+:class:`dualsight.kernels.taichi_runtime.KernelCache`'s serial variants and the packed argument tables of
 :mod:`dualsight.kernels.labelling` save on a single frame.  Measured (same VM, 2026-11-24, load 2.3): a
 parallel loop adds ~80-100 us per launch at 1 and at 2 threads (the thread pool's round trip), each array
 argument ~8.5 us (Taichi's Python launcher): 2 arguments 30-31 us serial, 108-131 us parallel; 10 arguments
 97-102 us serial, 179-188 us parallel.  The same kernels through
-:class:`dualsight.kernels._runtime.FastKernel` (what every dualsight kernel is called through) are the
+:class:`dualsight.kernels.taichi_runtime.FastKernel` (what every dualsight kernel is called through) are the
 ``FastKernel`` rows.
 
 Measured on this project's 2-core VM (taichi 1.7.4, Linux, 2026-11-24): ``plain`` runs on ONE thread at
@@ -44,7 +44,7 @@ import subprocess
 import sys
 import tempfile
 
-from dualsight.kernels._runtime import TASK_ITEMS
+from dualsight.kernels.taichi_runtime import TASK_ITEMS
 
 CHILD = r"""
 import json, os, sys, time
@@ -122,7 +122,7 @@ def ser10(a: A, b: A, c: A, d: A, e: A, f: A, g: A, h: A, i2: A, j: A):
     for i in range(a.shape[0] - 1):
         b[i] = a[i]
 
-from dualsight.kernels._runtime import FastKernel   # dualsight's short launcher, same kernels, same process
+from dualsight.kernels.taichi_runtime import FastKernel   # dualsight's short launcher, same kernels, same process
 
 x = [np.zeros(2, np.int32) for _ in range(10)]
 out = {}

@@ -28,7 +28,7 @@ numpy is single-threaded whatever the setting.
 Measured (2-core AMD EPYC VM, taichi 1.7.4, numpy 2.4; ``python benchmarks/bench_voting.py``, 2026-11-24,
 load average 1.4-1.5 from other work), warm ms per case, numpy -> taichi (ratio).  All outputs were
 bit-identical in every row.  Since the vote kernel's per-thread slots and the select / verify kernels'
-small batches are spread one per Taichi task (``kernels/_runtime.py``: ``TASK_ITEMS``, ``task_stride``),
+small batches are spread one per Taichi task (``kernels/taichi_runtime.py``: ``TASK_ITEMS``, ``task_stride``),
 2 Taichi threads run the V 7 voting 1.8x faster than 1 at batch 1024 (before: 1.0x, the slots' 2-iteration
 loop ran on one thread):
 

@@ -8,6 +8,10 @@ with status 2 without touching the lake.
 
 from __future__ import annotations
 
+import os
+import stat
+from pathlib import Path
+
 
 class InputError(ValueError):
     """A user input is invalid.
@@ -46,10 +50,6 @@ def read_user_file(path, error=InputError, *, what: str = "file", max_bytes: int
     Refuses folders, devices and pipes (``/dev/zero`` is never read), files larger than ``max_bytes`` and
     empty files; ``what`` names the expected content in the messages ("TOML file", "image file").
     """
-    import os
-    import stat
-    from pathlib import Path
-
     path = Path(path)
     try:
         with open(path, "rb") as fh:
@@ -74,7 +74,6 @@ def read_user_file(path, error=InputError, *, what: str = "file", max_bytes: int
 def output_path(path, *, folder: bool = False):
     """``path`` as a Path when its parent folder exists (and, with ``folder``, create ``path`` itself as the
     one folder the user named); otherwise an InputError: dualsight creates no folder the user did not name."""
-    from pathlib import Path
 
     path = Path(path)
     if not path.parent.is_dir():

@@ -40,7 +40,7 @@ from pydantic import Field
 from dualsight.config import check_fields
 from dualsight.kernels import star_psf
 from dualsight.kernels import starfield as sf
-from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.taichi_runtime import KernelCache
 from dualsight.kernels.background import row_medians
 from dualsight.kernels.digest import patch_digest_taichi
 from dualsight.kernels.labelling import Components, find, label_frames, label_segments, union

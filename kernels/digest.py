@@ -18,7 +18,7 @@ reproducibility, not a cryptographic hash.
 
 import numpy as np
 
-from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.taichi_runtime import KernelCache
 
 __all__ = ["splitmix64", "frame_digest", "frame_digest_taichi", "patch_digest", "patch_digest_taichi", "to_int64"]
 

@@ -32,7 +32,7 @@ the row kernels 1-2, ``SERIAL_MAX_RUNS`` runs for the segment kernels 3-4): a pa
 round trip through Taichi's thread pool that outweighs the work there (:class:`KernelCache`).  Both give the same
 output bit for bit.  Segments (pixel offset, width, first column, first row, frame) and runs (first column,
 end column, row, segment) are passed as int32 tables, one argument each: every array argument of a launch
-costs ~8.5 us in Taichi's Python launcher, ~2 us through :class:`~dualsight.kernels._runtime.FastKernel`
+costs ~8.5 us in Taichi's Python launcher, ~2 us through :class:`~dualsight.kernels.taichi_runtime.FastKernel`
 (``benchmarks/bench_taichi_threads.py``).
 
 Only runs are stored: the cost is one or two reads of every pixel plus work proportional to the number of
@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.taichi_runtime import KernelCache
 
 __all__ = ["NSTAT", "STAT_NAMES", "Components", "label_segments", "label_frames", "native_threshold", "find", "union"]
 

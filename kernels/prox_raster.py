@@ -29,7 +29,7 @@ import numpy as np
 import taichi as ti
 
 from dualsight.kernels import prox_geometry as geo
-from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.taichi_runtime import KernelCache
 from dualsight.kernels.prox_shading import shade
 from dualsight.kernels.prox_triangles import prepare_triangles
 

@@ -16,7 +16,7 @@ import numpy as np
 import taichi as ti
 
 from dualsight.kernels import rng
-from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.taichi_runtime import KernelCache
 from dualsight.kernels.prox_geometry import as_f32
 
 __all__ = ["gaussian_weights", "apply_sensor"]

@@ -15,7 +15,7 @@ import numpy as np
 import taichi as ti
 
 from dualsight.kernels import prox_geometry as geo
-from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.taichi_runtime import KernelCache
 from dualsight.kernels.prox_shading import shade
 
 __all__ = ["render_points"]

@@ -13,7 +13,7 @@ import numpy as np
 import taichi as ti
 
 from dualsight.kernels import prox_geometry as geo
-from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.taichi_runtime import KernelCache
 
 __all__ = ["prepare_triangles"]
 

@@ -47,7 +47,7 @@ p + c_k D, c_k = (k - (K - 1) / 2) / sqrt(K^2 - 1), k = 0..K-1, K = 1 + ceil(L /
 uniform segment's (first and second moments exact, sub-position spacing < 0.2 px).  A roll about the
 boresight gives each star its own length (L = |w_z| T r).
 
-Taichi is initialised lazily (``dualsight.kernels._runtime``) on the first kernel call.
+Taichi is initialised lazily (``dualsight.kernels.taichi_runtime``) on the first kernel call.
 """
 
 import math
@@ -56,7 +56,7 @@ import numpy as np
 import taichi as ti
 
 from dualsight.kernels import star_psf
-from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.taichi_runtime import KernelCache
 from dualsight.kernels.psf_image import check_psf
 
 __all__ = ["SMEAR_STEP_PX", "MAX_SMEAR_STEPS", "BRIGHT_WINDOW_SIGMA", "defocus_quadrature", "smear_vectors",

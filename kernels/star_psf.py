@@ -18,7 +18,7 @@ import math
 import numpy as np
 import taichi as ti
 
-from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.taichi_runtime import KernelCache
 
 __all__ = ["erfc", "phi", "star_window", "splat_star", "splat_stars"]
 

@@ -44,7 +44,7 @@ band at ~50 % quantum efficiency.  It is a config field; set it from your optics
 Noise-free frames never need to be materialised for detection: see
 ``dualsight.kernels.detect.render_and_detect_ideal`` (same pixels, only the patches around stars).
 
-Taichi is initialised lazily (``dualsight.kernels._runtime.ensure_init``) on the first call.
+Taichi is initialised lazily (``dualsight.kernels.taichi_runtime.ensure_init``) on the first call.
 """
 
 
@@ -55,7 +55,7 @@ import numpy as np
 import taichi as ti
 
 from dualsight.kernels import psf_models, rng, star_psf
-from dualsight.kernels._runtime import KernelCache
+from dualsight.kernels.taichi_runtime import KernelCache
 from dualsight.kernels.sensor_config import QUANT_EPS_ADU, SensorConfig
 from dualsight.kernels.sky_noise import sky_adu_table, stray_tables
 

@@ -8,7 +8,7 @@ only compare and count: their results are bit for bit those of the numpy stages
 (:mod:`dualsight.nav.votes`, :mod:`~dualsight.nav.candidates`, :mod:`~dualsight.nav.verify`), whatever
 the number of threads or the order in which they take the work.
 
-Kernels (built lazily, once per process, through :class:`~dualsight.kernels._runtime.KernelCache`):
+Kernels (built lazily, once per process, through :class:`~dualsight.kernels.taichi_runtime.KernelCache`):
 
 ``vote/<k>/<once>/<serial pairs><serial slots>`` (step 1; k = identities kept per star, once = one vote per
 observed pair), two loops, each parallel unless the call is small (:func:`_vote_kernel`):
@@ -37,7 +37,7 @@ b cases (the caller's blocks); verification ``(B, K, K)`` int8.  Nothing grows w
 import numpy as np
 import taichi as ti
 
-from dualsight.kernels._runtime import TASK_ITEMS, KernelCache, ensure_init
+from dualsight.kernels.taichi_runtime import TASK_ITEMS, KernelCache, ensure_init
 
 __all__ = ["vote_top_k", "bucket_starts", "n_threads"]
 
@@ -204,7 +204,7 @@ SERIAL_MAX_PAIRS = 4096
 
 def _vote_kernel(k: int, once: bool, serial_pairs: bool = False, serial_slots: bool = False):
     """The vote kernel; ``serial_pairs`` / ``serial_slots``: its first / second loop serial (small calls: a
-    parallel loop's launch is a thread-pool round trip, :class:`~dualsight.kernels._runtime.KernelCache`)."""
+    parallel loop's launch is a thread-pool round trip, :class:`~dualsight.kernels.taichi_runtime.KernelCache`)."""
     name = f"vote/{k}/{int(once)}/{int(serial_pairs)}{int(serial_slots)}"
     if name not in _KERNELS.builders:
         _KERNELS.builders[name] = lambda _dtype=None: _build_vote(k, once, serial_pairs, serial_slots)

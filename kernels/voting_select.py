@@ -18,7 +18,7 @@ Memory: candidate cliques ``(b, K m, K m)`` int8 for a block of b cases (the cal
 import numpy as np
 import taichi as ti
 
-from dualsight.kernels._runtime import KernelCache, task_stride
+from dualsight.kernels.taichi_runtime import KernelCache, task_stride
 
 __all__ = ["select_identities", "verify_accept"]
 

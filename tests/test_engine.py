@@ -402,7 +402,7 @@ def test_unwritable_lake_is_one_line(tmp_path):
 
 def test_taichi_is_not_initialised_at_import():
     code = ("import dualsight.jobs.kinds.star, dualsight.kernels.starfield, dualsight.kernels.detect, sys;"
-            "from dualsight.kernels import _runtime; print(_runtime.is_initialised())")
+            "from dualsight.kernels import taichi_runtime; print(taichi_runtime.is_initialised())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=ENV)
     assert out.stdout.strip() == "False"
 

@@ -1,14 +1,14 @@
-"""The short kernel launcher (kernels/_runtime.py FastKernel): the kernel must see exactly the arguments
+"""The short kernel launcher (kernels/taichi_runtime.py FastKernel): the kernel must see exactly the arguments
 Taichi's own launcher would give it, call after call, with new arrays, shapes and scalars each time."""
 
 import numpy as np
 import pytest
 
-from dualsight.kernels import _runtime
+from dualsight.kernels import taichi_runtime
 
 
 def _cache():
-    ti = _runtime.ensure_init()
+    ti = taichi_runtime.ensure_init()
     I32, F64x2, U64 = (ti.types.ndarray(dtype=d, ndim=n) for d, n in ((ti.i32, 1), (ti.f64, 2), (ti.u64, 1)))
 
     def build(dtype=None):
@@ -19,7 +19,7 @@ def _cache():
                 out[i, j] = ti.cast(a[i], ti.f64) * s + m[i, j] + ti.cast(n, ti.f64) + ti.cast(bits[i] & 7, ti.f64)
         return affine
 
-    cache = _runtime.KernelCache()
+    cache = taichi_runtime.KernelCache()
     cache.builders["affine"] = build
     return cache
 
@@ -36,7 +36,7 @@ def _args(rng, rows, cols):
 
 def test_fast_launches_equal_numpy_call_after_call():
     k = _cache().get("affine")
-    assert isinstance(k, _runtime.FastKernel)
+    assert isinstance(k, taichi_runtime.FastKernel)
     rng = np.random.default_rng(3)
     for call, (rows, cols) in enumerate([(5, 3), (17, 4), (1, 9), (40, 2), (17, 4)]):
         a, m, s, n, bits = _args(rng, rows, cols)
@@ -83,7 +83,7 @@ def test_unplanned_arguments_take_taichis_launcher():
 def test_launcher_switch(monkeypatch):
     monkeypatch.setenv("DUALSIGHT_TI_LAUNCHER", "taichi")
     k = _cache().get("affine")
-    assert not isinstance(k, _runtime.FastKernel)
+    assert not isinstance(k, taichi_runtime.FastKernel)
     rng = np.random.default_rng(6)
     a, m, s, n, bits = _args(rng, 4, 4)
     out = np.empty((4, 4))

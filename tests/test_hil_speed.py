@@ -167,7 +167,7 @@ def test_voting_engine_starts_taichi_only_for_long_runs():
 
     code = ("import os\n"
             "from dualsight.jobs.kinds import hil_star as hs\n"
-            "from dualsight.kernels._runtime import is_initialised\n"
+            "from dualsight.kernels.taichi_runtime import is_initialised\n"
             "n = hs.TAICHI_VOTING_MIN_FRAMES * (os.cpu_count() or 1)\n"
             "print(hs.voting_engine(1), is_initialised(), hs.voting_engine(n - 1), is_initialised(),"
             " hs.voting_engine(n), is_initialised(), hs.voting_engine(1))\n")

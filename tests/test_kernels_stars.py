@@ -377,7 +377,7 @@ def test_false_stars_are_rendered_where_listed():
 
 
 def test_rng_uniform_and_normal_moments():
-    ti = __import__("dualsight.kernels._runtime", fromlist=["ensure_init"]).ensure_init()
+    ti = __import__("dualsight.kernels.taichi_runtime", fromlist=["ensure_init"]).ensure_init()
 
     @ti.kernel
     def draw(u: ti.types.ndarray(dtype=ti.f64, ndim=1), z: ti.types.ndarray(dtype=ti.f64, ndim=1), seed: ti.u64):

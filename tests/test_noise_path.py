@@ -210,7 +210,7 @@ def test_hot_pixel_maps_per_case_and_fixed():
 
 # ----------------------------------------------------------------------------------------- inversion
 def test_inverse_table_is_exact_inversion():
-    ti = __import__("dualsight.kernels._runtime", fromlist=["ensure_init"]).ensure_init()
+    ti = __import__("dualsight.kernels.taichi_runtime", fromlist=["ensure_init"]).ensure_init()
 
     @ti.kernel
     def inv(u: ti.types.ndarray(dtype=ti.f64, ndim=1), cdf: ti.types.ndarray(dtype=ti.f64, ndim=1),
@@ -239,7 +239,7 @@ def test_sixteen_bit_draws_invert_like_the_composite_uniform():
     """``rng.inverse_table_bits`` with 16 bits h and the refinement v = u01_key(key, index): the index of the
     smallest cdf >= u for u = (h + v) / 2^16 (numpy.searchsorted), for every h of CDFs whose steps fall inside
     16-bit cells (steps 1e-20 and 1e-12 apart, a 2^-16 cell holding several steps), and its tail (-1)."""
-    ti = __import__("dualsight.kernels._runtime", fromlist=["ensure_init"]).ensure_init()
+    ti = __import__("dualsight.kernels.taichi_runtime", fromlist=["ensure_init"]).ensure_init()
 
     @ti.kernel
     def inv(h: ti.types.ndarray(dtype=ti.u64, ndim=1), key: ti.u64, cdf: ti.types.ndarray(dtype=ti.f64, ndim=1),

@@ -150,7 +150,7 @@ def test_window_search_is_searchsorted():
     """``_search`` (bucketed, branch-free) equals ``np.searchsorted`` on both sides: keys equal to
     catalog angles (ties decide the side), runs of repeated angles, keys below and above every angle;
     with the buckets of :func:`bucket_starts`, and with useless buckets (the exact fallback)."""
-    ti = dualsight.kernels._runtime.ensure_init()
+    ti = dualsight.kernels.taichi_runtime.ensure_init()
     F1, F2, I1 = (ti.types.ndarray(dtype=t, ndim=n) for t, n in ((ti.f64, 1), (ti.f64, 2), (ti.i32, 1)))
 
     @ti.kernel

@@ -59,7 +59,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyarrow as pa
 
-from dualsight.kernels._runtime import ensure_init, is_initialised
+from dualsight.kernels.taichi_runtime import ensure_init, is_initialised
 from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.catalogs.pair_cache import load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
