@@ -5,7 +5,7 @@ The labelling and the moment sums are :mod:`dualsight.kernels.labelling`'s (run-
 blobs, the largest blob (most pixels; ties -> the first in raster order), its moment sums, bounding box and
 optionally its mask, and the moment sums of all foreground pixels.
 
-Moment sums (float64), pixel centres at (col + 0.5, row + 0.5) (DESIGN.md convention), ``I`` the
+Moment sums (float64), pixel centres at (col + 0.5, row + 0.5) (docs/architecture.md, Conventions), ``I`` the
 image value, ``w`` the coverage (1 when no coverage image is given):
 
     0 n      1 sum x    2 sum y    3 sum x^2   4 sum x y   5 sum y^2         (whole pixels)

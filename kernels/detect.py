@@ -19,7 +19,7 @@ Two paths with one output contract (:class:`Detections`):
 Per blob (pixels p with value v_p > T_b, the frame's threshold, connected):
     flux = sum_p (v_p - bg_b)                      [ADU]
     x    = sum_p (v_p - bg_b) (c_p + 0.5) / flux    (intensity-weighted centroid, first moments;
-    y    = sum_p (v_p - bg_b) (r_p + 0.5) / flux     continuous pixel convention of DESIGN.md)
+    y    = sum_p (v_p - bg_b) (r_p + 0.5) / flux     continuous pixel convention of docs/architecture.md)
     npix = number of pixels
 with T_b = bg_b + max(cfg.threshold_adu, cfg.k_sigma * sigma_b).  Blobs with npix < cfg.min_pixels are
 dropped; at most cfg.max_blobs_per_frame (the brightest) are kept per frame.

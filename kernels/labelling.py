@@ -38,7 +38,7 @@ costs ~8.5 us in Taichi's Python launcher, ~2 us through :class:`~dualsight.kern
 Only runs are stored: the cost is one or two reads of every pixel plus work proportional to the number of
 runs.  Memory per run: 16 bytes of table, 40 of sums, 4 of label; per component 15 float64 moment sums (so
 at most 120 more bytes per run, when every run is its own component: a threshold at the noise level).
-Sums are float64 with pixel centres at (col + 0.5, row + 0.5) (DESIGN.md), ``I = value - offset`` (offset: the
+Sums are float64 with pixel centres at (col + 0.5, row + 0.5) (docs/architecture.md), ``I = value - offset`` (offset: the
 frame's background, 0 for none) and ``w`` the coverage (1 without a coverage buffer):
 
     0 n      1 sum x    2 sum y    3 sum x^2   4 sum x y   5 sum y^2         (whole pixels)

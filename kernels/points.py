@@ -20,7 +20,7 @@ sensor effects         :mod:`dualsight.kernels.prox_sensor` -- :func:`apply_sens
 Inputs are plain arrays (kernels are leaves): geometry in component-local frames plus per-frame
 component -> camera transforms ``x_cam = R[b, c] @ x + t[b, c]``.  ``camera`` is any object with
 ``width, height, fx, fy, cx, cy, distortion`` (scene.camera.Camera fits).  Pixel coordinates
-follow DESIGN.md: (col, row) from the top-left corner, pixel (i, j) spans [i, i+1) x [j, j+1).
+follow docs/architecture.md: (col, row) from the top-left corner, pixel (i, j) spans [i, i+1) x [j, j+1).
 
 Outputs are float32 ``image`` (B, H, W) -- sum of coverage x Eq. 3 intensity -- and ``coverage``
 (B, H, W) in [0, 1] (``paper``: 1 where a point landed).

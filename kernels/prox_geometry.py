@@ -3,7 +3,7 @@
 Inputs are plain arrays (kernels are leaves): geometry in component-local frames plus per-frame
 component -> camera transforms ``x_cam = R[b, c] @ x + t[b, c]`` (m).  ``camera`` is any object with
 ``width, height, fx, fy, cx, cy, distortion`` (scene.camera.Camera fits).  Pixel coordinates follow
-DESIGN.md: (col, row) from the top-left corner, pixel (i, j) spans [i, i+1) x [j, j+1).
+docs/architecture.md: (col, row) from the top-left corner, pixel (i, j) spans [i, i+1) x [j, j+1).
 """
 
 import numpy as np

@@ -1,7 +1,7 @@
 """Counter-based hash random numbers for Taichi kernels (and a numpy twin).
 
 Why: a case must render bit-identically whatever batch, position in the batch or thread
-computes it (DESIGN.md, "Seeds" and "Performance notes").  ``ti.random`` keeps per-thread
+computes it (docs/architecture.md, Conventions: "Seeds").  ``ti.random`` keeps per-thread
 state, so the numbers a pixel gets would depend on scheduling.  Here every random number is a
 pure function of ``(seed, stream, draw, index)``:
 

@@ -1,6 +1,6 @@
 """Star-field rendering, stage 1: exact pixel-integrated Gaussian PSFs splatted into a float32 signal buffer.
 
-Signal of pixel (r, c) of case b, in electrons (coordinates as DESIGN.md: pixel (r, c) covers
+Signal of pixel (r, c) of case b, in electrons (coordinates as docs/architecture.md: pixel (r, c) covers
 [c, c+1) x [r, r+1), centre (c + 0.5, r + 0.5))::
 
     S = sum_s  F_s * [Phi((c+1-x_s)/sigma) - Phi((c-x_s)/sigma)] * [Phi((r+1-y_s)/sigma) - Phi((r-y_s)/sigma)]

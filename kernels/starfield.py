@@ -1,6 +1,6 @@
 """Batched star-field rendering on the CPU (Taichi): exact pixel-integrated Gaussian PSFs plus sensor effects.
 
-Coordinates (DESIGN.md): continuous pixel coordinates (col, row) = (x, y) measured from the image's
+Coordinates (docs/architecture.md): continuous pixel coordinates (col, row) = (x, y) measured from the image's
 top-left *corner*; pixel (r, c) covers [c, c+1) x [r, r+1) and has its centre at (c + 0.5, r + 0.5).
 
 Signal model (electrons, per pixel (r, c) of case b)::

@@ -8,7 +8,7 @@ J. Astronaut. Sci. 36(3), 245-258 (1988):
     B = sum_k w_k b_k r_k^T,   B = U S V^T,   A = U diag(1, 1, det(U) det(V)) V^T.
 
 ``A`` maps reference vectors into the observed frame (``b = A r``), the project's attitude convention
-(inertial -> camera, DESIGN.md).  Everything is vectorised over a leading case axis; padded entries
+(inertial -> camera, docs/architecture.md).  Everything is vectorised over a leading case axis; padded entries
 carry weight 0.
 """
 

@@ -8,7 +8,7 @@ Reference, Sec. 3.3, Eqs. 4-7::
     eps_i = 90 deg - acos(phi_i),   i = x, y, z
 
 and a case fails when any |eps_i| exceeds 100 arcsec.  Here ``R`` is the project's attitude matrix
-``A`` (inertial -> camera, DESIGN.md), so ``Theta = A_est^T A_true`` and ``A_true = A_est Theta``.
+``A`` (inertial -> camera, docs/architecture.md), so ``Theta = A_est^T A_true`` and ``A_true = A_est Theta``.
 
 Sign: ``Theta ~ I + [phi x]`` is the *active* rotation by the small vector ``phi`` (right-hand rule);
 ``eps_i = asin(phi_i)`` (identical to ``90 deg - acos(phi_i)``) is positive when Theta rotates

@@ -3,7 +3,7 @@
 Between detection (``kernels.detect``: ragged centroids per frame, brightest first) and voting
 (``nav.starid``): each case keeps its brightest ``max_obs`` detections, padded to (B, S), and their
 centroids are back-projected through the camera model (distortion removed) to camera-frame unit vectors.
-Pixel coordinates are (col, row) from the image's top-left corner (DESIGN.md).
+Pixel coordinates are (col, row) from the image's top-left corner (docs/architecture.md).
 """
 
 from __future__ import annotations

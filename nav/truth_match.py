@@ -3,7 +3,7 @@ identities the voting accepted are right.
 
 A detection is the rendered star (same case) whose true position is nearest to its centroid, when that
 star lies within ``radius_px``; otherwise it has no truth (a false star, noise, or stars merged far
-from both).  Pixel coordinates are (col, row) from the image's top-left corner (DESIGN.md).
+from both).  Pixel coordinates are (col, row) from the image's top-left corner (docs/architecture.md).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Attitude math over arrays: elementary rotations, Euler 1-2-3, random attitudes, RA/Dec.
 
 Attitude matrices ``A`` map inertial (ICRS) vectors into the camera frame: ``v_cam = A @ v_icrs``
-(DESIGN.md conventions).  All functions are vectorised over a leading batch axis; angles in radians.
+(docs/architecture.md, Conventions).  All functions are vectorised over a leading batch axis; angles in radians.
 The angle between two directions is :func:`dualsight.scene.units.angle_between`.
 """
 

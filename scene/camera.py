@@ -1,6 +1,6 @@
 """Pinhole camera with optional Brown-Conrady distortion; projection and back-projection.
 
-Conventions (DESIGN.md):
+Conventions (docs/architecture.md):
     camera frame  +x along increasing column, +y along increasing row, +z out through the lens;
     pixels        continuous (col, row) measured from the image's top-left *corner*, so the
                   top-left pixel's centre is (0.5, 0.5) and the image centre is (W/2, H/2).

@@ -9,7 +9,7 @@ Conventions
   are ``o + k w`` with ``w`` the rotation (deg/frame) -- the angles grow linearly, as a per-frame
   "rotation (5, 5, 5) deg/frame" reads.  Positions are ``p + k v``.
 * ``euler123_to_dcm`` (scene/attitude.py) gives the passive matrix A mapping parent-frame vectors into
-  the child frame.  The camera's A maps world vectors into the camera frame (DESIGN.md: attitude
+  the child frame.  The camera's A maps world vectors into the camera frame (docs/architecture.md: attitude
   matrices map inertial vectors into the camera frame); for the body and the components the
   local-to-parent (active) matrix is A^T.
 * Components are placed relative to the body (position, orientation and motion in the body frame).

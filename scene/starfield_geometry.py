@@ -3,7 +3,7 @@
 Stage 5 of docs/architecture.md.  Pure functions of arrays (numpy only); the flux of each catalog star
 and the PSF margin are inputs, computed by the caller from the sensor model (``kernels.starfield``).
 
-Conventions (DESIGN.md): ``A`` maps inertial (ICRS) unit vectors into the camera frame (+z out through
+Conventions (docs/architecture.md): ``A`` maps inertial (ICRS) unit vectors into the camera frame (+z out through
 the lens); pixel coordinates are (col, row) measured from the image's top-left corner, so the top-left
 pixel's centre is (0.5, 0.5).  Per-case results are padded to (B, S) with a ``valid`` mask, in catalog
 order (the catalog is sorted brightest first, so the padding keeps brightness order).

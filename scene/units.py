@@ -1,6 +1,6 @@
 """Angle units and the angle between directions: the one place the project defines them.
 
-DESIGN.md: SI units inside (radians), arcseconds and degrees only at the edges (reports, CLI, config
+docs/architecture.md: SI units inside (radians), arcseconds and degrees only at the edges (reports, CLI, config
 files, truth files).  Convert at the edge by multiplying with a constant (``20 * ARCSEC`` rad) or
 dividing by it (``err_rad / ARCSEC`` arcsec); degrees also with ``np.radians`` / ``np.degrees``,
 which use the same factor as :data:`DEG`.  Pure numpy, no project import.

@@ -314,7 +314,7 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "cameras"
 @pytest.mark.parametrize("name, size, pitch_um, f_mm, fov_h_deg, fov_v_deg", [
     ("paper_prox", (1024, 768), 4.65, 6.0, 43.29, 33.15),           # reference Table 1
     ("paper_hil_prox", (2048, 1536), 2.9475, 4.356, 69.44, 54.92),  # reference Table 4
-    ("paper_star", (1024, 768), 4.65, 17.0, 15.9, 12.0),            # DESIGN.md: 15.9 x 12.0 deg, 19.9 diagonal
+    ("paper_star", (1024, 768), 4.65, 17.0, 15.9, 12.0),            # 2 atan(w/2f): 15.9 x 12.0 deg, 19.9 diagonal
     ("esa_tetra3", (1024, 768), 6.9, 35.32, 11.4, 8.58),            # ESA README: about 11.4 deg horizontal
 ])
 def test_example_cameras(name, size, pitch_um, f_mm, fov_h_deg, fov_v_deg):

@@ -8,6 +8,7 @@ grimp reads every import statement, those inside functions included.
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import subprocess
@@ -81,3 +82,50 @@ def test_the_layer_table_of_the_architecture_page_is_the_contract():
     contracts = tomllib.loads(PYPROJECT.read_text())["tool"]["importlinter"]["contracts"]
     layers = next(c for c in contracts if c["id"] == "layers")["layers"]
     assert documented == [" | ".join(sorted(x.strip() for x in layer.split("|"))) for layer in layers]
+
+
+def import_cycles(tree: Path) -> list[list[str]]:
+    """The strongly connected components (of more than one module) of the package's import graph, every
+    import statement counted (those inside functions too), computed by grimp in a subprocess over ``tree``."""
+    code = """
+import json, sys, grimp
+g = grimp.build_graph("dualsight")
+adj = {m: sorted(g.find_modules_directly_imported_by(m)) for m in g.modules}
+index, low, stack, on, out = {}, {}, [], set(), []
+def visit(v):
+    index[v] = low[v] = len(index); stack.append(v); on.add(v)
+    for w in adj[v]:
+        if w not in index:
+            visit(w); low[v] = min(low[v], low[w])
+        elif w in on:
+            low[v] = min(low[v], index[w])
+    if low[v] == index[v]:
+        comp = []
+        while True:
+            w = stack.pop(); on.discard(w); comp.append(w)
+            if w == v:
+                break
+        if len(comp) > 1:
+            out.append(sorted(comp))
+sys.setrecursionlimit(100000)
+for m in sorted(adj):
+    if m not in index:
+        visit(m)
+print(json.dumps(out))
+"""
+    r = subprocess.run([sys.executable, "-c", code], cwd=tree, capture_output=True, text=True, timeout=300,
+                       env={"PYTHONPATH": str(tree), "PATH": "/usr/bin:/bin"})
+    assert r.returncode == 0, r.stderr[-3000:]
+    return json.loads(r.stdout)
+
+
+def test_no_import_cycles(tree):
+    """No module reaches itself through imports, not even through an import deferred into a function."""
+    assert import_cycles(tree) == []
+
+
+def test_a_planted_cycle_is_found(tmp_path):
+    tree = merged_tree(tmp_path)
+    path = tree / "dualsight" / "scene" / "units.py"
+    path.write_text(path.read_text() + "\n\ndef _planted():\n    from dualsight.scene import skytruth\n")
+    assert any("dualsight.scene.units" in c for c in import_cycles(tree))

@@ -47,7 +47,7 @@ def test_report_json_and_accuracy(lake, capsys):
     for r in js["ranges"]:
         for k in ("true_range_m", "avg_est_range_m", "avg_abs_error_m", "avg_rel_error_pct", "within_min_max_pct"):
             assert k in r
-        # accurate rendering + subpixel estimator: orientation ambiguity alone leaves ~4 % (DESIGN.md);
+        # accurate rendering + subpixel estimator: orientation ambiguity alone leaves ~4 %;
         # the reference had 7.8-20 % at these ranges
         assert r["avg_rel_error_pct"] < 8.0
         assert r["avg_rel_error_pct"] < r["reference"]["avg_rel_err_pct"]

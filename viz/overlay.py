@@ -9,7 +9,7 @@ puts in the field and the centroids of an independent solution (truth file).
 Right panel: every identified star's offset (observed minus predicted) in arcseconds on the sky's
 tangent plane at the star, i.e. pixel offset x the local plate scale, with its median circle.
 
-Draws arrays only; never calls back into ``jobs`` (DESIGN.md).
+Draws arrays only; never calls back into ``jobs`` (docs/architecture.md, Layers).
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ truth, else a marker per image).  Bottom panel: the average relative error (%) a
 whose true range lies inside the min/max bars (%), per threshold.
 
 Draws arrays (:func:`threshold_sweep_figure`) or a run's query results (:func:`hil_prox_figure`); never calls
-back into ``jobs`` (DESIGN.md).
+back into ``jobs`` (docs/architecture.md).
 """
 
 from __future__ import annotations

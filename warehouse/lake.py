@@ -1,6 +1,6 @@
 """The Parquet data lake: layout, atomic self-describing shards, manifests, shard journals, locks, checks.
 
-Layout (DESIGN.md)::
+Layout (docs/architecture.md, Conventions: "Lake")::
 
     <lake>/<dataset>/run=<run_id>/part-<shard:06d>.parquet   one file per (dataset, run, shard)
     <lake>/_manifests/<run_id>.json                           the run: kind, canonical spec, spec hash, plan, status
