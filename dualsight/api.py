@@ -34,7 +34,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from dualsight.errors import ConfigError, ImageError, InputError
-from dualsight.jobs.cli.hil_star import add_star_parser, settings_from_args
+from dualsight.jobs.cli.hil_star import add_star_parser
+from dualsight.jobs.cli.hil_star_settings import settings_from_args
 from dualsight.scene.camera import Camera, read_toml
 from dualsight.scene.timescale import observation_epoch
 from dualsight.scene.units import ARCSEC

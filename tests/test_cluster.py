@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from dualsight.errors import InputError
-from dualsight.jobs.engine.runner import EngineError, run_job
+from dualsight.jobs.engine.errors import EngineError
+from dualsight.jobs.engine.runner import run_job
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import run_sql
 from helpers import esa_spec, hil_star_rows, shared_real

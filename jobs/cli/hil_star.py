@@ -124,18 +124,6 @@ def add_star_parser(hsub) -> argparse.ArgumentParser:
     return p
 
 
-def settings_from_args(args, config: dict | None, epoch: float):
-    """The ``hil_star`` settings of the command line's method options over the ``--config`` table."""
-    from dualsight.jobs.kinds.hil_star_spec import settings_from_table      # Taichi (the detectors' configs)
-
-    return settings_from_table(config, source=str(args.config) if args.config else "hil star",
-                               method=args.method, compare=not args.no_compare, detector=args.detector,
-                               background_block_px=args.background_block, limit_arcsec=args.limit_arcsec,
-                               mag_limit=args.mag_limit, epoch_jyear=epoch,
-                               tolerance_arcsec=args.tolerance_arcsec, max_stars=args.max_stars,
-                               k_sigma=args.k_sigma, min_pixels=args.min_pixels)
-
-
 def cmd_hil_star(args) -> int:
     """``dualsight hil star`` (the module docstring; ``--sweep`` and ``--fit-distortion`` too): run by
     jobs/cli/hil_star_command.py, imported when the command runs (the hil_star kind: Taichi)."""

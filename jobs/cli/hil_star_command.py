@@ -14,7 +14,7 @@ from pathlib import Path
 
 from dualsight.errors import InputError
 from dualsight.jobs.cli.args import done_message, engine_lake, run_engine
-from dualsight.jobs.cli.hil_star import settings_from_args
+from dualsight.jobs.cli.hil_star_settings import settings_from_args
 from dualsight.jobs.kinds import fit_distortion
 from dualsight.jobs.kinds import hil_star as hs
 from dualsight.jobs.kinds import hil_star_sweep as sw

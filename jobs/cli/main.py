@@ -24,7 +24,6 @@ import signal
 import sys
 from pathlib import Path
 
-from dualsight.version import __version__
 from dualsight.errors import InputError
 from dualsight.jobs.cli import calibrate as cli_calibrate
 from dualsight.jobs.cli import hil_star as cli_hil_star
@@ -32,6 +31,8 @@ from dualsight.jobs.cli import nightly as cli_nightly
 from dualsight.jobs.cli import peer as cli_peer
 from dualsight.jobs.cli import prox as cli_prox
 from dualsight.jobs.cli.args import Parser, add_lake_arg, add_run_args, latest_run, open_lake, positive_int, run_id_arg
+from dualsight.jobs.engine.errors import Interrupted
+from dualsight.version import __version__
 from dualsight.warehouse.paths import os_error_text
 
 # The one table from commands to job kinds (jobs/engine/runner.py JOB_KINDS maps kinds to modules).
@@ -138,8 +139,6 @@ def _help(p):
 
 
 def _on_sigterm(signum, frame):
-    from dualsight.jobs.engine.runner import Interrupted          # pyarrow
-
     raise Interrupted(f"signal {signum}")
 
 
@@ -272,7 +271,7 @@ def cmd_report_html(args) -> int:
 
 
 def cmd_replay(args) -> int:
-    from dualsight.jobs.replay.cases import replay_run
+    from dualsight.jobs.replay.run import replay_run
 
     outs = replay_run(open_lake(args), args.run, case=args.case, where=args.where, limit=args.limit, output=args.output)
     for o in outs:

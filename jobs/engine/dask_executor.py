@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 
 from dualsight.errors import InputError
+from dualsight.jobs.engine.errors import EngineError
 
 CONNECT_TIMEOUT_S = 8
 RETRIES = 2
@@ -22,10 +23,9 @@ def task_token(lake_root: str, run_id: str, spec_hash: str) -> str:
     return hashlib.sha256(f"{lake_root}\0{run_id}\0{spec_hash}".encode()).hexdigest()[:16]
 
 
-def run_on_dask(tasks, plan, lake, scheduler: str):
-    """Yield journal entries as shards complete on the cluster at ``scheduler``."""
-    from dualsight.jobs.engine.runner import EngineError, execute_shard   # pyarrow (and the runner imports this module)
-
+def run_on_dask(tasks, plan, lake, scheduler: str, execute_shard):
+    """Yield journal entries as shards complete on the cluster at ``scheduler``; each task is
+    ``execute_shard(task)`` (the runner's, which computes and writes one shard)."""
     try:
         import dask.config
         from dask.distributed import Client, as_completed

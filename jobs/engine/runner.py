@@ -50,6 +50,7 @@ from tqdm import tqdm
 
 from dualsight.errors import InputError
 from dualsight.jobs.engine.dask_executor import run_on_dask
+from dualsight.jobs.engine.errors import EngineError
 from dualsight.jobs.engine.specs import check_memory
 from dualsight.version import code_version
 from dualsight.warehouse.lake import Lake, LakeError
@@ -72,14 +73,6 @@ MAX_SHARD_SIZE = 10**6
 MAX_WORKERS = 512
 WORKER_RESTARTS = 3
 MANIFEST_EVERY_S = 2.0
-
-
-class EngineError(InputError):
-    """A run could not go on (a worker died repeatedly, the scheduler went away, a shard failed)."""
-
-
-class Interrupted(KeyboardInterrupt):
-    """SIGINT or SIGTERM reached the coordinating process."""
 
 
 def job_module(kind: str):
@@ -346,7 +339,7 @@ _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "D
 def _execute(tasks, plan, lake, workers, threads_per_worker, scheduler, n_todo):
     """Yield journal entries of completed shards from the chosen executor."""
     if scheduler:
-        yield from run_on_dask(tasks, plan, lake, scheduler)
+        yield from run_on_dask(tasks, plan, lake, scheduler, execute_shard)
         return
     if workers == 1 or n_todo == 1:
         if threads_per_worker:

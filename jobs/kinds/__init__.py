@@ -4,6 +4,6 @@ jobs/engine/runner.py), and what a kind needs beside it (``star_tables``, ``star
 ``hil_truth``, ``hil_common``, ``hil_defaults``, ``fit_distortion``).
 
 A kind wires the stages of scene, nav, kernels and catalogs and may import them, the engine and the warehouse.
-It never imports reports or cli (the one exception is ``peer_star``'s documented ``python -m`` entry, which runs
-``dualsight peer import``).
+It never imports reports or cli (``peer_star``'s documented ``python -m`` entry runs the ``dualsight`` program
+instead).
 """

@@ -55,6 +55,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import runpy
 import sys
 from pathlib import Path
 from typing import Any
@@ -64,7 +65,6 @@ import pyarrow as pa
 from pydantic import Field, field_validator, model_validator
 
 from dualsight.errors import InputError, read_user_file
-from dualsight.jobs.cli.main import main as dualsight_main
 from dualsight.config import validate
 from dualsight.jobs.kinds.hil_common import Frozen, rows_table
 from dualsight.scene.attitude import radec_to_unit, unit_to_radec
@@ -288,11 +288,20 @@ def import_answers(lake, answers, *, run_id: str | None = None, method: str | No
 
 # ============================================================================================ entry
 def main(argv=None) -> int:
-    """``python -m dualsight.jobs.kinds.peer_star ARGS`` is ``dualsight peer import ARGS`` (jobs/cli/peer.py: the
-    one command line's command and error handling): 0 imported, 2 bad input (one line, lake untouched).  Kept for
-    benchmarks/peers/README.md and tests/test_peer_import.py, which call it so; the only import of the command
-    line by a job kind."""
-    return dualsight_main(["peer", "import", *(sys.argv[1:] if argv is None else argv)])
+    """``python -m dualsight.jobs.kinds.peer_star ARGS`` runs the program ``dualsight peer import ARGS``
+    (jobs/cli/peer.py: the one command line's command, one-line errors and exit statuses): 0 imported, 2 bad input
+    (lake untouched).  Kept because benchmarks/peers/README.md and tests/test_peer_import.py call it so.  It runs
+    ``python -m dualsight`` in this process (runpy) instead of importing the command line, which a job kind
+    never imports (and which imports this module)."""
+    saved = sys.argv
+    sys.argv = ["dualsight", "peer", "import", *(sys.argv[1:] if argv is None else argv)]
+    try:
+        runpy.run_module("dualsight", run_name="__main__")
+    except SystemExit as e:
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    finally:
+        sys.argv = saved
+    return 0
 
 
 if __name__ == "__main__":
