@@ -111,6 +111,7 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
     import numpy as np
 
     cv2.setNumThreads(1)
+    from dualsight.config import validate
     from dualsight.jobs.kinds import hil_star as hs
     from dualsight.jobs.cli.main import main  # noqa: F401  (the package's normal import state)
     from dualsight.jobs.kinds.hil_common import ImageEntry  # noqa: F401
@@ -154,7 +155,7 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
                     px, _ = hs.read_frame(spec.images[k], cam)
                 with T.stage("detector other"):
                     if detector == "local":
-                        det = dl.detect_real(px[None], hs.validate(dl.LocalDetectConfig, rt.settings.detect_local,
+                        det = dl.detect_real(px[None], validate(dl.LocalDetectConfig, rt.settings.detect_local,
                                                                     source="spec", section="settings.detect_local"),
                                              saturation_adu=sat)
                     else:     # the HIL's global path: smooth background, one threshold, Taichi labelling

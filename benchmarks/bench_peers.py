@@ -177,6 +177,7 @@ def render_inputs(n: int, seed: int, out: Path, mag_limit: float):
 # ============================================================================================ dualsight
 def dualsight_spec(paths, camera_path, truth_path, args):
     from dualsight.jobs.kinds import hil_star as hs
+    from dualsight.jobs.kinds.hil_star_spec import settings_from_table
     from dualsight.jobs.kinds.hil_truth import resolve_star_truths
     from dualsight.scene.camera import Camera
     from dualsight.scene.skytruth import load_truth_json
@@ -184,9 +185,9 @@ def dualsight_spec(paths, camera_path, truth_path, args):
 
     camera = Camera.from_toml(camera_path)
     epoch = observation_epoch(paths) or 2000.0
-    settings = hs.settings_from_table(None, source="bench_peers", method="robust", compare=False,
-                                      batch_size=args.batch_size, mag_limit=args.mag_limit, epoch_jyear=epoch,
-                                      tolerance_arcsec=20.0, max_stars=25, k_sigma=5.0, min_pixels=3)
+    settings = settings_from_table(None, source="bench_peers", method="robust", compare=False,
+                                   batch_size=args.batch_size, mag_limit=args.mag_limit, epoch_jyear=epoch,
+                                   tolerance_arcsec=20.0, max_stars=25, k_sigma=5.0, min_pixels=3)
     truths = resolve_star_truths(paths, load_truth_json(truth_path) if truth_path else None, None)
     return hs.spec_from_dict(hs.build_spec(paths, camera, settings, truths), source="bench_peers")
 

@@ -72,12 +72,13 @@ def esa_spec(names=None) -> dict:
     """The ``hil star`` job spec of the ESA tetra3 frames (all, or those ``names``) with their truth file and the
     tripod's site, default settings at epoch 2019.6.  The caller skips when the frames are absent."""
     from dualsight.jobs.kinds import hil_star as hs
+    from dualsight.jobs.kinds.hil_star_spec import settings_from_table
     from dualsight.jobs.kinds.hil_truth import Site, resolve_star_truths
     from dualsight.scene.skytruth import load_truth_json
 
     esa = shared_real() / "esa_tetra3"
     paths = [esa / n for n in names] if names else sorted(esa.glob("*.tiff"))
-    settings = hs.settings_from_table(None, epoch_jyear=2019.6)
+    settings = settings_from_table(None, epoch_jyear=2019.6)
     truths = resolve_star_truths(paths, load_truth_json(esa / "truth.json"), Site(52.08, 4.37))
     return hs.build_spec(paths, Camera.from_toml(ROOT / "examples" / "cameras" / "esa_tetra3.toml"), settings, truths)
 

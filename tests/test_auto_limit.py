@@ -187,8 +187,9 @@ def test_sensor_limit_by_hand():
 # ------------------------------------------------------------------------------------ hil star settings
 def test_hil_settings_resolve_auto_from_the_camera(tmp_path):
     from dualsight.jobs.kinds import hil_star as hs
+    from dualsight.jobs.kinds.hil_star_spec import settings_from_table
 
-    deferred = hs.settings_from_table(None, mag_limit=None, epoch_jyear=2019.6)
+    deferred = settings_from_table(None, mag_limit=None, epoch_jyear=2019.6)
     assert deferred.catalog == {"mag_limit": "auto", "epoch_jyear": 2019.6}
     img = tmp_path / "frame.png"
     img.write_bytes(b"x")
@@ -198,12 +199,12 @@ def test_hil_settings_resolve_auto_from_the_camera(tmp_path):
     assert hs.spec_from_dict(spec.to_dict()) == spec
     assert hs.memory_estimate(spec) > 0
     paper = Camera.from_toml(ROOT / "examples" / "cameras" / "paper_star.toml")
-    s = hs.settings_from_table({"catalog": {"mag_limit": "auto"}}, mag_limit=7.5, camera=paper)
+    s = settings_from_table({"catalog": {"mag_limit": "auto"}}, mag_limit=7.5, camera=paper)
     assert s.catalog["mag_limit"] == al.auto_mag_limit(paper, target_per_field=al.HIL_TARGET_PER_FIELD) == 6.4
-    assert hs.settings_from_table({"catalog": {"mag_limit": 6.0}}, mag_limit=None, camera=paper).catalog[
+    assert settings_from_table({"catalog": {"mag_limit": 6.0}}, mag_limit=None, camera=paper).catalog[
         "mag_limit"] == 6.0                                                            # a number in the table wins
-    assert hs.settings_from_table(None, mag_limit=7.5, camera=paper).catalog["mag_limit"] == 7.5
-    assert hs.settings_from_table(None, camera=paper).catalog["mag_limit"] == 7.0     # the Python API's default
+    assert settings_from_table(None, mag_limit=7.5, camera=paper).catalog["mag_limit"] == 7.5
+    assert settings_from_table(None, camera=paper).catalog["mag_limit"] == 7.0     # the Python API's default
 
 
 def test_cli_default_is_auto():

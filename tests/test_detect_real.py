@@ -391,10 +391,12 @@ def test_attitude_weights_default_to_equal_and_inverse_variance_helps():
 # ============================================================================================ HIL wiring
 def test_hil_settings_select_the_detector():
     from dualsight.jobs.kinds import hil_star as hs
+    from dualsight.jobs.kinds.hil_star_spec import settings_from_table
+    from dualsight.kernels.detect import DetectConfig
 
-    s = hs.settings_from_table(None)
+    s = settings_from_table(None)
     assert s.detector == "local" and s.detect_local["k_sigma"] == 5.0 and s.detect_local["psf_sigma_px"] is None
-    g = hs.settings_from_table({"detector": "global", "detect_local": {"tile_px": 64}})
+    g = settings_from_table({"detector": "global", "detect_local": {"tile_px": 64}})
     assert g.detector == "global" and g.detect_local["tile_px"] == 64
     rng = np.random.default_rng(11)
     x, y = _grid(2, 64, 32, rng)
@@ -402,7 +404,7 @@ def test_hil_settings_select_the_detector():
                              SensorConfig(read_noise_e=10.0, sky_background_e=50.0, shot_noise=True),
                              np.array([1, 2], np.uint64))
     for st in (s, g):
-        resid, bg, det = hs.detect_frames(img, st, hs.DetectConfig(k_sigma=5.0, min_pixels=3))
+        resid, bg, det = hs.detect_frames(img, st, DetectConfig(k_sigma=5.0, min_pixels=3))
         assert resid.shape == img.shape and bg.shape == (2,) and _match(det, x, y)[0].all()
         assert (det.sigma_px is not None) == (st.detector == "local")
 

@@ -28,6 +28,7 @@ import pytest
 
 from dualsight.errors import ConfigError
 from dualsight.jobs.kinds import hil_prox as hp
+from dualsight.jobs.kinds.hil_common import n_cases
 from dualsight.jobs.kinds.hil_truth import load_range_truth
 from dualsight.scene.camera import Camera
 from dualsight.scene.segment import binarize
@@ -451,7 +452,7 @@ def test_spec_round_trip_shards_and_changed_files(rendered, tmp_path):
     d = hp.build_spec(paths, Camera.from_toml(CAM_HIL), hp.target_spec(TARGET_3U), {"thresholds": [20.0, 60.0]},
                       [RANGE_M] * len(paths), "value")
     spec = hp.spec_from_dict(d)
-    assert hp.spec_from_dict(json.loads(json.dumps(spec.to_dict()))) == spec and hp.n_cases(spec) == len(paths)
+    assert hp.spec_from_dict(json.loads(json.dumps(spec.to_dict()))) == spec and n_cases(spec) == len(paths)
     for change, field in (({"settings": {"close_px": -3}}, "settings.close_px"),
                           ({"settings": {"thresholds": []}}, "settings.thresholds"),
                           ({"truths_m": [-1.0] * len(paths)}, "truths_m.0"),

@@ -141,10 +141,11 @@ def test_tile_statistics_counts_equal_the_float32_comparisons(dtype):
 @pytest.mark.skipif(not (ESA / "truth.json").exists(), reason=f"ESA tetra3 frames not found at {ESA}")
 def test_numpy_and_taichi_voting_give_the_same_rows(monkeypatch):
     from dualsight.jobs.kinds import hil_star as hs
+    from dualsight.jobs.kinds.hil_star_spec import settings_from_table
     from dualsight.scene.camera import Camera
 
     paths = sorted(ESA.glob("*.tiff"))[:3]
-    settings = hs.settings_from_table(None, epoch_jyear=2019.6)
+    settings = settings_from_table(None, epoch_jyear=2019.6)
     spec = hs.spec_from_dict(hs.build_spec(paths, Camera.from_toml(ROOT / "examples/cameras/esa_tetra3.toml"),
                                            settings))
     ctx = hs.make_context(spec)

@@ -20,6 +20,8 @@ import pytest
 
 from dualsight.errors import ConfigError
 from dualsight.jobs.kinds import hil_star as hs
+from dualsight.jobs.kinds.hil_common import n_cases
+from dualsight.jobs.kinds.hil_star_spec import settings_from_table
 from dualsight.jobs.engine.runner import run_job
 from dualsight.scene.attitude import radec_to_unit, rot_axis, unit_to_radec
 from dualsight.kernels.background import bin_size, subtract_background
@@ -73,8 +75,8 @@ def test_all_eight_frames_identified_lost_in_space(esa):
 
 def test_stars_used_counts_the_answering_rounds_voters():
     sched = ((0, 12), (0, 25), (25, 50))                 # first_stars 12, max_stars 25, widening to 50
-    assert [hs._voters(30, r, sched) for r in range(3)] == [12, 25, 5]
-    assert [hs._voters(8, r, sched) for r in range(3)] == [8, 8, 0]
+    assert [hs.voters_in_round(30, r, sched) for r in range(3)] == [12, 25, 5]
+    assert [hs.voters_in_round(8, r, sched) for r in range(3)] == [8, 8, 0]
 
 
 @needs_esa
@@ -462,10 +464,10 @@ def test_spec_round_trip_and_errors_name_the_field(tmp_path):
     img = tmp_path / "frame.png"
     cv2.imwrite(str(img), np.zeros((768, 1024), np.uint8))
     d = hs.build_spec([img, tmp_path / "missing.png"], Camera.from_toml(CAMERA),
-                      hs.settings_from_table({"voting": {"tolerance_arcsec": 15.0}}))
+                      settings_from_table({"voting": {"tolerance_arcsec": 15.0}}))
     spec = hs.spec_from_dict(d)
     assert hs.spec_from_dict(spec.to_dict()) == spec and hs.spec_from_dict(json.loads(json.dumps(spec.to_dict()))) == spec
-    assert hs.n_cases(spec) == 2 and spec.images[1].bytes is None and spec.images[0].bytes == img.stat().st_size
+    assert n_cases(spec) == 2 and spec.images[1].bytes is None and spec.images[0].bytes == img.stat().st_size
     assert spec.settings.voting["tolerance_rad"] == pytest.approx(15 * ARCSEC) and spec.settings.alt_voting
     # the robust method's cheaper first round is in the HIL spec; the paper method (alt) has none, and its
     # table does not even hold the key (a newer option at its default leaves older tables unchanged)

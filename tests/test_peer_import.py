@@ -8,8 +8,6 @@ same lake, which ``peer_star`` must join frame by frame (skipped when ../shared/
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import math
 from pathlib import Path
@@ -111,12 +109,11 @@ def test_the_import_is_a_run_listed_checked_and_refused_under_another_spec(tmp_p
     other = write(tmp_path / "b.json", {"method": "cedar-solve", "frames": FRAMES[:2]})
     with pytest.raises(InputError, match="--run.*other settings.*answers_sha256"):
         pi.import_answers(lake, other, run_id=rid)
-    # the CLI entry: one line, exit 0, and the --method check
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        assert pi.main([str(other), "--lake", str(lake.root), "--run", "cli-run"]) == 0
-        assert pi.main([str(other), "--lake", str(lake.root), "--method", "tetra3"]) == 2
-    assert "run cli-run" in err.getvalue() and "contradicts" in err.getvalue()
+    # the command `dualsight peer import`: one line, exit 0, and the --method check
+    rc, _, err1 = run_cli(["peer", "import", other, "--lake", lake.root, "--run", "cli-run"])
+    assert rc == 0 and "run cli-run" in err1
+    rc, _, err2 = run_cli(["peer", "import", other, "--lake", lake.root, "--method", "tetra3"])
+    assert rc == 2 and "contradicts" in err2 and len(err2.strip().splitlines()) == 1
     assert len(rows(lake.root, "cli-run")) == 2
 
 

@@ -64,7 +64,6 @@ from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.errors import ConfigError, ImageError
 from dualsight.config import validate
 from dualsight.jobs.kinds.hil_common import Frozen, ImageEntry, check_unchanged, fixed_point, rows_table, spec_base
-from dualsight.jobs.kinds.hil_common import n_cases  # noqa: F401  (a kind's n_cases: hil_prox.n_cases, tests)
 from dualsight.nav.blobber import BlobberConfig, run_blobber
 from dualsight.nav.blobber_names import ESTIMATORS, TARGETS
 from dualsight.nav.hil_score import score_range

@@ -66,10 +66,8 @@ from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 from dualsight.errors import ImageError
 from dualsight.config import validate
 from dualsight.jobs.kinds.hil_common import ImageEntry, check_unchanged, rows_table, spec_base
-from dualsight.jobs.kinds.hil_common import n_cases  # noqa: F401  (a kind's n_cases: hil_star.n_cases, tests)
 from dualsight.jobs.kinds.hil_star_spec import MAX_VOTE_CELLS, HilStarSpec, StarSettings, StarTruth
-from dualsight.jobs.kinds.hil_star_spec import settings_from_table  # noqa: F401  (hil_star.settings_from_table, tests)
-from dualsight.jobs.kinds.hil_star_spec import spec_from_dict  # noqa: F401  (the job-kind contract: the engine's)
+from dualsight.jobs.kinds import hil_star_spec
 from dualsight.jobs.kinds.star import catalog_bytes, pair_angle
 from dualsight.kernels.detect import DetectConfig, detect_stars
 from dualsight.kernels.detect_local import LocalDetectConfig, detect_real, subtract_local_background
@@ -90,6 +88,12 @@ PRIMARY = "hil_star"
 
 
 # ============================================================================================ spec
+def spec_from_dict(d: dict, source: str = "spec") -> HilStarSpec:
+    """The job kind's spec reader (the engine, replay and the nightly call it by kind):
+    :func:`dualsight.jobs.kinds.hil_star_spec.spec_from_dict`, where the spec's models live."""
+    return hil_star_spec.spec_from_dict(d, source)
+
+
 def build_spec(paths, camera: Camera | dict, settings: StarSettings | dict | None = None,
                truths: list[dict] | None = None) -> dict:
     """A spec dict for ``run_job("hil_star", ...)`` from image paths (stat now), a camera, settings and
@@ -349,7 +353,7 @@ MIN_IDENTIFIED_STARS = 3
 """Fewest identified stars for an image to count as identified (two give an attitude but no check)."""
 
 
-def _voters(n_valid: int, rnd: int, schedule) -> int:
+def voters_in_round(n_valid: int, rnd: int, schedule) -> int:
     """Stars that voted in round ``rnd`` (the answer's round; 0 without an answer) of the voting schedule
     (``VotingConfig.widen_schedule``: valid-star ranks ``[start, stop)`` per round) for a frame of
     ``n_valid`` valid detections."""
@@ -373,7 +377,7 @@ def _fill(res: ImageResult, b: int, det, obs, ident, sol, alt, truth: StarTruth,
         r[col] = float(v[b]) if v is not None else None
     r.update(stars_detected=n_det, threshold_adu=float(det.threshold_adu[b]),
              detect_background_adu=float(det.background_adu[b]),
-             stars_used=_voters(int(obs.valid[b].sum()), int(ident.answer_round[b]) if ident.T[b] > 0 else 0,
+             stars_used=voters_in_round(int(obs.valid[b].sum()), int(ident.answer_round[b]) if ident.T[b] > 0 else 0,
                                 rt.voting.widen_schedule),
              T=int(ident.T[b]), stars_identified=int(ident.accepted[b].sum()),
              p_chance=float(ident.p_chance[b]) if np.isfinite(ident.p_chance[b]) else None)

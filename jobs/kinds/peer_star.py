@@ -1,7 +1,6 @@
 """Import a peer solver's per-frame answers into the lake as dataset ``peer_star`` (one run per import).
 
     dualsight peer import ANSWERS.json [--method cedar-solve] [--run ID] [--lake DIR]     (jobs/cli/peer.py)
-    python -m dualsight.jobs.kinds.peer_star ...                                           (the same command)
 
 A peer (cedar-solve, through ``benchmarks/bench_peers.py``; never a dependency of dualsight) solves the same
 frames as ``dualsight hil star``; its answers become rows that SQL joins to ``hil_star`` frame by frame on
@@ -55,8 +54,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import runpy
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +76,7 @@ MAX_FRAMES = 100_000
 MAX_FILE_BYTES = 256 * 2**20
 
 __all__ = ["NAME", "PRIMARY", "SCHEMAS", "PeerFrame", "PeerSpec", "load_answers", "spec_from_dict", "make_context",
-           "compute_shard", "n_cases", "import_answers", "main"]
+           "compute_shard", "n_cases", "import_answers"]
 
 
 # ============================================================================================ spec
@@ -284,25 +281,3 @@ def import_answers(lake, answers, *, run_id: str | None = None, method: str | No
                    progress=False, label=label or f"{spec.method} answers",
                    extra={"source_file": str(Path(answers)), "peer_version": spec.method_version},
                    source=str(answers))
-
-
-# ============================================================================================ entry
-def main(argv=None) -> int:
-    """``python -m dualsight.jobs.kinds.peer_star ARGS`` runs the program ``dualsight peer import ARGS``
-    (jobs/cli/peer.py: the one command line's command, one-line errors and exit statuses): 0 imported, 2 bad input
-    (lake untouched).  Kept because benchmarks/peers/README.md and tests/test_peer_import.py call it so.  It runs
-    ``python -m dualsight`` in this process (runpy) instead of importing the command line, which a job kind
-    never imports (and which imports this module)."""
-    saved = sys.argv
-    sys.argv = ["dualsight", "peer", "import", *(sys.argv[1:] if argv is None else argv)]
-    try:
-        runpy.run_module("dualsight", run_name="__main__")
-    except SystemExit as e:
-        return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
-    finally:
-        sys.argv = saved
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
