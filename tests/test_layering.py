@@ -57,6 +57,8 @@ def test_the_contracts_hold(tree):
     ("nav/errors.py", "import pyarrow\n", "nav-no-storage"),
     ("warehouse/query.py", "from dualsight.nav import attitude\n", "warehouse-no-algorithm"),
     ("scene/attitude.py", "def _planted():\n    import dualsight.nav.attitude\n", "layers"),
+    ("jobs/engine/runner.py", "def _planted():\n    from dualsight.jobs.kinds import star\n", "jobs-layers"),
+    ("jobs/kinds/star.py", "def _planted():\n    from dualsight.jobs.cli import args\n", "jobs-layers"),
 ])
 def test_a_planted_violation_breaks_a_contract(tmp_path, module, planted, contract):
     tree = merged_tree(tmp_path)
@@ -69,19 +71,26 @@ def test_a_planted_violation_breaks_a_contract(tmp_path, module, planted, contra
     assert names[contract] in [b.strip() for b in broken], r.stdout[-3000:]
 
 
-def test_the_layer_table_of_the_architecture_page_is_the_contract():
-    """docs/architecture.md's table "Layers" lists, top to bottom, the layers of the ``layers`` contract."""
+def documented_layers(table: str) -> list[str]:
+    """The second column of a markdown table's body rows, top to bottom, as "a | b" of its `code` names."""
+    out = []
+    for r in table.splitlines():
+        cells = r.split("|")
+        if r.startswith("| ") and len(cells) > 3 and "`" in cells[2] and cells[1].strip() != "layer":
+            out.append(" | ".join(sorted(re.findall(r"`([\w.]+)`", cells[2]))))
+    return out
+
+
+def test_the_layer_tables_of_the_architecture_page_are_the_contracts():
+    """docs/architecture.md's two tables in "Layers" list, top to bottom, the layers of the ``layers`` and
+    ``jobs-layers`` contracts."""
     text = (REPO / "docs" / "architecture.md").read_text()
     section = text.split("## Layers", 1)[1].split("\n## ", 1)[0]
-    rows = [r for r in section.splitlines() if r.startswith("| ") and not r.startswith("| layer")]
-    documented = []
-    for r in rows:
-        cell = r.split("|")[2].strip()
-        if cell.startswith("`"):
-            documented.append(" | ".join(sorted(re.findall(r"`(dualsight[\w.]*)`", cell))))
-    contracts = tomllib.loads(PYPROJECT.read_text())["tool"]["importlinter"]["contracts"]
-    layers = next(c for c in contracts if c["id"] == "layers")["layers"]
-    assert documented == [" | ".join(sorted(x.strip() for x in layer.split("|"))) for layer in layers]
+    packages, inside_jobs = section.split("Inside `jobs/`", 1)
+    contracts = {c["id"]: c for c in tomllib.loads(PYPROJECT.read_text())["tool"]["importlinter"]["contracts"]}
+    canon = lambda layers: [" | ".join(sorted(x.strip() for x in layer.split("|"))) for layer in layers]
+    assert documented_layers(packages) == canon(contracts["layers"]["layers"])
+    assert documented_layers(inside_jobs) == canon(contracts["jobs-layers"]["layers"])
 
 
 def import_cycles(tree: Path) -> list[list[str]]:
