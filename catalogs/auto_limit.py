@@ -193,7 +193,7 @@ def sensor_limit_v(sensor, k_sigma: float = 5.0, min_pixels: int = 3, threshold_
     with the detector's ``k_sigma``, ``min_pixels``, ``threshold_adu``), None when unbounded (no noise).
 
     A star of magnitude V gives F(V) = ``zero_mag_rate_e_per_s`` 10^(-0.4 V) ``exposure_s`` electrons
-    (:func:`~dualsight.kernels.starfield.flux_from_magnitude`).  Centred on a pixel, its Gaussian PSF
+    (:func:`~dualsight.kernels.sensor_config.flux_from_magnitude`).  Centred on a pixel, its Gaussian PSF
     (sigma s = ``psf_sigma_px``) puts the fraction p_ab = q_a q_b in pixel (a, b) from the centre, with
     q_0 = 2 Phi(1/(2s)) - 1 and q_a = Phi((|a| + 1/2)/s) - Phi((|a| - 1/2)/s); p_m is the ``min_pixels``-th
     largest of them (the detector drops smaller blobs).  The sky noise the detector measures, in electrons,
