@@ -295,20 +295,34 @@ def poisson_keyed(lam, cst, key0, key1, seed, stream, index):
 
 
 @ti.func
-def poisson_table(u, cdf: ti.template(), guide: ti.template()):
-    """Poisson sample by inversion of a tabulated CDF (see :func:`poisson_table_np`): the smallest k
-    with cdf[k] >= u, found from a guide table in O(1) expected steps (Chen & Asau 1974).  Returns
-    -1.0 when u lies beyond the table's last entry (probability < 1e-15; the caller falls back).
-    Same result as the sequential-search inversion in :func:`poisson_keyed`, up to f64 rounding of the CDF.
-    """
-    K = cdf.shape[0]
-    M = guide.shape[0]
-    j = ti.min(ti.cast(u * ti.cast(M, ti.f64), ti.i32), M - 1)
-    k = guide[j]
-    while k < K and cdf[k] < u:
+def search_cdf(u, k0, cdf: ti.template(), o0, K):
+    """The smallest local index k >= k0 of the tabulated CDF cdf[o0 : o0 + K] with cdf[o0 + k] >= u, by a forward
+    search from k0 (a guide table's cell, so O(1) expected steps: Chen & Asau 1974); -1 when u lies beyond the
+    table's last entry.  The search of every guided inversion (:func:`poisson_table`, :func:`inverse_table`,
+    :func:`inverse_table_bits`)."""
+    k = k0
+    while k < K and cdf[o0 + k] < u:
         k += 1
+    res = k
+    if k >= K:
+        res = -1
+    return res
+
+
+@ti.func
+def poisson_table(u, cdf: ti.template(), guide: ti.template(), o0, o1):
+    """Poisson sample by inversion of the tabulated CDF cdf[o0:o1] with its guide table guide[o0:o1] (local
+    indices; each as :func:`poisson_table_np` gives them, K = o1 - o0 entries; a whole table is o0 = 0,
+    o1 = its length, several tables one after another are cut by their offsets, as kernels/sky_noise.stray_tables):
+    the smallest k with cdf[o0 + k] >= u, from guide cell floor(u K) (:func:`search_cdf`).  Returns -1.0 when u
+    lies beyond the table's last entry (probability < 1e-15; the caller falls back).  Same result as the
+    sequential-search inversion in :func:`poisson_keyed`, up to f64 rounding of the CDF.
+    """
+    K = ti.cast(o1 - o0, ti.i32)
+    j = ti.min(ti.cast(u * ti.cast(K, ti.f64), ti.i32), K - 1)
+    k = search_cdf(u, guide[o0 + j], cdf, o0, K)
     res = ti.f64(-1.0)
-    if k < K:
+    if k >= 0:
         res = ti.cast(k, ti.f64)
     return res
 
@@ -318,18 +332,12 @@ def inverse_table(u, cdf: ti.template(), guide: ti.template()):
     """Index of the smallest cdf entry >= u (f64 u in (0, 1)), -1 beyond the last entry: inversion of a
     tabulated discrete CDF through the direct guide table of :func:`inverse_table_np` (M cells, a power of
     two, so the cell floor(u M) is exact).  A cell that holds no CDF step gives its answer in one load; the
-    others (one in ~16) start their search there."""
-    K = cdf.shape[0]
+    others (one in ~16) start their search (:func:`search_cdf`) there."""
     M = guide.shape[0]
     g = guide[ti.min(ti.cast(u * ti.cast(M, ti.f64), ti.i32), M - 1)]
     res = g
     if g < 0:
-        k = -g - 1
-        while k < K and cdf[k] < u:
-            k += 1
-        res = k
-        if k >= K:
-            res = -1
+        res = search_cdf(u, -g - 1, cdf, 0, cdf.shape[0])
     return res
 
 
@@ -347,16 +355,10 @@ def inverse_table_bits(h, nbits: ti.template(), gshift, key, index, cdf: ti.temp
     res = g
     if g < 0:
         ulo = ti.cast(ti.cast(h, ti.i64), ti.f64) * w
-        k = -g - 1
-        while k < K and cdf[k] < ulo:
-            k += 1
-        if k < K and cdf[k] < ulo + w:    # a step inside h's cell: more bits decide
-            u = ulo + u01_key(key, index) * w
-            while k < K and cdf[k] < u:
-                k += 1
-        res = k
-        if k >= K:
-            res = -1
+        res = search_cdf(ulo, -g - 1, cdf, 0, K)
+        if res >= 0:
+            if cdf[res] < ulo + w:    # a step inside h's cell: more bits decide
+                res = search_cdf(ulo + u01_key(key, index) * w, res, cdf, 0, K)
     return res
 
 

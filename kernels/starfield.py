@@ -78,21 +78,6 @@ def ideal_adu(s, base_e, full_well, gain, bias, max_adu, quantize):
 
 
 @ti.func
-def _table_sample(u, cdf: ti.template(), guide: ti.template(), o0, o1):
-    """Poisson sample by inversion of the tabulated CDF cdf[o0:o1] with its guide table guide[o0:o1] (local
-    indices, as :func:`dualsight.kernels.rng.poisson_table`); -1.0 beyond the table's last entry."""
-    K = ti.cast(o1 - o0, ti.i32)
-    j = ti.min(ti.cast(u * ti.cast(K, ti.f64), ti.i32), K - 1)
-    k = guide[o0 + j]
-    while k < K and cdf[o0 + k] < u:
-        k += 1
-    res = ti.f64(-1.0)
-    if k < K:
-        res = ti.cast(k, ti.f64)
-    return res
-
-
-@ti.func
 def _next_hot(c, W, log1m, u):
     """Column of the next hot pixel after column c (W: none in the row): c + 1 + G, G = floor(ln u / ln(1 - p))
     the geometric number of cool pixels before it, P(G >= g) = (1 - p)^g (log1m = ln(1 - p) < 0)."""
@@ -230,7 +215,7 @@ def _build_finalize(dtype):
                     if shot != 0:
                         k = ti.f64(-1.0)
                         if use_table != 0 and e == base_e:  # the sky's lambda: tabulated CDF
-                            k = rng.poisson_table(rng.u01_key(k_shot0, idx), cdf, guide)
+                            k = rng.poisson_table(rng.u01_key(k_shot0, idx), cdf, guide, 0, cdf.shape[0])
                         if k < ti.f64(0.0) and stray != 0 and sky_px != 0 and ntab > 0:
                             # stray light: Poisson(base + st) = Poisson(base + q step) (tabulated CDF of that
                             # grid value, q = floor(st / step)) + Poisson(st - q step) (inversion, its own draw;
@@ -239,7 +224,7 @@ def _build_finalize(dtype):
                             q = ti.floor(st * tinv)
                             ti_ = ti.cast(q, ti.i32) - tm0
                             if ti_ >= 0 and ti_ < ntab:
-                                k = _table_sample(rng.u01_key(k_shot0, idx), tcdf, tguide, toff[ti_], toff[ti_ + 1])
+                                k = rng.poisson_table(rng.u01_key(k_shot0, idx), tcdf, tguide, toff[ti_], toff[ti_ + 1])
                                 d = st - q / tinv
                                 if k >= ti.f64(0.0) and d > ti.f64(0.0):
                                     u2 = rng.u01_key(k_frac, idx)
