@@ -48,7 +48,8 @@ from dualsight.kernels.sensor_config import MAX_ADU, SensorConfig
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DetectConfig", "Detections", "detect_stars", "render_and_detect_ideal", "estimate_background"]
+__all__ = ["DetectConfig", "Detections", "detect_stars", "render_and_detect_ideal", "estimate_background",
+           "as_frames"]
 
 
 # ============================================================================ data
@@ -333,6 +334,18 @@ def _empty(B, cfg, bg, thr) -> Detections:
 
 
 # ============================================================================ public API
+def as_frames(images) -> np.ndarray:
+    """A batch of frames as the star detectors take it (:func:`detect_stars`, kernels/detect_local.detect_real):
+    ``np.asarray(images)`` (no copy of an array), checked to be (B, H, W) uint8, uint16, float32 or float64;
+    ValueError naming the shape or the dtype otherwise."""
+    images = np.asarray(images)
+    if images.ndim != 3:
+        raise ValueError(f"images must have shape (B, H, W), got {images.shape}")
+    if images.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+        raise ValueError(f"images must be uint8, uint16, float32 or float64, got {images.dtype}")
+    return images
+
+
 def detect_stars(images: np.ndarray, cfg: DetectConfig = DetectConfig(), background=None) -> Detections:
     """Detect and centroid blobs in a batch of frames.
 
@@ -351,11 +364,7 @@ def detect_stars(images: np.ndarray, cfg: DetectConfig = DetectConfig(), backgro
     Cost: one (frame, row)-parallel read of every pixel, then work proportional to the number of
     above-threshold runs.
     """
-    images = np.asarray(images)
-    if images.ndim != 3:
-        raise ValueError(f"images must have shape (B, H, W), got {images.shape}")
-    if images.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
-        raise ValueError(f"images must be uint8, uint16, float32 or float64, got {images.dtype}")
+    images = as_frames(images)
     B, H, W = images.shape
     if H * W > 1 << 30:
         raise ValueError(f"frames of {W} x {H} px are larger than 2^30 pixels")

@@ -111,7 +111,7 @@ import numpy as np
 from pydantic import Field
 
 from dualsight.config import check_fields
-from dualsight.kernels.detect import Detections
+from dualsight.kernels.detect import Detections, as_frames
 from dualsight.kernels.detect_background import interpolate_tiles, tile_background
 from dualsight.kernels.detect_candidates import find_candidates, matched_filter
 from dualsight.kernels.detect_psf import cut_stamps, fit_psf, flux_fraction_3x3, psf_kernel_1d, sharpness_limit
@@ -418,11 +418,7 @@ def detect_real(images: np.ndarray, cfg: LocalDetectConfig = LocalDetectConfig()
     ``threshold_adu`` that level + k_sigma x the median noise of the filtered image (the threshold of the
     filtered image, ADU).  Per-frame counters: see :class:`LocalDetections`.
     """
-    images = np.asarray(images)
-    if images.ndim != 3:
-        raise ValueError(f"images must have shape (B, H, W), got {images.shape}")
-    if images.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
-        raise ValueError(f"images must be uint8, uint16, float32 or float64, got {images.dtype}")
+    images = as_frames(images)
     B, H, W = images.shape
     sat = cfg.saturation_adu if cfg.saturation_adu is not None else saturation_adu
     if sat is None and images.dtype.kind == "u":
