@@ -75,19 +75,12 @@ class Timers:
         self._stack: list[list] = []
 
     def wrap(self, mod, name, label):
+        """Replace ``mod.name`` by a wrapper that times each call as :meth:`stage` ``label``; returns the original."""
         f = getattr(mod, name)
 
         def w(*a, **k):
-            t0 = self.clock()
-            self._stack.append([0.0])
-            try:
+            with self.stage(label):
                 return f(*a, **k)
-            finally:
-                dt = self.clock() - t0
-                inner = self._stack.pop()[0]
-                self.t[label] = self.t.get(label, 0.0) + dt - inner
-                if self._stack:
-                    self._stack[-1][0] += dt
         setattr(mod, name, w)
         return f
 
