@@ -130,7 +130,8 @@ def run(job: dict) -> dict:
 
 
 def _clean(v):
-    """JSON has no NaN: the database's unset ranges become null."""
+    """JSON has no NaN: the database's unset ranges become null.  (dualsight.jobs.nightly.text.json_safe does the
+    same; this venv has no dualsight to import it from.)"""
     if isinstance(v, float) and not math.isfinite(v):
         return None
     if isinstance(v, dict):
