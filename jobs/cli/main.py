@@ -208,13 +208,13 @@ def cmd_star_run(args) -> int:
 
 
 def cmd_selftest_run(args) -> int:
-    from dualsight.jobs.engine.runner import run_job              # pyarrow
     from dualsight.jobs.kinds import selftest                     # pyarrow
 
-    d, source = selftest.resolve_spec(args.preset, args.config, seed=args.seed, sleep_ms=args.sleep_ms)
-    m = run_job(COMMAND_KINDS[("selftest", "run")], d, n_cases=args.cases or 1000, lake=open_lake(args),
-                run_id=args.run, workers=args.workers, scheduler=args.scheduler, shard_size=args.shard_size,
-                progress=not args.no_progress, source=source)
+    # plan_run and start_run are what dualsight.run("selftest", ...) calls
+    plan = selftest.plan_run(args.preset, args.config, seed=args.seed, cases=args.cases, sleep_ms=args.sleep_ms,
+                             run_id=args.run)
+    m = selftest.start_run(plan, open_lake(args), workers=args.workers, scheduler=args.scheduler,
+                           shard_size=args.shard_size, progress=not args.no_progress)
     print(f"run {m['run_id']}: {m['status']}, {m['n_cases']} cases", file=sys.stderr)
     return 0
 

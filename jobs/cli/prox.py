@@ -58,35 +58,33 @@ def register(sub):
     prox.set_defaults(func=lambda a: (prox.print_help(), 0)[1])
 
 
-def _run(args, overrides: dict) -> dict:
-    from dualsight.jobs.engine.runner import run_job                      # pyarrow
+def _run(args, job: str, **flags):
+    """Plan and run (or resume) ``job`` ("sweep" or "trajectory") from the parsed options; returns the plan."""
     from dualsight.jobs.kinds import prox                                 # Taichi
 
-    s = prox.resolve(args.preset, args.config, seed=args.seed, mode=getattr(args, "mode", None),
-                     satellite=str(args.satellite) if getattr(args, "satellite", None) else None, **overrides)
-    n = s.n_cases
-    kind = f"prox_{s.job}"
-    run_id = args.run or f"prox-{s.job}-{s.mode}-{s.seed}-{n}"
+    # plan_run and start_run are what dualsight.run("prox_sweep" / "prox_trajectory", ...) calls: same spec,
+    # identity, run id and rows
+    plan = prox.plan_run(args.preset, args.config, job=job, seed=args.seed, run_id=args.run, mode=args.mode,
+                         satellite=args.satellite, **flags)
     lake = open_lake(args)
-    m = run_job(kind, s.to_dict(), n_cases=n, lake=lake, run_id=run_id, workers=args.workers, scheduler=args.scheduler,
-                shard_size=args.shard_size, progress=not args.no_progress, label=f"prox {s.job} {run_id}")
-    print(f"run {run_id}: {m['status']}, {n} cases in {lake.root}", file=sys.stderr)
-    print(f"report: dualsight prox report --lake {lake.root} --run {run_id}", file=sys.stderr)
-    return {"manifest": m, "spec": s, "lake": lake, "run_id": run_id}
+    m = prox.start_run(plan, lake, workers=args.workers, scheduler=args.scheduler, shard_size=args.shard_size,
+                       progress=not args.no_progress)
+    print(f"run {plan.run_id}: {m['status']}, {plan.n_cases} cases in {lake.root}", file=sys.stderr)
+    print(f"report: dualsight prox report --lake {lake.root} --run {plan.run_id}", file=sys.stderr)
+    return plan
 
 
 def cmd_sweep(args) -> int:
-    over = {"job": "sweep", "ranges_m": args.ranges, "orientations": args.orientations}
-    _run(args, over)
+    _run(args, "sweep", ranges_m=args.ranges, orientations=args.orientations)
     return 0
 
 
 def cmd_trajectory(args) -> int:
-    out = _run(args, {"job": "trajectory", "frames": args.frames})
+    plan = _run(args, "trajectory", frames=args.frames)
     if args.video:
         from dualsight.jobs.replay.prox import write_trajectory_video    # pyarrow, OpenCV
 
-        path = write_trajectory_video(out["spec"], args.video, fps=args.fps)
+        path = write_trajectory_video(plan.resolved, args.video, fps=args.fps)
         print(f"video: {path}", file=sys.stderr)
     return 0
 

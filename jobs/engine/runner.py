@@ -89,6 +89,12 @@ def spec_hash(kind: str, spec_dict: dict, n_cases: int, code: str | None = None)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+def default_run_id(kind: str, hash_hex: str) -> str:
+    """The id of a run started without one (``run_job``'s default): ``<kind, dashes for underscores>-<hash_hex>``
+    (the run's :func:`spec_hash`)."""
+    return f"{kind.replace('_', '-')}-{hash_hex}"
+
+
 def default_shard_size(n_cases: int) -> int:
     """Cases per shard from the case count alone (never from the worker count, so a rerun on other
     hardware plans the same shards): 1/8 of the run within [25, 1000], growing to 1/10^4 of it beyond
@@ -196,7 +202,7 @@ def run_job(kind: str, spec_dict: dict, *, n_cases: int, lake: Lake, run_id: str
     the shards completed so far stay in the lake and the same call resumes.
     """
     mod, spec, canonical, h = prepare(kind, spec_dict, n_cases, source=source)
-    run_id = check_run_id(run_id if run_id is not None else f"{kind.replace('_', '-')}-{h}")
+    run_id = check_run_id(run_id if run_id is not None else default_run_id(kind, h))
     workers = _check_int(workers if workers is not None else (os.cpu_count() or 1), 1, MAX_WORKERS, "--workers")
     if shard_size is not None:
         shard_size = _check_int(shard_size, 1, MAX_SHARD_SIZE, "--shard-size")

@@ -34,8 +34,9 @@ import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field
 
 from dualsight.catalogs.areas import area_table
-from dualsight.errors import ConfigError
+from dualsight.errors import ConfigError, InputError
 from dualsight.config import validate
+from dualsight.jobs.engine.runner import prepare, run_job
 from dualsight.jobs.engine.specs import preset_and_config
 from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.kernels.points import render
@@ -186,12 +187,12 @@ def spec_from_dict(d: dict, source: str = "spec") -> ProxSpec:
                     t.batch_size, t.blobber.model_dump(), sensor, t.areas.model_dump(), satellite)
 
 
-def resolve(preset: str | None, config: Path | None, **overrides) -> ProxSpec:
-    """Merge preset, config file and flags (None = not given) into the validated spec; the one way from
-    the command line to a spec (``spec.to_dict()`` is its canonical dict, what the engine stores)."""
+def resolve(preset: str | None, config: Path | str | dict | None, **overrides) -> ProxSpec:
+    """Merge preset, config file (or a table of its layout) and flags (None = not given) into the validated spec;
+    the one way from the command line to a spec (``spec.to_dict()`` is its canonical dict, what the engine stores)."""
     d, source = preset_and_config(PRESETS, preset, config)
     sat = d.get("satellite")
-    if config is not None and isinstance(sat, str) and not Path(sat).is_absolute():
+    if config is not None and not isinstance(config, dict) and isinstance(sat, str) and not Path(sat).is_absolute():
         cand = Path(config).parent / sat       # a satellite path in a config file is relative to that file
         if cand.exists():
             d["satellite"] = str(cand)
@@ -201,9 +202,66 @@ def resolve(preset: str | None, config: Path | None, **overrides) -> ProxSpec:
     return spec_from_dict(d, source=source)
 
 
-def resolve_spec(preset: str | None, config: Path | None, **overrides) -> dict:
+def resolve_spec(preset: str | None, config: Path | str | dict | None, **overrides) -> dict:
     """:func:`resolve` in the engine's form: ``spec.to_dict()``."""
     return resolve(preset, config, **overrides).to_dict()
+
+
+# ------------------------------------------------------------------------------------------ a run
+@dataclass(frozen=True)
+class ProxRun:
+    """A prox sweep or trajectory resolved and identified but not yet run (:func:`plan_run`, :func:`start_run`)."""
+
+    kind: str                # the job kind: "prox_sweep" or "prox_trajectory"
+    spec: dict               # the canonical spec dict (``resolved.to_dict()``)
+    n_cases: int             # sweep: ranges x orientations; trajectory: frames
+    run_id: str
+    spec_hash: str           # 16 hex digits (jobs/engine/runner.py spec_hash)
+    resolved: ProxSpec = field(repr=False, compare=False)    # the validated spec (the trajectory's video reads it)
+
+
+def plan_run(preset: str | None = None, config: Path | str | dict | None = None, *, job: str,
+             seed: int | None = None, cases: int | None = None, run_id: str | None = None, mode: str | None = None,
+             satellite: Path | str | None = None, ranges_m: list[float] | None = None,
+             orientations: int | None = None, frames: int | None = None) -> ProxRun:
+    """Everything ``dualsight prox sweep`` (``job="sweep"``) and ``dualsight prox trajectory`` (``"trajectory"``)
+    decide before the lake is touched, for them and ``dualsight.run``: the preset (default paper), the config
+    file or table over it and the flags (None = not given) merged and validated (:func:`resolve`), the run's
+    identity (``prepare`` of jobs/engine/runner.py) and its id (``run_id``, default
+    ``prox-<job>-<mode>-<seed>-<cases>``).
+
+    ``cases`` (``dualsight.run``'s; the commands have no such flag) sets the number of cases: a trajectory's
+    frames, or a sweep's ranges x orientations, so a multiple of the number of ranges (orientations =
+    cases / ranges).  InputError (source "cases") when it is not one."""
+    over = {"job": job, "ranges_m": ranges_m, "orientations": orientations, "frames": frames}
+    sat = str(satellite) if satellite else None
+    s = resolve(preset, config, seed=seed, mode=mode, satellite=sat, **over)
+    if cases is not None and cases != s.n_cases:
+        if s.job == "sweep":
+            per_range, rest = divmod(cases, len(s.ranges_m))
+            if rest or not per_range:
+                raise InputError(f"a prox sweep runs ranges x orientations cases: with {len(s.ranges_m)} ranges it "
+                                 f"must be a multiple of {len(s.ranges_m)}, got {cases} (other ranges: ranges_m in "
+                                 "the spec)", source="cases")
+            over["orientations"] = per_range
+        else:
+            over["frames"] = cases
+        s = resolve(preset, config, seed=seed, mode=mode, satellite=sat, **over)
+    n = s.n_cases
+    kind = f"prox_{s.job}"
+    spec_dict = s.to_dict()
+    _, _, _, h = prepare(kind, spec_dict, n)
+    return ProxRun(kind, spec_dict, n, run_id or f"prox-{s.job}-{s.mode}-{s.seed}-{n}", h, s)
+
+
+def start_run(plan: ProxRun, lake, *, workers: int | None = None, scheduler: str | None = None,
+              shard_size: int | None = None, progress: bool = True) -> dict:
+    """Run (or resume) a planned prox sweep or trajectory into ``lake`` (a warehouse Lake) with the engine's
+    ``run_job``; returns the final manifest.  Errors as ``run_job``'s (InputError, LakeError, EngineError,
+    Interrupted)."""
+    return run_job(plan.kind, plan.spec, n_cases=plan.n_cases, lake=lake, run_id=plan.run_id, workers=workers,
+                   scheduler=scheduler, shard_size=shard_size, progress=progress,
+                   label=f"prox {plan.resolved.job} {plan.run_id}")
 
 
 # ------------------------------------------------------------------------------------------ context

@@ -10,12 +10,14 @@ work last long enough to kill a run mid-way.  Used by the fault suite and the en
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field
 
 from dualsight.config import validate
+from dualsight.jobs.engine.runner import default_run_id, prepare, run_job
 from dualsight.jobs.engine.specs import preset_and_config
 
 NAME = "selftest"
@@ -53,6 +55,40 @@ def resolve_spec(preset: str | None, config, *, seed: int | None = None,
     if sleep_ms is not None:
         d["sleep_ms"] = sleep_ms
     return d, source
+
+
+DEFAULT_CASES = 1000
+"""Cases of a self-test run when none are given."""
+
+
+@dataclass(frozen=True)
+class SelftestRun:
+    """A self-test run resolved and identified but not yet run (:func:`plan_run`, :func:`start_run`)."""
+
+    spec: dict               # the spec dict of resolve_spec (the engine validates and canonicalises it)
+    n_cases: int
+    run_id: str
+    spec_hash: str           # 16 hex digits (jobs/engine/runner.py spec_hash)
+    source: str              # where the settings came from, for messages
+
+
+def plan_run(preset: str | None = None, config=None, *, seed: int | None = None, cases: int | None = None,
+             sleep_ms: float | None = None, run_id: str | None = None) -> SelftestRun:
+    """Everything ``dualsight selftest run`` decides before the lake is touched, for it and ``dualsight.run``:
+    the spec (:func:`resolve_spec`), the number of cases (default :data:`DEFAULT_CASES`), the run's identity
+    (``prepare`` of jobs/engine/runner.py) and its id (``run_id``, default ``selftest-<spec hash>``)."""
+    d, source = resolve_spec(preset, config, seed=seed, sleep_ms=sleep_ms)
+    n = cases if cases is not None else DEFAULT_CASES
+    _, _, _, h = prepare(NAME, d, n, source=source)
+    return SelftestRun(d, n, run_id if run_id is not None else default_run_id(NAME, h), h, source)
+
+
+def start_run(plan: SelftestRun, lake, *, workers: int | None = None, scheduler: str | None = None,
+              shard_size: int | None = None, progress: bool = True) -> dict:
+    """Run (or resume) a planned self-test into ``lake`` (a warehouse Lake) with the engine's ``run_job``;
+    returns the final manifest.  Errors as ``run_job``'s."""
+    return run_job(NAME, plan.spec, n_cases=plan.n_cases, lake=lake, run_id=plan.run_id, workers=workers,
+                   scheduler=scheduler, shard_size=shard_size, progress=progress, source=plan.source)
 
 
 def spec_from_dict(d: dict, source: str = "spec") -> SelftestSpec:
