@@ -231,6 +231,21 @@ def poisson_consts(lam):
 
 
 @ti.func
+def poisson_inversion(lam, p0, u, n_max: ti.template()):
+    """Poisson(lam) by sequential inversion of the uniform u (f64 holding an integer): the smallest n with
+    P(N <= n) >= u, summing the pmf p_n = p_(n-1) lam / n from p0 = exp(-lam) (passed in: it is often cached),
+    n_max at the most.  For small lam (the search takes ~lam + 1 steps)."""
+    p = p0
+    cdf = p
+    n = 0
+    while u > cdf and n < n_max:
+        n += 1
+        p *= lam / ti.cast(n, ti.f64)
+        cdf += p
+    return ti.cast(n, ti.f64)
+
+
+@ti.func
 def poisson(lam, seed, stream, index):
     """Exact Poisson(lam) sample for (seed, stream, index); see :func:`poisson_keyed`."""
     return poisson_keyed(lam, poisson_consts(lam), stream_key(seed, stream, 0), stream_key(seed, stream, 1),
@@ -241,7 +256,7 @@ def poisson(lam, seed, stream, index):
 def poisson_keyed(lam, cst, key0, key1, seed, stream, index):
     """Exact Poisson(lam) sample (f64 holding an integer) for f64 lam >= 0.
 
-    lam < 10: inversion by sequential search (one uniform, draw 0).
+    lam < 10: inversion by sequential search (:func:`poisson_inversion`; one uniform, draw 0).
     lam >= 10: PTRS transformed rejection (Hörmann 1993, "The transformed rejection method for
     generating Poisson random variables", Insurance: Math. & Econ. 12, 39-45; the variant used by
     numpy), drawing uniform pairs (draws 2k, 2k+1) until acceptance (~1.1 pairs on average).
@@ -252,15 +267,7 @@ def poisson_keyed(lam, cst, key0, key1, seed, stream, index):
     if lam <= ti.f64(0.0):
         k = ti.f64(0.0)
     elif lam < ti.f64(10.0):
-        u = u01_key(key0, index)
-        p = cst[0]
-        cdf = p
-        n = 0
-        while u > cdf and n < 200:
-            n += 1
-            p *= lam / ti.cast(n, ti.f64)
-            cdf += p
-        k = ti.cast(n, ti.f64)
+        k = poisson_inversion(lam, cst[0], u01_key(key0, index), 200)
     else:
         loglam = cst[2]
         b = cst[3]

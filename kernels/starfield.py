@@ -88,19 +88,6 @@ def _next_hot(c, W, log1m, u):
     return nxt
 
 
-@ti.func
-def _small_poisson(lam, u):
-    """Poisson(lam) for 0 <= lam < 1 by sequential inversion of the uniform u."""
-    p = ti.exp(-lam)
-    cum = p
-    n = 0
-    while u > cum and n < 60:
-        n += 1
-        p *= lam / ti.cast(n, ti.f64)
-        cum += p
-    return ti.cast(n, ti.f64)
-
-
 # ============================================================================ kernels (built lazily)
 _KERNELS = KernelCache()      # builders registered at the end of the module
 
@@ -229,7 +216,7 @@ def _build_finalize(dtype):
                                 if k >= ti.f64(0.0) and d > ti.f64(0.0):
                                     u2 = rng.u01_key(k_frac, idx)
                                     if u2 > ti.f64(1.0) - d:
-                                        k += _small_poisson(d, u2)
+                                        k += rng.poisson_inversion(d, ti.exp(-d), u2, 60)
                         if k < ti.f64(0.0):
                             if e != lam_c:
                                 lam_c = e
