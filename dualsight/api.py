@@ -2,14 +2,16 @@
 
     solve(image, camera, **settings) -> Solution   one frame identified lost in space: ``dualsight hil star``'s chain
     Lake(path).runs() / .sql(query)                 what ``dualsight runs`` lists; ``dualsight sql``, as an Arrow table
-    run(kind, spec, cases=..., seed=..., lake=...)  a Monte Carlo run into a lake: ``dualsight star run``
+    run(kind, spec, cases=..., seed=..., lake=...)  a Monte Carlo run into a lake: ``dualsight star run``,
+                                                    ``prox sweep``, ``prox trajectory``, ``selftest run``
 
 Nothing here is an algorithm, a check or a rule of its own.  ``solve`` normalises its camera and settings with
 ``hil_star_spec.normalise_run`` (as every ``hil_star`` spec is), its defaults are the ``hil star`` command's own
 (read from its argument parser), and it runs ``hil_star.read_frame`` and ``hil_star.solve_frames``, the calls
 of every image of a ``hil star`` run.  ``Lake.sql`` is ``warehouse.query.run_sql_arrow`` (the read-only statement
 gate of ``dualsight sql``), ``Lake.runs`` is ``warehouse.lake.run_records`` (what ``dualsight runs`` prints), and
-``run`` is ``jobs.kinds.star.plan_run`` + ``start_run`` (what ``dualsight star run`` calls).
+``run`` is the kind module's ``plan_run`` + ``start_run`` (``jobs.kinds.star``, ``prox``, ``selftest``: what
+``dualsight star run``, ``prox sweep``/``trajectory`` and ``selftest run`` call).
 
 Errors are dualsight's own (``dualsight.errors``: InputError and its ConfigError, ImageError; the lake's
 LakeError and the engine's EngineError are InputErrors too), each with a one-line message naming the argument,
@@ -423,25 +425,57 @@ class Lake:
 
 
 # ============================================================================================ run
-RUN_KINDS = ("star",)
-"""Job kinds :func:`run` starts (the others run from the command line: ``dualsight prox``, ``hil``, ...)."""
+RUN_KINDS = ("star", "prox_sweep", "prox_trajectory", "selftest")
+"""Job kinds :func:`run` starts: the Monte Carlo jobs the command line starts from a preset, a config and a seed
+(``dualsight star run``, ``prox sweep``, ``prox trajectory``, ``selftest run``).  The hardware-in-the-loop kinds
+(hil_star, hil_prox, calibrate) take images, not cases: :func:`solve` covers one image, the command line a run."""
 
 
-def run(kind: str, spec: str | os.PathLike | Mapping = "paper", *, cases: int | None = None,
+def _kind_functions(kind: str) -> tuple[Mapping, Callable, Callable]:
+    """(presets, plan, start) of a job kind of :data:`RUN_KINDS`: the one table :func:`run` dispatches through,
+    the kind module's own functions, which its command calls too (``plan(preset, config, seed=, cases=,
+    run_id=)`` -> a plan with ``run_id``; ``start(plan, lake, workers=, scheduler=, shard_size=, progress=)``)."""
+    from dualsight.jobs.kinds import prox, selftest, star          # Taichi, pyarrow
+
+    table = {
+        "star": (star.PRESETS, star.plan_run, star.start_run),
+        "prox_sweep": (prox.PRESETS, functools.partial(prox.plan_run, job="sweep"), prox.start_run),
+        "prox_trajectory": (prox.PRESETS, functools.partial(prox.plan_run, job="trajectory"), prox.start_run),
+        "selftest": (selftest.PRESETS, selftest.plan_run, selftest.start_run),
+    }
+    return table[kind]
+
+
+def run(kind: str, spec: str | os.PathLike | Mapping | None = None, *, cases: int | None = None,
         seed: int | None = None, lake: Lake | str | os.PathLike | None = None, run_id: str | None = None,
         workers: int | None = None, scheduler: str | None = None, shard_size: int | None = None,
         progress: bool = False) -> str:
-    """Run (or resume) a Monte Carlo job into a lake, exactly as ``dualsight star run`` does; returns the run id.
+    """Run (or resume) a Monte Carlo job into a lake, exactly as its command does; returns the run id.
 
     Parameters
     ----------
-    kind : "star" (the star-tracker Monte Carlo; other job kinds run from the command line).
-    spec : a preset name ("paper", "noisy", "ideal", "realistic"), a TOML file of ``--config``'s layout, or a
-        dict of that layout (a table over the preset ``paper``, or over the one it names with ``"preset"``).
-    cases : number of cases, 1 .. 1e9 (default: the spec's, 200 for the presets).
+    kind : the job kind (:data:`RUN_KINDS`) and the command it is:
+
+        - ``"star"``: the star-tracker Monte Carlo, ``dualsight star run``;
+        - ``"prox_sweep"``: the proximity range sweep (ranges x random orientations), ``dualsight prox sweep``;
+        - ``"prox_trajectory"``: the proximity trajectory, frame by frame, ``dualsight prox trajectory``;
+        - ``"selftest"``: the engine's self-test job, ``dualsight selftest run``.
+
+        Not the hardware-in-the-loop kinds (hil_star, hil_prox, calibrate): they take images, not cases
+        (:func:`solve` identifies one image; a run over many is the command line's ``dualsight hil star``,
+        ``hil prox``, ``calibrate``).
+    spec : a preset name of the kind (star: "paper", "noisy", "ideal", "realistic"; prox: "paper", "accurate";
+        selftest: "default"), a TOML file of the command's ``--config`` layout, or a dict of that layout (a table
+        over the kind's default preset, or over the one it names with ``"preset"``); None: the default preset
+        (paper; selftest: default).  The commands' other flags are keys of that layout (prox: ``ranges_m``,
+        ``orientations``, ``frames``, ``mode``, ``satellite``; selftest: ``sleep_ms``).
+    cases : number of cases, 1 .. 1e9 (default: the spec's: 200 for star, ranges x orientations or frames for
+        prox, 1000 for selftest).  A prox sweep runs ranges x orientations cases, so ``cases`` must be a multiple
+        of the number of ranges (it sets the orientations per range); a trajectory's cases are its frames.
     seed : run seed, 0 .. 2^63 - 1 (default: the spec's); case i draws from ``default_rng([seed, i])``.
     lake : a :class:`Lake`, a folder, or None for ``$DUALSIGHT_LAKE`` / ``./lake``.
-    run_id : default ``star-<seed>-<cases>-<first 8 hex digits of the spec hash>``; an existing id with the
+    run_id : default the command's: ``star-<seed>-<cases>-<first 8 hex digits of the spec hash>``,
+        ``prox-<sweep|trajectory>-<mode>-<seed>-<cases>``, ``selftest-<spec hash>``; an existing id with the
         same spec resumes it (shards kept are verified, the rest computed), with another spec is refused.
     workers : local worker processes (default one per core; they are spawned, so a script calling run()
         needs ``if __name__ == "__main__":``); 1 runs in this process.
@@ -449,17 +483,17 @@ def run(kind: str, spec: str | os.PathLike | Mapping = "paper", *, cases: int | 
     progress : a progress bar on stderr.
 
     The run's identity is the command line's: the same spec, cases and code give the same spec hash, run id
-    and rows as ``dualsight star run --preset <p> --cases <n> --seed <s>``.  Errors: InputError (ConfigError,
-    the lake's LakeError, the engine's EngineError), one line each; Ctrl-C raises KeyboardInterrupt and the
-    completed shards are kept (the same call resumes).
+    and rows as e.g. ``dualsight star run --preset <p> --cases <n> --seed <s>`` or ``dualsight prox sweep
+    --preset <p> --orientations <n / ranges> --seed <s>``.  Errors: InputError (ConfigError, the lake's
+    LakeError, the engine's EngineError), one line each; Ctrl-C raises KeyboardInterrupt and the completed
+    shards are kept (the same call resumes).
     """
-    from dualsight.jobs.kinds import star
-
     if kind not in RUN_KINDS:
         raise InputError(f"unknown or unsupported job kind {kind!r}; dualsight.run starts {', '.join(RUN_KINDS)} "
-                         "(run the other kinds with the command line: dualsight prox ..., dualsight hil ...)",
-                         source="kind")
-    preset, config = _spec_layers(spec, star.PRESETS)
+                         "(hil_star, hil_prox and calibrate take images: dualsight.solve for one, the command line "
+                         "for a run)", source="kind")
+    presets, plan_run, start_run = _kind_functions(kind)
+    preset, config = _spec_layers(spec, presets)
     cases = _int_arg(cases, "cases", 1, 10**9)
     seed = _int_arg(seed, "seed", 0, 2**63 - 1)
     workers = _int_arg(workers, "workers", 1, 512)
@@ -475,13 +509,15 @@ def run(kind: str, spec: str | os.PathLike | Mapping = "paper", *, cases: int | 
     if lake is not None and not isinstance(lake, (Lake, str, os.PathLike)):
         raise InputError(f"must be a dualsight.Lake or a folder path, got {type(lake).__name__}", source="lake")
     store = lake._store() if isinstance(lake, Lake) else Lake(lake)._store()
-    plan = star.plan_run(preset, config, seed=seed, cases=cases, run_id=run_id)
-    star.start_run(plan, store, workers=workers, scheduler=scheduler, shard_size=shard_size, progress=bool(progress))
+    plan = plan_run(preset, config, seed=seed, cases=cases, run_id=run_id)
+    start_run(plan, store, workers=workers, scheduler=scheduler, shard_size=shard_size, progress=bool(progress))
     return plan.run_id
 
 
 def _spec_layers(spec, presets: Mapping) -> tuple[str | None, Path | dict | None]:
-    """(preset, config) of ``run``'s ``spec``: a preset name, a TOML file or a table."""
+    """(preset, config) of ``run``'s ``spec``: a preset name, a TOML file or a table (None: the default preset)."""
+    if spec is None:
+        return None, None
     if isinstance(spec, Mapping):
         return None, dict(spec)
     if isinstance(spec, str) and spec in presets:

@@ -3,16 +3,19 @@
 * Every ```python example of docs/api.md is executed (from a scratch folder, ``examples/`` meaning the
   repository's, ``../shared/data/real`` the real images) and its results are checked: the ESA frames against
   the plate solutions of ``truth.json`` (another solver) and against the rows a ``dualsight hil star`` run
-  stores; the campaign against the rows and run id of ``dualsight star run`` with the same options.
+  stores; the campaign against the rows and run id of ``dualsight star run`` with the same options, the prox
+  sweep against ``dualsight prox sweep``'s.
 * ``solve`` on all eight ESA frames equals the ``hil star`` lake rows, column by column; without the real
   data, a frame rendered at a known attitude is solved from an array and from a file like the command.
 * ``Lake.runs`` / ``Lake.sql`` are what ``dualsight runs --json`` / ``dualsight sql`` give, damaged files
-  included; ``run`` has the command line's identity, resume and refusals.
+  included; ``run`` has the command line's identity, resume and refusals, for every kind it starts (star, the
+  prox sweep and trajectory, the self-test): the same run id, rows and seed as the command.
 * ``import dualsight`` stays light (the facade resolves on first use).
 """
 
 from __future__ import annotations
 
+import ast
 import json
 import math
 import re
@@ -40,6 +43,8 @@ HIL_TIMING = ("t_read_ns", "t_detect_ns", "t_identify_ns", "t_attitude_ns", "t_a
 STAR_TIMING = ("t_sample_ns", "t_render_ns", "t_detect_ns", "t_identify_ns", "t_attitude_ns", "t_robust_ns",
                "t_total_ns")
 STAR_ORDER = {"star_cases": "case_id", "star_detections": "case_id, det_index"}
+PROX_TIMING = ("t_sample_ns", "t_render_ns", "t_blob_paper_ns", "t_blob_subpixel_ns", "t_total_ns")
+PROX_ORDER = {"prox_cases": "case_id"}
 
 
 def rotation_angle_arcsec(A: np.ndarray, B: np.ndarray) -> float:
@@ -125,8 +130,8 @@ def doc_examples() -> list[tuple[str, str]]:
 EXAMPLES = doc_examples()
 
 
-def test_the_doc_has_the_four_kinds_of_example():
-    assert [n for n, _ in EXAMPLES] == ["solve-esa", "solve-array", "campaign", "pandas"]
+def test_the_doc_has_the_five_kinds_of_example():
+    assert [n for n, _ in EXAMPLES] == ["solve-esa", "solve-array", "campaign", "pandas", "prox-sweep"]
 
 
 @pytest.fixture(scope="module")
@@ -218,8 +223,39 @@ def check_pandas(ns, out, request):
                                                      for s in set(table.column("status").to_pylist())}
 
 
+def check_prox_sweep(ns, out, request):
+    """The example's run is ``dualsight prox sweep --preset paper --ranges 2 10 50 --orientations 4 --seed 1``:
+    same id, same rows; its query's answer is ``dualsight sql``'s, and the rows' own counts."""
+    lake = request.getfixturevalue("tmp_path") / "cli-lake"
+    rc, _, err = run_cli(["prox", "sweep", "--preset", "paper", "--ranges", "2", "10", "50", "--orientations", "4",
+                          "--seed", "1", "--lake", lake, "--workers", "1", "--no-progress"])
+    assert rc == 0, err
+    run_id = ns["run_id"]
+    assert run_id == "prox-sweep-paper-1-12" and f"run {run_id}: complete, 12 cases in {lake}" in err
+    assert out.splitlines()[0] == run_id
+    docs_lake = Path("prox-lake").resolve()
+    api_rows = lake_rows(docs_lake, run_id, PROX_ORDER, PROX_TIMING)["prox_cases"]
+    cli_rows = lake_rows(lake, run_id, PROX_ORDER, PROX_TIMING)["prox_cases"]
+    assert len(api_rows) == 12 and canonical(api_rows) == canonical(cli_rows)
+    assert [(r["true_range_m"], r["seed"]) for r in api_rows] == [(r, 1) for r in (2.0, 10.0, 50.0) for _ in range(4)]
+    from dualsight.warehouse.lake import Lake as Store
+
+    m_api, m_cli = Store(docs_lake).read_manifest(run_id), Store(lake).read_manifest(run_id)
+    for key in ("spec", "spec_hash", "n_cases", "shard_size", "seed", "kind", "label"):
+        assert m_api[key] == m_cli[key], key
+    rows = [ast.literal_eval(line) for line in out.splitlines()[1:]]  # the printed dicts
+    rc, cli_out, err = run_cli(["sql", ns["query"], "--lake", lake, "--json"])
+    assert rc == 0, err
+    assert rows == json.loads(cli_out) and [r["true_range_m"] for r in rows] == [2.0, 10.0, 50.0]
+    for r in rows:
+        mine = [c for c in cli_rows if c["true_range_m"] == r["true_range_m"]]
+        assert r["cases"] == 4 and r["found"] == sum(c["found"] for c in mine)
+        errs = [abs(c["subpixel_range_est_m"] / c["true_range_m"] - 1) for c in mine]
+        assert r["subpixel_err_pct"] == pytest.approx(100 * sum(errs) / 4, abs=0.006)
+
+
 CHECKS = {"solve-esa": check_solve_esa, "solve-array": check_solve_array, "campaign": check_campaign,
-          "pandas": check_pandas}
+          "pandas": check_pandas, "prox-sweep": check_prox_sweep}
 
 
 def test_every_example_has_a_check():
@@ -522,8 +558,74 @@ def test_run_identity_resume_and_refusal_as_the_cli(tmp_path):
     assert [r.run_id for r in dualsight.Lake(lake).runs()] == sorted([rid, other])
 
 
+# kind: (spec, cases, seed, shard size, the same run on the command line, its run id, datasets {name: ORDER BY},
+#        timing columns, another spec)
+RUNS = {
+    "prox_sweep": ({"preset": "paper", "ranges_m": [3.0, 20.0]}, 6, 5, 2,
+                   ["prox", "sweep", "--preset", "paper", "--ranges", "3", "20", "--orientations", "3", "--seed", "5"],
+                   r"prox-sweep-paper-5-6", PROX_ORDER, PROX_TIMING, {"preset": "accurate", "ranges_m": [3.0, 20.0]}),
+    "prox_trajectory": ("paper", 7, 4, 3, ["prox", "trajectory", "--preset", "paper", "--frames", "7", "--seed", "4"],
+                        r"prox-trajectory-paper-4-7", PROX_ORDER, PROX_TIMING, "accurate"),
+    "selftest": (None, 40, 7, 10, ["selftest", "run", "--cases", "40", "--seed", "7"], r"selftest-[0-9a-f]{16}",
+                 {"selftest_cases": "case_id", "selftest_items": "case_id, item"}, (), {"lam": 5.0}),
+}
+
+
+@pytest.mark.parametrize("kind", list(RUNS))
+def test_every_kind_runs_as_its_command(kind, tmp_path):
+    """run() of each other kind against its command: the same run id, seed and rows (every column but the
+    timings); a second call resumes (a lost shard is recomputed, the others kept); another spec under the same
+    id is refused with one line, the lake untouched."""
+    spec, cases, seed, shard, argv, id_pattern, order, timing, other = RUNS[kind]
+    api_lake, cli_lake = tmp_path / "api", tmp_path / "cli"
+    call = dict(cases=cases, seed=seed, lake=api_lake, workers=1, shard_size=shard)
+    rid = dualsight.run(kind, spec, **call)
+    rc, _, err = run_cli([*argv, "--lake", cli_lake, "--workers", "1", "--shard-size", shard, "--no-progress"])
+    assert rc == 0, err
+    assert re.fullmatch(id_pattern, rid) and re.search(rf"^run {re.escape(rid)}: complete, {cases} cases", err,
+                                                       flags=re.M), (rid, err)
+    from dualsight.warehouse.lake import Lake as Store
+
+    m_api, m_cli = Store(api_lake).read_manifest(rid), Store(cli_lake).read_manifest(rid)
+    for key in ("kind", "spec", "spec_hash", "n_cases", "seed", "shard_size", "n_shards", "datasets", "label"):
+        assert m_api[key] == m_cli[key], key
+    n_shards = -(-cases // shard)
+    assert (m_api["kind"], m_api["n_cases"], m_api["seed"], m_api["status"], m_api["n_shards"]) == \
+        (kind, cases, seed, "complete", n_shards)
+    cli_rows = lake_rows(cli_lake, rid, order, timing)
+    primary = next(iter(order))
+    assert [r["case_id"] for r in cli_rows[primary]] == list(range(cases))
+    assert {r["seed"] for r in cli_rows[primary]} == {seed}
+    assert canonical(lake_rows(api_lake, rid, order, timing)) == canonical(cli_rows)
+    # resume: complete, nothing recomputed; then a lost shard is recomputed, the others kept
+    assert dualsight.run(kind, spec, **call) == rid
+    lost = [f for ds in order for f in (api_lake / ds / f"run={rid}").glob("part-000001.parquet")]
+    assert lost
+    for f in lost:
+        f.unlink()
+    assert dualsight.run(kind, spec, **call) == rid
+    executions = Store(api_lake).read_manifest(rid)["executions"]
+    assert [e["resumed_shards"] for e in executions] == [0, n_shards, n_shards - 1]
+    assert executions[-1]["cases_run"] == shard and all(f.exists() for f in lost)
+    assert canonical(lake_rows(api_lake, rid, order, timing)) == canonical(cli_rows)
+    # another spec under this id: refused with one line, nothing written
+    before = snapshot(api_lake)
+    with pytest.raises(InputError) as e:
+        dualsight.run(kind, other, run_id=rid, **call)
+    assert f"run {rid!r} in {api_lake} was made with other settings (" in str(e.value) and "\n" not in str(e.value)
+    assert snapshot(api_lake) == before
+
+
 @pytest.mark.parametrize("kwargs, kind, text", [
-    ({"kind": "prox_sweep"}, InputError, "dualsight.run starts star"),
+    ({"kind": "nope"}, InputError, "kind: unknown or unsupported job kind 'nope'; dualsight.run starts star, "
+                                   "prox_sweep, prox_trajectory, selftest (hil_star, hil_prox and calibrate take images"),
+    ({"kind": "hil_star"}, InputError, "dualsight.run starts star, prox_sweep, prox_trajectory, selftest"),
+    ({"kind": "calibrate"}, InputError, "unknown or unsupported job kind 'calibrate'"),
+    ({"kind": "prox_sweep", "cases": 10}, InputError, "cases: must be a multiple of the sweep's 11 ranges"),
+    ({"kind": "prox_sweep", "spec": "noisy"}, ConfigError, "unknown preset 'noisy'; known presets: accurate, paper"),
+    ({"kind": "prox_trajectory", "spec": {"orbit": 1}}, ConfigError, "config table [orbit]: unknown key"),
+    ({"kind": "selftest"}, ConfigError, "unknown preset 'paper'; known presets: default"),
+    ({"kind": "selftest", "spec": {"lam": 99}}, ConfigError, "config table [lam]"),
     ({"spec": "nope"}, ConfigError, "unknown preset 'nope'; known presets: ideal, noisy, paper, realistic"),
     ({"spec": 7}, ConfigError, "must be a preset name, a TOML file path or a dict"),
     ({"spec": "missing.toml"}, ConfigError, "missing.toml: file not found"),

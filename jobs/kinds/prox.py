@@ -240,9 +240,9 @@ def plan_run(preset: str | None = None, config: Path | str | dict | None = None,
         if s.job == "sweep":
             per_range, rest = divmod(cases, len(s.ranges_m))
             if rest or not per_range:
-                raise InputError(f"a prox sweep runs ranges x orientations cases: with {len(s.ranges_m)} ranges it "
-                                 f"must be a multiple of {len(s.ranges_m)}, got {cases} (other ranges: ranges_m in "
-                                 "the spec)", source="cases")
+                raise InputError(f"must be a multiple of the sweep's {len(s.ranges_m)} ranges (a prox sweep runs "
+                                 f"ranges x orientations cases), got {cases}; for other ranges set ranges_m in the "
+                                 "spec", source="cases")
             over["orientations"] = per_range
         else:
             over["frames"] = cases
