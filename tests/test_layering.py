@@ -1,9 +1,10 @@
 """The layering of docs/architecture.md, checked by import-linter (contracts in pyproject.toml).
 
-grimp (import-linter's graph builder) walks only the root package's own folder, while dualsight's
-sub-packages live in top-level folders mapped by ``package-dir``; the tests therefore copy the mapped
-folders into one ``dualsight/`` tree (as a wheel installs them) and run ``lint-imports`` on that copy.
-grimp reads every import statement, those inside functions included.
+grimp (import-linter's graph builder) walks only the root package's own folder; dualsight's sub-packages live
+in top-level folders mapped by ``package-dir`` and linked from ``dualsight/``.  The tests run ``lint-imports``
+as a user does, from the repository, and on a copy of the mapped folders as one ``dualsight/`` tree (as a wheel
+installs them), where they also plant violations.  grimp reads every import statement, those inside functions
+included.
 """
 
 from __future__ import annotations
@@ -49,6 +50,22 @@ def test_the_contracts_hold(tree):
     r = lint(tree)
     assert r.returncode == 0, r.stdout[-6000:] + r.stderr[-2000:]
     assert "Contracts: " in r.stdout and " broken" in r.stdout
+
+
+def test_lint_imports_from_the_repository_sees_every_subpackage():
+    """``lint-imports`` run in the repository (what a maintainer types) analyses the whole package through the
+    links in ``dualsight/``, not only the root folder's few modules."""
+    mapping = tomllib.loads(PYPROJECT.read_text())["tool"]["setuptools"]["package-dir"]
+    for package, folder in mapping.items():
+        if package != "dualsight":
+            link = REPO / "dualsight" / package.split(".", 1)[1]
+            assert link.is_symlink() and link.resolve() == (REPO / folder).resolve(), link
+    r = lint(REPO)
+    assert r.returncode == 0, r.stdout[-6000:] + r.stderr[-2000:]
+    code = "import grimp; print(len(grimp.build_graph('dualsight').modules))"
+    g = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=300,
+                       env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+    assert int(g.stdout) == sum(1 for folder in mapping.values() for _ in (REPO / folder).rglob("*.py")), g.stderr
 
 
 @pytest.mark.parametrize("module, planted, contract", [
