@@ -44,28 +44,79 @@ class ImageError(InputError):
     """An image file is missing, truncated or in an unsupported format."""
 
 
-def read_user_file(path, error=InputError, *, what: str = "file", max_bytes: int | None = None) -> bytes:
-    """The bytes of a file the user named, every failure one ``error`` naming the file.
+def _a(what: str) -> str:
+    return ("an " if what[:1].lower() in "aeiou" else "a ") + what
 
-    Refuses folders, devices and pipes (``/dev/zero`` is never read), files larger than ``max_bytes`` and
-    empty files; ``what`` names the expected content in the messages ("TOML file", "image file").
-    """
-    path = Path(path)
+
+def file_kind(mode: int) -> str:
+    """What a file of ``st_mode`` is, in words ("a regular file", "a named pipe (FIFO)", "a folder", ...)."""
+    for test, name in ((stat.S_ISREG, "a regular file"), (stat.S_ISDIR, "a folder"),
+                       (stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISSOCK, "a socket"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def check_regular(path, error=InputError, *, what: str = "file", st: os.stat_result | None = None) -> os.stat_result:
+    """``os.stat(path)`` (or ``st``, an ``fstat`` already made) when it is a regular file; otherwise one ``error``
+    naming the file, what it is and what is allowed.  Nothing is opened: a named pipe never blocks here."""
+    if st is None:
+        try:
+            st = os.stat(path)
+        except FileNotFoundError:
+            raise error("file not found", source=str(path)) from None
+        except PermissionError:
+            raise error("cannot be read (permission denied)", source=str(path)) from None
+        except OSError as e:
+            raise error(f"cannot be read ({e.strerror or e})", source=str(path)) from None
+    if not stat.S_ISREG(st.st_mode):
+        raise error(f"is {file_kind(st.st_mode)}, not a regular file; give {_a(what)}", source=str(path))
+    return st
+
+
+def open_user_file(path, error=InputError, *, what: str = "file"):
+    """A binary file object of a regular file the user named, every failure one ``error`` naming the file.
+
+    The file type is checked with ``os.stat`` before opening (a named pipe would block ``open``), the file is
+    opened non-blocking (a pipe swapped in meanwhile cannot block either) and checked again with ``fstat``."""
+    check_regular(path, error, what=what)
     try:
-        with open(path, "rb") as fh:
-            if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
-                raise error(f"is not a regular file (a device, pipe or folder); give a {what}", source=str(path))
-            data = fh.read() if max_bytes is None else fh.read(max_bytes + 1)
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0)
+                     | getattr(os, "O_CLOEXEC", 0))
     except FileNotFoundError:
         raise error("file not found", source=str(path)) from None
     except IsADirectoryError:
-        raise error(f"is a folder, expected a {what}", source=str(path)) from None
+        raise error(f"is a folder, expected {_a(what)}", source=str(path)) from None
     except PermissionError:
         raise error("cannot be read (permission denied)", source=str(path)) from None
     except OSError as e:
         raise error(f"cannot be read ({e.strerror or e})", source=str(path)) from None
+    try:
+        check_regular(path, error, what=what, st=os.fstat(fd))      # against a race since the stat above
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+    except BaseException:
+        os.close(fd)
+        raise
+    return os.fdopen(fd, "rb")
+
+
+def read_user_file(path, error=InputError, *, what: str = "file", max_bytes: int | None = None) -> bytes:
+    """The bytes of a file the user named, every failure one ``error`` naming the file.
+
+    Refuses folders, devices, sockets and named pipes before opening them (:func:`open_user_file`: ``/dev/zero``
+    is never read, a FIFO never blocks), files larger than ``max_bytes`` and empty files; ``what`` names the
+    expected content in the messages ("TOML file", "image file").
+    """
+    path = Path(path)
+    with open_user_file(path, error, what=what) as fh:
+        try:
+            data = fh.read() if max_bytes is None else fh.read(max_bytes + 1)
+        except OSError as e:
+            raise error(f"cannot be read ({e.strerror or e})", source=str(path)) from None
     if max_bytes is not None and len(data) > max_bytes:
-        raise error(f"is larger than {max_bytes // 1024} KiB; a {what} is a few kB", source=str(path))
+        raise error(f"is larger than {max_bytes // 1024} KiB; {_a(what)} is a few kB", source=str(path))
     if not data:
         raise error("file is empty (0 bytes)", source=str(path))
     return data

@@ -27,15 +27,22 @@ Effective bit depth
 from __future__ import annotations
 
 import io
+import math
+import os
 import re
+import struct
+import sys
+import tempfile
+import threading
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
 import numpy as np
 
-from dualsight.errors import ImageError, read_user_file
+from dualsight.errors import ImageError, check_regular, open_user_file
 
 #: extension (lower case) -> format name
 FORMATS = {
@@ -55,6 +62,15 @@ _MAGIC = {
     "TIFF": (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"),  # classic and BigTIFF, both byte orders
     "FITS": (b"SIMPLE  =",),
 }
+
+#: most pixels (width x height) an image may declare: 2**27 = 134 Mpx (e.g. 16384 x 8192).  Checked on the file's
+#: header (PNG IHDR, TIFF first IFD, JPEG SOF, FITS NAXISn) before anything is decoded.
+MAX_IMAGE_PIXELS = 1 << 27
+#: most bytes an image's decoded samples may take (width x height x channels x bytes per sample): 256 MiB, e.g.
+#: 134 Mpx of 16-bit mono; checked with :data:`MAX_IMAGE_PIXELS`.
+MAX_IMAGE_BYTES = 1 << 28
+#: largest image file read at all (an uncompressed image at :data:`MAX_IMAGE_BYTES` plus its metadata)
+MAX_FILE_BYTES = 2 * MAX_IMAGE_BYTES
 
 
 @dataclass(frozen=True, eq=False)
@@ -118,22 +134,25 @@ def read_image(path: str | Path, *, as_gray: bool = False) -> Image:
 
     Raises
     ------
-    ImageError naming the file: missing, a folder, unreadable, empty, unsupported extension,
-    content not of the claimed format, truncated (JPEG without end-of-image marker, PNG without
-    IEND chunk), or not decodable.
+    ImageError naming the file: missing, a folder, pipe, socket or device (checked before opening), unreadable,
+    empty, larger than :data:`MAX_FILE_BYTES`, unsupported extension, content not of the claimed format, a header
+    declaring more than :data:`MAX_IMAGE_PIXELS` or :data:`MAX_IMAGE_BYTES` (refused before decoding), truncated
+    (JPEG without end-of-image marker, PNG without IEND chunk), or not decodable (with the decoding library's
+    own reason; its messages never reach the terminal).
     """
     path = Path(path)
     fmt = _format_of(path)
-    data = _read_bytes(path)
-    _check_signature(path, fmt, data)
-    if fmt == "FITS":
-        pixels = _decode_fits(path, data)
-    else:
-        _check_complete(path, fmt, data)
-        pixels = _decode_opencv(path, fmt, data)
-    bit_depth, shift = effective_bit_depth(pixels)
-    if pixels.ndim == 3 and as_gray:
-        pixels = to_gray(pixels)
+    data = _read_checked(path, fmt)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)     # numpy's, around decoding: never before our line
+        if fmt == "FITS":
+            pixels = _decode_fits(path, data)
+        else:
+            _check_complete(path, fmt, data)
+            pixels = _decode_opencv(path, fmt, data)
+        bit_depth, shift = effective_bit_depth(pixels)
+        if pixels.ndim == 3 and as_gray:
+            pixels = to_gray(pixels)
     channels = 1 if pixels.ndim == 2 else int(pixels.shape[2])
     return Image(pixels=pixels, bit_depth=bit_depth, path=path, channels=channels, shift=shift)
 
@@ -154,6 +173,200 @@ def read_images(paths: Iterable[str | Path], *, as_gray: bool = False
         except ImageError as e:
             errors.append((Path(p), e))
     return images, errors
+
+
+def check_image_file(path: str | Path):
+    """Refuse, without decoding, an image no run should start on: a named pipe, socket, device or folder (checked
+    with ``os.stat`` before opening), a file larger than :data:`MAX_FILE_BYTES`, or one whose header declares
+    more than :data:`MAX_IMAGE_PIXELS` / :data:`MAX_IMAGE_BYTES`.  Raises ImageError naming the file and the
+    limit.  A missing or unreadable file, an unknown extension or a header this module cannot parse pass:
+    :func:`read_image` reports those per image."""
+    path = Path(path)
+    try:
+        st = os.stat(path)
+    except OSError:
+        return
+    check_regular(path, ImageError, what="image file", st=st)
+    _check_file_size(path, st.st_size)
+    fmt = FORMATS.get(path.suffix.lower())
+    if fmt is None or not os.access(path, os.R_OK):
+        return
+    with open_user_file(path, ImageError, what="image file") as fh:
+        try:
+            header = image_header(fh, fmt)
+        except OSError:
+            return
+    _check_header(path, header)
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """What an image file's header declares (nothing decoded): size, samples per pixel and bits per sample
+    (``bits`` < 0: IEEE floating point, as FITS's BITPIX)."""
+
+    width: int
+    height: int
+    channels: int
+    bits: int
+
+    @property
+    def pixels(self) -> int:
+        return self.width * self.height
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the decoded samples (a sample of up to 8 bits takes one byte, of 9-16 bits two, ...)."""
+        per = max(1, (abs(self.bits) + 7) // 8)
+        return self.pixels * max(1, self.channels) * (1 << (per - 1).bit_length())
+
+
+def image_header(fh, fmt: str) -> ImageHeader | None:
+    """The :class:`ImageHeader` of an open binary image file (PNG IHDR, TIFF first IFD: classic and BigTIFF, both
+    byte orders, JPEG SOF marker, FITS NAXISn/BITPIX of the first image HDU), read with a few small seeks and
+    reads; None when the header is not one of those or cannot be parsed (the decoder's own checks apply)."""
+    parse = {"PNG": _png_header, "TIFF": _tiff_header, "JPEG": _jpeg_header, "FITS": _fits_header}.get(fmt)
+    if parse is None:
+        return None
+    try:
+        fh.seek(0)
+        return parse(fh)
+    except (struct.error, ValueError, OverflowError):
+        return None
+
+
+def _read_at(fh, offset: int, n: int) -> bytes:
+    fh.seek(offset)
+    b = fh.read(n)
+    if len(b) != n:
+        raise ValueError("short read")
+    return b
+
+
+#: PNG colour type -> channels OpenCV decodes it to (palette -> BGR, grey + alpha -> BGRA)
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 4, 6: 4}
+
+
+def _png_header(fh) -> ImageHeader | None:
+    b = _read_at(fh, 0, 29)
+    if b[12:16] != b"IHDR":
+        return None
+    w, h, depth, colour = struct.unpack(">IIBB", b[16:26])
+    return ImageHeader(w, h, _PNG_CHANNELS.get(colour, 4), 16 if depth > 8 else 8)
+
+
+_TIFF_TYPES = {1: ("B", 1), 3: ("H", 2), 4: ("I", 4), 16: ("Q", 8)}     # BYTE, SHORT, LONG, LONG8
+_TIFF_MAX_ENTRIES = 4096
+
+
+def _tiff_header(fh) -> ImageHeader | None:
+    b = _read_at(fh, 0, 16)
+    e = {b"II": "<", b"MM": ">"}.get(b[:2])
+    if e is None:
+        return None
+    magic = struct.unpack(e + "H", b[2:4])[0]
+    if magic == 42:
+        ifd, cnt_fmt, entry, val_size = struct.unpack(e + "I", b[4:8])[0], "H", 12, 4
+        head_fmt = e + "HHI"
+    elif magic == 43:
+        ifd, cnt_fmt, entry, val_size = struct.unpack(e + "Q", b[8:16])[0], "Q", 20, 8
+        head_fmt = e + "HHQ"
+    else:
+        return None
+    cnt_size = struct.calcsize(cnt_fmt)
+    n = struct.unpack(e + cnt_fmt, _read_at(fh, ifd, cnt_size))[0]
+    raw = _read_at(fh, ifd + cnt_size, min(n, _TIFF_MAX_ENTRIES) * entry)
+    tags = {}
+    for k in range(min(n, _TIFF_MAX_ENTRIES)):
+        rec = raw[k * entry:(k + 1) * entry]
+        tag, typ, count = struct.unpack(head_fmt, rec[:entry - val_size])
+        if tag not in (256, 257, 258, 277) or typ not in _TIFF_TYPES or count < 1:
+            continue
+        code, size = _TIFF_TYPES[typ]
+        value = rec[entry - val_size:]
+        if count * size > val_size:           # stored elsewhere: the first value is enough
+            off = struct.unpack(e + ("I" if val_size == 4 else "Q"), value)[0]
+            value = _read_at(fh, off, size)
+        tags[tag] = struct.unpack(e + code, value[:size])[0]
+    if 256 not in tags or 257 not in tags:
+        return None
+    return ImageHeader(tags[256], tags[257], tags.get(277, 1), tags.get(258, 1))
+
+
+#: JPEG start-of-frame markers (baseline, progressive, lossless, arithmetic, hierarchical); not DHT/JPG/DAC
+_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+_JPEG_MAX_SEGMENTS = 1024
+
+
+def _jpeg_header(fh) -> ImageHeader | None:
+    pos = 2                                   # after SOI
+    for _ in range(_JPEG_MAX_SEGMENTS):
+        b = _read_at(fh, pos, 2)
+        if b[0] != 0xFF:
+            return None
+        if b[1] == 0xFF:                      # fill byte before a marker
+            pos += 1
+            continue
+        marker = b[1]
+        if marker == 0x01 or 0xD0 <= marker <= 0xD7:   # stand-alone markers
+            pos += 2
+            continue
+        if marker in (0xD9, 0xDA):            # end of image, start of scan: no frame header before it
+            return None
+        length = struct.unpack(">H", _read_at(fh, pos + 2, 2))[0]
+        if marker in _SOF:
+            precision, h, w, comps = struct.unpack(">BHHB", _read_at(fh, pos + 4, 6))
+            return ImageHeader(w, h, comps, precision)
+        if length < 2:
+            return None
+        pos += 2 + length
+    return None
+
+
+_FITS_BLOCK = 2880
+_FITS_MAX_BLOCKS = 4096                       # header blocks read in all (11.8 MB): more is not an image header
+_FITS_MAX_HDUS = 64
+
+
+def _fits_cards(fh, pos: int, budget: list) -> tuple[dict, int] | None:
+    """The cards (keyword -> value text) of the header at ``pos`` and the offset after it (None: no END card
+    within the file or the budget of header blocks)."""
+    cards = {}
+    while budget[0] > 0:
+        budget[0] -= 1
+        fh.seek(pos)
+        block = fh.read(_FITS_BLOCK)
+        pos += _FITS_BLOCK
+        for i in range(0, len(block), 80):
+            card = block[i:i + 80].decode("ascii", "replace")
+            key = card[:8].strip()
+            if key == "END":
+                return cards, pos
+            if card[8:10] == "= " and key not in cards:
+                cards[key] = card[10:].split("/", 1)[0].strip().strip("'").strip()
+        if len(block) < _FITS_BLOCK:
+            return None
+    return None
+
+
+def _fits_header(fh) -> ImageHeader | None:
+    pos, budget = 0, [_FITS_MAX_BLOCKS]
+    for _ in range(_FITS_MAX_HDUS):
+        got = _fits_cards(fh, pos, budget)
+        if got is None:
+            return None
+        cards, pos = got
+        z = "Z" if cards.get("ZIMAGE") == "T" else ""         # tile-compressed image in a binary table
+        naxis = int(cards.get(z + "NAXIS", 0))
+        if (z or cards.get("XTENSION") in (None, "IMAGE")) and naxis >= 2:
+            dims = [int(cards.get(f"{z}NAXIS{i}", 0)) for i in range(1, naxis + 1)]
+            return ImageHeader(dims[0], dims[1], math.prod(dims[2:]), int(cards.get(z + "BITPIX", 8)))
+        axes = math.prod(int(cards.get(f"NAXIS{i}", 0)) for i in range(1, int(cards.get("NAXIS", 0)) + 1))
+        if int(cards.get("NAXIS", 0)) == 0:
+            axes = 0
+        data = abs(int(cards.get("BITPIX", 8))) // 8 * int(cards.get("GCOUNT", 1)) * (int(cards.get("PCOUNT", 0))
+                                                                                     + axes)
+        pos += -(-data // _FITS_BLOCK) * _FITS_BLOCK
+    return None
 
 
 def list_images(folder: str | Path) -> list[Path]:
@@ -267,15 +480,48 @@ def _format_of(path: Path) -> str:
     return fmt
 
 
-def _read_bytes(path: Path) -> bytes:
-    return read_user_file(path, ImageError, what="image file")
+def _read_checked(path: Path, fmt: str) -> bytes:
+    """The file's bytes, after the checks that need no decoding: a regular file (stat before opening), not
+    empty, at most :data:`MAX_FILE_BYTES`, the format's signature, and the header's size within the limits."""
+    with open_user_file(path, ImageError, what="image file") as fh:
+        size = _check_file_size(path, os.fstat(fh.fileno()).st_size)
+        try:
+            head = fh.read(512)
+            _check_signature(path, fmt, head, size)
+            _check_header(path, image_header(fh, fmt))
+            fh.seek(0)
+            data = fh.read(size)
+        except OSError as e:
+            raise ImageError(f"cannot be read ({e.strerror or e})", source=str(path)) from None
+    if not data:
+        raise ImageError("file is empty (0 bytes)", source=str(path))
+    return data
 
 
-def _check_signature(path: Path, fmt: str, data: bytes):
+def _check_file_size(path: Path, size: int) -> int:
+    if size == 0:
+        raise ImageError("file is empty (0 bytes)", source=str(path))
+    if size > MAX_FILE_BYTES:
+        raise ImageError(f"is {size / 2**20:.0f} MiB; image files of at most {MAX_FILE_BYTES // 2**20} MiB are read",
+                         source=str(path))
+    return size
+
+
+def _check_header(path: Path, header: ImageHeader | None):
+    if header is None:          # a header this parser does not know: the decoder's own checks apply
+        return
+    if header.pixels > MAX_IMAGE_PIXELS or header.nbytes > MAX_IMAGE_BYTES:
+        raise ImageError(f"declares {header.width} x {header.height} px of {header.channels} x "
+                         f"{header.bits}-bit samples ({header.pixels / 1e6:.0f} Mpx, {header.nbytes / 2**20:.0f} MiB "
+                         f"decoded); images of at most {MAX_IMAGE_PIXELS / 1e6:.0f} Mpx ({MAX_IMAGE_PIXELS} px) "
+                         f"and {MAX_IMAGE_BYTES // 2**20} MiB are read", source=str(path))
+
+
+def _check_signature(path: Path, fmt: str, data: bytes, size: int):
     if not any(data.startswith(m) for m in _MAGIC[fmt]):
         found = _sniff(data)
         what = f"looks like {found}" if found else f"starts with {data[:8]!r}"
-        raise ImageError(f"is not a {fmt} file: its content {what} ({len(data)} bytes)", source=str(path))
+        raise ImageError(f"is not a {fmt} file: its content {what} ({size} bytes)", source=str(path))
 
 
 def _sniff(data: bytes) -> str | None:
@@ -307,12 +553,16 @@ def _check_complete(path: Path, fmt: str, data: bytes):
 def _decode_opencv(path: Path, fmt: str, data: bytes) -> np.ndarray:
     import cv2
 
+    said = []
     try:
-        arr = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        with _library_stderr(said, cv2):
+            arr = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as e:  # pragma: no cover - OpenCV usually returns None instead
         raise ImageError(f"cannot decode {fmt} data ({str(e).strip().splitlines()[-1]})", source=str(path)) from None
     if arr is None or arr.size == 0:
-        raise ImageError(f"cannot decode {fmt} data: truncated or corrupt ({len(data)} bytes)", source=str(path))
+        why = _library_reason("".join(said))
+        raise ImageError(f"cannot decode {fmt} data: truncated or corrupt ({len(data)} bytes"
+                         + (f"; {why})" if why else ")"), source=str(path))
     if arr.ndim == 3:
         c = arr.shape[2]
         if c == 1:
@@ -322,6 +572,50 @@ def _decode_opencv(path: Path, fmt: str, data: bytes) -> np.ndarray:
         elif c == 4:
             arr = cv2.cvtColor(arr, cv2.COLOR_BGRA2RGBA)
     return arr
+
+
+_STDERR_LOCK = threading.Lock()
+_OPENCV_PREFIX = re.compile(r"^\[\s*[A-Z]+:[^\]]*\]\s+(global\s+)?\S+:\d+\s+")
+
+
+@contextmanager
+def _library_stderr(said: list, cv2):
+    """Hold what C libraries print (libpng, libjpeg, libtiff through OpenCV's log, lowered to errors) to the
+    process's stderr while decoding: file descriptor 2 goes to a temporary file, whose text is appended to
+    ``said``.  One decode at a time per process holds it (the descriptor is process-wide)."""
+    log = cv2.utils.logging
+    with _STDERR_LOCK:
+        try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (OSError, ValueError, AttributeError):      # no stderr to hold: decode as is
+            saved = None
+        level = log.getLogLevel()
+        log.setLogLevel(min(level, log.LOG_LEVEL_ERROR))
+        try:
+            if saved is None:
+                yield
+                return
+            with tempfile.TemporaryFile() as tmp:
+                os.dup2(tmp.fileno(), 2)
+                try:
+                    yield
+                finally:
+                    os.dup2(saved, 2)
+                    tmp.seek(0)
+                    said.append(tmp.read(1 << 16).decode("utf-8", "replace"))
+        finally:
+            log.setLogLevel(level)
+            if saved is not None:
+                os.close(saved)
+
+
+def _library_reason(text: str) -> str:
+    """The last line a decoding library printed, without OpenCV's log prefix (``[ERROR:0@0.03] global
+    grfmt_tiff.cpp:117``), at most 200 characters; "" when it printed nothing."""
+    lines = [_OPENCV_PREFIX.sub("", ln).strip() for ln in text.splitlines()]
+    lines = [ln for ln in lines if ln]
+    return lines[-1][:200] if lines else ""
 
 
 def _decode_fits(path: Path, data: bytes) -> np.ndarray:

@@ -22,7 +22,7 @@ import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from dualsight.errors import ImageError
-from dualsight.scene.imageio import list_images
+from dualsight.scene.imageio import check_image_file, list_images
 
 __all__ = ["Frozen", "ImageEntry", "image_entries", "check_unchanged", "expand_inputs", "spec_base", "n_cases",
            "rows_table", "fixed_point"]
@@ -59,10 +59,13 @@ class ImageEntry(Frozen):
 
 
 def image_entries(paths) -> list[dict]:
-    """Spec entries of image files (absolute paths, sizes and modification times; missing: None)."""
+    """Spec entries of image files (absolute paths, sizes and modification times; missing: None).  A pipe,
+    socket, device or folder, or an image whose header declares more than the reader's limits, refuses the
+    whole run now (ImageError naming the file, :func:`dualsight.scene.imageio.check_image_file`)."""
     out = []
     for p in paths:
         a = os.path.abspath(os.fspath(p))
+        check_image_file(p)
         try:
             st = os.stat(a)
             out.append({"path": a, "bytes": int(st.st_size), "mtime_ns": int(st.st_mtime_ns)})
