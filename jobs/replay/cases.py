@@ -8,11 +8,14 @@ recording is written, so a replay that does not reproduce the lake is an error, 
 from __future__ import annotations
 
 import math
+import os
+import stat
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from dualsight.errors import InputError
+from dualsight.errors import InputError, output_path
 from dualsight.jobs.engine.runner import job_module
 from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.scene.imageio import read_image
@@ -66,6 +69,39 @@ def _refuse_mismatch(stored: dict, fresh: dict, case_id: int, run_id: str, manif
                          f"run made with {manifest.get('code_version')}", source=f"run {run_id}")
 
 
+def recording_path(path) -> Path:
+    """``path`` as the file a recording may be written to, checked before any case is recomputed: its folder
+    exists and is a folder that takes a new file (a probe file is created and removed), and the path is not a
+    folder, device or pipe.  Otherwise one InputError naming the path (the recorder would fail, or block on a
+    pipe, only after the work)."""
+    path = Path(path)
+    if path.parent.exists() and not path.parent.is_dir():
+        raise InputError("is a file, not a folder; give a .rrd file in an existing writable folder",
+                         source=str(path.parent))
+    output_path(path)                                     # the folder exists (none is created)
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        mode = None
+    except OSError as e:
+        raise InputError(f"cannot be written ({e.strerror or e}); give a .rrd file in a writable folder",
+                         source=str(path)) from None
+    if mode is not None and not stat.S_ISREG(mode):
+        raise InputError("is not a regular file (a folder, device or pipe); give a .rrd file to write the "
+                         "recording to", source=str(path))
+    try:
+        fd, probe = tempfile.mkstemp(dir=path.parent, prefix=".dualsight-probe-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise InputError(f"cannot write a recording in this folder ({e.strerror or e}); give a .rrd file in a "
+                         "writable folder", source=str(path)) from None
+    if mode is not None and not os.access(path, os.W_OK):
+        raise InputError("cannot be overwritten (permission denied); give a .rrd file in a writable folder",
+                         source=str(path))
+    return path
+
+
 def recompute_case(lake: Lake, run_id: str, case_id: int, job, dataset: str, kinds: tuple[str, ...]):
     """Rebuild a run's spec from its manifest, recompute one case with its images, and check that the
     fresh row equals the stored one.  Returns (manifest, spec, context, compute_batch output, fresh row)."""
@@ -88,6 +124,8 @@ def replay_star_case(lake: Lake, run_id: str, case_id: int, output: Path | None 
     ``rec`` (an open recording) or a new recording at ``output``."""
     from dualsight.jobs.kinds import star                     # Taichi
 
+    if rec is None:
+        output = recording_path(output or f"{run_id}-case{case_id}.rrd")
     manifest, spec, ctx, out, fresh = recompute_case(lake, run_id, case_id, star, "star_cases", ("star",))
     det = out["rendered"].detections
     obs, ident, sol, field_ = out["obs"], out["ident"], out["sol"], out["field"]

@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from dualsight.errors import InputError
-from dualsight.jobs.replay.cases import replay_generic_case, replay_star_case, select_cases
+from dualsight.jobs.replay.cases import recording_path, replay_generic_case, replay_star_case, select_cases
 from dualsight.jobs.replay.prox import replay_prox_case
 from dualsight.viz.recording import open_recording
 from dualsight.warehouse.lake import Lake
@@ -27,10 +27,16 @@ def replay_run(lake: Lake, run_id: str, *, case: int | None = None, where: str |
     output = Path(output) if output is not None else Path(".")
     single_file = output.suffix == ".rrd"
     folder = output.parent if single_file else output
+    if single_file and folder.exists():
+        recording_path(output)            # a file as folder, no room to write, a device or pipe: one line, no work
+    elif not single_file and output.exists() and not output.is_dir():
+        raise InputError("exists and is not a folder; give a folder or a .rrd file", source=str(output))
     if not folder.is_dir():
         if single_file or not folder.parent.is_dir():
             raise InputError("folder does not exist (no folder is created but the one named)", source=str(folder))
         folder.mkdir()
+    for c in [] if single_file else cases:            # each file writable, none a folder/device/pipe, before any work
+        recording_path(folder / f"{run_id}-case{c}.rrd")
     rec = open_recording(output) if single_file else None
     out = []
     for c in cases:
