@@ -21,6 +21,10 @@ A camera file is TOML with a ``[camera]`` table::
     # cx = 512.0            # pixels, dualsight convention (default width/2)
     # cy = 384.0
     # distortion = [k1, k2, p1, p2, k3]   # OpenCV's model, optional
+
+Beside ``[camera]`` a camera file may hold only the tables of :data:`CAMERA_FILE_TABLES` (what ``dualsight
+calibrate`` and ``hil star --fit-distortion`` write, scene/camera_file.py); any other top-level table or key is
+refused with the allowed names, as an unknown key inside ``[camera]`` is.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ import numpy as np
 import pydantic
 from pydantic import Field
 
-from dualsight.config import check_fields, validate
+from dualsight.config import check_fields, printable_key, validate
 from dualsight.errors import ConfigError, read_user_file
 
 _DIST_LEN = 5
@@ -157,6 +161,7 @@ class Camera:
         data = read_toml(path)
         if "camera" not in data or not isinstance(data["camera"], dict):
             raise ConfigError("missing table [camera]", source=str(path), field="camera")
+        check_camera_file_tables(data, source=str(path))
         return cls.from_dict(data["camera"], source=str(path))
 
     def to_dict(self) -> dict:
@@ -280,6 +285,25 @@ def read_toml(path: Path) -> dict:
         raise ConfigError(f"is not valid TOML: {e}", source=str(path)) from None
     except RecursionError:
         raise ConfigError("is nested too deeply", source=str(path)) from None
+
+
+CAMERA_FILE_TABLES = ("camera", "calibration", "distortion_fit", "source")
+"""The top-level tables a camera file may hold: ``[camera]``; ``[calibration]`` (``dualsight calibrate``),
+``[distortion_fit]`` (``hil star --fit-distortion``) and ``[source]`` (where the camera came from), written by
+scene/camera_file.py's ``write_camera_toml``."""
+
+
+def check_camera_file_tables(data: dict, *, source: str):
+    """ConfigError naming the first top-level key of a camera file's TOML ``data`` that is not one of
+    :data:`CAMERA_FILE_TABLES` or is not a table, with the allowed names."""
+    allowed = ", ".join(sorted(CAMERA_FILE_TABLES))
+    for key, value in data.items():
+        if key not in CAMERA_FILE_TABLES:
+            what = "table" if isinstance(value, dict) else "key"
+            raise ConfigError(f"unknown {what}; a camera file holds only the tables {allowed}", source=source,
+                              field=printable_key(key))
+        if not isinstance(value, dict):
+            raise ConfigError("must be a table", source=source, field=key)
 
 
 def validate_table(model, table, *, source: str, section: str | None):

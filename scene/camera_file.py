@@ -17,7 +17,7 @@ import numpy as np
 import tomli_w
 
 from dualsight.errors import ConfigError, InputError
-from dualsight.scene.camera import Camera, read_toml
+from dualsight.scene.camera import CAMERA_FILE_TABLES, Camera, read_toml
 
 __all__ = ["write_camera_toml", "calibration_table", "read_camera_toml", "toml_dumps"]
 
@@ -41,8 +41,9 @@ def write_camera_toml(result_or_camera, path: str | Path, extra: dict | None = N
         ``[calibration]`` table).
     path : output file, in an existing folder (none is created: InputError otherwise); written to a
         temporary name and renamed, so it is never half-written.
-    extra : further top-level keys/tables (e.g. ``{"source": {"images": "..."}}``); may not
-        redefine ``camera`` or ``calibration``.
+    extra : further top-level tables (e.g. ``{"source": {"images": "..."}}``), of
+        :data:`~dualsight.scene.camera.CAMERA_FILE_TABLES` only (what the readers accept); may not redefine
+        ``camera`` or ``calibration``.
     name, notes : optional ``camera.name`` / ``camera.notes`` strings.
     comment : text for the header comment (one or more lines).
     """
@@ -67,6 +68,9 @@ def write_camera_toml(result_or_camera, path: str | Path, extra: dict | None = N
     for k, v in (extra or {}).items():
         if k in doc:
             raise ConfigError(f"extra may not redefine [{k}]", source=str(path), field=k)
+        if k not in CAMERA_FILE_TABLES or not isinstance(v, dict):
+            raise ConfigError(f"extra [{k}] is not a table a camera file may hold ({', '.join(CAMERA_FILE_TABLES)})",
+                              source=str(path), field=k)
         doc[k] = v
 
     fh, fv, fd = (math.degrees(a) for a in camera.fov_rad)

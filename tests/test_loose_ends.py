@@ -69,3 +69,59 @@ def test_replay_to_a_writable_path_still_records(star_lake, tmp_path, capsys):
     assert main(["replay", "--lake", str(star_lake), "--run", "s", "--where", "case_id < 2", "-o",
                  str(tmp_path / "many")]) == 0
     assert sorted(p.name for p in (tmp_path / "many").iterdir()) == ["s-case0.rrd", "s-case1.rrd"]
+
+
+# ------------------------------------------------------------------------------- 2. camera file tables
+CAMERA_TEXT = (ROOT / "examples" / "cameras" / "paper_star.toml").read_text()
+
+
+@pytest.mark.parametrize("extra, name, what", [("[bogus]\nx = 1\n", "bogus", "table"),
+                                               ("[provenance]\ntool = 'x'\n", "provenance", "table"),
+                                               ("[[views]]\nimage = 'a.png'\n", "views", "key")])
+def test_an_unknown_table_of_a_camera_file_is_refused_with_the_allowed_names(tmp_path, capsys, extra, name, what):
+    from dualsight.errors import ConfigError
+    from dualsight.scene.camera import Camera
+
+    f = tmp_path / "cam.toml"
+    f.write_text(CAMERA_TEXT + "\n" + extra)
+    with pytest.raises(ConfigError) as e:
+        Camera.from_toml(f)
+    assert str(e.value) == (f"{f} [{name}]: unknown {what}; a camera file holds only the tables calibration, camera, "
+                            "distortion_fit, source")
+    assert main(["hil", "star", str(tmp_path / "x.png"), "--camera", str(f), "--no-lake"]) == 2
+    assert capsys.readouterr().err == f"dualsight: error: {e.value}\n"
+
+
+def test_a_top_level_key_of_a_camera_file_is_refused(tmp_path):
+    from dualsight.errors import ConfigError
+    from dualsight.scene.camera import Camera
+
+    f = tmp_path / "cam.toml"
+    f.write_text("width = 1024\n" + CAMERA_TEXT)
+    with pytest.raises(ConfigError, match=r"\[width\]: unknown key; a camera file holds only the tables"):
+        Camera.from_toml(f)
+    f.write_text(CAMERA_TEXT.replace("[camera]", "calibration = 3\n[camera]"))
+    with pytest.raises(ConfigError, match=r"\[calibration\]: must be a table"):
+        Camera.from_toml(f)
+
+
+def test_every_camera_file_dualsight_writes_or_ships_is_read(tmp_path):
+    from dualsight.errors import ConfigError
+    from dualsight.scene.camera import Camera
+    from dualsight.scene.camera_file import read_camera_toml, write_camera_toml
+
+    files = sorted((ROOT / "examples" / "cameras").glob("*.toml"))
+    assert len(files) >= 4
+    for f in files:
+        Camera.from_toml(f)
+    cam = Camera.pinhole(1024, 768, 4.65e-6, 17e-3)
+    calibrated = CAMERA_TEXT + "\n[calibration]\nrms_px = 0.2\n[[calibration.views]]\nimage = 'a.png'\n"
+    (tmp_path / "cal.toml").write_text(calibrated)                            # the layout `calibrate` writes
+    assert read_camera_toml(tmp_path / "cal.toml")[1]["rms_px"] == 0.2
+    out = write_camera_toml(cam, tmp_path / "fit.toml", extra={"distortion_fit": {"stars_used": 600}})
+    assert Camera.from_toml(out) == cam                                        # --fit-distortion's layout
+    out = write_camera_toml(cam, tmp_path / "src.toml", extra={"source": {"images": "x"}})
+    assert Camera.from_toml(out) == cam
+    with pytest.raises(ConfigError, match=r"extra \[bogus\] is not a table a camera file may hold"):
+        write_camera_toml(cam, tmp_path / "bad.toml", extra={"bogus": {"a": 1}})   # nothing a reader refuses
+    assert not (tmp_path / "bad.toml").exists()
