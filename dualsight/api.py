@@ -384,7 +384,8 @@ class Lake:
 
         return run_records(self._store())
 
-    def sql(self, query: str, *, pandas: bool = False) -> pyarrow.Table | pandas.DataFrame:
+    def sql(self, query: str, *, pandas: bool = False, timeout: float | None = 300.0,
+            memory_limit: int | str | None = None) -> pyarrow.Table | pandas.DataFrame:
         """The result of a read-only DuckDB query over the lake's views (one per dataset, e.g. ``star_cases``,
         ``hil_star``; column ``run`` holds the run id) as a ``pyarrow.Table`` with DuckDB's column types;
         with ``pandas=True`` a ``pandas.DataFrame`` (needs pandas).
@@ -393,12 +394,18 @@ class Lake:
         DuckDB's file, network and extension access and configuration changes off; several statements run
         in order and the last one's result is returned.  InputError (one line) for anything else, an SQL
         error, or ``pandas=True`` without pandas.
-        """
-        from dualsight.warehouse.query import run_sql_arrow
 
+        The limits of ``dualsight sql`` hold, without its row cap: ``timeout`` seconds (default 300; 0 or None
+        for none; past it the query is stopped and ``QueryTimeout``, an InputError, raised), ``memory_limit``
+        for DuckDB and for the Arrow result (bytes, ``"4GB"``, ``"25%"`` of the RAM; default half the RAM;
+        nothing spills to disk).  A KeyboardInterrupt (Ctrl-C) interrupts the query and is raised again.
+        """
+        from dualsight.warehouse.query import SqlLimits, run_sql_arrow
+
+        limits = SqlLimits(timeout, memory_limit, timeout_name="timeout=SECONDS", memory_name="memory_limit=")
         found: list[str] = []
         try:
-            table = run_sql_arrow(self._store(), query, warn=self._warn or found.append)
+            table = run_sql_arrow(self._store(), query, warn=self._warn or found.append, limits=limits)
         finally:
             for message in found:                       # named at the caller's line
                 warnings.warn(f"dualsight: {message}", UserWarning, stacklevel=2)

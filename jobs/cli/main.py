@@ -6,7 +6,8 @@
     dualsight prox ...     (see ``dualsight prox --help``)
     dualsight hil ...      (see ``dualsight hil --help``)
     dualsight calibrate FOLDER --board 9x6 --square 0.025 [-o camera.toml]
-    dualsight sql "SELECT ..." [--lake DIR] [--json | --csv]       read-only: SELECT / EXPLAIN only
+    dualsight sql "SELECT ..." [--lake DIR] [--json | --csv] [--limit N] [--timeout S] [--memory-limit SIZE]
+                                                                   read-only: SELECT / EXPLAIN only
     dualsight runs [--lake DIR] [--json]
     dualsight lake check [--lake DIR] [--repair] [--json]
 
@@ -82,7 +83,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_lake_arg(p)
     fmt = p.add_mutually_exclusive_group()
     fmt.add_argument("--json", action="store_true", help="rows as JSON objects")
-    fmt.add_argument("--csv", action="store_true", help="CSV")
+    fmt.add_argument("--csv", action="store_true", help="CSV, every row (streamed) and whole cells")
+    p.add_argument("--limit", type=positive_int(0, 10**12), default=None, metavar="N",
+                   help="rows to print (default 1000; with --csv all); 0 for all")
+    p.add_argument("--timeout", type=_nonneg_seconds, default=300.0, metavar="SECONDS",
+                   help="stop the query after this long (default 300); 0 for no limit")
+    p.add_argument("--memory-limit", default=None, metavar="SIZE",
+                   help="DuckDB's memory, e.g. 4GB or 25%% of the RAM (default 50%%); nothing spills to disk")
     p.set_defaults(func=cmd_sql)
 
     p = sub.add_parser("replay", help="replay cases of any run, chosen by --case or an SQL predicate, into rerun "
@@ -248,18 +255,53 @@ def cmd_star_replay(args) -> int:
 
 # ---------------------------------------------------------------------------------------------- lake
 def cmd_sql(args) -> int:
-    from dualsight.warehouse.query import format_table, run_sql
+    """Read-only SQL with a time limit, a memory limit and a capped printout; Ctrl-C and SIGTERM stop the
+    query (status 130 / 143, one line)."""
+    from dualsight.warehouse import query
 
-    cols, rows = run_sql(open_lake(args), args.query)
-    if args.json:
-        print(json.dumps([dict(zip(cols, r)) for r in rows], default=str, indent=1))
-    elif args.csv:
-        w = csv.writer(sys.stdout)
-        w.writerow(cols)
-        w.writerows(rows)
-    elif cols:
-        print(format_table(cols, rows))
+    try:
+        limits = query.SqlLimits(args.timeout, args.memory_limit, timeout_name="--timeout SECONDS",
+                                 memory_name="--memory-limit")
+        if args.csv:
+            return _sql_csv(query, args, limits)
+        row_limit = query.DEFAULT_ROW_LIMIT if args.limit is None else (args.limit or None)
+        cols, rows, total, cut = query.sql_rows(open_lake(args), args.query, limits, row_limit=row_limit)
+        if args.json:
+            print(json.dumps([dict(zip(cols, r)) for r in rows], default=str, indent=1))
+        elif cols:
+            print(query.format_table(cols, rows))
+        if total is not None and total > len(rows):
+            _sql_note(f"(showing {len(rows):,} of {total:,} rows; --limit / --csv for all)")
+        if cut:
+            _sql_note(f"(cells longer than {query.MAX_CELL_CHARS:,} characters are cut; --csv for whole cells)")
+        return 0
+    except KeyboardInterrupt as e:                      # Ctrl-C, or SIGTERM through main's handler
+        sigterm = str(e).startswith("signal")
+        print("dualsight: interrupted", file=sys.stderr)
+        return 143 if sigterm else 130
+
+
+def _sql_csv(query, args, limits) -> int:
+    w = csv.writer(sys.stdout)
+    n = query.sql_csv(open_lake(args), args.query, limits, w.writerow, w.writerows, row_limit=args.limit or None)
+    if args.limit and n > args.limit:
+        _sql_note(f"(showing the first {args.limit:,} rows; without --limit all)")
     return 0
+
+
+def _sql_note(text: str) -> None:
+    sys.stdout.flush()
+    print(text, file=sys.stderr)
+
+
+def _nonneg_seconds(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        x = -1.0
+    if not 0 <= x < 1e9:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a time in seconds >= 0 (0: no limit)")
+    return x
 
 
 def cmd_report_html(args) -> int:
