@@ -27,9 +27,11 @@ worker are in flight, so planning and coordinating a 10^9-case run takes memory 
 
 from __future__ import annotations
 
+import ast
 import ctypes
 import hashlib
 import importlib
+import inspect
 import json
 import math
 import multiprocessing as mp
@@ -347,7 +349,12 @@ def _execute(tasks, plan, lake, workers, threads_per_worker, scheduler, n_todo):
     if scheduler:
         yield from run_on_dask(tasks, plan, lake, scheduler, execute_shard)
         return
-    if workers == 1 or n_todo == 1:
+    script = unguarded_main_call() if workers > 1 and n_todo > 1 else None
+    if script is not None:
+        print(f"dualsight: warning: {script} starts this run at import time, outside `if __name__ == \"__main__\":`, "
+              "where spawned workers would run the script again; the run goes on in this process instead (same "
+              f"rows); put the call under `if __name__ == \"__main__\":` to use {workers} workers", file=sys.stderr)
+    if workers == 1 or n_todo == 1 or script is not None:
         if threads_per_worker:
             os.environ["DUALSIGHT_TI_THREADS"] = str(threads_per_worker)
         for task in tasks:
@@ -366,6 +373,45 @@ def _execute(tasks, plan, lake, workers, threads_per_worker, scheduler, n_todo):
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+def unguarded_main_call() -> str | None:
+    """The file of the main script when it is calling now from its module-level code outside ``if __name__ ==
+    "__main__":`` and spawned workers would run that code again (``multiprocessing``'s spawn re-runs the main
+    module as ``__mp_main__`` in every worker, so an unguarded run would start again in each and the workers
+    die); otherwise None.  Nothing is re-run when the main module is interactive, ``-c`` or a package's
+    ``__main__`` (``python -m dualsight``); the guard is found in the script's syntax tree around the calling
+    line (a script whose source cannot be read counts as guarded)."""
+    main = sys.modules.get("__main__")
+    spec_name = getattr(getattr(main, "__spec__", None), "name", None)
+    if main is None or (spec_name is not None and spec_name.rpartition(".")[2] == "__main__") \
+            or (spec_name is None and getattr(main, "__file__", None) is None):
+        return None
+    frame = inspect.currentframe()
+    while frame is not None and not (frame.f_globals is vars(main) and frame.f_code.co_name == "<module>"):
+        frame = frame.f_back
+    if frame is None:                       # the script's module code has finished: a worker would not call
+        return None
+    path, line = frame.f_code.co_filename, frame.f_lineno
+    del frame
+    try:
+        tree = ast.parse(Path(path).read_bytes(), filename=path)
+    except (OSError, SyntaxError, ValueError):
+        return None
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and _is_main_test(node.test) \
+                and node.body[0].lineno <= line <= (node.body[-1].end_lineno or node.body[-1].lineno):
+            return None
+    return path
+
+
+def _is_main_test(test) -> bool:
+    """``__name__ == "__main__"`` (either way round)."""
+    if not (isinstance(test, ast.Compare) and len(test.ops) == 1 and isinstance(test.ops[0], ast.Eq)):
+        return False
+    sides = [test.left, test.comparators[0]]
+    return (any(isinstance(x, ast.Name) and x.id == "__name__" for x in sides)
+            and any(isinstance(x, ast.Constant) and x.value == "__main__" for x in sides))
 
 
 def _worker_init(parent_pid: int):
