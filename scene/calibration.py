@@ -45,6 +45,18 @@ CALIB_FLAGS_DEFAULT = 2
 #: Placeholder pixel pitch (m) when the caller does not know it; only fx, fy (pixels) are measured.
 PLACEHOLDER_PITCH_M = 1e-6
 
+SHOWN = 5
+"""Images named one by one (with their reasons) where a calibration lists the photos it could not use; the rest are
+counted, and the caller says where every one is listed (``rest_at``)."""
+
+
+def _listed(items: list[str], sep: str, rest_at: str | None) -> str:
+    """The first :data:`SHOWN` of ``items`` joined by ``sep``, then "and N more" (and where) when there are more."""
+    if len(items) <= SHOWN:
+        return sep.join(items)
+    return (sep.join(items[:SHOWN]) + f"{sep}and {len(items) - SHOWN} more"
+            + (f" ({rest_at})" if rest_at else ""))
+
 
 @dataclass(frozen=True, eq=False)
 class BoardView:
@@ -152,11 +164,12 @@ def calibrate_chessboard(paths: Iterable[str | Path], board: tuple[int, int] = (
 
 def solve_calibration(views: Iterable[ViewCorners], board: tuple[int, int] = (9, 6), square_m: float = 0.025,
                       pixel_pitch_m: float | None = None, flags: int = CALIB_FLAGS_DEFAULT, aspect_ratio: float = 1.0,
-                      min_views: int = 3) -> CalibrationResult:
+                      min_views: int = 3, rest_at: str | None = None) -> CalibrationResult:
     """The calibration from the corners of every photo (in input order): the first readable photo sets the
     image size (others of another size count as unreadable), then ``cv2.calibrateCameraExtended`` (module
     docstring) and each board's pose, distance and reprojection error.  Parameters and errors as
-    :func:`calibrate_chessboard`."""
+    :func:`calibrate_chessboard`; the error names the first :data:`SHOWN` photos of each list and counts the
+    rest, which ``rest_at`` says where to find."""
     import cv2
 
     board = check_settings(board, square_m, pixel_pitch_m)
@@ -181,9 +194,11 @@ def solve_calibration(views: Iterable[ViewCorners], board: tuple[int, int] = (9,
     if len(found) < min_views:
         msg = f"chessboard {board[0]}x{board[1]} found in {len(found)} of {len(views)} images; need >= {min_views}"
         if not_found:
-            msg += "; not found in: " + ", ".join(p.name for p in not_found)
+            msg += (f"; not found in{f' {len(not_found)} images' if len(not_found) > SHOWN else ''}: "
+                    + _listed([p.name for p in not_found], ", ", rest_at))
         if unreadable:
-            msg += "; unreadable: " + "; ".join(f"{p.name} ({r})" for p, r in unreadable)
+            msg += (f"; unreadable{f' {len(unreadable)} images' if len(unreadable) > SHOWN else ''}: "
+                    + _listed([f"{p.name} ({r})" for p, r in unreadable], "; ", rest_at))
         raise InputError(msg)
 
     k0 = np.array([[aspect_ratio, 0, size[0] / 2 - 0.5], [0, 1.0, size[1] / 2 - 0.5], [0, 0, 1]])
@@ -247,8 +262,9 @@ def parse_board(board) -> tuple[int, int]:
         board = (int(m.group(1)), int(m.group(2)))
     return _check_board(board)
 
-def format_summary(result: CalibrationResult) -> str:
-    """Readable multi-line summary of a calibration."""
+def format_summary(result: CalibrationResult, rest_at: str | None = None) -> str:
+    """Readable multi-line summary of a calibration; of the photos without a board and the unreadable ones the
+    first :data:`SHOWN` of each are named, the rest counted (``rest_at``: where every one is listed)."""
     c = result.camera
     fh, fv, fd = (math.degrees(a) for a in c.fov_rad)
     sd = {k: result.std.get(k, float("nan")) for k in ("fx", "fy", "cx", "cy")}
@@ -268,9 +284,14 @@ def format_summary(result: CalibrationResult) -> str:
     ]
     lines += [f"{v.path.name:<24} {v.rms_px:7.3f} {v.distance_m:7.4f}" for v in result.views]
     if result.not_found:
-        lines.append("board not found in: " + ", ".join(p.name for p in result.not_found))
-    for p, why in result.unreadable:
+        n = len(result.not_found)
+        lines.append(f"board not found in{f' {n} images' if n > SHOWN else ''}: "
+                     + _listed([p.name for p in result.not_found], ", ", rest_at))
+    for p, why in result.unreadable[:SHOWN]:
         lines.append(f"unreadable: {p.name}: {why}")
+    if len(result.unreadable) > SHOWN:
+        lines.append(f"unreadable: {len(result.unreadable) - SHOWN} more images ({len(result.unreadable)} in all)"
+                     + (f"; {rest_at}" if rest_at else ""))
     return "\n".join(lines)
 
 def _check_board(board) -> tuple[int, int]:

@@ -12,6 +12,8 @@ from pathlib import Path
 import pytest
 
 from dualsight.jobs.cli.main import main
+from dualsight.jobs.replay.cases import compare_rows
+from dualsight.warehouse.query import run_sql
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -125,3 +127,123 @@ def test_every_camera_file_dualsight_writes_or_ships_is_read(tmp_path):
     with pytest.raises(ConfigError, match=r"extra \[bogus\] is not a table a camera file may hold"):
         write_camera_toml(cam, tmp_path / "bad.toml", extra={"bogus": {"a": 1}})   # nothing a reader refuses
     assert not (tmp_path / "bad.toml").exists()
+
+
+# ------------------------------------------------------------------------------- 4. an unguarded script with workers
+SCRIPT = """import dualsight
+rid = dualsight.run("star", "paper", cases=400, workers=2, lake={lake!r})
+print(rid)
+"""
+
+
+def _star_rows(lake: Path, run_id: str) -> list[dict]:
+    cols, rows = run_sql(lake, f"SELECT * EXCLUDE (run) FROM star_cases WHERE run = '{run_id}' ORDER BY case_id")
+    return [{c: v for c, v in zip(cols, r) if not c.startswith("t_")} for r in rows]
+
+
+def test_a_script_without_the_main_guard_runs_in_process_with_one_warning(tmp_path):
+    plain = tmp_path / "plain.py"
+    plain.write_text(SCRIPT.format(lake=str(tmp_path / "lake1")))
+    guarded = tmp_path / "guarded.py"
+    guarded.write_text("import dualsight\n\nif __name__ == \"__main__\":\n" + "".join(
+        f"    {line}\n" for line in SCRIPT.format(lake=str(tmp_path / "lake2")).splitlines()[1:]))
+    env = {k: v for k, v in os.environ.items() if k != "DUALSIGHT_LAKE"}
+    p = subprocess.run([sys.executable, str(plain)], capture_output=True, text=True, timeout=300, cwd=tmp_path,
+                       env=env)
+    assert p.returncode == 0, p.stderr
+    assert p.stderr == (f"dualsight: warning: {plain} starts this run at import time, outside `if __name__ == "
+                        "\"__main__\":`, where spawned workers would run the script again; the run goes on in this "
+                        "process instead (same rows); put the call under `if __name__ == \"__main__\":` to use 2 "
+                        "workers\n")
+    run_id = p.stdout.strip()
+    g = subprocess.run([sys.executable, str(guarded)], capture_output=True, text=True, timeout=300, cwd=tmp_path,
+                       env=env)
+    assert g.returncode == 0 and "warning" not in g.stderr, g.stderr
+    assert g.stdout.strip() == run_id
+    rows, spawned = _star_rows(tmp_path / "lake1", run_id), _star_rows(tmp_path / "lake2", run_id)
+    assert len(rows) == len(spawned) == 400
+    assert all(compare_rows(a, b) == [] and a.keys() == b.keys() for a, b in zip(rows, spawned))   # NaN == NaN
+
+
+# ------------------------------------------------------------------------------- 3. many bad images: bounded summaries
+def _bad_images(folder: Path, n: int = 30) -> Path:
+    folder.mkdir()
+    for i in range(n):      # non-empty garbage: an empty file refuses the whole run at planning (scene/imageio.py)
+        (folder / f"img{i:02d}.png").write_bytes(b"garbage %d" % i if i % 2 else os.urandom(64) + b"x")
+    return folder
+
+
+def _sql_rows(capsys, line: str) -> list:
+    """Run the ``dualsight sql "..." --lake L`` command of a printed line and return its JSON rows."""
+    import json
+    import shlex
+
+    argv = shlex.split(line[line.index("dualsight sql"):].strip().rstrip(")"))[1:]
+    capsys.readouterr()
+    assert main([*argv, "--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+@pytest.mark.parametrize("keep", [True, False])
+def test_calibrating_many_bad_images_names_five_and_says_where_the_rest_are(tmp_path, capsys, keep):
+    folder = _bad_images(tmp_path / "photos")
+    lake = ["--lake", str(tmp_path / "lake")] if keep else ["--no-lake"]
+    assert main(["calibrate", str(folder), "--no-progress", *lake]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("dualsight: error: chessboard 9x6 found in 0 of 30 images; "
+                                                   "need >= 3; unreadable 30 images: img00.png (")
+    assert "img04.png (" in err and "img05.png" not in err and "; and 25 more (" in err
+    if keep:
+        rows = _sql_rows(capsys, err)
+        assert len(rows) == 30 and all(r["error"] and not r["found"] for r in rows)
+    else:
+        assert err.endswith("and 25 more (run without --no-lake to keep every photo's reason in the lake)\n")
+
+
+def test_a_calibration_summary_names_five_unusable_photos(tmp_path):
+    from dualsight.scene.calibration import format_summary
+    from dualsight.scene.camera import Camera
+
+    class Result:   # the fields format_summary reads
+        camera = Camera.pinhole(640, 480, 4.65e-6, 6e-3)
+        board, square_m, views, rms_px, std, pixel_pitch_known, focal_length_mm = (9, 6), 0.025, (), 0.1, {}, True, 6.0
+        not_found = tuple(Path(f"n{i}.png") for i in range(12))
+        unreadable = tuple((Path(f"u{i}.png"), "truncated") for i in range(20))
+
+    text = format_summary(Result(), "every photo's reason: here")
+    assert "board not found in 12 images: n0.png, n1.png, n2.png, n3.png, n4.png, and 7 more (every photo's " \
+           "reason: here)" in text
+    lines = text.splitlines()
+    assert [x for x in lines if x.startswith("unreadable")] == [f"unreadable: u{i}.png: truncated" for i in range(5)] \
+        + ["unreadable: 15 more images (20 in all); every photo's reason: here"]
+    Result.not_found, Result.unreadable = Result.not_found[:2], Result.unreadable[:5]     # few: as before
+    lines = format_summary(Result(), "where").splitlines()
+    assert lines[-6:] == ["board not found in: n0.png, n1.png"] + [f"unreadable: u{i}.png: truncated" for i in range(5)]
+
+
+CAMERA = ROOT / "examples" / "cameras" / "esa_tetra3.toml"
+
+
+@pytest.mark.parametrize("keep", [True, False])
+def test_hil_star_over_many_bad_images_names_five_and_says_where_the_rest_are(tmp_path, capsys, keep):
+    folder = _bad_images(tmp_path / "frames")
+    lake = ["--lake", str(tmp_path / "lake")] if keep else ["--no-lake"]
+    assert main(["hil", "star", str(folder), "--camera", str(CAMERA), "--no-progress", *lake]) == 1
+    err = capsys.readouterr().err.splitlines()
+    skipped = [x for x in err if "skipped" in x]
+    assert len(skipped) == 6
+    assert all(x.startswith(f"dualsight: {folder / f'img{i:02d}.png'}: ") and
+               x.endswith("; skipped, the other images go on") for i, x in enumerate(skipped[:5]))
+    assert skipped[5].startswith("dualsight: 25 more images skipped (30 in all); every image's reason: ")
+    if keep:
+        rows = _sql_rows(capsys, skipped[5])
+        assert len(rows) == 30 and all(r["error"] for r in rows)
+    else:
+        assert skipped[5].endswith("every image's reason: --json (or run without --no-lake to keep the rows)")
+
+
+def test_hil_star_over_a_few_bad_images_prints_each_as_before(tmp_path, capsys):
+    folder = _bad_images(tmp_path / "frames", n=3)
+    assert main(["hil", "star", str(folder), "--camera", str(CAMERA), "--no-progress", "--no-lake"]) == 1
+    skipped = [x for x in capsys.readouterr().err.splitlines() if "skipped" in x]
+    assert len(skipped) == 3 and all(x.endswith("; skipped, the other images go on") for x in skipped)

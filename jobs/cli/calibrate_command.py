@@ -46,7 +46,9 @@ def run(args) -> int:
         con = connect(lake)
         cols, rows = run_report(con, "hil_calib_views", run=manifest["run_id"])
         con.close()
-    res = job.solve(spec, [dict(zip(cols, r)) for r in rows])
+    rest_at = (f"every photo's reason: {job.rows_query(manifest['run_id'], lake.root)}" if kept else
+               "run without --no-lake to keep every photo's reason in the lake")
+    res = job.solve(spec, [dict(zip(cols, r)) for r in rows], rest_at=rest_at)
     if args.output is not None:
         try:
             write_camera_toml(res, args.output, name=Path(args.folder).name)
@@ -66,6 +68,6 @@ def run(args) -> int:
             "output": str(args.output) if args.output else None,
             "run": manifest["run_id"] if kept else None}, indent=1))
     else:
-        print(cal.format_summary(res) + (f"\nwrote {args.output}" if args.output is not None else "")
+        print(cal.format_summary(res, rest_at) + (f"\nwrote {args.output}" if args.output is not None else "")
               + (f"\nrun {manifest['run_id']} in {lake.root} (dataset calib_views)" if kept else ""))
     return 0

@@ -18,7 +18,7 @@ from dualsight.jobs.cli.hil_star_settings import settings_from_args
 from dualsight.jobs.kinds import fit_distortion
 from dualsight.jobs.kinds import hil_star as hs
 from dualsight.jobs.kinds import hil_star_sweep as sw
-from dualsight.jobs.kinds.hil_common import expand_inputs, n_cases
+from dualsight.jobs.kinds.hil_common import SkipNotes, expand_inputs, n_cases
 from dualsight.jobs.kinds.hil_star_spec import spec_from_dict
 from dualsight.jobs.kinds.hil_truth import Site, resolve_star_truths
 from dualsight.jobs.reports import fit_distortion as fd_report
@@ -77,11 +77,16 @@ def run(args) -> int:
         overlays = (hil_report.write_overlays(spec, rows, stars, args.overlay_dir, credit=args.credit)
                     if args.overlay_dir is not None else {})
         docs = [hil_report.to_json(r, stars.get(r["case_id"], []), overlays.get(r["case_id"])) for r in rows]
+        skipped = SkipNotes()
         for j in docs:
             if j["error"]:
-                print(f"dualsight: {j['error']}; skipped, the other images go on", file=sys.stderr)
+                skipped(j["error"])
             elif j.get("truth_note") and (args.truth is not None or args.lat is not None):
                 print(f"dualsight: {j['image']}: no truth ({j['truth_note']})", file=sys.stderr)
+        skipped.finish(f"every image's reason: dualsight sql \"SELECT image, error FROM {hs.PRIMARY} WHERE run = "
+                       f"'{run_id}' AND error IS NOT NULL ORDER BY case_id\" --lake {lake.root}" if kept else
+                       "every image's reason: the \"error\" of each image in the JSON on stdout" if args.json else
+                       "every image's reason: --json (or run without --no-lake to keep the rows)")
         print(json.dumps(docs, indent=1) if args.json else
               hil_report.text_report(con, run_id, docs, spec.settings, camera=Camera.from_dict(spec.camera)))
         cols, srows = run_report(con, "hil_star_summary", run=run_id)
@@ -188,10 +193,13 @@ def run_fit_distortion(args) -> int:
     out = check_fit_output(args)
     spec = star_spec_from_args(args)
     n = len(spec.images)
+    skipped = SkipNotes()
     rep = fit_distortion.fit_from_spec(
         spec, progress=None if args.json else (lambda event, value: print(fd_report.progress_line(event, value, n),
                                                                           file=sys.stderr)),
-        warn=lambda e: print(f"dualsight: {e}; skipped, the other images go on", file=sys.stderr))
+        warn=skipped)
+    skipped.finish("every image's reason: the JSON's \"errors\" on stdout" if args.json else
+                   "every image's reason: --json (its \"errors\")")
     try:
         write_fitted_camera(rep, out, args.camera, [e.path for e in spec.images])
     except OSError as e:

@@ -123,12 +123,20 @@ def views_from_rows(rows: list[dict]) -> list[ViewCorners]:
     return out
 
 
-def solve(spec: CalibSpec, rows: list[dict]) -> cal.CalibrationResult:
-    """The calibration of a run from its ``calib_views`` rows (InputError when too few boards were found)."""
+def solve(spec: CalibSpec, rows: list[dict], rest_at: str | None = None) -> cal.CalibrationResult:
+    """The calibration of a run from its ``calib_views`` rows (InputError when too few boards were found, naming
+    the first few photos it could not use; ``rest_at`` says where every one is listed)."""
     return cal.solve_calibration(views_from_rows(rows), board=spec.board, square_m=spec.square_m,
                                  pixel_pitch_m=None if spec.pixel_pitch_um is None else spec.pixel_pitch_um * 1e-6,
-                                 flags=spec.flags, aspect_ratio=spec.aspect_ratio, min_views=spec.min_views)
+                                 flags=spec.flags, aspect_ratio=spec.aspect_ratio, min_views=spec.min_views,
+                                 rest_at=rest_at)
+
+
+def rows_query(run_id: str, lake_root) -> str:
+    """The ``dualsight sql`` command that lists every photo of a run with its reason (board found, error)."""
+    return (f"dualsight sql \"SELECT image, found, error FROM {PRIMARY} WHERE run = '{run_id}' ORDER BY case_id\" "
+            f"--lake {lake_root}")
 
 
 __all__ = ["NAME", "PRIMARY", "SCHEMAS", "CalibSpec", "spec_from_dict", "build_spec", "make_context",
-           "compute_shard", "shard_summary", "progress_postfix", "views_from_rows", "solve"]
+           "compute_shard", "shard_summary", "progress_postfix", "views_from_rows", "solve", "rows_query"]

@@ -16,6 +16,7 @@ The HIL commands' options, their engine call and closing line are the command li
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pyarrow as pa
@@ -25,7 +26,7 @@ from dualsight.errors import ImageError
 from dualsight.scene.imageio import check_image_file, list_images
 
 __all__ = ["Frozen", "ImageEntry", "image_entries", "check_unchanged", "expand_inputs", "spec_base", "n_cases",
-           "rows_table", "fixed_point"]
+           "rows_table", "fixed_point", "SHOWN_SKIPS", "SkipNotes"]
 
 
 class Frozen(BaseModel):
@@ -124,3 +125,28 @@ def fixed_point(normalise, value, rounds: int = 4):
             return nxt
         value = nxt
     return value
+
+
+SHOWN_SKIPS = 5
+"""Skipped images a HIL command names one by one on stderr; the rest are counted in one line saying where every
+one is listed."""
+
+
+class SkipNotes:
+    """The stderr lines of images a HIL command skips: each of the first :data:`SHOWN_SKIPS` as it comes
+    (``dualsight: <reason>; skipped, the other images go on``), the rest counted; :meth:`finish` prints one line
+    with their count and ``rest_at`` (where every one is listed) when there were more."""
+
+    def __init__(self, file=None):
+        self.file = file
+        self.count = 0
+
+    def __call__(self, message: str):
+        self.count += 1
+        if self.count <= SHOWN_SKIPS:
+            print(f"dualsight: {message}; skipped, the other images go on", file=self.file or sys.stderr)
+
+    def finish(self, rest_at: str):
+        if self.count > SHOWN_SKIPS:
+            print(f"dualsight: {self.count - SHOWN_SKIPS} more images skipped ({self.count} in all); {rest_at}",
+                  file=self.file or sys.stderr)
