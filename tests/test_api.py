@@ -482,7 +482,7 @@ def test_lake_sql_is_read_only_with_one_line_errors(small_lake, tmp_path):
                         (f"COPY selftest_cases TO '{tmp_path}/x.csv'", "refused a COPY statement"),
                         ("SELECT * FROM read_csv('/etc/passwd')", "Permission Error"),
                         (f"SELECT * FROM read_json('{small_lake}/_manifests/good.json')", "Permission"),
-                        ("ATTACH 'x.db'", "refused a ATTACH statement"), ("INSTALL httpfs", "refused"),
+                        ("ATTACH 'x.db'", "refused an ATTACH statement"), ("INSTALL httpfs", "refused"),
                         ("SET enable_external_access = true", "refused"), ("SELEC 1", "syntax error"),
                         ("", "the query is empty"), ("SELECT * FROM nosuch", "nosuch")]:
         with pytest.raises(InputError) as e:
