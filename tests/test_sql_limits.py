@@ -5,18 +5,25 @@ and an address-space cap (RLIMIT_AS), so a broken guard fails the test instead o
 
 from __future__ import annotations
 
+import os
 import resource
 import shutil
 import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
 ENDLESS = "WITH RECURSIVE t(n) AS (SELECT 1 UNION ALL SELECT n+1 FROM t) SELECT count(*) FROM t"
 AS_CAP = 3 * 2**30            # address space: DuckDB reserves more than it touches
-DUALSIGHT = [sys.executable, "-c", "import sys; from dualsight.jobs.cli.main import main; sys.exit(main())"]
+# the child writes its own peak resident memory (KiB) to $PEAK_FILE at exit (RUSAGE_CHILDREN would be the
+# largest child of the whole test session, not this command's)
+DUALSIGHT = [sys.executable, "-c", "import atexit, os, resource, sys\n"
+             "atexit.register(lambda: open(os.environ['PEAK_FILE'], 'w').write("
+             "str(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)))\n"
+             "from dualsight.jobs.cli.main import main; sys.exit(main())"]
 
 
 def _cap():
@@ -24,8 +31,9 @@ def _cap():
 
 
 def start(args, lake):
+    env = dict(os.environ, PEAK_FILE=str(Path(lake).parent / "peak_kib"))
     return subprocess.Popen(DUALSIGHT + ["sql", *args, "--lake", str(lake)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, preexec_fn=_cap)
+                            stderr=subprocess.PIPE, preexec_fn=_cap, env=env)
 
 
 def finish(p, timeout: float):
@@ -41,10 +49,9 @@ def finish(p, timeout: float):
 
 
 def run(args, lake, timeout: float = 60):
-    """``finish`` and the peak RSS of the children so far in bytes (the largest child of this module's tests
-    before the big-result test is a few hundred MB)."""
+    """``finish`` and the command's own peak resident memory in bytes."""
     rc, out, err, dt = finish(start(args, lake), timeout)
-    return rc, out, err, dt, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024
+    return rc, out, err, dt, int((Path(lake).parent / "peak_kib").read_text()) * 1024
 
 
 @pytest.fixture(scope="module")
