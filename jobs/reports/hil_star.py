@@ -23,7 +23,6 @@ from dualsight.catalogs.auto_limit import describe_mag_limit
 from dualsight.errors import ImageError, output_path
 from dualsight.scene.starfield_geometry import catalog_in_image
 from dualsight.scene.units import ARCSEC
-from dualsight.viz.overlay import star_overlay
 
 __all__ = ["fetch", "to_json", "summary_line", "table6_text", "text_report", "write_overlays", "licence_credit"]
 
@@ -197,6 +196,7 @@ def write_overlays(spec, rows: list[dict], stars: dict[int, list[dict]], folder:
     as the run, so the same detections); an image that changed since the run is skipped with a warning."""
     from dualsight.catalogs.stars import load_star_catalog          # pyarrow
     from dualsight.jobs.kinds import hil_star as hs                 # Taichi
+    from dualsight.viz.overlay import star_overlay                  # matplotlib (~0.4 s): only with overlays
 
     folder = output_path(folder, folder=True)
     rt = hs.runtime(spec)
