@@ -18,7 +18,6 @@ from dualsight.jobs.kinds.hil_defaults import DEFAULT_THRESHOLD
 from dualsight.jobs.kinds.hil_truth import load_range_truth
 from dualsight.jobs.reports import hil_prox as rep
 from dualsight.scene.camera import Camera
-from dualsight.viz.threshold_sweep import hil_prox_figure
 from dualsight.warehouse.query import connect
 
 _FLAGS = {"thresholds": "--threshold", "open_px": "--open", "close_px": "--close", "border_px": "--border",
@@ -80,6 +79,8 @@ def run(args) -> int:
         if c["error"]:
             print(f"dualsight: {c['path']}: {c['error']}", file=sys.stderr)
     if args.plot is not None:
+        from dualsight.viz.threshold_sweep import hil_prox_figure      # matplotlib (~0.4 s): only with --plot
+
         hil_prox_figure(data, args.plot, title=f"{target['name']}: {len(paths)} image(s)" + (f", run {run_id}" if kept else ""))
     if args.json:
         a0 = next((r["A0_m2"] for r in data["rows"] if r["A0_m2"] is not None), None)
