@@ -78,15 +78,24 @@ def run(args) -> int:
                     if args.overlay_dir is not None else {})
         docs = [hil_report.to_json(r, stars.get(r["case_id"], []), overlays.get(r["case_id"])) for r in rows]
         skipped = SkipNotes()
-        for j in docs:
+        nonfinite = SkipNotes(outcome="ignored", rest="more images with NaN or infinite pixels")
+        for r, j in zip(rows, docs):
             if j["error"]:
                 skipped(j["error"])
-            elif j.get("truth_note") and (args.truth is not None or args.lat is not None):
+                continue
+            if r.get("nonfinite_pixels"):
+                nonfinite(f"{j['image']}: {r['nonfinite_pixels']:,} of {r['width'] * r['height']:,} pixels are NaN "
+                          "or infinite")
+            if j.get("truth_note") and (args.truth is not None or args.lat is not None):
                 print(f"dualsight: {j['image']}: no truth ({j['truth_note']})", file=sys.stderr)
         skipped.finish(f"every image's reason: dualsight sql \"SELECT image, error FROM {hs.PRIMARY} WHERE run = "
                        f"'{run_id}' AND error IS NOT NULL ORDER BY case_id\" --lake {lake.root}" if kept else
                        "every image's reason: the \"error\" of each image in the JSON on stdout" if args.json else
                        "every image's reason: --json (or run without --no-lake to keep the rows)")
+        nonfinite.finish(f"every one: dualsight sql \"SELECT image, nonfinite_pixels FROM {hs.PRIMARY} WHERE run = "
+                         f"'{run_id}' AND nonfinite_pixels > 0 ORDER BY case_id\" --lake {lake.root}" if kept else
+                         "every one: the \"nonfinite_pixels\" of each image in the JSON on stdout" if args.json else
+                         "every one: --json (or run without --no-lake to keep the rows)")
         print(json.dumps(docs, indent=1) if args.json else
               hil_report.text_report(con, run_id, docs, spec.settings, camera=Camera.from_dict(spec.camera)))
         cols, srows = run_report(con, "hil_star_summary", run=run_id)

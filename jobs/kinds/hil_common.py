@@ -135,18 +135,23 @@ one is listed."""
 class SkipNotes:
     """The stderr lines of images a HIL command skips: each of the first :data:`SHOWN_SKIPS` as it comes
     (``dualsight: <reason>; skipped, the other images go on``), the rest counted; :meth:`finish` prints one line
-    with their count and ``rest_at`` (where every one is listed) when there were more."""
+    with their count and ``rest_at`` (where every one is listed) when there were more.  ``outcome`` and ``rest``
+    word other notes on images the same way (``hil star``'s NaN pixels: ``; ignored``, ``more images with NaN or
+    infinite pixels``)."""
 
-    def __init__(self, file=None):
+    def __init__(self, file=None, *, outcome: str = "skipped, the other images go on",
+                 rest: str = "more images skipped"):
         self.file = file
         self.count = 0
+        self.outcome = outcome
+        self.rest = rest
 
     def __call__(self, message: str):
         self.count += 1
         if self.count <= SHOWN_SKIPS:
-            print(f"dualsight: {message}; skipped, the other images go on", file=self.file or sys.stderr)
+            print(f"dualsight: {message}; {self.outcome}", file=self.file or sys.stderr)
 
     def finish(self, rest_at: str):
         if self.count > SHOWN_SKIPS:
-            print(f"dualsight: {self.count - SHOWN_SKIPS} more images skipped ({self.count} in all); {rest_at}",
+            print(f"dualsight: {self.count - SHOWN_SKIPS} {self.rest} ({self.count} in all); {rest_at}",
                   file=self.file or sys.stderr)

@@ -1,6 +1,7 @@
 """Job kind ``hil_star``: the SIL star chain on real night-sky frames, scored against independent truth.
 
-    read (scene.imageio) -> detect/centroid: local background, matched filter, hot pixels, saturation,
+    read (scene.imageio; NaN and infinite pixels counted, ``nonfinite_pixels``, and replaced by the frame's
+    finite median; fewer than 64 finite pixels: an error row) -> detect/centroid: local background, matched filter, hot pixels, saturation,
     PSF fit (kernels.detect_local; or smooth background (kernels.background) + kernels.detect: "global")
     -> back-project (nav.observations) -> lost-in-space geometric voting -> SVD attitude (nav.star_solution)
     -> boresight RA/Dec and roll (scene.pointing), per-star residuals (reference Table 6)
@@ -205,14 +206,52 @@ class ImageResult:
 
 
 def read_frame(entry: ImageEntry, camera: Camera) -> tuple[np.ndarray, object]:
-    """(ADC counts (H, W), Image) of an image entry; ImageError if it cannot be read, changed since the run
-    was planned, or is not the camera's size."""
+    """(ADC counts (H, W), Image) of an image entry, ready for detection: :func:`decode_frame`, then
+    :func:`fill_nonfinite` (NaN and infinite pixels replaced by the frame's finite median); ImageError if it cannot
+    be read, changed since the run was planned, is not the camera's size, or has fewer than
+    :data:`MIN_FINITE_PIXELS` finite pixels."""
+    px, img = decode_frame(entry, camera)
+    return fill_nonfinite(px, nonfinite_pixels(px), source=entry.path), img
+
+
+def decode_frame(entry: ImageEntry, camera: Camera) -> tuple[np.ndarray, object]:
+    """(ADC counts (H, W) as decoded, non-finite pixels included, Image) of an image entry; ImageError if it
+    cannot be read, changed since the run was planned, or is not the camera's size."""
     check_unchanged(entry)
     img = read_image(entry.path, as_gray=True)
     if (img.width, img.height) != (camera.width, camera.height):
         raise ImageError(f"is {img.width} x {img.height} px, the camera file says {camera.width} x "
                          f"{camera.height}", source=entry.path)
     return img.adc_counts(), img
+
+
+MIN_FINITE_PIXELS = 64
+"""Fewest finite pixels of a frame that is solved (:func:`fill_nonfinite`); fewer leave nothing to detect."""
+
+
+def nonfinite_pixels(px: np.ndarray) -> int:
+    """Pixels of a frame that are NaN or +/-infinite (0 for integer data, without looking at it)."""
+    if px.dtype.kind != "f":
+        return 0
+    return px.size - int(np.count_nonzero(np.isfinite(px)))
+
+
+def fill_nonfinite(px: np.ndarray, n_bad: int, *, source: str | None = None) -> np.ndarray:
+    """The frame with its ``n_bad`` (:func:`nonfinite_pixels`) NaN and infinite pixels replaced by the median of
+    its finite pixels, a background level that cannot make a detection; the frame itself (the same array, bit for
+    bit) when there are none.  ImageError naming ``source`` when fewer than :data:`MIN_FINITE_PIXELS` are finite."""
+    if n_bad == 0:
+        return px
+    total = px.size
+    if total - n_bad < MIN_FINITE_PIXELS:
+        what = (f"all {total:,} pixels are NaN or infinite" if n_bad == total else
+                f"{n_bad:,} of {total:,} pixels are NaN or infinite, {total - n_bad} finite (fewer than "
+                f"{MIN_FINITE_PIXELS}: nothing to detect)")
+        raise ImageError(what, source=source)
+    good = np.isfinite(px)
+    out = px.copy()
+    out[~good] = np.median(px[good])
+    return out
 
 
 def detect_frames(frames: np.ndarray, settings: StarSettings, detect: DetectConfig, *,
@@ -291,14 +330,16 @@ def _run_batch(idx: list[int], spec: HilStarSpec, ctx: Context) -> list[ImageRes
         res = results[k] = ImageResult(k, base_row(k, entry.name, entry.path, rt, spec.truth(k)))
         t0 = time.perf_counter_ns()
         try:
-            px, img = read_frame(entry, rt.camera)
+            px, img = decode_frame(entry, rt.camera)
+            n_bad = nonfinite_pixels(px)
+            res.row.update(width=img.width, height=img.height, bit_depth=img.bit_depth, shift=img.shift,
+                           image_digest=int(to_int64(frame_digest(px[None]))[0]), nonfinite_pixels=n_bad)
+            px = fill_nonfinite(px, n_bad, source=entry.path)
         except ImageError as e:
             res.row["error"] = str(e)
             res.row["t_read_ns"] = time.perf_counter_ns() - t0
             continue
         t_read[k] = time.perf_counter_ns() - t0
-        res.row.update(width=img.width, height=img.height, bit_depth=img.bit_depth, shift=img.shift,
-                       image_digest=int(to_int64(frame_digest(px[None]))[0]))
         good.append(k)
         frames.append(px)
     if good:
@@ -444,7 +485,7 @@ IMAGES_SCHEMA = pa.schema([
     ("case_id", pa.int64()), ("image", pa.string()), ("path", pa.string()), ("error", pa.string()),
     ("status", pa.string()), ("identified", pa.bool_()), ("method", pa.string()),
     ("width", pa.int32()), ("height", pa.int32()), ("bit_depth", pa.int32()), ("shift", pa.int32()),
-    ("image_digest", pa.int64()),
+    ("image_digest", pa.int64()), ("nonfinite_pixels", pa.int64()),
     ("background_adu", pa.float64()), ("detect_background_adu", pa.float64()), ("threshold_adu", pa.float64()),
     ("stars_detected", pa.int32()), ("stars_used", pa.int32()), ("stars_identified", pa.int32()), ("T", pa.int32()),
     ("p_chance", pa.float64()),
@@ -507,5 +548,6 @@ def progress_postfix(stats: dict) -> str:
 
 
 __all__ = ["NAME", "PRIMARY", "SCHEMAS", "build_spec", "make_context", "memory_estimate", "compute_shard",
-           "shard_summary", "progress_postfix", "read_frame", "detect_frames", "runtime", "tables",
+           "shard_summary", "progress_postfix", "read_frame", "decode_frame", "nonfinite_pixels",
+           "fill_nonfinite", "MIN_FINITE_PIXELS", "detect_frames", "runtime", "tables",
            "runtime_of", "context_of", "base_row", "solve_frames", "Runtime", "Context", "ImageResult", "StarRow"]

@@ -54,7 +54,7 @@ def to_json(r: dict, stars: list[dict], overlay: str | None = None) -> dict:
     out = {
         "image": r["image"], "path": r["path"], "error": r["error"], "status": r["status"],
         "identified": bool(r["identified"]), "method": r["method"],
-        "stars_detected": r.get("stars_detected"), "stars_used": r.get("stars_used"),
+        "nonfinite_pixels": r.get("nonfinite_pixels"), "stars_detected": r.get("stars_detected"), "stars_used": r.get("stars_used"),
         "stars_identified": r.get("stars_identified"), "T": r.get("T"),
         "ra_deg": _deg(r.get("ra_rad")), "dec_deg": _deg(r.get("dec_rad")),
         "roll_deg": None if r.get("roll_deg") is None else round(r["roll_deg"], 4),
