@@ -37,7 +37,7 @@ import pydantic
 from dualsight.errors import ConfigError
 
 __all__ = ["check_fields", "allowed_range", "validate", "plain_tree", "printable_key", "friendly_key", "MAX_DEPTH",
-           "ANGLE_KEY_SUFFIXES", "dataclass_from_table", "dataclass_to_table", "check_range"]
+           "ANGLE_KEY_SUFFIXES", "dataclass_from_table", "dataclass_to_table", "check_range", "TrackingConfig"]
 
 
 @functools.lru_cache(maxsize=None)
@@ -301,3 +301,69 @@ def check_range(value, lo, hi, field: str, *, lo_open=False, hi_open=False, sour
         rb = ")" if hi_open else "]"
         raise ConfigError(f"must be in {lb}{lo}, {hi}{rb}, got {value!r}", source=source, field=field)
     return value
+
+
+# ============================================================================================ star tracking (issue 22)
+_DEG = math.pi / 180.0
+_TrackPx = typing.Annotated[float, pydantic.Field(gt=0, le=1000.0)]
+_TrackStars = typing.Annotated[int, pydantic.Field(ge=2, le=1000)]
+_TRACKING_UNITS = {"window_k_sigma": "sigma", "window_min_px": "px", "window_max_px": "px", "tight_window_px": "px",
+                   "centroid_sigma_px": "px", "min_stars": "stars", "min_stars_tight": "stars",
+                   "max_predicted": "stars", "residual_k_sigma": "sigma", "max_rms_sigma": "sigma",
+                   "initial_cone_rad": "rad", "rate_sigma_rad_s": "rad/s"}
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackingConfig:
+    """Options of star tracking over an image sequence (``nav/tracking.py``): predict the catalog stars from the
+    previous attitude and the rate, match them in windows that follow the predicted uncertainty, solve and verify;
+    the rules that lose lock (the caller then falls back to lost-in-space).
+
+    Every field's range is part of its type, checked when the dataclass is built (ConfigError naming
+    ``tracking.<field>``, the value and the range) and when a TOML table is validated (:func:`dataclass_from_table`,
+    which also takes ``<name>_deg`` / ``<name>_arcsec`` for a ``<name>_rad`` field).
+
+    window_k_sigma : window radius in predicted 1-sigma position uncertainties, in (0, 20] (default 5).
+    window_min_px, window_max_px : bounds of a window's radius (px), in (0, 1000], min <= max (defaults 2, 50).
+    tight_window_px : a prediction is *tight* when every window is at most this radius (px), in (0, 1000]
+        (default 4): then ``min_stars_tight`` matched stars suffice (LOST #87: tracking with 2 stars).
+    centroid_sigma_px : 1-sigma centroid error per axis (px) assumed when the detector states none, and the
+        detection noise added to the predicted uncertainty, in (0, 1000] (default 0.3).
+    min_stars : fewest matched stars for a lock, integer in [2, 1000] (default 3, tetra3rs' tracking).
+    min_stars_tight : fewest matched stars for a lock under a tight prediction, in [2, 1000], <= min_stars
+        (default 2).
+    max_predicted : the brightest catalog stars predicted in the image, integer in [2, 1000] (default 40).
+    residual_k_sigma : a matched star whose post-fit residual exceeds this many of its centroid sigmas is dropped
+        and the attitude solved again, in (0, 100] (default 5).
+    max_rms_sigma : lock is lost when the post-fit residuals' RMS per degree of freedom exceeds this many sigmas
+        (about 1 for correct matches), in (0, 100] (default 3).
+    max_p_chance : lock is lost when the chance-match probability of the matches exceeds this, in (0, 1]
+        (default 1e-3; ``nav/tracking.py: tracking_chance``).
+    initial_cone_rad : 1-sigma attitude uncertainty per axis (rad) assumed for a previous attitude that comes
+        without a covariance (a hint, an old solution), in (0, 10 deg] (default 0.05 deg).
+    rate_sigma_rad_s : 1-sigma rate uncertainty per axis (rad/s) assumed when no rate is known (after a
+        lost-in-space fix), in (0, 30 deg/s] (default 0.5 deg/s).
+    """
+
+    window_k_sigma: typing.Annotated[float, pydantic.Field(gt=0, le=20.0)] = 5.0
+    window_min_px: _TrackPx = 2.0
+    window_max_px: _TrackPx = 50.0
+    tight_window_px: _TrackPx = 4.0
+    centroid_sigma_px: _TrackPx = 0.3
+    min_stars: _TrackStars = 3
+    min_stars_tight: _TrackStars = 2
+    max_predicted: _TrackStars = 40
+    residual_k_sigma: typing.Annotated[float, pydantic.Field(gt=0, le=100.0)] = 5.0
+    max_rms_sigma: typing.Annotated[float, pydantic.Field(gt=0, le=100.0)] = 3.0
+    max_p_chance: typing.Annotated[float, pydantic.Field(gt=0, le=1.0)] = 1e-3
+    initial_cone_rad: typing.Annotated[float, pydantic.Field(gt=0, le=10 * _DEG)] = 0.05 * _DEG
+    rate_sigma_rad_s: typing.Annotated[float, pydantic.Field(gt=0, le=30 * _DEG)] = 0.5 * _DEG
+
+    def __post_init__(self):
+        check_fields(self, lambda name, msg: ConfigError(msg, field=f"tracking.{name}"), _TRACKING_UNITS)
+        if self.window_min_px > self.window_max_px:
+            raise ConfigError(f"must be <= window_max_px ({self.window_max_px:g} px), got {self.window_min_px!r}",
+                              field="tracking.window_min_px")
+        if self.min_stars_tight > self.min_stars:
+            raise ConfigError(f"must be <= min_stars ({self.min_stars}), got {self.min_stars_tight!r}",
+                              field="tracking.min_stars_tight")
