@@ -26,14 +26,14 @@ DUALSIGHT = [sys.executable, "-c", "import atexit, os, resource, sys\n"
              "from dualsight.jobs.cli.main import main; sys.exit(main())"]
 
 
-def _cap():
-    resource.setrlimit(resource.RLIMIT_AS, (AS_CAP, AS_CAP))
+def _cap(as_cap: int = AS_CAP):
+    resource.setrlimit(resource.RLIMIT_AS, (as_cap, as_cap))
 
 
-def start(args, lake):
+def start(args, lake, as_cap: int = AS_CAP):
     env = dict(os.environ, PEAK_FILE=str(Path(lake).parent / "peak_kib"))
     return subprocess.Popen(DUALSIGHT + ["sql", *args, "--lake", str(lake)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, preexec_fn=_cap, env=env)
+                            stderr=subprocess.PIPE, preexec_fn=lambda: _cap(as_cap), env=env)
 
 
 def finish(p, timeout: float):
@@ -48,9 +48,9 @@ def finish(p, timeout: float):
     return p.returncode, out.decode(), err.decode(), time.monotonic() - t0
 
 
-def run(args, lake, timeout: float = 60):
+def run(args, lake, timeout: float = 60, as_cap: int = AS_CAP):
     """``finish`` and the command's own peak resident memory in bytes."""
-    rc, out, err, dt = finish(start(args, lake), timeout)
+    rc, out, err, dt = finish(start(args, lake, as_cap), timeout)
     return rc, out, err, dt, int((Path(lake).parent / "peak_kib").read_text()) * 1024
 
 
@@ -95,6 +95,17 @@ def test_huge_cell_capped(lake):
     assert len(lines) == 3 and len(lines[2]) < 10_100 and lines[2].rstrip().endswith("...  7")
     assert "x" * 10_000 + "..." in lines[2] and "x" * 10_001 not in lines[2]
     assert err == "(cells longer than 10,000 characters are cut; --csv for whole cells)\n"
+
+
+@pytest.mark.parametrize("args, limit", [([], "1.0 GiB"), (["--memory-limit", "512MiB"], "0.5 GiB")])
+def test_memory_limit_holds_for_the_whole_process(lake, args, limit):
+    # repeat() builds its 2 GB string outside DuckDB's buffer manager (it peaked near 8 GB under a 1 GB
+    # memory_limit); the process cap turns that allocation into DuckDB's own out-of-memory error
+    # the address-space cap of the other tests would end it alone: give room to fail without the guard
+    rc, out, err, dt, rss = run(["SELECT repeat('x', 2000000000)", *args], lake, timeout=60, as_cap=12 * 2**30)
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert "OutOfMemoryException" in err and f"the memory limit is {limit}, --memory-limit to change it" in err
+    assert dt < 10 and rss < 2**30
 
 
 def test_limit_and_csv(lake):

@@ -143,6 +143,36 @@ def memory_limit_bytes(value, *, name: str = "memory_limit") -> int:
     return int(min(n, 2**62))
 
 
+PROCESS_HEADROOM = 256 * 2**20
+"""Bytes the ``dualsight sql`` process may map beyond DuckDB's memory limit (the printed rows, Python)."""
+
+
+def cap_process_memory(memory_limit: int) -> int | None:
+    """Cap this process's private writable memory (``RLIMIT_DATA``, Linux) at what it maps now plus
+    ``memory_limit`` plus :data:`PROCESS_HEADROOM` bytes; returns the cap, or None where it cannot be set.
+
+    DuckDB's ``memory_limit`` governs its buffer manager, not every allocation: ``repeat('x', 2000000000)``
+    builds its string outside it and peaked near 8 GB under a 1 GB limit.  Under this cap the allocation
+    fails inside DuckDB, which raises ``OutOfMemoryException`` (one line, :func:`_guarded`).  For the command
+    line only: a library call must not lower the limits of its caller's process (``Lake.sql`` keeps DuckDB's).
+    """
+    import resource
+
+    try:
+        status = Path("/proc/self/status").read_text()
+        vm_data = next(int(line.split()[1]) * 1024 for line in status.splitlines() if line.startswith("VmData:"))
+        soft, hard = resource.getrlimit(resource.RLIMIT_DATA)
+        cap = vm_data + int(memory_limit) + PROCESS_HEADROOM
+        if hard != resource.RLIM_INFINITY:
+            cap = min(cap, hard)
+        if soft != resource.RLIM_INFINITY and soft <= cap:
+            return soft
+        resource.setrlimit(resource.RLIMIT_DATA, (cap, hard))
+        return cap
+    except (OSError, ValueError, StopIteration):
+        return None
+
+
 def _timeout_seconds(value, name: str) -> float | None:
     if value is None or (not isinstance(value, bool) and isinstance(value, (int, float)) and value == 0):
         return None
@@ -339,7 +369,7 @@ def _guarded(con, work, deadline, limits: SqlLimits):
         raise
     if "error" in box:
         e = box["error"]
-        if isinstance(e, duckdb.OutOfMemoryException):
+        if isinstance(e, (duckdb.OutOfMemoryException, MemoryError)):
             raise InputError(f"{type(e).__name__}: {_first_line(e)} (the memory limit is "
                              f"{limits.memory_limit / 2**30:.1f} GiB, {limits.memory_name} to change it)",
                              source="sql") from None

@@ -88,8 +88,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rows to print (default 1000; with --csv all); 0 for all")
     p.add_argument("--timeout", type=_nonneg_seconds, default=300.0, metavar="SECONDS",
                    help="stop the query after this long (default 300); 0 for no limit")
-    p.add_argument("--memory-limit", default=None, metavar="SIZE",
-                   help="DuckDB's memory, e.g. 4GB or 25%% of the RAM (default 50%%); nothing spills to disk")
+    p.add_argument("--memory-limit", default="1GiB", metavar="SIZE",
+                   help="memory of the query and of this process beyond what it holds at start, e.g. 4GB or 25%% "
+                        "of the RAM (default 1GiB); nothing spills to disk")
     p.set_defaults(func=cmd_sql)
 
     p = sub.add_parser("replay", help="replay cases of any run, chosen by --case or an SQL predicate, into rerun "
@@ -262,6 +263,7 @@ def cmd_sql(args) -> int:
     try:
         limits = query.SqlLimits(args.timeout, args.memory_limit, timeout_name="--timeout SECONDS",
                                  memory_name="--memory-limit")
+        query.cap_process_memory(limits.memory_limit)
         if args.csv:
             return _sql_csv(query, args, limits)
         row_limit = query.DEFAULT_ROW_LIMIT if args.limit is None else (args.limit or None)
