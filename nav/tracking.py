@@ -1,0 +1,255 @@
+"""Star tracking over an image sequence: predict, match in windows, solve, verify (issue 22, point 2).
+
+A star tracker in tracking mode knows its last attitude and its rate, so it needs no pattern identification:
+
+1. :func:`propagate` / :func:`predict`: the previous attitude ``A_prev`` (inertial -> camera, docs/architecture.md)
+   turned by the rate over ``dt`` with the exact exponential map, ``A = exp(-[omega dt x]) A_prev``
+   (``scene/rotation_vector.py``); its error covariance carried along, ``P = Phi P_prev Phi^T + dt^2 Q_omega``
+   (first order; ``Phi`` the same rotation).  The brightest catalog stars that the predicted attitude puts in the
+   image are projected with the camera model (``scene/camera.py``, distortion included); each predicted position
+   has a 2 x 2 covariance ``G P G^T + sigma_c^2 I`` with ``G`` (P, 2, 3) the pixel derivatives with respect to a
+   small attitude error (central differences through the camera model) and ``sigma_c`` the centroid noise.  The
+   match window of a star is ``k`` times the largest principal sigma, clipped to [min, max] px.
+2. :func:`match`: each predicted star takes the detection inside its window; a window holding two or more
+   detections is ambiguous and dropped, and so is every star of a detection claimed by two windows (one
+   detection per star, one star per detection).  A (P, D) distance table, no loop over stars.
+3. :func:`track`: SVD attitude of the matched pairs with the centroid weights ``w = 1 / sigma_rad^2`` (Markley 1988,
+   ``nav/attitude.py``, which also gives the attitude covariance), the residual test (a star beyond
+   ``residual_k_sigma`` is dropped and the attitude solved again once; then the RMS per degree of freedom must stay
+   below ``max_rms_sigma``) and the chance-match test (:func:`tracking_chance` over ``nav/chance.py``'s binomial
+   tail).  Lock is lost by rule, one code of :data:`LOCK_REASONS`: too few matches (``min_stars``, or
+   ``min_stars_tight`` when every window is tight), a degenerate geometry, the residual test, the chance-match
+   probability.  The caller then falls back to lost-in-space (``nav/star_solution.py`` identify + solve).
+
+This follows what tetra3rs 0.5.1 (MIT) describes for its tracking mode (previous attitude as a hint with an
+uncertainty cone, nearest detections, SVD solve, the same false-match test, 3 stars instead of 4) with the cone
+replaced by per-star windows from the propagated covariance; the code is dualsight's own.  Angles in radians,
+pixels in the (col, row) convention of docs/architecture.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dualsight.config import TrackingConfig
+from dualsight.nav.attitude import svd_attitude
+from dualsight.nav.chance import binomial_tail
+from dualsight.scene.rotation_vector import frame_rotation
+from dualsight.scene.starfield_geometry import field_half_angle
+from dualsight.scene.units import angle_between
+
+__all__ = ["LOCK_REASONS", "LOCKED", "NO_PRIOR", "TOO_FEW_MATCHES", "DEGENERATE", "RESIDUAL", "P_CHANCE",
+           "Prediction", "TrackResult", "propagate", "predict", "match", "tracking_chance", "track"]
+
+LOCK_REASONS = ("locked", "no_prior", "too_few_matches", "degenerate", "residual", "p_chance")
+"""Names of :attr:`TrackResult.reason` (index = code): lock held, or why it was lost."""
+LOCKED, NO_PRIOR, TOO_FEW_MATCHES, DEGENERATE, RESIDUAL, P_CHANCE = range(len(LOCK_REASONS))
+
+_EPS_ROT = 1e-6
+"""Rotation step (rad) of the central differences of the pixel positions (truncation ~1e-12 px at 1e7 px focal
+lengths' curvature, rounding ~1e-16 * 1e4 px / 1e-6 = 1e-6 px relative: far below any centroid error)."""
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Where the catalog stars of a predicted attitude fall, and how sure that is.
+
+    A : (3, 3) predicted attitude (inertial -> camera).  cov : (3, 3) rad^2 its error covariance (camera frame,
+    the convention of ``nav.attitude.svd_attitude``).  rows : (P,) int64 catalog rows, brightest first.
+    xy : (P, 2) float64 predicted pixel positions (col, row).  sigma_px : (P,) largest principal 1-sigma of each
+    position (px), centroid noise included.  radius_px : (P,) match window radius (px).
+    """
+
+    A: np.ndarray
+    cov: np.ndarray
+    rows: np.ndarray
+    xy: np.ndarray
+    sigma_px: np.ndarray
+    radius_px: np.ndarray
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """One frame's tracking answer.
+
+    A : (3, 3) attitude (NaN when not locked).  cov : (3, 3) rad^2 its error covariance (NaN when not locked).
+    locked : bool.  reason : int code of :data:`LOCK_REASONS`.
+    det_row : (D,) int64 catalog row of each detection used in the solution (-1 = unmatched, ambiguous or
+        rejected).  residual_px : (D,) post-fit residual of each used detection (px, angle times fx; NaN otherwise).
+    n_predicted, n_matched (unique pairs before the residual test), n_used (in the final solution),
+    n_ambiguous (windows with two or more detections) : int.  two_star : the lock rests on two stars (allowed
+    only under a tight prediction).  rms_sigma : post-fit RMS per degree of freedom in centroid sigmas.
+    p_chance : chance-match probability (:func:`tracking_chance`).
+    """
+
+    A: np.ndarray
+    cov: np.ndarray
+    locked: bool
+    reason: int
+    det_row: np.ndarray
+    residual_px: np.ndarray
+    n_predicted: int
+    n_matched: int
+    n_used: int
+    n_ambiguous: int
+    two_star: bool
+    rms_sigma: float
+    p_chance: float
+
+
+def propagate(A_prev: np.ndarray, cov_prev: np.ndarray, omega: np.ndarray, cov_omega: np.ndarray,
+              dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Attitude and covariance after ``dt`` s at the constant body rate ``omega``.
+
+    A_prev : (3, 3) inertial -> camera.  cov_prev : (3, 3) rad^2 attitude error covariance (camera frame).
+    omega : (3,) rad/s body rate in the camera frame (a solution's or a gyro's).  cov_omega : (3, 3) (rad/s)^2.
+    Returns ``(exp(-[omega dt x]) A_prev, Phi cov_prev Phi^T + dt^2 cov_omega)`` (Markley & Crassidis 2014,
+    Eq. 3.21 kinematics; the error of the rate enters as ``dt * delta_omega``).
+    """
+    dt = float(dt)
+    Phi = frame_rotation(np.asarray(omega, np.float64) * dt)
+    A = Phi @ np.asarray(A_prev, np.float64)
+    P = Phi @ np.asarray(cov_prev, np.float64) @ Phi.T + dt * dt * np.asarray(cov_omega, np.float64)
+    return A, 0.5 * (P + P.T)
+
+
+def _pixel_jacobian(v: np.ndarray, camera) -> np.ndarray:
+    """(P, 2, 3) d(pixel) / d(theta) of camera-frame vectors ``v`` (P, 3) under a small frame rotation theta
+    (``v -> v - theta x v``), by central differences through ``camera.project`` (distortion included)."""
+    G = np.empty((v.shape[0], 2, 3))
+    for i in range(3):                              # three axes, each over all stars at once
+        e = np.zeros(3)
+        e[i] = _EPS_ROT
+        d = np.cross(v, e)                          # -e x v
+        G[:, :, i] = (camera.project(v + d)[0] - camera.project(v - d)[0]) / (2 * _EPS_ROT)
+    return G
+
+
+def predict(A: np.ndarray, cov: np.ndarray, cat_unit: np.ndarray, camera, cfg: TrackingConfig) -> Prediction:
+    """The catalog stars that attitude ``A`` (already propagated, :func:`propagate`) puts in the image, their
+    predicted pixels, uncertainties and match windows.
+
+    A : (3, 3) inertial -> camera.  cov : (3, 3) rad^2 its error covariance.  cat_unit : (N, 3) ICRS unit
+    vectors, brightest first (the stars a detector can see: the catalog's magnitude limit).  camera :
+    ``scene.camera.Camera``.  Keeps the ``cfg.max_predicted`` brightest stars inside the image.
+    """
+    A = np.asarray(A, np.float64)
+    cos_half = np.cos(field_half_angle(camera))
+    cand = np.flatnonzero(cat_unit @ A[2] > cos_half)                 # cone test, then the camera model
+    v = cat_unit[cand] @ A.T
+    px, front = camera.project(v)
+    inside = front & camera.in_image(np.nan_to_num(px, nan=-1.0))
+    keep = np.flatnonzero(inside)[: cfg.max_predicted]
+    rows, v, px = cand[keep], v[keep], px[keep]
+    G = _pixel_jacobian(v, camera)
+    S = np.einsum("pik,kl,pjl->pij", G, np.asarray(cov, np.float64), G)
+    a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
+    lam = 0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b * b)          # largest eigenvalue of the 2 x 2
+    sigma = np.sqrt(lam + cfg.centroid_sigma_px ** 2)
+    radius = np.clip(cfg.window_k_sigma * sigma, cfg.window_min_px, cfg.window_max_px)
+    return Prediction(A, np.asarray(cov, np.float64), rows.astype(np.int64), px, sigma, radius)
+
+
+def match(pred_xy: np.ndarray, radius_px: np.ndarray, det_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Unique pairs (predicted star, detection) inside the windows.
+
+    pred_xy : (P, 2) px.  radius_px : (P,) window radii (px).  det_xy : (D, 2) px (NaN rows never match).
+    Returns (star (M,) int64 index into the predictions, det (M,) int64 index into the detections, the number of
+    ambiguous windows).  A star pairs with the one detection inside its window (distance <= radius); a window
+    with two or more detections is dropped (ambiguous: a double, a false star or a window too wide), and so are
+    all the stars whose windows hold the same single detection.  Pairs in prediction order.
+    """
+    P, D = len(pred_xy), len(det_xy)
+    if P == 0 or D == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), 0
+    d2 = np.sum((pred_xy[:, None, :] - det_xy[None, :, :]) ** 2, axis=-1)      # (P, D)
+    with np.errstate(invalid="ignore"):
+        inside = d2 <= (np.asarray(radius_px, np.float64) ** 2)[:, None]
+    n_in = inside.sum(axis=1)
+    one = n_in == 1
+    det = np.argmax(inside, axis=1)
+    claims = np.bincount(det[one], minlength=D)
+    ok = one & (claims[det] == 1)
+    star = np.flatnonzero(ok)
+    return star.astype(np.int64), det[star].astype(np.int64), int(np.count_nonzero(n_in >= 2))
+
+
+def tracking_chance(n_used: int, n_predicted: int, n_detections: int, radius_px: float, area_px: float) -> float:
+    """Chance-match probability of a tracked answer: ``P[Binomial(P, q) >= n]`` with ``q = 1 - exp(-lambda pi r^2)``.
+
+    Null hypothesis: the detections are unrelated to the predicted stars (a wrong prediction, a sky that
+    moved away), spread uniformly over the image at ``lambda = D / area`` detections per px^2 (Poisson), so each of
+    the ``P`` windows catches one with probability ``q``; ``r`` is the largest window (an upper bound).  One
+    hypothesis is tested (the prediction), so no look-elsewhere factor, unlike lost-in-space's pair hypotheses
+    (``nav/chance.py``, whose binomial tail this is).  Returns 1 when n <= 0.
+    """
+    if n_used <= 0:
+        return 1.0
+    lam = float(n_detections) / float(area_px)
+    q = -np.expm1(-lam * np.pi * float(radius_px) ** 2)
+    return float(binomial_tail(np.array([n_predicted]), np.array([n_used]), np.array([q]))[0])
+
+
+def _solve(b: np.ndarray, r: np.ndarray, w: np.ndarray):
+    A, ok, cov = svd_attitude(b[None], r[None], w[None], return_cov=True)
+    return A[0], bool(ok[0]), cov[0]
+
+
+def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None, cat_unit: np.ndarray, camera,
+          cfg: TrackingConfig) -> TrackResult:
+    """Match one frame's detections to a :class:`Prediction`, solve and verify (module docstring, steps 2-3).
+
+    det_xy : (D, 2) centroids (px).  det_sigma_px : optional (D,) 1-sigma centroid error per axis (px), e.g. the
+    local detector's Cramér-Rao bound; None (or non-finite entries) = ``cfg.centroid_sigma_px``.  Weights
+    ``1 / sigma_rad^2`` with ``sigma_rad = sigma_px / fx`` (the pixel scale on the axis), so the returned
+    covariance is in rad^2.  cat_unit : (N, 3) the catalog ``pred.rows`` index.  camera : ``scene.camera.Camera``.
+    """
+    det_xy = np.asarray(det_xy, np.float64).reshape(-1, 2)
+    D = det_xy.shape[0]
+    nan3 = np.full((3, 3), np.nan)
+    det_row = np.full(D, -1, np.int64)
+    res_px = np.full(D, np.nan)
+    sig = np.full(D, cfg.centroid_sigma_px) if det_sigma_px is None else np.asarray(det_sigma_px, np.float64)
+    sig = np.where(np.isfinite(sig) & (sig > 0), sig, cfg.centroid_sigma_px)
+    P = len(pred.rows)
+    star, det, n_amb = match(pred.xy, pred.radius_px, det_xy)
+    n_matched = len(star)
+    tight = P > 0 and float(pred.radius_px.max()) <= cfg.tight_window_px
+    need = cfg.min_stars_tight if tight else cfg.min_stars
+
+    def lost(reason, n_used=0, rms=np.nan, p=np.nan):
+        return TrackResult(nan3, nan3.copy(), False, reason, det_row, res_px, P, n_matched, n_used, n_amb,
+                           n_used == 2, float(rms), float(p))
+
+    if n_matched < need:
+        return lost(TOO_FEW_MATCHES, n_matched)
+    f = 0.5 * (camera.fx + camera.fy)
+    b = camera.backproject(det_xy[det])
+    r = cat_unit[pred.rows[star]]
+    sig_rad = sig[det] / f
+    w = 1.0 / sig_rad ** 2
+    A, ok, cov = _solve(b, r, w)
+    if not ok:
+        return lost(DEGENERATE, n_matched)
+    nres = angle_between(r @ A.T, b) / sig_rad
+    use = nres <= cfg.residual_k_sigma
+    if not use.all():                                   # drop the outliers, solve once more
+        if use.sum() < need:
+            return lost(RESIDUAL, int(use.sum()))
+        A, ok, cov = _solve(b[use], r[use], w[use])
+        if not ok:
+            return lost(DEGENERATE, int(use.sum()))
+        nres = angle_between(r @ A.T, b) / sig_rad
+    n_used = int(use.sum())
+    dof = max(1, 2 * n_used - 3)
+    rms = float(np.sqrt(np.sum(nres[use] ** 2) / dof))
+    p = tracking_chance(n_used, P, D, float(pred.radius_px.max()), camera.width * camera.height)
+    if rms > cfg.max_rms_sigma or np.any(nres[use] > cfg.residual_k_sigma):
+        return lost(RESIDUAL, n_used, rms, p)
+    if p > cfg.max_p_chance:
+        return lost(P_CHANCE, n_used, rms, p)
+    det_row[det[use]] = pred.rows[star[use]]
+    res_px[det[use]] = nres[use] * sig[det[use]]
+    return TrackResult(A, cov, True, LOCKED, det_row, res_px, P, n_matched, n_used, n_amb, n_used == 2, rms, p)
