@@ -19,7 +19,8 @@ from dualsight.warehouse.shards import ShardInfo
 
 
 def check_run(lake: Lake, run_id: str) -> dict:
-    """One run's verdict: {run, kind, requested, found, duplicated, damaged_shards, missing_shards, problems, verdict}."""
+    """One run's verdict: {run, kind, requested, found, duplicated (cases), shards (planned), damaged_shards,
+    missing_shards (shard numbers), problems, verdict}."""
     row = {"run": run_id, "kind": None, "requested": None, "found": 0, "duplicated": 0, "damaged_shards": [],
            "missing_shards": [], "problems": [], "verdict": "ok"}
     manifest_damaged = False
@@ -32,7 +33,7 @@ def check_run(lake: Lake, run_id: str) -> dict:
     if m is None:
         row["verdict"] = "damaged" if manifest_damaged else "no manifest"
         return row
-    row.update(kind=m["kind"], requested=m["n_cases"], status=m.get("status"))
+    row.update(kind=m["kind"], requested=m["n_cases"], status=m.get("status"), shards=m["n_shards"])
     ids = []
     for s in range(m["n_shards"]):
         start = s * m["shard_size"]
@@ -102,9 +103,10 @@ def report_text(rows: list[dict]) -> str:
 
     if not rows:
         return "no runs"
-    table = format_table(["run", "kind", "requested", "found", "duplicated", "damaged", "missing", "verdict"],
+    table = format_table(["run", "kind", "cases requested", "cases found", "duplicate cases", "shards",
+                          "damaged shards", "missing shards", "verdict"],
                          [(r["run"], r["kind"], r["requested"], r.get("found_after", r["found"]),
-                           r.get("duplicated_after", r["duplicated"]), len(r["damaged_shards"]),
+                           r.get("duplicated_after", r["duplicated"]), r.get("shards", "-"), len(r["damaged_shards"]),
                            len(r["missing_shards"]), r["verdict"]) for r in rows])
     notes = [f"  {r['run']}: {p}" for r in rows for p in r["problems"][:5]]
     notes += [f"  {r['run']}: repair {r['repair']}" for r in rows if "repair" in r]

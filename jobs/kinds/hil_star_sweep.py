@@ -29,6 +29,7 @@ from dualsight.errors import ConfigError, InputError
 from dualsight.jobs.kinds import hil_star as hs
 from dualsight.jobs.kinds.hil_common import Frozen, ImageEntry
 from dualsight.jobs.kinds.hil_star_spec import HilStarSpec, StarSettings, StarTruth
+from dualsight.warehouse.cells import percent
 
 NAME = "hil_star_sweep"
 PRIMARY = "hil_sweep"
@@ -242,6 +243,7 @@ def summarize(rows: list[dict], n_variants: int, labels: list[str]) -> list[dict
              "agreement": (float(agrees[v][solved[v]].mean()) if solved[v].any() else None),
              "ms_per_image": (float(np.mean([r["t_total_ns"] for r in rv if r["t_total_ns"] is not None])) / 1e6
                               if n else None)}
+        d.update(_cost(rv))
         out.append(d)
 
     def key(d):
@@ -254,20 +256,63 @@ def summarize(rows: list[dict], n_variants: int, labels: list[str]) -> list[dict
     return sorted(out, key=key)
 
 
+#: Stages timed per image (``hil_sweep`` columns ``t_<stage>_ns``), as the sweep table names them.
+STAGES = (("read", "read"), ("detect", "detect"), ("identify", "identify"), ("attitude", "attitude"),
+          ("alt", "second method"))
+
+
+def _cost(rv: list[dict]) -> dict:
+    """Where a variant's time goes, over its images' rows ``rv``: mean blobs found (kept + dropped beyond the
+    detector's cap), kept and dropped per image, the most dropped in one image, mean ms per stage and the
+    slowest stage with its share of the total."""
+    def mean(key, scale=1.0):
+        v = [r.get(key) for r in rv if r.get(key) is not None]
+        return float(np.mean(v)) * scale if v else None
+
+    kept, dropped = mean("stars_detected"), mean("blobs_dropped")
+    stage_ms = {name: mean(f"t_{col}_ns", 1e-6) for col, name in STAGES}
+    total = mean("t_total_ns", 1e-6)
+    known = {k: v for k, v in stage_ms.items() if v is not None}
+    slow = max(known, key=known.get) if known else None
+    return {"blobs_found": None if kept is None else kept + (dropped or 0.0), "blobs_kept": kept,
+            "blobs_dropped": dropped,
+            "max_blobs_dropped": max((r.get("blobs_dropped") or 0 for r in rv), default=None),
+            "stage_ms": stage_ms, "slowest_stage": slow,
+            "slowest_share": (known[slow] / total) if slow and total else None}
+
+
+def why_slow(d: dict) -> str:
+    """One cell saying where a variant's time goes: its slowest stage, that stage's share of the time, and the
+    blobs found per image and how many of them the detector's cap dropped (the work done for nothing)."""
+    if d.get("slowest_stage") is None:
+        return "-"
+    out = f"{d['slowest_stage']} {100 * (d['slowest_share'] or 0):.0f} %"
+    if d.get("blobs_found") is not None:
+        out += f"; {d['blobs_found']:.0f} blobs/image"
+        if d.get("blobs_dropped"):
+            dr = d["blobs_dropped"]
+            out += f", {dr:.0f}" if dr >= 10 else f", {dr:.1f}"
+            out += f" dropped beyond the cap (up to {d['max_blobs_dropped']} in one image)"
+    return out
+
+
 def text(summary: list[dict]) -> str:
     from dualsight.warehouse.query import format_table
 
     truth = any(d["success_rate"] is not None for d in summary)
-    head = ["rank", "settings", "images", "solved %"] + (["success %", "wrong %"] if truth else
-                                                         ["agreement %"]) + ["ms/image"]
-    pct = lambda x: None if x is None else 100 * x  # noqa: E731
-    rows = [[i + 1, d["label"], d["images"], pct(d["solved_rate"])]
-            + ([pct(d["success_rate"]), pct(d["wrong_rate"])] if truth else [pct(d["agreement"])])
-            + [d["ms_per_image"]] for i, d in enumerate(summary)]
+    head = (["rank", "settings", "images", "solved"] + (["success", "wrong"] if truth else ["agreement"])
+            + ["ms/image", "detect ms", "identify ms", "where the time goes"])
+    ms = lambda v: "-" if v is None else (f"{v:.0f}" if v >= 100 else f"{v:.1f}")  # noqa: E731
+    rows = [[i + 1, d["label"], d["images"], percent(d["solved_rate"])]
+            + ([percent(d["success_rate"]), percent(d["wrong_rate"])] if truth else [percent(d["agreement"])])
+            + [ms(d["ms_per_image"]), ms(d["stage_ms"]["detect"]), ms(d["stage_ms"]["identify"]), why_slow(d)]
+            for i, d in enumerate(summary)]
     note = ("ranked by success rate (truth given), then time" if truth else
             f"no truth: ranked by solved rate x agreement (boresights within {AGREE_ARCSEC:g} arcsec of the "
             "answer most settings gave), then time")
-    return format_table(head, rows, floatfmt="{:.4g}") + "\n" + note
+    note += ("; ms are means per image (one process); blobs found = kept + dropped beyond the detector's "
+             "max_blobs_per_frame (found, measured and then thrown away)")
+    return format_table(head, rows) + "\n" + note
 
 
 __all__ = ["NAME", "PRIMARY", "SCHEMAS", "SWEEP_KEYS", "parse_sweeps", "grid", "label", "SweepSpec",

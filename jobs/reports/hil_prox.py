@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dualsight.warehouse.cells import table_cells
 from dualsight.nav import threshold_choice as tc
 
 __all__ = ["fetch", "oracle_threshold", "stable_threshold", "cross_validated_error", "best_threshold",
@@ -152,14 +153,15 @@ def text_report(con, run_id: str, data: dict, settings) -> str:
                           r["within_min_max"], r["touches_edge"]])
     out.append(f"per image at threshold {show_t:g}" + (" (the sweep's best)" if len(th) > 1 and best else ""))
     out.append(format_table(["image", "status", "N_blob px", "axis ratio", "true m", "min m", "est m", "max m",
-                             "error %", "in [min,max]", "edge"], table, floatfmt="{:.4g}"))
+                             "error %", "in [min,max]", "edge"],
+                            table_cells(["image", "status", "n_pixels", "axis_ratio", "true_m", "min_m", "est_m",
+                                         "max_m", "error_pct", "in", "edge"], table)))
     if len(th) > 1 or any(x.get("with_truth") for x in sweep):
         out += ["", "sweep (reference Figure 8): per threshold, over the images"]
         keys = ["threshold", "found", "avg_range_m", "avg_range_min_m", "avg_range_max_m", "avg_truth_m",
                 "avg_abs_error_m", "avg_rel_error_pct", "within_min_max_pct"]
         out.append(format_table(["T", "found", "avg est m", "avg min m", "avg max m", "avg true m", "avg |err| m",
-                                 "avg rel err %", "within %"], [[x.get(k) for k in keys] for x in sweep],
-                                floatfmt="{:.4g}"))
+                                 "avg rel err %", "within %"], table_cells(keys, [[x.get(k) for k in keys] for x in sweep])))
         if best:
             line = f"chosen threshold {best['threshold']:g} (without the truth: where the range changes least)"
             if best.get("avg_rel_error_pct") is not None:

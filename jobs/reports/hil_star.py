@@ -21,6 +21,7 @@ import numpy as np
 
 from dualsight.catalogs.auto_limit import describe_mag_limit
 from dualsight.errors import ImageError, output_path
+from dualsight.warehouse.cells import table_cells
 from dualsight.scene.starfield_geometry import catalog_in_image
 from dualsight.scene.units import ARCSEC
 
@@ -157,7 +158,7 @@ def text_report(con, run_id: str, docs: list[dict], settings, camera=None) -> st
     alt = st.alt_method or "alt"
     out.append(format_table(["image", "status", "detected", "identified", "T", "RA deg", "Dec deg", "roll deg",
                              "bore err \"", "resid med \"", f"{alt} bore err \"", "ms"],
-                            [[r[cols.index(c)] for c in keep] for r in rows], floatfmt="{:.6g}"))
+                            table_cells(keep, [[r[cols.index(c)] for c in keep] for r in rows])))
     return "\n".join(out)
 
 

@@ -23,6 +23,7 @@ import sys
 import duckdb
 
 from dualsight.errors import InputError
+from dualsight.warehouse.cells import cell, percent, table_cells
 from dualsight.jobs.kinds.star_summaries import DATASET as SUMMARIES
 from dualsight.jobs.kinds.star_summaries import merge_sql
 from dualsight.scene.units import ARCSEC
@@ -140,6 +141,7 @@ def build(lake: Lake, run_id: str, source: str = "auto") -> dict:
     if not s["cases"]:
         raise InputError(f"run {run_id!r} has no star cases in {lake.root}", source="--run")
     tables = {name: run_report(con, query_name(name, src), run=run_id) for name in QUERIES[1:]}
+    breakdown = detection_breakdown(lake, run_id)
     js = {
         "run": run_id,
         "cases": int(s["cases"]),
@@ -163,11 +165,75 @@ def build(lake: Lake, run_id: str, source: str = "auto") -> dict:
                                     for r in tables["star_error_vs_observed"][1]],
         "reference": REFERENCE,
     }
-    return {"summary": s, "tables": tables, "json": js, "source": src}
+    if breakdown is not None:
+        js["detections_per_successful_case"] = breakdown
+    return {"summary": s, "tables": tables, "json": js, "source": src, "breakdown": breakdown}
 
 
-def _pct(x):
-    return "-" if x is None else f"{100 * x:.2f} %"
+def detection_breakdown(lake: Lake, run_id: str) -> dict | None:
+    """What "stars observed" counts, averaged over the successful cases (``warehouse/sql/star_detection_breakdown.sql``
+    over ``star_cases`` and ``star_detections``): generated, observed (= blobs), matched, edge, split, false_blobs,
+    missed (per case), cases and cases_observed_gt_generated (counts).  None when the run has no detection rows
+    or no camera size in its manifest."""
+    if "star_detections" not in lake.datasets():
+        return None
+    m = lake.read_manifest(run_id) or {}
+    cam = (m.get("spec") or {}).get("camera") or {}
+    if "width" not in cam or "height" not in cam:
+        return None
+    con = connect(lake, warn=lambda msg: None)
+    try:
+        cols, rows = run_report(con, "star_detection_breakdown", run=run_id, width=float(cam["width"]),
+                                height=float(cam["height"]))
+    except duckdb.Error:
+        return None
+    finally:
+        con.close()
+    d = dict(zip(cols, rows[0]))
+    return d if d["cases"] else None
+
+
+#: Table 5's rows as the report prints them: what each counts (issue 25, point 10).
+TABLE5_LABELS = {
+    "Stars generated": "Stars generated (catalog stars centred in the image)",
+    "Stars observed": "Stars observed (blobs detected, false and edge blobs included)",
+    "T": "T (match threshold)",
+}
+
+STAGE_LABELS = {"render": "render + detect (fused: noise-free sparse path)"}
+
+
+def table5_rows(rep: dict) -> tuple[list[str], list[list]]:
+    """Table 5 with labelled rows and, under "stars observed", what the blobs are (:func:`detection_breakdown`):
+    (columns, rows of printed cells)."""
+    cols, rows = rep["tables"]["star_table5"]
+    b = rep.get("breakdown")
+    out = []
+    for metric, ours, ref in rows:
+        out.append([TABLE5_LABELS.get(metric, metric), "-" if ours is None else f"{ours:.2f}",
+                    "-" if ref is None else f"{ref:.4f}".rstrip("0").rstrip(".")])
+        if metric == "Stars observed" and b:
+            for key, label in (("matched", "= matched blobs (a rendered star within 2 px)"),
+                               ("edge", "incl. edge blobs (star centred outside the image)"),
+                               ("split", "incl. split blobs (2nd blob of one star)"),
+                               ("false_blobs", "+ false blobs (no rendered star within 2 px)"),
+                               ("missed", "Generated stars not detected (missed)")):
+                out.append([label, f"{b[key]:.2f}", "-"])
+    return ["metric", "dualsight", "reference"], out
+
+
+def stage_rows(rep: dict) -> tuple[list[str], list[list]]:
+    """The time-per-stage table without empty rows: a stage that never ran on its own (detection fused into the
+    noise-free sparse render: ``t_detect_ns`` null) is left out and the render row says it holds both."""
+    cols, rows = rep["tables"]["star_stage_times"]
+    fused = any(r[0] == "detect" and r[1] is None for r in rows)
+    out = []
+    for stage, ms, share in rows:
+        if ms is None:
+            continue
+        label = STAGE_LABELS.get(stage, stage) if fused else stage
+        out.append([label, cell("ms_per_case", ms) if ms >= 1e-3 else f"{ms:.4f}", percent(share)])
+    return ["stage", "ms per case", "share of total"], out
 
 
 def text(rep: dict) -> str:
@@ -177,19 +243,19 @@ def text(rep: dict) -> str:
         f"star-tracker run {j['run']}: {j['cases']} cases",
         "",
         "reliability                        dualsight      reference",
-        f"  success (all axes <= 100 arcsec)  {_pct(j['success_rate']):>10}   {_pct(ref['success_rate']):>10}",
-        f"  confident but wrong (T > 0)       {_pct(j['confident_wrong_rate']):>10}   "
-        f"{_pct(ref['confident_wrong_rate']):>10}",
-        f"  no confident solution (T <= 0)    {_pct(j['no_solution_rate']):>10}",
-        f"  identification right (ids)        {_pct(j['identification_rate']):>10}",
+        f"  success (all axes <= 100 arcsec)  {percent(j['success_rate']):>10}   {percent(ref['success_rate']):>10}",
+        f"  confident but wrong (T > 0)       {percent(j['confident_wrong_rate']):>10}   "
+        f"{percent(ref['confident_wrong_rate']):>10}",
+        f"  no confident solution (T <= 0)    {percent(j['no_solution_rate']):>10}",
+        f"  identification right (ids)        {percent(j['identification_rate']):>10}",
         f"  sky limit: attitudes with >= 3 / >= 4 catalog stars in the field: "
-        f"{_pct(j['sky_share_ge3_stars'])} / {_pct(j['sky_share_ge4_stars'])}",
+        f"{percent(j['sky_share_ge3_stars'])} / {percent(j['sky_share_ge4_stars'])}",
         "",
         "Reference method beside dualsight's robust voting (unique maxima, consistent set, attitude check)",
-        format_table(*rep["tables"]["star_robust"]),
+        format_table(rep["tables"]["star_robust"][0], table_cells(*rep["tables"]["star_robust"])),
         "",
         "Table 5 (averages over the successful cases)",
-        format_table(*rep["tables"]["star_table5"]),
+        format_table(*table5_rows(rep)),
         "",
         "Error vs stars observed (Figures 9-10), successful cases",
         format_table(*rep["tables"]["star_error_vs_observed"], floatfmt="{:.2f}"),
@@ -198,6 +264,6 @@ def text(rep: dict) -> str:
         format_table(*rep["tables"]["star_status"], floatfmt="{:.2f}"),
         "",
         "Time per case by stage",
-        format_table(*rep["tables"]["star_stage_times"], floatfmt="{:.3f}"),
+        format_table(*stage_rows(rep)),
     ]
     return "\n".join(lines)
