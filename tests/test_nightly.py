@@ -25,6 +25,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from dualsight.errors import InputError
 from dualsight.jobs.nightly import run as nightly, stats as st
 from dualsight.jobs.nightly import store
 from dualsight.jobs.nightly import suite as ns
@@ -180,6 +181,17 @@ def test_a_changed_spec_is_not_comparable(lake):
     for comp in ("fixed", "fresh"):
         r = by(res["verdicts"], "star", comp, "success_rate")
         assert r["verdict"] == "not comparable" and "voting" in r["test"]
+
+
+def test_another_suite_than_the_baseline_is_refused_before_running(lake):
+    # the README's old nightly block accepted the quick suite, then ran the standard one: 90 "not comparable"
+    other = ns.build_suite({"name": "other", "job": [STAR_JOB]}, source="test suite", base=ns.REPO)
+    before = sorted(p.name for p in (lake.root / "_manifests").iterdir())
+    with pytest.raises(InputError, match="accepted from suite 'test', tonight's suite is 'other'.*--accept"):
+        night(lake, other, fresh_seed=6)
+    assert sorted(p.name for p in (lake.root / "_manifests").iterdir()) == before     # nothing ran
+    res = night(lake, other, accept=True, fresh_seed=6)                                # accepting it is allowed
+    assert res["exit"] == 0 and res["accepted"]
 
 
 # ============================================================================================ planted regressions

@@ -317,10 +317,13 @@ def cmd_report_html(args) -> int:
 def cmd_replay(args) -> int:
     from dualsight.jobs.replay.run import replay_run
 
-    outs = replay_run(open_lake(args), args.run, case=args.case, where=args.where, limit=args.limit, output=args.output)
+    outs, cases = replay_run(open_lake(args), args.run, case=args.case, where=args.where, limit=args.limit,
+                             output=args.output)
     for o in outs:
         print(f"recording: {o}")
-    print(f"{len(outs)} case(s) verified and recorded; open with: rerun {outs[0]}", file=sys.stderr)
+    what = f"{len(cases)} case" + ("s" if len(cases) != 1 else "")
+    where = f"in {len(outs)} file" + ("s" if len(outs) != 1 else "")
+    print(f"{what} verified and recorded {where}; open with: rerun {outs[0]}", file=sys.stderr)
     return 0
 
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 import sys
 import time
 
+from dualsight.errors import InputError
 from dualsight.jobs.engine.runner import run_job
 from dualsight.jobs.nightly import store
 from dualsight.jobs.nightly.compare import MetricSource, compare_job, decide_all
@@ -46,6 +47,12 @@ def run_nightly(suite, lake, *, accept: bool = False, workers: int | None = None
         suite = load_suite(suite)
     t0 = time.perf_counter()
     baseline = store.read_baseline(lake)
+    if baseline is not None and not accept and baseline.get("suite") not in (None, suite.name):
+        # every job would be "not comparable" (or without baseline): say so before running anything
+        raise InputError(f"the baseline (night {baseline.get('night')}) was accepted from suite "
+                         f"{baseline.get('suite')!r}, tonight's suite is {suite.name!r}; run this suite once with "
+                         f"--accept to make it the baseline, or run --suite {baseline.get('suite')}",
+                         source=str(store.baseline_path(lake)))
     night = store.night_id(lake)
     seed = int(fresh_seed) if fresh_seed is not None else time.time_ns() % (2**63 - 1)
     runs, failed, timings = {}, {}, {}

@@ -17,10 +17,11 @@ __all__ = ["replay_run"]
 
 
 def replay_run(lake: Lake, run_id: str, *, case: int | None = None, where: str | None = None, limit: int = 20,
-               output: Path | None = None) -> list[Path]:
+               output: Path | None = None) -> tuple[list[Path], list[int]]:
     """Replay the selected cases of any run into rerun recordings: one ``.rrd`` file holding every selected
     case on the ``frame`` time line (a trajectory plays as a film), or one file per case in a folder
-    (``<run>-case<N>.rrd``).  Every case is verified against its row first."""
+    (``<run>-case<N>.rrd``).  Every case is verified against its row first.  Returns (the files written, the
+    case ids recorded)."""
     manifest, cases = select_cases(lake, run_id, case=case, where=where, limit=limit)
     if not cases:
         raise InputError("the predicate selects no case of this run", source="--where")
@@ -52,4 +53,4 @@ def replay_run(lake: Lake, run_id: str, *, case: int | None = None, where: str |
             out.append(path)
     if rec is not None:
         rec.flush()
-    return out
+    return out, [int(c) for c in cases]
