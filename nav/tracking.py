@@ -29,6 +29,7 @@ pixels in the (col, row) convention of docs/architecture.md.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -117,14 +118,15 @@ def propagate(A_prev: np.ndarray, cov_prev: np.ndarray, omega: np.ndarray, cov_o
 
 def _pixel_jacobian(v: np.ndarray, camera) -> np.ndarray:
     """(P, 2, 3) d(pixel) / d(theta) of camera-frame vectors ``v`` (P, 3) under a small frame rotation theta
-    (``v -> v - theta x v``), by central differences through ``camera.project`` (distortion included)."""
-    G = np.empty((v.shape[0], 2, 3))
-    for i in range(3):                              # three axes, each over all stars at once
-        e = np.zeros(3)
-        e[i] = _EPS_ROT
-        d = np.cross(v, e)                          # -e x v
-        G[:, :, i] = (camera.project(v + d)[0] - camera.project(v - d)[0]) / (2 * _EPS_ROT)
-    return G
+    (``v -> v - theta x v``), by central differences through ``camera.project`` (distortion included): the six
+    perturbed copies of every star in one projection call."""
+    x, y, z = v[:, 0] * _EPS_ROT, v[:, 1] * _EPS_ROT, v[:, 2] * _EPS_ROT
+    d = np.zeros((3,) + v.shape)                     # d[i] = v x (eps e_i)
+    d[0, :, 1], d[0, :, 2] = z, -y
+    d[1, :, 0], d[1, :, 2] = -z, x
+    d[2, :, 0], d[2, :, 1] = y, -x
+    px = camera.project(np.concatenate([v[None] + d, v[None] - d]))[0]                       # (6, P, 2)
+    return np.moveaxis((px[:3] - px[3:]) / (2 * _EPS_ROT), 0, -1)
 
 
 def predict(A: np.ndarray, cov: np.ndarray, cat_unit: np.ndarray, camera, cfg: TrackingConfig) -> Prediction:
@@ -183,13 +185,31 @@ def tracking_chance(n_used: int, n_predicted: int, n_detections: int, radius_px:
     moved away), spread uniformly over the image at ``lambda = D / area`` detections per px^2 (Poisson), so each of
     the ``P`` windows catches one with probability ``q``; ``r`` is the largest window (an upper bound).  One
     hypothesis is tested (the prediction), so no look-elsewhere factor, unlike lost-in-space's pair hypotheses
-    (``nav/chance.py``, whose binomial tail this is).  Returns 1 when n <= 0.
+    (``nav/chance.py``).  The tail is summed term by term (ratio recurrence) for P <= 60, else by
+    ``nav.chance.binomial_tail`` in log space.  Returns 1 when n <= 0, 0 when n > P.
     """
     if n_used <= 0:
         return 1.0
+    if n_used > n_predicted:
+        return 0.0
     lam = float(n_detections) / float(area_px)
-    q = -np.expm1(-lam * np.pi * float(radius_px) ** 2)
-    return float(binomial_tail(np.array([n_predicted]), np.array([n_used]), np.array([q]))[0])
+    q = float(-np.expm1(-lam * np.pi * float(radius_px) ** 2))
+    if q >= 1.0:
+        return 1.0
+    if q <= 0.0:
+        return 0.0
+    if n_predicted > 60:                        # long tails: nav/chance.py's log-space sum
+        return float(binomial_tail(np.array([n_predicted]), np.array([n_used]), np.array([q]))[0])
+    # short tails (the usual case, P <= max_predicted): the terms by their ratio, summed until they vanish
+    m, k = int(n_predicted), int(n_used)
+    term = math.comb(m, k) * q ** k * (1.0 - q) ** (m - k)
+    total, r = term, q / (1.0 - q)
+    for j in range(k, m):                       # at most P - n terms, each a few flops
+        term *= (m - j) / (j + 1) * r
+        total += term
+        if term < 1e-17 * total:
+            break
+    return min(1.0, total)
 
 
 def _solve(b: np.ndarray, r: np.ndarray, w: np.ndarray):

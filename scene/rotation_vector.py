@@ -11,6 +11,8 @@ inverse (the logarithm map).  Radians throughout; pure numpy.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = ["cross_matrix", "frame_rotation", "frame_rotation_vector"]
@@ -31,6 +33,15 @@ def frame_rotation(phi: np.ndarray) -> np.ndarray:
     coefficients by their Taylor series below t = 1e-4 rad (relative error < 1e-17), exact at t = 0.
     """
     phi = np.asarray(phi, dtype=np.float64)
+    if phi.shape == (3,):                      # one rotation (a tracker's frame step): the same formula in scalars
+        x, y, z = (float(c) for c in phi)
+        t2 = x * x + y * y + z * z
+        t = math.sqrt(t2)
+        a = 1.0 - t2 / 6.0 + t2 * t2 / 120.0 if t < 1e-4 else math.sin(t) / t
+        b = 0.5 - t2 / 24.0 + t2 * t2 / 720.0 if t < 1e-4 else (1.0 - math.cos(t)) / t2
+        return np.array([[1.0 - b * (y * y + z * z), a * z + b * x * y, -a * y + b * x * z],
+                         [-a * z + b * x * y, 1.0 - b * (x * x + z * z), a * x + b * y * z],
+                         [a * y + b * x * z, -a * x + b * y * z, 1.0 - b * (x * x + y * y)]])
     t2 = np.sum(phi * phi, axis=-1)
     t = np.sqrt(t2)
     small = t < 1e-4

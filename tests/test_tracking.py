@@ -84,6 +84,8 @@ def test_frame_rotation_is_the_passive_rodrigues_rotation_and_the_log_inverts_it
     want = np.stack([rotation(u[k], t[k]).T for k in range(len(t))])      # the helpers' Rodrigues, transposed
     np.testing.assert_allclose(R, want, atol=2e-15)
     np.testing.assert_allclose(frame_rotation_vector(want), phi, atol=1e-12)
+    for k in range(len(t)):                                       # the one-vector path (scalars) equals Rodrigues
+        np.testing.assert_allclose(frame_rotation(phi[k]), want[k], atol=2e-15)
     # the kinematics: a rate about +z for dt turns a camera-frame direction by -omega dt about z (stars drift back)
     b = np.array([1.0, 0.0, 0.0])
     np.testing.assert_allclose(frame_rotation([0, 0, 0.1]) @ b, [math.cos(0.1), -math.sin(0.1), 0.0], atol=1e-15)

@@ -1,0 +1,147 @@
+"""Tracking vs lost-in-space per frame, on the same frames of one sequence (issue 22, point 6's speed target).
+
+    DUALSIGHT_TI_THREADS=1 taskset -c 0 python benchmarks/bench_tracking.py [--frames 300] [--rate-deg-s 1]
+        [--fps 10] [--sigma-px 0.1] [--false 2] [--seed 1]
+
+The paper preset's star camera (1024 x 768, 17 mm) and catalog (Hipparcos to V 5.5, pair catalog and voting index
+from the cache, as ``dualsight star run`` loads them).  The sequence turns at a constant rate about a random axis
+(``scene/attitude_trajectory.constant_rate``); each frame's detections are the catalog stars in the image
+(camera model), brightest first, with Gaussian centroid noise and ``--false`` false stars at random pixels: no
+rendering, so only the two algorithms are timed, on the same detections.
+
+* lost-in-space, every frame: back-projection, robust geometric voting (``nav/star_solution.identify``, Taichi
+  engine, one frame per call as a flight tracker sees them) and the weighted SVD attitude;
+* tracking, every frame after a fix: propagate with the rate from the last two fixes of either mode
+  (``nav/angular_rate``; zero with the config's rate sigma before there are two), predict, match, solve, verify
+  (``nav/tracking``); lost-in-space answers frame 0 and the frame after a lost lock.  The tracking times are those
+  of the frames that followed a fix (the ones tracking ran on).
+
+Prints per-frame median and mean times of each (the first 5 frames of each are warm-up, not counted), the ratio,
+the availability of each, the identities' agreement where both answer, and the attitude errors against the truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import time
+
+os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
+
+import numpy as np  # noqa: E402
+
+from dualsight.config import TrackingConfig  # noqa: E402
+from dualsight.jobs.kinds import star  # noqa: E402
+from dualsight.nav.angular_rate import rate_from_attitudes  # noqa: E402
+from dualsight.nav.attitude import solve_identified  # noqa: E402
+from dualsight.nav.errors import axis_errors  # noqa: E402
+from dualsight.nav.observations import Observations  # noqa: E402
+from dualsight.nav.star_solution import identify  # noqa: E402
+from dualsight.nav.tracking import predict, propagate, track  # noqa: E402
+from dualsight.nav.voting_config import VotingConfig  # noqa: E402
+from dualsight.scene.attitude import euler123_to_dcm, random_euler123  # noqa: E402
+from dualsight.scene.attitude_trajectory import constant_rate  # noqa: E402
+from dualsight.scene.units import ARCSEC  # noqa: E402
+
+
+def frames(rng, cat, camera, A, sigma_px, n_false):
+    """Per frame: (xy (D, 2) brightest first, truth catalog row or -1)."""
+    out = []
+    for Ak in A:
+        px, front = camera.project(cat.unit @ Ak.T)
+        inn = np.flatnonzero(front & camera.in_image(np.nan_to_num(px, nan=-1.0)))   # catalog = brightness order
+        xy = px[inn] + rng.normal(scale=sigma_px, size=(inn.size, 2))
+        fx = rng.uniform((0, 0), (camera.width, camera.height), (n_false, 2))
+        pos = rng.integers(0, inn.size + 1, n_false)
+        out.append((np.insert(xy, pos, fx, axis=0), np.insert(inn, pos, -1)))
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--rate-deg-s", type=float, default=1.0)
+    ap.add_argument("--fps", type=float, default=10.0)
+    ap.add_argument("--sigma-px", type=float, default=0.1)
+    ap.add_argument("--false", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=1)
+    args = ap.parse_args()
+    spec, _ = star.resolve("paper", None)
+    ctx = star.make_context(spec)
+    cam, cat = spec.camera, ctx.catalog
+    rng = np.random.default_rng([args.seed, 0])
+    dt = 1.0 / args.fps
+    t = np.arange(args.frames) * dt
+    w = rng.normal(size=3)
+    w *= math.radians(args.rate_deg_s) / np.linalg.norm(w)
+    A_true, _ = constant_rate(t, euler123_to_dcm(random_euler123(rng, 1))[0], w)
+    seq = frames(rng, cat, cam, A_true, args.sigma_px, args.false)
+    voting = VotingConfig.robust(20 * ARCSEC)
+    cfg = TrackingConfig(centroid_sigma_px=max(args.sigma_px, 0.05))
+    s_rad = max(args.sigma_px, 0.05) / cam.fx
+
+    def lis(xy):
+        vec = cam.backproject(xy)[None]
+        obs = Observations(vec, np.ones(vec.shape[:2], bool), xy[None, :, 0], xy[None, :, 1])
+        ident = identify(obs, cat.unit, ctx.index, voting, cat_vmag=cat.vmag)
+        A, ok, P = solve_identified(obs.vec, ident.ids, ident.accepted, cat.unit,
+                                    np.full(vec.shape[:2], s_rad ** -2), return_cov=True)
+        return np.where(ident.accepted[0], ident.ids[0], -1), A[0], P[0], bool(ok[0])
+
+    lis(seq[0][0])                                                    # compile the Taichi kernels
+    t_lis, t_trk, lis_rows, lis_err, lis_ok = [], [], [], [], 0
+    for k, (xy, truth) in enumerate(seq):
+        t0 = time.perf_counter()
+        rows, A, P, ok = lis(xy)
+        t_lis.append(time.perf_counter() - t0)
+        lis_rows.append(rows)
+        lis_ok += ok
+        if ok:
+            lis_err.append(axis_errors(A[None], A_true[k][None], frame="camera")[0])
+    agree = disagree = locked = n_lis_fallback = 0
+    trk_err = []
+    A_prev = P_prev = None                     # the last fix of either mode, and its frame
+    k_prev = -1
+    omega, C_om = np.zeros(3), np.eye(3) * cfg.rate_sigma_rad_s ** 2
+    for k, (xy, truth) in enumerate(seq):
+        t0 = time.perf_counter()
+        if A_prev is None or k - k_prev > 1:                          # (re-)acquire: lost-in-space
+            rows, A, P, res_ok = lis(xy)
+            n_lis_fallback += 1
+        else:
+            Ap, Pp = propagate(A_prev, P_prev, omega, C_om, dt)
+            res = track(predict(Ap, Pp, cat.unit, cam, cfg), xy, None, cat.unit, cam, cfg)
+            res_ok, rows, A, P = res.locked, res.det_row, res.A, res.cov
+        if res_ok and A_prev is not None:                             # rate from the last two fixes, any mode
+            om, C = rate_from_attitudes(A_prev[None], A[None], (k - k_prev) * dt, P_prev[None], P[None])
+            omega, C_om = om[0], C[0]
+        dt_k = time.perf_counter() - t0
+        if A_prev is not None and k - k_prev == 1:
+            t_trk.append(dt_k)
+        if res_ok:
+            locked += 1
+            both = (rows >= 0) & (lis_rows[k] >= 0)
+            agree += int(np.sum(rows[both] == lis_rows[k][both]))
+            disagree += int(np.sum(rows[both] != lis_rows[k][both]))
+            trk_err.append(axis_errors(A[None], A_true[k][None], frame="camera")[0])
+            A_prev, P_prev, k_prev = A, P, k
+    tl, tt = np.array(t_lis[5:]) * 1e3, np.array(t_trk[5:]) * 1e3
+    n_det = np.mean([len(s[0]) for s in seq])
+    print(f"conditions: {args.frames} frames at {args.fps:g} fps, rate {args.rate_deg_s:g} deg/s, centroid noise "
+          f"{args.sigma_px:g} px, {args.false} false stars/frame, {n_det:.1f} detections/frame (V 5.5, paper camera), "
+          f"TI threads {os.environ.get('DUALSIGHT_TI_THREADS', 'default')}, cpu affinity "
+          f"{len(os.sched_getaffinity(0))} core(s)")
+    print(f"lost-in-space ms/frame: median {np.median(tl):.3f}, mean {tl.mean():.3f}; answered {lis_ok}/{len(seq)}")
+    print(f"tracking      ms/frame: median {np.median(tt):.3f}, mean {tt.mean():.3f}; locked {locked}/{len(seq)} "
+          f"(frames run by lost-in-space: {n_lis_fallback})")
+    print(f"speed-up (median): {np.median(tl) / np.median(tt):.1f}x")
+    print(f"identities where both answer: {agree} equal, {disagree} different")
+    for name, e in (("lost-in-space", lis_err), ("tracking", trk_err)):
+        e = np.array(e) / ARCSEC
+        print(f"{name} error RMS arcsec (x, y, roll): {np.sqrt(np.mean(e ** 2, axis=0)).round(2).tolist()}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
