@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import re
+import resource
 import sys
 import threading
 import time
@@ -156,8 +157,6 @@ def cap_process_memory(memory_limit: int) -> int | None:
     fails inside DuckDB, which raises ``OutOfMemoryException`` (one line, :func:`_guarded`).  For the command
     line only: a library call must not lower the limits of its caller's process (``Lake.sql`` keeps DuckDB's).
     """
-    import resource
-
     try:
         status = Path("/proc/self/status").read_text()
         vm_data = next(int(line.split()[1]) * 1024 for line in status.splitlines() if line.startswith("VmData:"))
