@@ -23,7 +23,8 @@ FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-
 def load(page: Path, tmp: Path) -> dict:
     """The page's own load check (errors, figures with their sizes), read from the DOM Chromium rendered."""
     out = subprocess.run([CHROMIUM, *FLAGS, f"--user-data-dir={tmp / 'profile'}", "--virtual-time-budget=5000",
-                          "--dump-dom", page.resolve().as_uri()], capture_output=True, text=True, timeout=120)
+                          "--window-size=1280,2000", "--dump-dom", page.resolve().as_uri()], capture_output=True,
+                         text=True, timeout=120)
     m = re.search(r'data-check="([^"]*)"', out.stdout)
     assert m, f"the page did not finish loading: {out.stderr[-500:]}"
     return json.loads(html.unescape(m.group(1)))
@@ -35,9 +36,16 @@ def screenshot(page: Path, tmp: Path, png: Path):
     return png
 
 
+ESA = Path("/work/shared/data/real/esa_tetra3")
+
+
 @pytest.fixture(scope="module")
 def lake(make_lake):
+    hil = ([["hil", "star", *sorted(str(p) for p in ESA.glob("*.tiff"))[:2], "--camera",
+             "examples/cameras/esa_tetra3.toml", "--truth", str(ESA / "truth.json"), "--run", "h"]]
+           if ESA.is_dir() else [])
     return make_lake("lake",
+                     *hil,
                      ["star", "run", "--cases", "40", "--run", "s"],
                      ["prox", "sweep", "--preset", "paper", "--orientations", "2", "--run", "p"],
                      ["prox", "trajectory", "--preset", "paper", "--frames", "12", "--run", "t"])
@@ -47,8 +55,11 @@ def lake(make_lake):
     ("s", {"fig9-10", "case-0"}),
     ("p", {"fig7", "fig1", "case-0"}),
     ("t", {"fig6", "fig1", "case-0"}),
+    ("h", {"case-0"}),
 ])
 def test_report_page_loads_with_every_figure(lake, tmp_path, run, figures):
+    if run == "h" and not ESA.is_dir():
+        pytest.skip(f"{ESA} absent")
     page = tmp_path / f"{run}.html"
     assert main(["report", "--lake", str(lake), "--run", run, "--html", str(page)]) == 0
     text = page.read_text()
@@ -59,6 +70,9 @@ def test_report_page_loads_with_every_figure(lake, tmp_path, run, figures):
     assert figures <= set(got), (figures, set(got))
     assert all(f["w"] > 0 and f["h"] > 0 and f["shown"] > 0 for f in check["figures"])
     assert all(f["varied"] > 50 for f in check["figures"]), check["figures"]      # decoded, not blank
+    # fits a 1280 px window: no horizontal scrollbar on the page, no element scrolled sideways inside it
+    assert check["viewport"] == 1280 and check["scrollWidth"] <= check["viewport"], check
+    assert check["wide"] == [], check["wide"]
     png = screenshot(page, tmp_path, tmp_path / f"{run}.png")
     assert png.stat().st_size > 20_000
 

@@ -14,16 +14,20 @@ import html
 import json
 
 CSS = """
-body { font: 14px/1.45 system-ui, sans-serif; margin: 24px auto; max-width: 1200px; color: #1d2330; }
+body { font: 14px/1.45 system-ui, sans-serif; margin: 24px auto; max-width: 1200px; padding: 0 16px; color: #1d2330; }
 h1 { font-size: 22px; } h2 { font-size: 18px; border-bottom: 1px solid #d5d9e0; padding-bottom: 4px; margin-top: 32px; }
-table { border-collapse: collapse; margin: 8px 0 16px; font-size: 13px; }
-th, td { border: 1px solid #d5d9e0; padding: 3px 8px; text-align: right; }
-th { background: #f1f3f7; } td.l, th.l { text-align: left; }
+table { border-collapse: collapse; margin: 8px 0 16px; font-size: 12px; max-width: 100%; }
+th, td { border: 1px solid #d5d9e0; padding: 3px 6px; text-align: right; }
+td.l { overflow-wrap: break-word; } td.mono { overflow-wrap: anywhere; }
+summary { cursor: pointer; margin: 4px 0; }
+th { background: #f1f3f7; font-weight: 600; } td.l, th.l { text-align: left; }
+td.mono { font: 11px ui-monospace, monospace; text-align: left; }
 figure { margin: 12px 0; } figure img { max-width: 100%; border: 1px solid #d5d9e0; }
 figcaption { color: #5a6273; font-size: 12px; }
-.gallery { display: flex; flex-wrap: wrap; gap: 12px; } .gallery figure { width: 280px; }
-pre { background: #f6f8fa; padding: 8px; overflow-x: auto; font-size: 12px; }
-code { background: #f1f3f7; padding: 1px 4px; }
+.gallery { display: flex; flex-wrap: wrap; gap: 12px; } .gallery figure { width: 440px; max-width: 100%; }
+pre { background: #f6f8fa; padding: 8px; font-size: 12px; white-space: pre-wrap; overflow-wrap: anywhere; }
+code { background: #f1f3f7; padding: 1px 4px; overflow-wrap: anywhere; }
+p.note { color: #5a6273; font-size: 12px; }
 """
 
 CHECK_JS = """
@@ -45,7 +49,14 @@ window.addEventListener('load', function () {
     figs.push({id: im.dataset.figure, w: im.naturalWidth, h: im.naturalHeight, shown: im.getBoundingClientRect().width,
                varied: varied});
   });
-  document.body.dataset.check = JSON.stringify({errors: window.__errors, figures: figs});
+  var wide = [];
+  document.querySelectorAll('table, pre, div, figure, code, p').forEach(function (el) {
+    if (el.scrollWidth > el.clientWidth + 1 && getComputedStyle(el).overflowX !== 'visible') {
+      wide.push(el.tagName + ' ' + el.scrollWidth + '>' + el.clientWidth);
+    }
+  });
+  document.body.dataset.check = JSON.stringify({errors: window.__errors, figures: figs, wide: wide,
+    scrollWidth: document.documentElement.scrollWidth, viewport: window.innerWidth});
 });
 """
 
@@ -62,19 +73,64 @@ def fmt(v, nd: int = 4) -> str:
     return str(v)
 
 
-def table(cols, rows, left: int = 1) -> str:
-    """An HTML table; the first ``left`` columns are left-aligned (labels)."""
-    head = "".join(f'<th class="{"l" if i < left else ""}">{esc(c)}</th>' for i, c in enumerate(cols))
-    body = "".join("<tr>" + "".join(f'<td class="{"l" if i < left else ""}">{esc(fmt(v))}</td>'
+def header(name) -> str:
+    """A column name as a header that can wrap: SQL's underscores become spaces."""
+    return str(name).replace("_", " ")
+
+
+def table(cols, rows, left: int = 1, mono: tuple[int, ...] = ()) -> str:
+    """An HTML table; the first ``left`` columns are left-aligned (labels), columns ``mono`` in monospace
+    (commands).  Headers and cells wrap, so the table keeps to the page's width."""
+    def cls(i):
+        return "mono" if i in mono else ("l" if i < left else "")
+    head = "".join(f'<th class="{cls(i)}">{esc(header(c))}</th>' for i, c in enumerate(cols))
+    body = "".join("<tr>" + "".join(f'<td class="{cls(i)}">{esc(fmt(v))}</td>'
                                     for i, v in enumerate(r)) + "</tr>" for r in rows)
-    return f'<div style="overflow-x:auto"><table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table></div>'
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
-def figure(png: bytes, fig_id: str, caption: str, width: int | None = None) -> str:
-    """A figure from PNG bytes, inlined as base64, tagged for the load check."""
+def flatten(d, prefix: str = "") -> list[tuple[str, object]]:
+    """Nested mappings as (dotted key, leaf value) pairs in key order: ``{"camera": {"fx": 1.0}}`` ->
+    ``[("camera.fx", 1.0)]``; a list of mappings gets its index as a key (``images.0.path``), other lists are
+    leaves."""
+    out = []
+    if isinstance(d, dict):
+        for k in sorted(d, key=str):
+            out += flatten(d[k], f"{prefix}{k}.")
+    elif isinstance(d, (list, tuple)) and d and all(isinstance(v, dict) for v in d):
+        for i, v in enumerate(d):
+            out += flatten(v, f"{prefix}{i}.")
+    else:
+        out.append((prefix[:-1], d))
+    return out
+
+
+def leaf_text(v) -> str:
+    """A spec value as text: numbers in full (the spec is what reproduces the run), lists comma-separated,
+    None as "none"."""
+    if v is None:
+        return "none"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return repr(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(leaf_text(x) for x in v) + "]"
+    return str(v)
+
+
+def definitions(d: dict) -> str:
+    """A nested mapping (a spec) as a two-column definition table of its flattened keys."""
+    return table(["key", "value"], [(k, leaf_text(v)) for k, v in flatten(d)], left=2)
+
+
+def figure(png: bytes, fig_id: str, caption: str, width: int | None = None, data: dict | None = None) -> str:
+    """A figure from PNG bytes, inlined as base64, tagged for the load check; ``data``: attributes
+    ``data-<key>`` of the figure (JSON), e.g. the positions a crop marks."""
     src = "data:image/png;base64," + base64.b64encode(png).decode()
     w = f' width="{int(width)}"' if width else ""
-    return (f'<figure><img data-figure="{esc(fig_id)}" alt="{esc(caption)}" src="{src}"{w}>'
+    extra = "".join(f' data-{esc(k)}="{esc(json.dumps(v))}"' for k, v in (data or {}).items())
+    return (f'<figure{extra}><img data-figure="{esc(fig_id)}" alt="{esc(caption)}" src="{src}"{w}>'
             f"<figcaption>{esc(caption)}</figcaption></figure>")
 
 

@@ -38,9 +38,9 @@ def trend_figure(rows: list[dict], path: Path, max_panels: int = 120):
             continue
         panels.setdefault((r["job"], r["metric"]), []).append(r)
     keys = sorted(panels)[:max_panels]
-    ncol = 6
+    ncol = 4                    # 4 panels across: readable at the page's width (1200 px)
     nrow = max(1, math.ceil(len(keys) / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(3.2 * ncol, 2.1 * nrow + 0.6), squeeze=False)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(3.4 * ncol, 2.3 * nrow + 0.8), squeeze=False)
     for ax in axes.ravel()[len(keys):]:
         ax.axis("off")
     for ax, key in zip(axes.ravel(), keys):
@@ -65,17 +65,29 @@ def trend_figure(rows: list[dict], path: Path, max_panels: int = 120):
         ax.set_title(f"{key[0]}\n{key[1]}", fontsize=8)
         ax.tick_params(labelsize=7)
         ax.set_xticks(range(len(nights)))
-        ax.set_xticklabels([n[4:8] + "\n" + n[9:15] + n[16:] for n in nights], fontsize=6)
+        ax.set_xticklabels([night_label(n, short=True) for n in nights], fontsize=6.5)
         ax.grid(alpha=0.3)
     fig.suptitle("dualsight nightly: metric per night (circles: fixed seeds, squares: fresh seeds, grey bars: "
-                 "baseline; "
-                 "green identical/ok, blue improved, red regression, purple not comparable / no baseline, "
+                 "baseline;\ngreen identical/ok, blue improved, red regression, purple not comparable / no baseline, "
                  "grey info)", fontsize=10)
-    fig.tight_layout(rect=(0, 0, 1, 0.97))
-    save_figure(fig, path, dpi=80)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.6 / (2.3 * nrow + 0.8)))
+    save_figure(fig, path, dpi=90)
 
 
-def _cell(v) -> str:
+def night_label(night: str, short: bool = False) -> str:
+    """A night id (``20261127T123449Z``) as ISO 8601 UTC (``2026-11-27 12:34:49 UTC``; ``short``: ``11-27\n12:34``);
+    anything else unchanged."""
+    n = str(night)
+    if len(n) != 16 or n[8] != "T" or not n.endswith("Z") or not (n[:8] + n[9:15]).isdigit():
+        return n
+    if short:
+        return f"{n[4:6]}-{n[6:8]}\n{n[9:11]}:{n[11:13]}"
+    return f"{n[:4]}-{n[4:6]}-{n[6:8]} {n[9:11]}:{n[11:13]}:{n[13:15]} UTC"
+
+
+def _cell(v, col: str = "") -> str:
+    if col == "night":
+        return html.escape(night_label(v))
     if v is None:
         return "-"
     if isinstance(v, float):
@@ -103,18 +115,18 @@ def write_page(path: Path, night_rows: list[dict], all_rows: list[dict], nights:
         tds = "".join(f"<td>{_cell(r.get(c))}</td>" for c in cols)
         trs.append(f'<tr style="background:{"#ffebee" if r["verdict"] in RED else "white"}">{tds}</tr>')
     ncols = ("night", "exit", "accepted", "verdicts", "regressions", "not_comparable", "identical", "ok", "improved")
-    ntrs = "".join("<tr>" + "".join(f"<td>{_cell(n.get(c))}</td>" for c in ncols) + "</tr>" for n in nights)
+    ntrs = "".join("<tr>" + "".join(f"<td>{_cell(n.get(c), c)}</td>" for c in ncols) + "</tr>" for n in nights)
     page = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
 <style>
-body {{ font-family: sans-serif; margin: 1.5em; }}
+body {{ font-family: sans-serif; margin: 1.5em auto; max-width: 1240px; padding: 0 12px; }}
 table {{ border-collapse: collapse; font-size: 12px; }}
-td, th {{ border: 1px solid #ccc; padding: 2px 6px; text-align: left; }}
+td, th {{ border: 1px solid #ccc; padding: 2px 6px; text-align: left; overflow-wrap: anywhere; }}
 th {{ background: #eceff1; }}
 .status {{ font-size: 20px; font-weight: bold; color: {"#2e7d32" if code == 0 else "#d32f2f"}; }}
 </style></head><body>
 <h1>{html.escape(title)}</h1>
-<p class="status">night {html.escape(night)}: {status} ({len(red)} red of {len(night_rows)} verdicts)</p>
+<p class="status">night {html.escape(night_label(night))}: {status} ({len(red)} red of {len(night_rows)} verdicts)</p>
 <p>{message}</p>
 <h2>Nights</h2>
 <table><tr><th>night</th><th>exit (0 green, 1 red, 2 could not run)</th><th>accepted as baseline</th>
@@ -122,7 +134,7 @@ th {{ background: #eceff1; }}
 <th>identical</th><th>ok</th><th>improved</th></tr>{ntrs}</table>
 <h2>Trends</h2>
 <img alt="metric trends" src="data:image/png;base64,{data}" style="max-width:100%">
-<h2>Verdicts of night {html.escape(night)}</h2>
+<h2>Verdicts of night {html.escape(night_label(night))}</h2>
 <table><tr>{"".join(f"<th>{c}</th>" for c in cols)}</tr>
 {"".join(trs)}
 </table>

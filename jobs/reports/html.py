@@ -8,7 +8,8 @@ PNG; the worst cases are re-rendered (simulations) or re-read (real images) into
 
 from __future__ import annotations
 
-import json
+import shlex
+import time
 from pathlib import Path
 
 import numpy as np
@@ -21,13 +22,18 @@ from dualsight.jobs.reports.prox import build_report
 from dualsight.scene.imageio import read_image
 from dualsight.viz import html_page as H
 from dualsight.viz import prox_figures
+from dualsight.viz.case_crop import case_crop_png
 from dualsight.viz.figures import png_bytes, thumbnail_png
 from dualsight.viz.star_figures import error_vs_observed_figure
 from dualsight.viz.threshold_sweep import hil_prox_figure
+from dualsight.warehouse.cells import cell, iso_utc, percent, table_cells
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import connect, run_report
 
 GALLERY = 6
+"""Cases drawn as crops (the first failures, then the largest errors)."""
+LISTED = 500
+"""Failures listed with their replay command; beyond it the page gives the count and the SQL for the rest."""
 
 
 def _rows(con, sql: str, run_id: str):
@@ -37,43 +43,122 @@ def _rows(con, sql: str, run_id: str):
 
 def _report_table(con, name: str, run_id: str) -> str:
     cols, rows = run_report(con, name, run=run_id)
-    return H.table(cols, rows)
+    return H.table(cols, table_cells(cols, rows))
 
 
-def _gallery(items: list[tuple[bytes, str]], lake: Lake, run_id: str) -> str:
-    figs = [H.figure(png, f"case-{i}", cap) for i, (png, cap) in enumerate(items)]
-    note = (f"<p>Replay any of them into rerun: <code>dualsight replay --lake {H.esc(lake.root)} --run "
-            f"{H.esc(run_id)} --case N -o caseN.rrd</code></p>")
+def _lake_arg(lake: Lake) -> str:
+    return shlex.quote(str(Path(lake.root).resolve()))
+
+
+def _gallery(items: list[tuple[bytes, str]], lake: Lake, run_id: str, marks: list[dict] | None = None,
+             command: str = "dualsight replay") -> str:
+    figs = [H.figure(png, f"case-{i}", cap, data={"marks": marks[i]} if marks else None)
+            for i, (png, cap) in enumerate(items)]
+    note = (f"<p>Replay any of them into rerun: <code>{H.esc(command)} --lake {H.esc(_lake_arg(lake))} --run "
+            f"{H.esc(shlex.quote(run_id))} --case N -o caseN.rrd</code></p>")
     return note + '<div class="gallery">' + "".join(figs) + "</div>"
 
 
+def _star_crops(star, spec, ctx, ids: np.ndarray) -> list[tuple[bytes, dict]]:
+    """Each case of ``ids`` re-rendered (bit-identical to its row) as a stretched crop with its detections
+    (circles, HIP labels of the identified ones), the catalog predicted by the solved attitude (x) and the
+    catalog stars at the true attitude (+): viz/case_crop.py."""
+    out = star.compute_batch(spec, ctx, ids, keep_images=True)
+    det, ident, sol, field_, truth = (out["rendered"].detections, out["ident"], out["sol"], out["field"],
+                                      out["truth"])
+    hip = ctx.catalog.hip
+    items = []
+    for b in range(len(ids)):
+        lo, hi = int(det.offsets[b]), int(det.offsets[b + 1])
+        xy = np.stack([det.x[lo:hi], det.y[lo:hi]], -1)
+        K, S = hi - lo, ident.ids.shape[1]
+        rows = np.full(K, -1)
+        acc = np.zeros(K, bool)
+        rows[:min(K, S)] = ident.ids[b, :min(K, S)]
+        acc[:min(K, S)] = ident.accepted[b, :min(K, S)]
+        acc &= rows >= 0
+        right = acc & (rows == truth.true_row[lo:hi])
+        state = np.where(acc, np.where(right, 1, 2), 0)
+        labels = [f"HIP {hip[r]}" if a else "" for r, a in zip(rows, acc)]
+        pred = None
+        if np.isfinite(sol.A_est[b]).all():
+            px, front = spec.camera.project(ctx.catalog.unit @ sol.A_est[b].T)
+            pred = px[front]
+        ref = np.stack([field_.x[b][field_.inside[b]], field_.y[b][field_.inside[b]]], -1)
+        items.append(case_crop_png(out["rendered"].images[b], detections=xy, det_state=state, det_labels=labels,
+                                   predicted=pred, reference=ref))
+    return items
+
+
+def _failures_table(con, lake: Lake, run_id: str) -> tuple[int, str]:
+    """(number of failures, the HTML listing every one of them, up to :data:`LISTED`, with its replay command)."""
+    where = "run = $run AND status <> 'success'"
+    n = con.execute(f"SELECT count(*) FROM star_cases WHERE {where}", {"run": run_id}).fetchone()[0]
+    if not n:
+        return 0, "<p>No failure: every case succeeded.</p>"
+    cols, rows = _rows(con, "SELECT case_id, status, status_robust, n_generated, n_observed, n_identified, T, "
+                            "err_total_rad * arcsec_per_rad() AS err_total_arcsec FROM star_cases "
+                            f"WHERE {where} ORDER BY case_id LIMIT {LISTED}", run_id)
+    lk, rid = _lake_arg(lake), shlex.quote(run_id)
+    body = [[*table_cells(cols, [r])[0], f"dualsight star replay --lake {lk} --run {rid} --case {r[0]} "
+                                         f"-o case{r[0]}.rrd"] for r in rows]
+    head = ["case", "status", "robust method", "stars generated", "stars observed", "identified", "T",
+            "total error (arcsec)", "replay into rerun"]
+    more = ""
+    if n > LISTED:
+        sql = f"SELECT * FROM star_cases WHERE run = '{run_id}' AND status <> 'success' ORDER BY case_id"
+        more = (f'<p class="note">The first {LISTED} of {n} failures; all of them: <code>dualsight sql '
+                f"{H.esc(shlex.quote(sql))} --lake {H.esc(lk)}</code></p>")
+    return n, (f'<p>{n} failure(s): every case whose status is not success, by case id.</p>'
+               + H.table(head, body, left=3, mono=(8,)) + more)
+
+
 # ----------------------------------------------------------------------------------------------- per kind
+def _reliability(rep: dict) -> str:
+    """The reliability numbers as rows (measure, dualsight, reference), rates in percent."""
+    j, ref = rep["json"], star_report.REFERENCE
+    rows = [("cases", j["cases"], "200"),
+            ("success (every axis <= 100 arcsec)", percent(j["success_rate"]), percent(ref["success_rate"])),
+            ("confident but wrong (T > 0)", percent(j["confident_wrong_rate"]), percent(ref["confident_wrong_rate"])),
+            ("no confident solution (T <= 0)", percent(j["no_solution_rate"]), "-"),
+            ("identification right", percent(j["identification_rate"]), "-"),
+            ("robust method: success", percent(j["robust"]["success_rate"]), "-"),
+            ("robust method: confident but wrong", percent(j["robust"]["confident_wrong_rate"]), "-"),
+            ("attitudes with >= 3 catalog stars in the field", percent(j["sky_share_ge3_stars"]), "-"),
+            ("attitudes with >= 4 catalog stars in the field", percent(j["sky_share_ge4_stars"]), "-"),
+            ("stars generated, mean over every case", cell("mean", j["mean_stars_generated_all_cases"]), "-"),
+            ("time per case (ms, one worker)", cell("ms", j["mean_ms_per_case"]), "-")]
+    return H.table(["measure", "dualsight", "reference"], rows)
+
+
 def _star(lake, con, m, run_id):
     from dualsight.jobs.kinds import star                      # Taichi (re-renders the worst cases)
 
     rep = star_report.build(lake, run_id)      # per-shard summaries when the run has them, else a full scan
     t = rep["tables"]
-    summ = rep["summary"]
-    secs = [("Reliability (reference section 3.3)", H.table(list(summ), [list(summ.values())])),
-            ("Table 5: stars and errors of the successful cases", H.table(*t["star_table5"])),
-            ("Reference method beside dualsight's robust voting", H.table(*t["star_robust"])),
+    secs = [("Reliability (reference section 3.3)", _reliability(rep)),
+            ("Table 5: stars and errors of the successful cases", H.table(*star_report.table5_rows(rep))),
+            ("Reference method beside dualsight's robust voting",
+             H.table(t["star_robust"][0], table_cells(*t["star_robust"]))),
             ("Figures 9 and 10: error against stars observed",
-             H.figure(png_bytes(lambda p: error_vs_observed_figure(rep["json"], p)), "fig9-10", "Mean error per axis and RSS error "
-                      "against the number of stars observed"))]
-    cols, rows = _rows(con, "SELECT case_id, status, T, n_observed, err_total_rad * 206264.806 AS err_arcsec "
+             H.figure(png_bytes(lambda p: error_vs_observed_figure(rep["json"], p)), "fig9-10", "Mean error per axis "
+                      "and RSS error against the number of stars observed; under Fig. 10 the cases behind each bar"))]
+    cols, rows = _rows(con, "SELECT case_id, status, T, n_observed, err_total_rad * arcsec_per_rad() AS err_arcsec "
                             "FROM star_cases WHERE run = $run ORDER BY (status = 'success'), "
-                            f"err_total_rad DESC NULLS FIRST LIMIT {GALLERY}", run_id)
+                            f"err_total_rad DESC NULLS FIRST, case_id LIMIT {GALLERY}", run_id)
     spec = star.spec_from_dict(m["spec"])
     ctx = star.make_context(spec)
     ids = np.array([r[0] for r in rows], dtype=np.int64)
-    items = []
-    if len(ids):
-        images = star.compute_batch(spec, ctx, ids, keep_images=True)["rendered"].images
-        for img, r in zip(images, rows):
-            items.append((thumbnail_png(img), f"case {r[0]}: {r[1]}, T={r[2]}, {r[3]} stars observed, "
-                                       f"error {H.fmt(r[4])} arcsec"))
-    secs.append(("Worst cases (failures first, then largest attitude error)", _gallery(items, lake, run_id)))
-    secs.append(("Time per case by stage", H.table(*t["star_stage_times"])))
+    crops = _star_crops(star, spec, ctx, ids) if len(ids) else []
+    items = [(png, f"case {r[0]}: {r[1]}, T = {r[2]}, {r[3]} stars observed, "
+                   + (f"total error {cell('arcsec', r[4])} arcsec" if r[4] is not None and r[4] == r[4] else "no attitude"))
+             for (png, _), r in zip(crops, rows)]
+    n_fail, listing = _failures_table(con, lake, run_id)
+    title = (f"Worst cases: {min(n_fail, GALLERY)} of {n_fail} failures drawn" if n_fail else
+             "Worst cases: largest attitude errors (no failure)")
+    secs.append((title, _gallery(items, lake, run_id, [mk for _, mk in crops], "dualsight star replay")))
+    secs.append(("Every failure, with its replay command", listing))
+    secs.append(("Time per case by stage", H.table(*star_report.stage_rows(rep))))
     return secs
 
 
@@ -112,8 +197,8 @@ def _prox(lake, con, m, run_id):
         for img, r in zip(images, rows):
             ok = r[2] and r[4] is not None and r[6] is not None
             thumb = thumbnail_png(img, centre=(r[4], r[5]), half=1.5 * r[6] + 8) if ok else thumbnail_png(img)
-            items.append((thumb, f"case {r[0]}: true {H.fmt(r[1])} m, found {r[2]}, "
-                                 f"subpixel estimate {H.fmt(r[3])} m" + (" (crop around the blob)" if ok else "")))
+            items.append((thumb, f"case {r[0]}: true {cell('m', r[1])} m, found {r[2]}, "
+                                 f"subpixel estimate {cell('m', r[3])} m" + (" (crop around the blob)" if ok else "")))
     secs.append(("Worst cases (largest range error)", _gallery(items, lake, run_id)))
     secs.append(("Time per case by stage", _report_table(con, "prox_stage_times", run_id)))
     return secs
@@ -131,13 +216,46 @@ def _hil_images(lake, m, run_id, cases: list[tuple[int, str]]):
 
 
 def _hil_star(lake, con, m, run_id):
-    secs = [("Images", _report_table(con, "hil_star_images", run_id)),
-            ("Table 6: identified stars", _report_table(con, "hil_star_table6", run_id))]
-    cols, rows = _rows(con, "SELECT case_id, image, status, boresight_error_rad * 206264.806 FROM hil_star "
+    cols, rows = run_report(con, "hil_star_images", run=run_id)
+    halves = (["image", "status", "stars_detected", "stars_identified", "T", "ra_deg", "dec_deg", "roll_deg", "ms"],
+              ["image", "truth_source", "boresight_error_arcsec", "attitude_error_arcsec", "residual_median_arcsec",
+               "truth_residual_median_arcsec", "truth_ids_agree", "truth_ids_disagree", "alt_method",
+               "alt_boresight_error_arcsec"])
+    secs = []
+    for title, keep in zip(("Images: attitude found", "Images: errors against the truth"), halves):
+        k = [cols.index(c) for c in keep if c in cols]
+        sub = [[r[i] for i in k] for r in rows]
+        secs.append((title, H.table([cols[i] for i in k], table_cells([cols[i] for i in k], sub))))
+    cols, rows = run_report(con, "hil_star_table6", run=run_id)
+    keep = [i for i, c in enumerate(cols) if c not in ("case_id", "image")]
+    per: dict = {}
+    for r in rows:
+        per.setdefault((r[0], r[1]), []).append([r[i] for i in keep])
+    heads = [cols[i] for i in keep]
+    secs.append(("Table 6: identified stars (brightest first; open an image)", "".join(
+        f"<details><summary>case {cid}: {H.esc(img)}, {len(rs)} stars identified</summary>"
+        f"{H.table(heads, table_cells(heads, rs))}</details>" for (cid, img), rs in per.items())))
+    cols, rows = _rows(con, "SELECT case_id, image, status, boresight_error_rad * arcsec_per_rad() FROM hil_star "
                             "WHERE run = $run ORDER BY (status = 'success'), boresight_error_rad DESC NULLS FIRST "
                             f"LIMIT {GALLERY}", run_id)
-    secs.append(("Worst frames", _hil_images(lake, m, run_id, [
-        (r[0], f"case {r[0]} {r[1]}: {r[2]}, boresight error {H.fmt(r[3])} arcsec") for r in rows])))
+    items, marks = [], []
+    for r in rows:
+        try:
+            path = m["spec"]["images"][r[0]]["path"]
+            img = read_image(Path(path), as_gray=True).adc_counts()
+        except (InputError, KeyError, IndexError, TypeError):
+            continue
+        _, st = _rows(con, "SELECT x_px, y_px, pred_x_px, pred_y_px, hip, truth_id_agrees FROM hil_star_stars "
+                           f"WHERE run = $run AND case_id = {int(r[0])} ORDER BY det_index", run_id)
+        obs = np.array([s[:2] for s in st], float).reshape(-1, 2)
+        pred = np.array([s[2:4] for s in st], float).reshape(-1, 2)
+        state = np.array([2 if s[5] is False else 1 for s in st], int)
+        png, mk = case_crop_png(img, detections=obs, det_state=state, det_labels=[f"HIP {s[4]}" for s in st],
+                                predicted=pred, reference=None)
+        items.append((png, f"case {r[0]} {r[1]}: {r[2]}, {len(st)} stars identified, boresight error "
+                           f"{cell('arcsec', r[3])} arcsec (circles: identified stars' centroids)"))
+        marks.append(mk)
+    secs.append(("Worst frames", _gallery(items, lake, run_id, marks)))
     return secs
 
 
@@ -157,7 +275,7 @@ def _generic(lake, con, m, run_id):
     ds = m["primary"]
     cols, rows = _rows(con, f"SELECT * EXCLUDE (run) FROM {ds} WHERE run = $run ORDER BY case_id LIMIT 20",
                        run_id)
-    return [(f"First rows of {ds}", H.table(cols, rows))]
+    return [(f"First rows of {ds}", H.table(cols, table_cells(cols, rows)))]
 
 
 KINDS = {"star": _star, "prox_sweep": _prox, "prox_trajectory": _prox, "hil_star": _hil_star,
@@ -171,23 +289,25 @@ def build_html(lake: Lake, run_id: str) -> str:
         raise InputError(f"no run {run_id!r} in {lake.root}", source="--run")
     problems: list[str] = []
     con = connect(lake, warn=problems.append)
+    root = Path(lake.root).resolve()
     head = [("Run", H.table(["key", "value"], [
         ("run", run_id), ("kind", m["kind"]), ("status", lake.live_status(m)), ("cases", m["n_cases"]),
         ("shards", f"{m.get('shards_done')}/{m['n_shards']}"), ("seed", m.get("seed")),
-        ("spec hash", m["spec_hash"]), ("code version", m.get("code_version"))], left=2))]
+        ("spec hash", m["spec_hash"]), ("code version", m.get("code_version")), ("lake folder", str(root)),
+        ("page made", iso_utc(time.time()))], left=2))]
     if problems:
         head.append(("Damaged files (left out)", H.pre("\n".join(problems))))
     body = KINDS.get(m["kind"], _generic)(lake, con, m, run_id)
     ex = m.get("executions") or []
-    tail = [("Executions (timings)", H.table(["started (unix)", "workers", "scheduler", "elapsed s", "cases run",
+    tail = [("Executions (timings)", H.table(["started (UTC)", "workers", "scheduler", "elapsed (s)", "cases run",
                                               "resumed shards"],
-                                             [(e.get("started_unix"), e.get("workers"), e.get("scheduler"),
-                                               e.get("elapsed_s"), e.get("cases_run"), e.get("resumed_shards"))
-                                              for e in ex])),
-            ("Spec", H.pre(json.dumps(m["spec"], indent=1, sort_keys=True))),
-            ("Versions", H.pre(json.dumps(m.get("versions"), indent=1, sort_keys=True)))]
+                                             [(iso_utc(e.get("started_unix")), e.get("workers"), e.get("scheduler"),
+                                               cell("s", e.get("elapsed_s")), e.get("cases_run"),
+                                               e.get("resumed_shards")) for e in ex])),
+            ("Spec", H.definitions(m["spec"])),
+            ("Versions", H.definitions(m.get("versions") or {}))]
     return H.page(f"dualsight run {run_id}", head + body + tail,
-                  subtitle=f"{m['kind']} run, {m['n_cases']} cases, from the lake {lake.root}")
+                  subtitle=f"{m['kind']} run of {m['n_cases']} cases, read from the lake folder {root}")
 
 
 def write_html(lake: Lake, run_id: str, path: Path) -> Path:
