@@ -24,7 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from dualsight.catalogs import pairs       # pairs.build_pair_catalog looked up at call time (tests replace it)
-from dualsight.catalogs.cache import atomic_file, resolve_cache_dir, short_hash
+from dualsight.catalogs.build_progress import build_bar
+from dualsight.catalogs.cache import atomic_file, cache_dir as default_cache_dir, resolve_cache_dir, short_hash
+from dualsight.catalogs.cache_budget import enforce_limit, mark_in_use
+from dualsight.catalogs.pair_estimate import PairEstimate, PairLimits, check_pair_budget, estimate_pairs
 from dualsight.catalogs.pairs import (COLUMNS, DEFAULT_MAX_BYTES, FORMAT_VERSION, PairCatalog, check_max_angle,
                                       column_path)
 
@@ -33,7 +36,7 @@ try:
 except ImportError:                                                  # pragma: no cover (Windows)
     fcntl = None
 
-__all__ = ["load_pair_catalog", "pair_cache_path", "pair_cache_files"]
+__all__ = ["load_pair_catalog", "pair_cache_path", "pair_cache_files", "check_new_pair_catalog"]
 
 
 def pair_cache_path(star_catalog, max_angle_rad: float, cache_dir: str | Path | None = None) -> Path:
@@ -47,6 +50,26 @@ def pair_cache_files(star_catalog, max_angle_rad: float, cache_dir: str | Path |
     man = pair_cache_path(star_catalog, max_angle_rad, cache_dir)
     stem = man.with_suffix("")
     return [column_path(stem, name) for name, _ in COLUMNS] + [man]
+
+
+def check_new_pair_catalog(star_catalog, max_angle_rad: float, cache_dir: str | Path | None = None, *,
+                           limits: PairLimits | None = None, source: str | None = None) -> PairEstimate | None:
+    """None when the pair catalog of ``star_catalog`` to ``max_angle_rad`` is in the cache (its manifest exists:
+    reading it costs nothing); else its :class:`~dualsight.catalogs.pair_estimate.PairEstimate`, or
+    :class:`~dualsight.catalogs.pair_estimate.PairCatalogTooLarge` (one line naming ``source``) when it exceeds
+    ``limits`` (default: the environment's, :func:`~dualsight.catalogs.pair_estimate.pair_limits`).  Writes
+    nothing, creates no folder."""
+    theta = check_max_angle(max_angle_rad)
+    folder = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
+    if (folder / f"pairs-v{FORMAT_VERSION}-{_pair_key(star_catalog, theta)}.json").is_file():
+        return None
+    return check_pair_budget(star_catalog.unit, theta, _mag_limit(star_catalog), limits=limits, source=source,
+                             vmag=getattr(star_catalog, "vmag", None))
+
+
+def _mag_limit(star_catalog) -> float | None:
+    """The V limit of a StarCatalog (None for another object with ``unit`` and ``fingerprint()``)."""
+    return getattr(getattr(star_catalog, "config", None), "mag_limit", None)
 
 
 def _pair_key(star_catalog, max_angle_rad: float) -> str:
@@ -136,7 +159,8 @@ def _build_lock(stem: Path):
 
 
 def load_pair_catalog(star_catalog, max_angle_rad: float, cache_dir: str | Path | None = None, *,
-                      max_bytes: int = DEFAULT_MAX_BYTES) -> PairCatalog:
+                      max_bytes: int = DEFAULT_MAX_BYTES, limits: PairLimits | None = None,
+                      source: str | None = None, progress: bool | None = None) -> PairCatalog:
     """Pair catalog of a :class:`~dualsight.catalogs.stars.StarCatalog`, cached as memory-mapped ``.npy``.
 
     The cache key is the star catalog's content fingerprint (HIP numbers and unit vectors) plus
@@ -145,14 +169,32 @@ def load_pair_catalog(star_catalog, max_angle_rad: float, cache_dir: str | Path 
     missing, truncated, of another size or shape, or whose sampled values differ from the manifest's
     digest) is rebuilt with a one-line warning on stderr.  The build holds ``<stem>.lock`` so that
     processes starting together build it once; it needs ``max_bytes`` of memory at most.
+
+    Before a build, its cost is estimated (:func:`check_new_pair_catalog`): over ``limits`` (default from
+    ``$DUALSIGHT_MAX_PAIR_GB`` / ``$DUALSIGHT_MAX_PAIR_SECONDS``) it is refused with
+    :class:`~dualsight.catalogs.pair_estimate.PairCatalogTooLarge` naming ``source``, and nothing is written;
+    a build expected to last more than ~2 s shows a progress bar on stderr (``progress``: None = then, when
+    stderr is a terminal; True / False = always / never; :mod:`dualsight.catalogs.build_progress`).  After a
+    build the cache is held under its size limit (:func:`dualsight.catalogs.cache_budget.enforce_limit`; this
+    entry is marked in use by this process and is never the one removed).
     """
     theta = check_max_angle(max_angle_rad)
-    man = pair_cache_path(star_catalog, theta, cache_dir)
-    stem = man.with_suffix("")
+    folder = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
+    stem = folder / f"pairs-v{FORMAT_VERSION}-{_pair_key(star_catalog, theta)}"
+    man = stem.with_suffix(".json")
     meta = {"key": _pair_key(star_catalog, theta), "format": FORMAT_VERSION, "max_angle_rad": theta,
             "n_stars": len(star_catalog)}
-    arrays, why = _open_cached(stem, meta)
+    arrays, why = _open_cached(stem, meta) if folder.is_dir() else (None, None)
+    built = False
     if arrays is None:
+        mag = _mag_limit(star_catalog)
+        if why is None and not man.is_file():                        # a new entry (a damaged one is rebuilt)
+            est = check_pair_budget(star_catalog.unit, theta, mag, limits=limits, source=source,
+                                    vmag=getattr(star_catalog, "vmag", None))
+        else:
+            est = estimate_pairs(star_catalog.unit, theta, mag)
+        resolve_cache_dir(folder)
+        mark_in_use(folder, man)
         with _build_lock(stem):
             arrays, why = _open_cached(stem, meta)                   # another process may have built it
             if arrays is None:
@@ -161,10 +203,20 @@ def load_pair_catalog(star_catalog, max_angle_rad: float, cache_dir: str | Path 
                           file=sys.stderr)
                 man.unlink(missing_ok=True)                          # the manifest goes first, comes back last
                 _remove_stale(stem)
-                cat = pairs.build_pair_catalog(star_catalog.unit, theta, max_bytes=max_bytes, out=stem)
+                bar = build_bar(f"pair catalog ({est.field_deg:.1f} deg, {len(star_catalog):,} stars)",
+                                2 * est.pairs, est.seconds, progress)
+                try:
+                    cat = pairs.build_pair_catalog(star_catalog.unit, theta, max_bytes=max_bytes, out=stem,
+                                                   progress=bar)
+                finally:
+                    bar.close()
                 arrays = {"i": cat.i, "j": cat.j, "angle": cat.angle}
                 doc = {**meta, "pairs": len(cat), "digest": _sample_digest(arrays),
                        "files": {name: column_path(stem, name).name for name, _ in COLUMNS}}
                 with atomic_file(man, "w") as f:
                     json.dump(doc, f, sort_keys=True, indent=1)
+                built = True
+    mark_in_use(folder, man)
+    if built:
+        enforce_limit(folder)
     return PairCatalog(i=arrays["i"], j=arrays["j"], angle=arrays["angle"], limit_rad=theta)

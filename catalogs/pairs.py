@@ -184,8 +184,10 @@ def _sort_order(rec: np.ndarray) -> np.ndarray:
 class _Builder:
     """One build's buckets (temporary files in ``work``) and the three output files."""
 
-    def __init__(self, work: Path, theta: float, max_bytes: int, n_buckets: int | None, n_est: float):
+    def __init__(self, work: Path, theta: float, max_bytes: int, n_buckets: int | None, n_est: float,
+                 progress=None):
         self.work, self.theta = work, theta
+        self.progress = progress
         self.cap = max(2, int(max_bytes) // SORT_BYTES_PER_PAIR)         # pairs a bucket may hold to be sorted
         k = int(n_buckets) if n_buckets is not None else int(math.ceil(1.5 * n_est / self.cap))
         self.k = min(max(1, k), MAX_OPEN_BUCKETS)
@@ -210,6 +212,8 @@ class _Builder:
                 rec["angle"], rec["i"], rec["j"] = ang, i, j
                 del i, j, ang
                 _append_routed(rec, self.edges, paths, files, self.counts)
+                if self.progress is not None:
+                    self.progress.update(rec.size)
         finally:
             for f in files:
                 if f is not None:
@@ -236,6 +240,8 @@ class _Builder:
         s = _sort_order(rec)
         for (name, dt), f in zip(COLUMNS, outs):
             f.write(np.ascontiguousarray(rec[name][s], dtype=dt).data)
+        if self.progress is not None:
+            self.progress.update(count)
 
     def _slices(self, path: Path, count: int):
         step = max(1, self.cap // 2)
@@ -299,16 +305,20 @@ def _npy_header(f, dtype: np.dtype, n: int) -> None:
 
 
 def _write_arrays(u: np.ndarray, theta: float, targets: dict[str, Path], work: Path, max_bytes: int,
-                  max_block: int | None, n_buckets: int | None) -> dict:
+                  max_block: int | None, n_buckets: int | None, progress=None) -> dict:
     """Build the catalog of ``u`` into the ``.npy`` files ``targets`` (name -> path; written to temporary
-    names and renamed); bucket files go to ``work``.  Returns build statistics."""
+    names and renamed); bucket files go to ``work``.  ``progress`` (a tqdm-like bar or None) advances by the
+    pairs routed (pass 1), then by the pairs sorted and written (pass 2): 2 per pair in all.  Returns build
+    statistics."""
     n = u.shape[0]
     if max_block is None:
         max_block = max(1024, int(max_bytes) // 2 // CHUNK_BYTES_PER_DOT)
     n_est = n * (n - 1) / 2 * (1.0 - math.cos(theta)) / 2                 # pairs for a uniform sky
-    bld = _Builder(work, theta, max_bytes, n_buckets, n_est)
+    bld = _Builder(work, theta, max_bytes, n_buckets, n_est, progress)
     buckets = bld.route(_chunk_pairs(u, theta, int(max_block)))
     total = sum(c for _, c in buckets)
+    if progress is not None:
+        progress.total = max(2 * total, 1)                           # the estimate's total, now exact
     tmps, outs = {}, []
     try:
         for name, dt in COLUMNS:
@@ -341,7 +351,8 @@ def _write_arrays(u: np.ndarray, theta: float, targets: dict[str, Path], work: P
 
 def build_pair_catalog(unit: np.ndarray, max_angle_rad: float, max_block: int | None = None, *,
                        max_bytes: int = DEFAULT_MAX_BYTES, n_buckets: int | None = None,
-                       out: str | Path | None = None, work_dir: str | Path | None = None) -> PairCatalog:
+                       out: str | Path | None = None, work_dir: str | Path | None = None,
+                       progress=None) -> PairCatalog:
     """Every pair of stars closer than ``max_angle_rad`` (module docstring: an external bucket sort).
 
     Parameters
@@ -357,6 +368,8 @@ def build_pair_catalog(unit: np.ndarray, max_angle_rad: float, max_block: int | 
         ``<stem>.angle.npy`` (atomically) and return them memory-mapped read-only.
     work_dir : folder of the temporary bucket files (default: the folder of ``out``, else the cache
         folder, :func:`dualsight.catalogs.cache.resolve_cache_dir`); they are removed when done.
+    progress : None, or a tqdm-like bar (``update(n)``, ``total``) advanced by 2 per pair (routed, then sorted)
+        chunk by chunk (:func:`dualsight.catalogs.build_progress.build_bar`); the caller closes it.
 
     Returns
     -------
@@ -379,7 +392,7 @@ def build_pair_catalog(unit: np.ndarray, max_angle_rad: float, max_block: int | 
         work = Path(tmp)
         targets = {name: (column_path(stem, name) if stem is not None else work / f"out.{name}.npy")
                    for name, _ in COLUMNS}
-        _write_arrays(u, theta, targets, work, int(max_bytes), max_block, n_buckets)
+        _write_arrays(u, theta, targets, work, int(max_bytes), max_block, n_buckets, progress)
         arrays = {name: np.load(targets[name], mmap_mode="r" if stem is not None else None) for name, _ in COLUMNS}
     return PairCatalog(i=arrays["i"], j=arrays["j"], angle=arrays["angle"], limit_rad=theta)
 

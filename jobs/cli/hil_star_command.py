@@ -56,8 +56,10 @@ def star_spec_from_args(args):
         site = Site(args.lat, args.lon, args.height, args.time, args.alt, args.az, args.roll, args.pressure)
     elif args.alt is not None or args.az is not None:
         raise InputError("--alt/--az need the site: give --lat and --lon too", source="--lat")
-    return spec_from_dict(hs.build_spec(paths, camera, settings, resolve_star_truths(paths, truth_file, site)),
+    spec = spec_from_dict(hs.build_spec(paths, camera, settings, resolve_star_truths(paths, truth_file, site)),
                           source="hil star")
+    hs.check_pair_catalog(spec, source=str(args.camera))     # a pair catalog too large to build: one line, now
+    return spec
 
 
 def run(args) -> int:

@@ -62,10 +62,11 @@ import pyarrow as pa
 
 from dualsight.kernels.taichi_runtime import ensure_init, is_initialised
 from dualsight.kernels.digest import frame_digest, to_int64
-from dualsight.catalogs.pair_cache import load_pair_catalog
+from dualsight.catalogs.pair_cache import check_new_pair_catalog, load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 from dualsight.errors import ImageError
 from dualsight.config import validate
+from dualsight.jobs.engine.specs import check_memory
 from dualsight.jobs.kinds.hil_common import ImageEntry, check_unchanged, rows_table, spec_base
 from dualsight.jobs.kinds.hil_star_spec import MAX_VOTE_CELLS, HilStarSpec, StarSettings, StarTruth
 from dualsight.jobs.kinds import hil_star_spec
@@ -153,6 +154,16 @@ def context_of(rt: Runtime) -> Context:
     cat = load_star_catalog(rt.catalog)
     pairs = load_pair_catalog(cat, pair_angle(rt.camera))
     return Context(rt, cat, pairs, VotingIndex.load_or_build(pairs))
+
+
+def check_pair_catalog(spec: HilStarSpec, source: str | None = None):
+    """Before a run: refuse a spec whose pair catalog is not cached and whose estimated size or build time is
+    over the bound (:func:`dualsight.catalogs.pair_cache.check_new_pair_catalog`: PairCatalogTooLarge, one line
+    naming ``source``, the camera file); else its estimate (None when cached).  Writes nothing.  The engine's
+    memory check (:func:`memory_estimate`) is made first, as the run would make it."""
+    check_memory(memory_estimate(spec), source="hil star")
+    rt = runtime(spec)
+    return check_new_pair_catalog(load_star_catalog(rt.catalog, write=False), pair_angle(rt.camera), source=source)
 
 
 FRAME_PLANES = 6
