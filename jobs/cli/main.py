@@ -26,6 +26,7 @@ import sys
 from pathlib import Path
 
 from dualsight.errors import InputError
+from dualsight.jobs.cli import cache as cli_cache
 from dualsight.jobs.cli import calibrate as cli_calibrate
 from dualsight.jobs.cli import hil_star as cli_hil_star
 from dualsight.jobs.cli import nightly as cli_nightly
@@ -75,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     star.set_defaults(func=lambda a: _help(star))
 
     for register in (cli_prox.register, cli_hil_star.register, cli_calibrate.register_calibrate, cli_nightly.register,
-                     cli_peer.register):         # the command groups of the other modules of jobs/cli
+                     cli_peer.register, cli_cache.register):    # the command groups of the other modules of jobs/cli
         register(sub)
 
     p = sub.add_parser("sql", help="DuckDB SQL over the lake's views (one per dataset)")
