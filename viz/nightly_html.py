@@ -69,19 +69,19 @@ def trend_figure(rows: list[dict], path: Path, max_panels: int = 120):
         ax.grid(alpha=0.3)
     fig.suptitle("dualsight nightly: metric per night (circles: fixed seeds, squares: fresh seeds, grey bars: "
                  "baseline;\ngreen identical/ok, blue improved, red regression, purple not comparable / no baseline, "
-                 "grey info)", fontsize=10)
-    fig.tight_layout(rect=(0, 0, 1, 1 - 0.6 / (2.3 * nrow + 0.8)))
+                 "grey info)", fontsize=10, y=1 - 0.08 / (2.3 * nrow + 0.8), va="top")
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.45 / (2.3 * nrow + 0.8)))
     save_figure(fig, path, dpi=90)
 
 
 def night_label(night: str, short: bool = False) -> str:
-    """A night id (``20261127T123449Z``) as ISO 8601 UTC (``2026-11-27 12:34:49 UTC``; ``short``: ``11-27\n12:34``);
+    """A night id (``20261127T123449Z``) as ISO 8601 UTC (``2026-11-27 12:34:49 UTC``; ``short``: ``11-27\n12:34:49``);
     anything else unchanged."""
     n = str(night)
     if len(n) != 16 or n[8] != "T" or not n.endswith("Z") or not (n[:8] + n[9:15]).isdigit():
         return n
     if short:
-        return f"{n[4:6]}-{n[6:8]}\n{n[9:11]}:{n[11:13]}"
+        return f"{n[4:6]}-{n[6:8]}\n{n[9:11]}:{n[11:13]}:{n[13:15]}"
     return f"{n[:4]}-{n[4:6]}-{n[6:8]} {n[9:11]}:{n[11:13]}:{n[13:15]} UTC"
 
 

@@ -127,7 +127,7 @@ def _reliability(rep: dict) -> str:
             ("attitudes with >= 3 catalog stars in the field", percent(j["sky_share_ge3_stars"]), "-"),
             ("attitudes with >= 4 catalog stars in the field", percent(j["sky_share_ge4_stars"]), "-"),
             ("stars generated, mean over every case", cell("mean", j["mean_stars_generated_all_cases"]), "-"),
-            ("time per case (ms, one worker)", cell("ms", j["mean_ms_per_case"]), "-")]
+            ("time per case (ms, sum of the stages)", cell("ms", j["mean_ms_per_case"]), "-")]
     return H.table(["measure", "dualsight", "reference"], rows)
 
 
