@@ -1,0 +1,267 @@
+"""One image sequence through a flight star tracker's state machine: lost-in-space until a verified fix, then
+tracking, lock lost by rule, fallback, re-acquisition (issue 22, points 1-3).
+
+Per frame ``k`` (in time order), with the last fix (attitude ``A_f``, covariance ``P_f``, frame ``f``) of either mode:
+
+1. no image (a dropped frame): mode ``none``, reason ``no_image``; nothing runs.
+2. a prior exists (a fix at most ``max_coast_frames`` frames old): **tracking** (``nav/tracking.py``): propagate
+   ``A_f`` over ``t_k - t_f`` with the rate (the gyro's when given: the mean of its two samples at ``f`` and ``k``,
+   covariance ``gyro_sigma^2 I / 2``; else the rate from the last two fixes of either mode,
+   ``nav/angular_rate.rate_from_attitudes``, with its covariance; else zero with ``cfg.rate_sigma_rad_s``), predict,
+   match in windows, solve with the centroid weights, verify.  Lock held: mode ``tracking``.
+3. no prior, or tracking lost lock (its reason is kept in the row): **lost-in-space** on the same frame: geometric
+   voting (``nav/star_solution.identify``, as the star job calls it) and the weighted SVD attitude
+   (``nav/attitude.solve_identified``).  A fix is *verified* when the attitude is solved from at least
+   ``lis_min_stars`` accepted stars, the match threshold ``T > 0`` and the chance-match probability is at most
+   ``cfg.max_p_chance`` (when the voting states it).  Verified: mode ``lost_in_space``; else ``none``.
+4. with a fix at ``k``: the rate from the two attitudes (``rate_from_attitudes``, over ``t_k - t_f``) and from the
+   displacements of the stars identified in both frames (``rate_from_stars``, Crassidis 2002), each with its
+   covariance; the fix becomes the prior.
+
+The loop runs over frames (a sequence is causal); every step inside is vectorised over stars.  Latency per stage
+is measured with ``time.perf_counter_ns`` around each call (ns; -1 where the stage did not run).  Optionally
+(``shadow_lis``) lost-in-space also runs on every frame with an image without touching the state machine, so that
+tracking's identities and speed can be compared with it on the same frames.
+
+Angles in radians, rates in rad/s in the camera frame (``dA/dt = -[omega x] A``), pixels in the (col, row)
+convention of docs/architecture.md.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from dualsight.config import TrackingConfig
+from dualsight.nav.angular_rate import pair_by_identity, rate_from_attitudes, rate_from_stars
+from dualsight.nav.attitude import solve_identified
+from dualsight.nav.observations import MAX_OBS, Observations
+from dualsight.nav.star_solution import identify
+from dualsight.nav.tracking import LOCK_REASONS, NO_PRIOR, predict, propagate, track
+
+__all__ = ["MODE_NAMES", "NO_FIX", "LOST_IN_SPACE", "TRACKING", "REASON_NAMES", "NO_IMAGE", "LisFix",
+           "lost_in_space", "SequenceResult", "run_sequence"]
+
+MODE_NAMES = ("none", "lost_in_space", "tracking")
+"""Names of :attr:`SequenceResult.mode` (index = code): no valid attitude, a verified lost-in-space fix, a lock."""
+NO_FIX, LOST_IN_SPACE, TRACKING = range(len(MODE_NAMES))
+REASON_NAMES = LOCK_REASONS + ("no_image",)
+"""Names of :attr:`SequenceResult.reason`: ``nav.tracking.LOCK_REASONS`` (``locked``: tracking held; ``no_prior``:
+tracking did not run; else why it lost lock) and ``no_image`` (a dropped frame)."""
+NO_IMAGE = len(LOCK_REASONS)
+
+
+@dataclass(frozen=True)
+class LisFix:
+    """One frame's lost-in-space answer.  A (3, 3), cov (3, 3) rad^2 (NaN when not solved); verified : bool;
+    rows : (D,) int64 catalog row of each detection (-1 unidentified); n_used : accepted stars; T : match
+    threshold; p_chance : chance-match probability (NaN when not computed)."""
+
+    A: np.ndarray
+    cov: np.ndarray
+    verified: bool
+    rows: np.ndarray
+    n_used: int
+    T: int
+    p_chance: float
+
+
+def lost_in_space(xy: np.ndarray, sigma_px: np.ndarray, camera, cat_unit: np.ndarray, index, voting,
+                  cat_vmag: np.ndarray | None, max_p_chance: float, min_stars: int = 3,
+                  engine: str = "taichi") -> LisFix:
+    """Geometric voting and the weighted SVD attitude of one frame (the star job's chain, one frame per call).
+
+    xy : (D, 2) centroids (px), brightest first (the first ``MAX_OBS`` vote).  sigma_px : (D,) 1-sigma centroid
+    error per axis (px, > 0): weights ``w = f^2 / sigma^2`` (rad^-2), so the covariance is in rad^2 (Markley 1988).
+    index : the pair catalog or its ``nav.pair_index.VotingIndex``.  voting : ``VotingConfig``.  engine : the
+    voting's ``"taichi"`` or ``"numpy"`` (bit-identical).
+    """
+    D = len(xy)
+    nan3 = np.full((3, 3), np.nan)
+    rows = np.full(D, -1, np.int64)
+    if D < max(3, min_stars):
+        return LisFix(nan3, nan3.copy(), False, rows, 0, 0, np.nan)
+    S = min(D, MAX_OBS)
+    xs = np.asarray(xy[:S], np.float64)
+    vec = camera.backproject(xs)[None]
+    obs = Observations(vec, np.ones((1, S), bool), xs[None, :, 0], xs[None, :, 1])
+    ident = identify(obs, cat_unit, index, voting, cat_vmag=cat_vmag, engine=engine)
+    f = 0.5 * (camera.fx + camera.fy)
+    w = (f / np.asarray(sigma_px[:S], np.float64))[None] ** 2
+    A, ok, P = solve_identified(obs.vec, ident.ids, ident.accepted, cat_unit, w, return_cov=True)
+    acc = ident.accepted[0] & (ident.ids[0] >= 0)
+    n = int(acc.sum())
+    T = int(ident.T[0])
+    p = float(ident.p_chance[0])
+    verified = bool(ok[0]) and n >= min_stars and T > 0 and not (np.isfinite(p) and p > max_p_chance)
+    rows[:S] = np.where(acc, ident.ids[0], -1)
+    return LisFix(A[0], P[0], verified, rows, n, T, p)
+
+
+@dataclass(frozen=True)
+class SequenceResult:
+    """Per frame (T,) of :func:`run_sequence`, and per detection (K,) in the input's ragged layout.
+
+    mode : int8 :data:`MODE_NAMES`.  reason : int8 :data:`REASON_NAMES`.  A, cov : (T, 3, 3) the frame's attitude
+    (inertial -> camera) and its error covariance (rad^2), NaN without a fix.  n_predicted, n_matched : tracking's
+    predicted stars and unique window pairs (0 where it did not run); n_used : stars in the answer (tracking's
+    final solution or lost-in-space's accepted stars).  two_star : bool, the lock rests on two stars.
+    rms_sigma : tracking's post-fit RMS per degree of freedom (centroid sigmas; NaN elsewhere).
+    p_chance : the answer's chance-match probability.  T_lis : lost-in-space's match threshold (0 where it did
+    not run).  rate_att, rate_star : (T, 3) rad/s rate from the last two fixes / from the stars seen in both, with
+    rate_att_cov, rate_star_cov (T, 3, 3) (rad/s)^2 (NaN where not available); rate_pairs : stars of rate_star.
+    t_predict_ns (propagate + predict), t_track_ns (match + solve + verify), t_lis_ns (voting + attitude),
+    t_rate_ns (both rates), t_total_ns : int64 wall time (-1 where the stage did not run).
+    det_row : (K,) int64 catalog row of each detection in the answer (-1 none).  shadow_rows : (K,) int64
+    lost-in-space's identities on every frame (``shadow_lis``; else None), shadow_verified : (T,) bool,
+    t_shadow_ns : (T,) int64.
+    """
+
+    mode: np.ndarray
+    reason: np.ndarray
+    A: np.ndarray
+    cov: np.ndarray
+    n_predicted: np.ndarray
+    n_matched: np.ndarray
+    n_used: np.ndarray
+    two_star: np.ndarray
+    rms_sigma: np.ndarray
+    p_chance: np.ndarray
+    T_lis: np.ndarray
+    rate_att: np.ndarray
+    rate_att_cov: np.ndarray
+    rate_star: np.ndarray
+    rate_star_cov: np.ndarray
+    rate_pairs: np.ndarray
+    t_predict_ns: np.ndarray
+    t_track_ns: np.ndarray
+    t_lis_ns: np.ndarray
+    t_rate_ns: np.ndarray
+    t_total_ns: np.ndarray
+    det_row: np.ndarray
+    shadow_rows: np.ndarray | None
+    shadow_verified: np.ndarray | None
+    t_shadow_ns: np.ndarray | None
+
+
+def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray | None, offsets: np.ndarray,
+                 camera, cat_unit: np.ndarray, index, voting, cfg: TrackingConfig, *,
+                 available: np.ndarray | None = None, gyro: np.ndarray | None = None, gyro_sigma_rad_s: float = 0.0,
+                 cat_vmag: np.ndarray | None = None, max_coast_frames: int = 10, lis_min_stars: int = 3,
+                 shadow_lis: bool = False, engine: str = "taichi") -> SequenceResult:
+    """Run one sequence through the state machine of the module docstring.
+
+    times : (T,) s, increasing.  det_xy : (K, 2) centroids (px) of every frame, frame k's in
+    ``offsets[k]:offsets[k + 1]`` (offsets (T + 1,)), brightest first within a frame.  det_sigma_px : (K,) 1-sigma
+    centroid error per axis (px) or None (non-finite entries too) = ``cfg.centroid_sigma_px``.
+    camera : ``scene.camera.Camera``.  cat_unit : (N, 3) ICRS unit vectors, brightest first; index : the pair
+    catalog or its ``VotingIndex``; voting : lost-in-space's ``VotingConfig``; cfg : ``TrackingConfig``.
+    available : (T,) bool, the frame delivered an image (default all).  gyro : (T, 3) measured body rates (rad/s,
+    camera frame) or None; gyro_sigma_rad_s : their 1-sigma error per axis.  cat_vmag : (N,) for the blend test.
+    max_coast_frames : a fix older than this many frames is no prior.  lis_min_stars : fewest accepted stars of a
+    verified lost-in-space fix.  shadow_lis : also run lost-in-space on every frame (comparison only).
+    engine : the voting's engine, ``"taichi"`` or ``"numpy"``.
+    """
+    t = np.asarray(times, np.float64)
+    T = t.size
+    off = np.asarray(offsets, np.int64)
+    xy_all = np.asarray(det_xy, np.float64).reshape(-1, 2)
+    K = xy_all.shape[0]
+    sig_all = np.full(K, cfg.centroid_sigma_px) if det_sigma_px is None else np.asarray(det_sigma_px, np.float64)
+    sig_all = np.where(np.isfinite(sig_all) & (sig_all > 0), sig_all, cfg.centroid_sigma_px)
+    avail = np.ones(T, bool) if available is None else np.asarray(available, bool)
+    f = 0.5 * (camera.fx + camera.fy)
+    nan3, nan33 = np.full((T, 3), np.nan), np.full((T, 3, 3), np.nan)
+    out = dict(mode=np.zeros(T, np.int8), reason=np.full(T, NO_PRIOR, np.int8), A=nan33.copy(), cov=nan33.copy(),
+               n_predicted=np.zeros(T, np.int32), n_matched=np.zeros(T, np.int32), n_used=np.zeros(T, np.int32),
+               two_star=np.zeros(T, bool), rms_sigma=np.full(T, np.nan), p_chance=np.full(T, np.nan),
+               T_lis=np.zeros(T, np.int32), rate_att=nan3.copy(), rate_att_cov=nan33.copy(), rate_star=nan3.copy(),
+               rate_star_cov=nan33.copy(), rate_pairs=np.zeros(T, np.int32),
+               **{k: np.full(T, -1, np.int64) for k in ("t_predict_ns", "t_track_ns", "t_lis_ns", "t_rate_ns",
+                                                        "t_total_ns")})
+    det_row = np.full(K, -1, np.int64)
+    shadow_rows = np.full(K, -1, np.int64) if shadow_lis else None
+    shadow_ok = np.zeros(T, bool) if shadow_lis else None
+    t_shadow = np.full(T, -1, np.int64) if shadow_lis else None
+    clock = time.perf_counter_ns
+
+    def lis(xy, sg):
+        return lost_in_space(xy, sg, camera, cat_unit, index, voting, cat_vmag, cfg.max_p_chance, lis_min_stars,
+                             engine)
+
+    fix = None                         # (A, P, frame) of the last fix, either mode
+    rate = None                        # (omega, cov) from the last two fixes
+    for k in range(T):
+        s = slice(int(off[k]), int(off[k + 1]))
+        xy, sg = xy_all[s], sig_all[s]
+        if not avail[k]:
+            out["reason"][k] = NO_IMAGE
+            continue
+        if shadow_lis:
+            c0 = clock()
+            sh = lis(xy, sg)
+            t_shadow[k] = clock() - c0
+            shadow_rows[s], shadow_ok[k] = sh.rows, sh.verified
+        c_start = clock()
+        A = P = None
+        rows = None
+        if fix is not None and k - fix[2] > max_coast_frames:
+            fix = rate = None
+        if fix is not None:
+            dt = t[k] - t[fix[2]]
+            if gyro is not None:
+                om = 0.5 * (np.asarray(gyro[fix[2]], np.float64) + np.asarray(gyro[k], np.float64))
+                C = np.eye(3) * (0.5 * gyro_sigma_rad_s ** 2)
+            elif rate is not None:
+                om, C = rate
+            else:
+                om, C = np.zeros(3), np.eye(3) * cfg.rate_sigma_rad_s ** 2
+            c0 = clock()
+            Ap, Pp = propagate(fix[0], fix[1], om, C, dt)
+            pred = predict(Ap, Pp, cat_unit, camera, cfg)
+            c1 = clock()
+            res = track(pred, xy, sg, cat_unit, camera, cfg)
+            c2 = clock()
+            out["t_predict_ns"][k], out["t_track_ns"][k] = c1 - c0, c2 - c1
+            out["reason"][k] = res.reason
+            out["n_predicted"][k], out["n_matched"][k] = res.n_predicted, res.n_matched
+            if res.locked:
+                A, P, rows = res.A, res.cov, res.det_row
+                out["mode"][k] = TRACKING
+                out["n_used"][k], out["two_star"][k] = res.n_used, res.two_star
+                out["rms_sigma"][k], out["p_chance"][k] = res.rms_sigma, res.p_chance
+        if A is None:                                                   # acquire, or fall back
+            c0 = clock()
+            fx_ = lis(xy, sg)
+            out["t_lis_ns"][k] = clock() - c0
+            out["T_lis"][k] = fx_.T
+            if fx_.verified:
+                A, P, rows = fx_.A, fx_.cov, fx_.rows
+                out["mode"][k] = LOST_IN_SPACE
+                out["n_used"][k], out["p_chance"][k] = fx_.n_used, fx_.p_chance
+        if A is not None:
+            det_row[s] = rows
+            out["A"][k], out["cov"][k] = A, P
+            c0 = clock()
+            if fix is not None:
+                dt = t[k] - t[fix[2]]
+                om, C = rate_from_attitudes(fix[0][None], A[None], dt, fix[1][None], P[None])
+                out["rate_att"][k], out["rate_att_cov"][k] = om[0], C[0]
+                rate = (om[0], C[0])
+                sp = slice(int(off[fix[2]]), int(off[fix[2] + 1]))
+                ip, jn = pair_by_identity(det_row[sp], rows)
+                if len(ip) >= 2:
+                    b0 = camera.backproject(xy_all[sp][ip])[None]
+                    b1 = camera.backproject(xy[jn])[None]
+                    w0, w1 = (sig_all[sp][ip] / f)[None] ** 2, (sg[jn] / f)[None] ** 2
+                    om_s, C_s, ok = rate_from_stars(b0, b1, w0, w1, dt)
+                    if ok[0]:
+                        out["rate_star"][k], out["rate_star_cov"][k] = om_s[0], C_s[0]
+                        out["rate_pairs"][k] = len(ip)
+            out["t_rate_ns"][k] = clock() - c0
+            fix = (A, P, k)
+        out["t_total_ns"][k] = clock() - c_start
+    return SequenceResult(**out, det_row=det_row, shadow_rows=shadow_rows, shadow_verified=shadow_ok,
+                          t_shadow_ns=t_shadow)
