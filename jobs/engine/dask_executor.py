@@ -23,21 +23,32 @@ def task_token(lake_root: str, run_id: str, spec_hash: str) -> str:
     return hashlib.sha256(f"{lake_root}\0{run_id}\0{spec_hash}".encode()).hexdigest()[:16]
 
 
-def run_on_dask(tasks, plan, lake, scheduler: str, execute_shard):
-    """Yield journal entries as shards complete on the cluster at ``scheduler``; each task is
-    ``execute_shard(task)`` (the runner's, which computes and writes one shard)."""
+def connect(scheduler: str):
+    """A Dask client of the scheduler at ``scheduler``; EngineError within :data:`CONNECT_TIMEOUT_S` when none
+    answers.  The runner connects before it touches the lake, so an address without a scheduler leaves no
+    manifest, lock or folder behind."""
     try:
         import dask.config
-        from dask.distributed import Client, as_completed
+        from dask.distributed import Client
     except ImportError:
         raise InputError("--scheduler needs Dask: pip install 'dualsight[cluster]'", source="--scheduler") from None
     try:
         with dask.config.set({"distributed.comm.timeouts.connect": f"{CONNECT_TIMEOUT_S}s"}):
-            client = Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s", set_as_default=False)
+            return Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s", set_as_default=False)
     except (OSError, TimeoutError, ValueError) as e:
         raise EngineError(f"cannot reach the Dask scheduler within {CONNECT_TIMEOUT_S} s "
-                          f"({type(e).__name__}: {str(e).splitlines()[0][:160] if str(e) else 'no answer'})",
-                          source=scheduler) from None
+                          f"({type(e).__name__}: {str(e).splitlines()[0][:160] if str(e) else 'no answer'}); "
+                          "nothing was written to the lake", source=scheduler) from None
+
+
+def run_on_dask(tasks, plan, lake, scheduler: str, execute_shard, client=None):
+    """Yield journal entries as shards complete on the cluster at ``scheduler`` (through ``client``, from
+    :func:`connect`, or a new one); each task is ``execute_shard(task)`` (the runner's, which computes and
+    writes one shard).  The client is closed at the end."""
+    from dask.distributed import as_completed
+
+    if client is None:
+        client = connect(scheduler)
     token = task_token(str(lake.root.resolve()), plan.run_id, plan.spec_hash)
     try:
         window = max(4, 2 * sum(client.nthreads().values()))

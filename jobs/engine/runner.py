@@ -51,7 +51,7 @@ import numpy as np
 from tqdm import tqdm
 
 from dualsight.errors import InputError
-from dualsight.jobs.engine.dask_executor import run_on_dask
+from dualsight.jobs.engine.dask_executor import connect, run_on_dask
 from dualsight.jobs.engine.errors import EngineError
 from dualsight.jobs.engine.specs import check_memory
 from dualsight.version import code_version
@@ -215,6 +215,20 @@ def run_job(kind: str, spec_dict: dict, *, n_cases: int, lake: Lake, run_id: str
     existing = lake.read_manifest(run_id)          # refuse a conflicting id before touching anything
     if existing is not None:
         _refuse_other(existing, kind, canonical, n_cases, h, lake, run_id)
+    client = connect(scheduler) if scheduler else None      # no scheduler answering: nothing written
+    try:
+        return _run_job_locked(mod, kind, canonical, h, n_cases, lake, run_id, datasets, shard_size, label, extra,
+                               workers, threads_per_worker, scheduler, progress, client)
+    finally:
+        if client is not None:
+            try:
+                client.close(timeout=5)
+            except Exception:      # noqa: BLE001 - the scheduler may already be gone
+                pass
+
+
+def _run_job_locked(mod, kind, canonical, h, n_cases, lake, run_id, datasets, shard_size, label, extra, workers,
+                    threads_per_worker, scheduler, progress, client):
     with lake.lock(run_id):
         existing = lake.read_manifest(run_id)
         if existing is not None:
@@ -239,7 +253,7 @@ def run_job(kind: str, spec_dict: dict, *, n_cases: int, lake: Lake, run_id: str
                         "stats": {}, **(extra or {})}
         try:
             return _run_locked(mod, plan, manifest, lake, datasets, workers, threads_per_worker, scheduler,
-                               progress, label or f"{kind} {run_id}")
+                               progress, label or f"{kind} {run_id}", client)
         except OSError as e:
             raise LakeError(f"cannot write to the lake ({os_error_text(e)}); the shards completed before are "
                             "intact, free space or fix permissions and run the same command to resume",
@@ -265,7 +279,7 @@ def _refuse_other(existing, kind, canonical, n_cases, h, lake, run_id):
 
 
 def _run_locked(mod, plan: Plan, manifest: dict, lake: Lake, datasets, workers, threads_per_worker, scheduler,
-                progress, desc) -> dict:
+                progress, desc, client=None) -> dict:
     lake.remove_stale_temps(plan.run_id, datasets)
     done, entries, recomputed = set(), [], []
     for s in sorted(lake.shard_indices_on_disk(plan.run_id, datasets)):
@@ -300,7 +314,7 @@ def _run_locked(mod, plan: Plan, manifest: dict, lake: Lake, datasets, workers, 
     t_start, last_write, cases_run = time.perf_counter(), time.monotonic(), 0
     status = "interrupted"
     try:
-        for entry in _execute(tasks, plan, lake, workers, threads_per_worker, scheduler, n_todo):
+        for entry in _execute(tasks, plan, lake, workers, threads_per_worker, scheduler, n_todo, client):
             lake.append_journal(plan.run_id, {k: entry[k] for k in ("shard", "case_start", "case_stop", "rows",
                                                                      "bytes")} | {"stats": entry.get("stats")})
             done.add(entry["shard"])
@@ -344,10 +358,10 @@ def _progress(plan: Plan, done: set[int], enabled: bool, desc: str):
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "DUALSIGHT_TI_THREADS")
 
 
-def _execute(tasks, plan, lake, workers, threads_per_worker, scheduler, n_todo):
+def _execute(tasks, plan, lake, workers, threads_per_worker, scheduler, n_todo, client=None):
     """Yield journal entries of completed shards from the chosen executor."""
     if scheduler:
-        yield from run_on_dask(tasks, plan, lake, scheduler, execute_shard)
+        yield from run_on_dask(tasks, plan, lake, scheduler, execute_shard, client)
         return
     script = unguarded_main_call() if workers > 1 and n_todo > 1 else None
     if script is not None:
