@@ -38,7 +38,7 @@ from dualsight.errors import ConfigError
 
 __all__ = ["check_fields", "allowed_range", "validate", "plain_tree", "printable_key", "friendly_key", "MAX_DEPTH",
            "ANGLE_KEY_SUFFIXES", "dataclass_from_table", "dataclass_to_table", "check_range", "TrackingConfig",
-           "TargetConfig"]
+           "TargetConfig", "SequenceConfig"]
 
 
 @functools.lru_cache(maxsize=None)
@@ -426,3 +426,79 @@ class TargetConfig:
         if self.sun_icrs is not None and abs(math.hypot(*self.sun_icrs) - 1.0) > 1e-3:
             raise ConfigError(f"must be a unit vector (norm 1 +- 1e-3), got {list(self.sun_icrs)!r} "
                               f"(norm {math.hypot(*self.sun_icrs):.6g})", field="target.sun_icrs")
+
+
+# ============================================================================================ star sequences (issue 22)
+_SeqRate = typing.Annotated[float, pydantic.Field(ge=0.0, le=30.0)]
+_SeqCount = typing.Annotated[int, pydantic.Field(ge=0, le=10_000)]
+_SEQUENCE_UNITS = {"frames": "frames", "fps": "Hz", "exposure_s": "s", "rate_max_deg_s": "deg/s",
+                   "slew_angle_max_deg": "deg", "slew_accel_deg_s2": "deg/s^2", "jitter_arcsec": "arcsec",
+                   "jitter_freq_hz": "Hz", "gyro_noise_deg_s": "deg/s", "gyro_bias_deg_s": "deg/s",
+                   "blank": "frames", "blinded": "frames", "dropped": "frames", "max_coast_frames": "frames",
+                   "lis_min_stars": "stars", "error_limit_arcsec": "arcsec"}
+
+
+@dataclasses.dataclass(frozen=True)
+class SequenceConfig:
+    """One case of a star-tracking campaign (``[sequence]`` of a ``dualsight star track`` spec; issue 22): an
+    image sequence, its attitude trajectory, gyro and events (``jobs/kinds/star_track.py``,
+    ``scene/attitude_trajectory.py``, ``nav/sequence.py``).
+
+    Every field's range is part of its type, checked when the dataclass is built (ConfigError naming
+    ``sequence.<field>``, the value and the range) and when a TOML table is validated (:func:`dataclass_from_table`).
+
+    frames : images per sequence, integer in [2, 10000] (default 50).  fps : frame rate (Hz), in (0, 1000]
+        (default 10).  exposure_s : exposure of every frame (s), in (0, 10], at most 1 / fps (default 0.1);
+        it replaces the sensor's ``exposure_s``.
+    motion : "constant" (a constant body rate about a random axis, magnitude uniform in [0, rate_max_deg_s]),
+        "slew" (a rest-to-rest eigenaxis slew of an angle uniform in [0, slew_angle_max_deg] about a random axis,
+        rate limit ``rate_max_deg_s``, acceleration limit ``slew_accel_deg_s2``, starting in the first third of the
+        sequence) or "mixed" (either, with equal chance per case) (default "constant").
+    rate_max_deg_s : in [0, 30] deg/s (default 1).  slew_angle_max_deg : in [0, 180] (default 10).
+    slew_accel_deg_s2 : in (0, 100] deg/s^2 (default 0.5).
+    jitter_arcsec : amplitude per axis of a sinusoidal jitter (arcsec), in [0, 3600] (default 0: none);
+        jitter_freq_hz : its frequency, in (0, 1000] Hz (default 2); phases from the case's generator.
+    smear : render each frame smeared by its true body rate over the exposure (default True).
+    gyro : the tracker gets a rate gyro's readings (default False): true rate + a constant bias drawn per axis
+        with 1-sigma ``gyro_bias_deg_s`` (in [0, 10], default 0) + white noise ``gyro_noise_deg_s`` per sample
+        (in [0, 10], default 0.01).
+    blank, blinded, dropped : frames of each event per sequence, at random frames after the first (a blank frame:
+        no star light; blinded: the Sun or the Earth saturates the background; dropped: no image), integers in
+        [0, 10000] (defaults 0, 1, 1); together fewer than ``frames``.
+    max_coast_frames : a fix older than this many frames is no prior for tracking, in [0, 10000] (default 10).
+    lis_min_stars : fewest accepted stars of a verified lost-in-space fix, in [3, 100] (default 3).
+    error_limit_arcsec : a valid attitude whose error exceeds this on any axis is a false lock, in (0, 36000]
+        (default 100, the reference's limit).
+    shadow_lost_in_space : also run lost-in-space on every frame, for the identities and the speed of both on the
+        same frames (default False).
+    """
+
+    frames: typing.Annotated[int, pydantic.Field(ge=2, le=10_000)] = 50
+    fps: typing.Annotated[float, pydantic.Field(gt=0.0, le=1000.0)] = 10.0
+    exposure_s: typing.Annotated[float, pydantic.Field(gt=0.0, le=10.0)] = 0.1
+    motion: typing.Literal["constant", "slew", "mixed"] = "constant"
+    rate_max_deg_s: _SeqRate = 1.0
+    slew_angle_max_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=180.0)] = 10.0
+    slew_accel_deg_s2: typing.Annotated[float, pydantic.Field(gt=0.0, le=100.0)] = 0.5
+    jitter_arcsec: typing.Annotated[float, pydantic.Field(ge=0.0, le=3600.0)] = 0.0
+    jitter_freq_hz: typing.Annotated[float, pydantic.Field(gt=0.0, le=1000.0)] = 2.0
+    smear: bool = True
+    gyro: bool = False
+    gyro_noise_deg_s: typing.Annotated[float, pydantic.Field(ge=0.0, le=10.0)] = 0.01
+    gyro_bias_deg_s: typing.Annotated[float, pydantic.Field(ge=0.0, le=10.0)] = 0.0
+    blank: _SeqCount = 0
+    blinded: _SeqCount = 1
+    dropped: _SeqCount = 1
+    max_coast_frames: _SeqCount = 10
+    lis_min_stars: typing.Annotated[int, pydantic.Field(ge=3, le=100)] = 3
+    error_limit_arcsec: typing.Annotated[float, pydantic.Field(gt=0.0, le=36000.0)] = 100.0
+    shadow_lost_in_space: bool = False
+
+    def __post_init__(self):
+        check_fields(self, lambda name, msg: ConfigError(msg, field=f"sequence.{name}"), _SEQUENCE_UNITS)
+        if self.exposure_s > 1.0 / self.fps:
+            raise ConfigError(f"must be <= 1 / fps ({1.0 / self.fps:g} s), got {self.exposure_s!r}",
+                              field="sequence.exposure_s")
+        if self.blank + self.blinded + self.dropped >= self.frames:
+            raise ConfigError(f"blank + blinded + dropped must be < frames ({self.frames}), got "
+                              f"{self.blank + self.blinded + self.dropped}", field="sequence.blinded")
