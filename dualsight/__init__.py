@@ -25,6 +25,12 @@ from dualsight import allocator as _allocator
 # no version check over the network.  Taichi itself starts lazily at the first kernel call.
 _os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
 _os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
+# BLAS/OpenMP pools: one thread unless the user says otherwise (set before numpy loads its BLAS; a script that
+# imported numpy first keeps numpy's pool).  dualsight's BLAS calls are 3x3 SVDs and small products, where a pool
+# gains nothing and its threads compete for cores that Taichi's threads and the engine's workers already use
+# (benchmarks/bench_thread_pools.py); one thread also keeps BLAS sums in one order, run after run.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    _os.environ.setdefault(_var, "1")
 _allocator.tune()
 
 _FACADE = {

@@ -69,6 +69,7 @@ JOB_KINDS = {
     "selftest": "dualsight.jobs.kinds.selftest",
     "hil_star_sweep": "dualsight.jobs.kinds.hil_star_sweep",
     "peer_star": "dualsight.jobs.kinds.peer_star",
+    "star_track": "dualsight.jobs.kinds.star_track",
 }
 MAX_CASES = 10**9
 MAX_SHARD_SIZE = 10**6
@@ -355,7 +356,9 @@ def _progress(plan: Plan, done: set[int], enabled: bool, desc: str):
 
 
 # ============================================================================================ executors
-_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "DUALSIGHT_TI_THREADS")
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "DUALSIGHT_TI_THREADS",
+                "OPENCV_FOR_THREADS_NUM")
+"""Thread-pool sizes a spawned worker reads at start (BLAS/OpenMP, Taichi, OpenCV's parallel_for)."""
 
 
 def _execute(tasks, plan, lake, workers, threads_per_worker, scheduler, n_todo, client=None):
@@ -378,7 +381,7 @@ def _execute(tasks, plan, lake, workers, threads_per_worker, scheduler, n_todo, 
     # spawned workers inherit the environment at start: cap their BLAS/OpenMP/Taichi pools, or W workers each
     # running a pool of all cores oversubscribe the machine
     saved = {k: os.environ.get(k) for k in _THREAD_VARS}
-    os.environ.update({k: str(threads) for k in _THREAD_VARS})
+    os.environ.update({k: str(worker_threads(saved[k], threads)) for k in _THREAD_VARS})
     try:
         yield from _local_pool(tasks, min(workers, n_todo))
     finally:
@@ -387,6 +390,16 @@ def _execute(tasks, plan, lake, workers, threads_per_worker, scheduler, n_todo, 
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+def worker_threads(current: str | None, share: int) -> int:
+    """A spawned worker's pool size: its ``share`` of the cores (cores // workers), or less when the variable
+    already asks for less (the BLAS pools default to 1 thread, ``dualsight/__init__.py``)."""
+    try:
+        n = int(current) if current is not None else share
+    except ValueError:
+        n = share
+    return max(1, min(n, share)) if n > 0 else share
 
 
 def unguarded_main_call() -> str | None:
