@@ -35,11 +35,11 @@ def lake(make_lake):
                      ["star", "run", "--preset", "realistic", "--cases", "16", "--seed", "3", "--run", "r"])
 
 
-def expected_breakdown(root, run: str, width=1024, height=768) -> dict:
+def expected_breakdown(root, run: str, width=1024, height=768, max_case=10**9) -> dict:
     """Per successful case: blobs matched / false / on the edge / split, missed stars; means (numpy)."""
     c = rows(root, "star_cases", run)
     d = rows(root, "star_detections", run)
-    ok = c["status"] == "success"
+    ok = (c["status"] == "success") & (c["case_id"] < max_case)
     out = {k: [] for k in ("generated", "observed", "matched", "false_blobs", "edge", "split", "missed")}
     for cid, gen, obs in zip(c["case_id"][ok], c["n_generated"][ok], c["n_observed"][ok]):
         sel = d["case_id"] == cid
@@ -79,6 +79,15 @@ def test_table5_says_what_it_counts_and_adds_up(lake, run):
         b["missed"] >= 0          # missed is clipped at 0 per case; equality holds whenever it is not
     if run == "r":
         assert want["false_blobs"] > 0          # the noisy run has false blobs, and they are shown
+
+
+def test_a_big_run_breaks_down_a_sample_and_says_so(lake, monkeypatch):
+    monkeypatch.setattr(star_report, "BREAKDOWN_CASES", 30)
+    want = expected_breakdown(lake, "s", max_case=30)
+    _, t5 = star_report.table5_rows(star_report.build(Lake(lake), "s"))
+    got = {r[0]: r[1] for r in t5}
+    assert got["+ false blobs (no rendered star within 2 px) [first 30 cases]"] == f"{want['false_blobs']:.2f}"
+    assert got["= matched blobs (a rendered star within 2 px) [first 30 cases]"] == f"{want['matched']:.2f}"
 
 
 def test_stage_table_has_no_empty_row_and_says_render_holds_detection(lake):

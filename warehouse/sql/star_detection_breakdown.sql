@@ -9,9 +9,11 @@
 --                beyond the border), so these are the stars observed but never generated;
 --   split blobs  a second (third...) blob of a star that already has one;
 -- and missed = generated stars with no blob = generated - distinct stars matched by a non-edge blob (never < 0).
--- Parameters: $run, $width, $height (the camera's pixels, from the run's spec).
+-- Parameters: $run, $width, $height (the camera's pixels, from the run's spec), $max_case: only cases with a
+-- smaller id (cases are independent draws, so the first ones are a random sample; bounds the scan of a huge run).
 WITH s AS (
-    SELECT case_id, n_generated, n_observed FROM star_cases WHERE run = $run AND status = 'success'
+    SELECT case_id, n_generated, n_observed FROM star_cases
+    WHERE run = $run AND status = 'success' AND case_id < $max_case
 ), d AS (
     SELECT case_id,
            count(*)                                                                   AS blobs,
@@ -23,7 +25,7 @@ WITH s AS (
              - count(DISTINCT hip_true) FILTER (WHERE hip_true >= 0)                  AS split_blobs,
            count(DISTINCT hip_true) FILTER (WHERE hip_true >= 0 AND NOT true_dist_px
                             > least(x_px, y_px, $width - x_px, $height - y_px))       AS stars_inside_found
-    FROM star_detections WHERE run = $run AND case_id IN (SELECT case_id FROM s)
+    FROM star_detections WHERE run = $run AND case_id < $max_case AND case_id IN (SELECT case_id FROM s)
     GROUP BY case_id
 )
 SELECT count(*)                                                                       AS cases,
