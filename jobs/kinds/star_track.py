@@ -1,0 +1,308 @@
+"""Star tracking over image sequences: the ``star_track`` job kind (issue 22, point 1; orchestration only).
+
+    draw a sequence (here, from default_rng([seed, i])): initial attitude, trajectory (scene.attitude_trajectory:
+    constant rate, eigenaxis slew, jitter), gyro readings, events -> stars in the field of every frame
+    (scene.starfield_geometry) -> render and detect each frame with the star job's chain (jobs.kinds.star:
+    render_and_detect, smeared by the frame's true body rate) -> the tracker's state machine over the frames
+    (nav.sequence: lost-in-space, tracking, fallback, rates) -> errors per axis (nav.errors) -> Arrow rows
+
+One case is one sequence: one row per frame in ``star_frames`` and one row per sequence in ``star_sequences`` (the
+primary dataset; :mod:`dualsight.jobs.kinds.star_track_tables`).  Case ``i`` draws everything from
+``default_rng([seed, i])`` only, so a sequence never depends on its shard.
+
+Spec (TOML): the star job's layout and presets (``ideal``, ``paper``, ``realistic``: camera, catalog, sensor,
+detect, voting, robust; :mod:`dualsight.jobs.kinds.star`) plus::
+
+    [sequence]   ... (dualsight/config.py SequenceConfig: frames, fps, exposure_s, motion, rate_max_deg_s, ...)
+    [tracking]   ... (dualsight/config.py TrackingConfig: windows, lock rules)
+
+Lost-in-space is the star job's robust method (``[robust]``: its chance-match probability verifies a fix), or its
+reference method with ``compare_robust = false``.  The sequence's exposure replaces the sensor's.
+
+Smear: the renderer takes one body rate per call (``SensorConfig.rate_deg_s``), so frames are rendered in groups of
+equal true rate (a constant-rate sequence: one group; a slew or jitter: one frame per call), each smeared by its
+own instantaneous rate over the exposure (a straight chord, ``kernels/psf_models.py``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from dualsight.config import SequenceConfig, TrackingConfig, dataclass_from_table, dataclass_to_table
+from dualsight.errors import InputError
+from dualsight.jobs.engine.runner import prepare, run_job
+from dualsight.jobs.engine.specs import preset_and_config
+from dualsight.jobs.kinds import star
+from dualsight.jobs.kinds.star_track_tables import FRAMES_SCHEMA, SEQUENCES_SCHEMA, frames_table, sequence_row
+from dualsight.kernels.sensor_config import flux_from_magnitude
+from dualsight.nav.errors import axis_errors, total_error_angle
+from dualsight.nav.sequence import run_sequence
+from dualsight.scene.attitude import euler123_to_dcm
+from dualsight.scene.attitude_trajectory import (BLANK, BLINDED, DROPPED, add_jitter, constant_rate, eigenaxis_slew,
+                                                 gyro_rates, sinusoid_jitter)
+from dualsight.scene.rotation_vector import frame_rotation
+from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
+from dualsight.scene.units import ARCSEC, DEG
+
+NAME = "star_track"
+PRIMARY = "star_sequences"
+SCHEMAS = {"star_sequences": SEQUENCES_SCHEMA, "star_frames": FRAMES_SCHEMA}
+DEFAULT_CASES = 100
+
+PRESETS = {name: {**star.PRESETS[name], "cases": DEFAULT_CASES, "sequence": {}, "tracking": {}}
+           for name in ("ideal", "paper", "realistic")}
+"""The star job's presets (camera, catalog, sensor, detection, voting) with the default sequence and tracking."""
+
+
+@dataclass(frozen=True)
+class StarTrackSpec:
+    """A validated star-tracking campaign: the star job's spec (its sensor's exposure = the sequence's), the
+    sequence and the tracking options."""
+
+    star: star.StarSpec
+    sequence: SequenceConfig
+    tracking: TrackingConfig
+
+    @property
+    def seed(self) -> int:
+        return self.star.seed
+
+    def to_dict(self) -> dict:
+        return {**self.star.to_dict(), "sequence": dataclass_to_table(self.sequence),
+                "tracking": dataclass_to_table(self.tracking)}
+
+
+def spec_from_dict(d: dict, source: str = "spec") -> StarTrackSpec:
+    """Validate a spec dict (TOML layout); every error names ``source`` and the key."""
+    if not isinstance(d, dict):
+        raise InputError("a star-track spec must be a table", source=source)
+    seq = dataclass_from_table(SequenceConfig, d.get("sequence"), source=source, section="sequence")
+    trk = dataclass_from_table(TrackingConfig, d.get("tracking"), source=source, section="tracking")
+    sp = star.spec_from_dict({k: v for k, v in d.items() if k not in ("sequence", "tracking")}, source=source)
+    sp = dataclasses.replace(sp, sensor=dataclasses.replace(sp.sensor, exposure_s=seq.exposure_s))
+    return StarTrackSpec(sp, seq, trk)
+
+
+def resolve_spec(preset: str | None, config, *, seed: int | None = None, cases: int | None = None) -> tuple[dict, int]:
+    """The preset (default paper), the ``--config`` TOML over it and the flags, validated: (canonical spec dict,
+    number of cases)."""
+    d, source = preset_and_config(PRESETS, preset, config)
+    if seed is not None:
+        d["seed"] = seed
+    n = cases if cases is not None else d.get("cases", DEFAULT_CASES)
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1 or n > 10**9:
+        raise InputError(f"number of cases must be an integer in [1, 1e9], got {n!r}",
+                         source="--cases" if cases is not None else source)
+    spec = spec_from_dict(d, source=source)
+    return spec.to_dict(), int(n)
+
+
+@dataclass(frozen=True)
+class StarTrackRun:
+    """A star-tracking campaign resolved and identified but not yet run (:func:`plan_run`, :func:`start_run`)."""
+
+    spec: dict
+    n_cases: int
+    run_id: str
+    spec_hash: str
+    source: str
+
+
+def plan_run(preset: str | None = None, config: Path | str | dict | None = None, *, seed: int | None = None,
+             cases: int | None = None, run_id: str | None = None) -> StarTrackRun:
+    """Everything ``dualsight star track`` decides before the lake is touched: the spec, the run's identity and
+    its id (default ``star_track-<seed>-<cases>-<first 8 digits of the spec hash>``)."""
+    spec_dict, n = resolve_spec(preset, config, seed=seed, cases=cases)
+    source = (("config table" if isinstance(config, dict) else str(config)) if config is not None
+              else f"preset {preset or 'paper'}")
+    _, _, _, h = prepare(NAME, spec_dict, n, source=source)
+    return StarTrackRun(spec_dict, n, run_id or f"star_track-{spec_dict['seed']}-{n}-{h[:8]}", h, source)
+
+
+def start_run(plan: StarTrackRun, lake, *, workers: int | None = None, scheduler: str | None = None,
+              shard_size: int | None = None, progress: bool = True) -> dict:
+    """Run (or resume) a planned campaign into ``lake`` with the engine's ``run_job``; returns the manifest."""
+    return run_job(NAME, plan.spec, n_cases=plan.n_cases, lake=lake, run_id=plan.run_id, workers=workers,
+                   scheduler=scheduler, shard_size=shard_size, progress=progress, label=f"star track {plan.run_id}")
+
+
+def make_context(spec: StarTrackSpec) -> star.StarContext:
+    return star.make_context(spec.star)
+
+
+def memory_estimate(spec: StarTrackSpec) -> int:
+    """The star job's estimate (frames are rendered at most ``batch_size`` at a time)."""
+    return star.memory_estimate(spec.star)
+
+
+# ------------------------------------------------------------------------------------------ one sequence
+def draw_sequence(spec: StarTrackSpec, case_id: int) -> dict:
+    """Truth of sequence ``case_id`` from ``default_rng([seed, case_id])`` alone.
+
+    Returns dict: t (T,) s; A_true (T, 3, 3); omega (T, 3) rad/s true body rate; events (T,) int8
+    (``scene.attitude_trajectory.EVENT_NAMES``); gyro (T, 3) rad/s or None; motion str; rate_deg_s (peak rate);
+    noise_seeds (T,) uint64 per-frame sensor seeds.  Draw order: 3 Euler angles, motion choice, axis (3 normals),
+    rate or slew angle and start, jitter phases, gyro bias and noise, event frames, noise seeds.
+    """
+    seq = spec.sequence
+    rng = np.random.default_rng([spec.seed, int(case_id)])
+    T = seq.frames
+    t = np.arange(T) / seq.fps
+    A0 = euler123_to_dcm(rng.uniform(-np.pi, np.pi, 3)[None])[0]
+    motion = seq.motion if seq.motion != "mixed" else ("constant" if rng.random() < 0.5 else "slew")
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    if motion == "constant":
+        rate = rng.uniform(0.0, seq.rate_max_deg_s)
+        A, omega = constant_rate(t, A0, axis * rate * DEG)
+    else:
+        angle = rng.uniform(0.0, seq.slew_angle_max_deg) * DEG
+        t0 = rng.uniform(0.0, t[-1] / 3.0)
+        A1 = frame_rotation(axis * angle) @ A0
+        if seq.rate_max_deg_s > 0:
+            A, omega = eigenaxis_slew(t, A0, A1, seq.rate_max_deg_s * DEG, seq.slew_accel_deg_s2 * DEG, t0)
+        else:
+            A, omega = constant_rate(t, A0, np.zeros(3))
+        rate = min(seq.rate_max_deg_s, math.degrees(math.sqrt(angle * seq.slew_accel_deg_s2 * DEG)))
+    if seq.jitter_arcsec > 0:
+        d, dd = sinusoid_jitter(t, np.array([seq.jitter_freq_hz]), np.full((1, 3), seq.jitter_arcsec * ARCSEC), rng)
+        A, omega = add_jitter(A, omega, d, dd)
+    gyro = None
+    if seq.gyro:
+        bias = rng.normal(size=3) * seq.gyro_bias_deg_s * DEG
+        gyro, _ = gyro_rates(omega, 1.0 / seq.fps, rng, bias=bias, noise_rad_s=seq.gyro_noise_deg_s * DEG)
+    events = np.zeros(T, np.int8)
+    n_ev = seq.blank + seq.blinded + seq.dropped
+    if n_ev:
+        where = rng.choice(np.arange(1, T), size=n_ev, replace=False)
+        events[where] = np.repeat(np.array([BLANK, BLINDED, DROPPED], np.int8), [seq.blank, seq.blinded, seq.dropped])
+    noise = rng.integers(0, 2**63 - 1, size=T, dtype=np.int64).astype(np.uint64)
+    return {"t": t, "A_true": A, "omega": omega, "events": events, "gyro": gyro, "motion": motion,
+            "rate_deg_s": float(rate), "noise_seeds": noise}
+
+
+def _take(f: FieldStars, idx: np.ndarray) -> FieldStars:
+    return FieldStars(*(getattr(f, k.name)[idx] for k in dataclasses.fields(FieldStars)))
+
+
+def render_sequence(spec: StarTrackSpec, ctx: star.StarContext, draw: dict) -> dict:
+    """Render and detect every delivered frame of one sequence (the star job's ``render_and_detect``), in groups of
+    at most ``batch_size`` frames of one event kind and one true body rate (the smear).
+
+    Returns dict: xy (K, 2), sigma_px (K,) or None, offsets (T + 1,), n_generated (T,), digest (T,) int64 (0 for
+    dropped frames), t_render_ns, t_detect_ns (T,) int64 (the group's time shared equally; -1 where none).
+    """
+    sp, seq = spec.star, spec.sequence
+    cat = ctx.catalog
+    T = seq.frames
+    ev = draw["events"]
+    rates = np.degrees(draw["omega"]) if seq.smear else np.zeros((T, 3))
+    s_max = dataclasses.replace(sp.sensor, rate_deg_s=tuple(float(v) for v in rates[np.argmax(
+        np.linalg.norm(rates, axis=1))])) if seq.smear else sp.sensor
+    flux = flux_from_magnitude(cat.vmag.astype(np.float64), sp.sensor)
+    field = stars_in_field(draw["A_true"], cat.unit, flux, sp.camera, star.psf_margin_px(s_max, sp.camera, ctx.psf))
+    blank = ev == BLANK
+    field = dataclasses.replace(field, valid=field.valid & ~blank[:, None]) if blank.any() else field
+    per_frame = [None] * T
+    sig_frame = [None] * T
+    digest = np.zeros(T, np.int64)
+    t_r, t_d = np.full(T, -1, np.int64), np.full(T, -1, np.int64)
+    keys = np.concatenate([ev[:, None].astype(np.float64), rates], axis=1)
+    todo = np.flatnonzero(ev != DROPPED)
+    _, group = np.unique(keys[todo], axis=0, return_inverse=True)
+    has_sigma = False
+    for g in range(int(group.max()) + 1 if todo.size else 0):
+        frames = todo[group.reshape(-1) == g]
+        sensor = dataclasses.replace(sp.sensor, rate_deg_s=tuple(float(v) for v in rates[frames[0]]))
+        if ev[frames[0]] == BLINDED:            # the Sun or the Earth in the field: the background saturates
+            sensor = dataclasses.replace(sensor, sky_background_e=2.0 * sensor.full_well_e)
+        for s in range(0, len(frames), sp.batch_size):
+            fr = frames[s: s + sp.batch_size]
+            r = star.render_and_detect(_take(field, fr), draw["noise_seeds"][fr], sp.camera, sensor, sp.detect,
+                                       attitude=draw["A_true"][fr], detector=sp.detector, psf=ctx.psf)
+            det = r.detections
+            t_r[fr] = r.t_render_ns // len(fr)
+            if r.t_detect_ns is not None:
+                t_d[fr] = r.t_detect_ns // len(fr)
+            digest[fr] = np.asarray(r.digest).view(np.int64) if r.digest is not None else 0
+            for j, k in enumerate(fr):
+                a, b = int(det.offsets[j]), int(det.offsets[j + 1])
+                per_frame[k] = np.stack([det.x[a:b], det.y[a:b]], axis=1)
+                if det.sigma_px is not None:
+                    has_sigma = True
+                    sig_frame[k] = np.asarray(det.sigma_px[a:b], np.float64)
+    counts = np.array([0 if p is None else len(p) for p in per_frame], np.int64)
+    off = np.concatenate([[0], np.cumsum(counts)])
+    xy = np.concatenate([p for p in per_frame if p is not None] or [np.zeros((0, 2))])
+    sigma = None
+    if has_sigma:
+        sigma = np.concatenate([s if s is not None else np.full(c, np.nan) for s, c in zip(sig_frame, counts)]
+                               or [np.zeros(0)])
+        # the star job's weights: the detector's Cramér-Rao bound with a 0.02 px floor for the PSF model's error
+        sigma = np.sqrt(sigma ** 2 + 0.02 ** 2)
+    return {"xy": xy, "sigma_px": sigma, "offsets": off, "n_generated": np.asarray(field.n_generated, np.int32),
+            "digest": digest, "t_render_ns": t_r, "t_detect_ns": t_d}
+
+
+def compute_sequence(spec: StarTrackSpec, ctx: star.StarContext, case_id: int) -> dict:
+    """Draw, render, track and score one sequence; returns dict(draw, rendered, result, err (T, 3) rad,
+    total_err (T,) rad, valid (T,), within (T,), t_sample_ns, frames table, sequence row)."""
+    seq, sp = spec.sequence, spec.star
+    c0 = time.perf_counter_ns()
+    draw = draw_sequence(spec, case_id)
+    t_sample = time.perf_counter_ns() - c0
+    r = render_sequence(spec, ctx, draw)
+    cat = ctx.catalog
+    voting = sp.robust if sp.robust is not None else sp.voting
+    res = run_sequence(draw["t"], r["xy"], r["sigma_px"], r["offsets"], sp.camera, cat.unit, ctx.index, voting,
+                       spec.tracking, available=draw["events"] != DROPPED, gyro=draw["gyro"],
+                       gyro_sigma_rad_s=math.hypot(seq.gyro_noise_deg_s, seq.gyro_bias_deg_s) * DEG,
+                       cat_vmag=cat.vmag, max_coast_frames=seq.max_coast_frames, lis_min_stars=seq.lis_min_stars,
+                       shadow_lis=seq.shadow_lost_in_space)
+    err = axis_errors(res.A, draw["A_true"], frame=sp.error_frame)
+    tot = total_error_angle(res.A, draw["A_true"])
+    valid = res.mode != 0
+    lim = seq.error_limit_arcsec * ARCSEC
+    with np.errstate(invalid="ignore"):
+        within = valid & np.all(np.abs(err) <= lim, axis=1) & (tot <= math.sqrt(3.0) * lim)
+    out = {"draw": draw, "rendered": r, "result": res, "err": err, "total_err": tot, "valid": valid,
+           "within": within, "t_sample_ns": t_sample}
+    out["frames"] = frames_table(case_id, spec, out)
+    out["sequence"] = sequence_row(case_id, spec, out)
+    return out
+
+
+def compute_shard(spec: StarTrackSpec, case_ids: np.ndarray, ctx: star.StarContext) -> dict[str, pa.Table]:
+    """The engine's contract: one ``star_sequences`` row and ``frames`` ``star_frames`` rows per case."""
+    frames, rows = [], []
+    for i in np.asarray(case_ids, np.int64):
+        o = compute_sequence(spec, ctx, int(i))
+        frames.append(o["frames"])
+        rows.append(o["sequence"])
+    seqs = pa.Table.from_pylist(rows, schema=SEQUENCES_SCHEMA) if rows else SEQUENCES_SCHEMA.empty_table()
+    fr = pa.concat_tables(frames) if frames else FRAMES_SCHEMA.empty_table()
+    return {"star_sequences": seqs, "star_frames": fr}
+
+
+def shard_summary(tables: dict[str, pa.Table]) -> dict:
+    f = tables["star_frames"]
+    mode = f.column("mode").to_numpy(zero_copy_only=False)
+    within = f.column("within_limit").to_numpy(zero_copy_only=False)
+    return {"frames": int(f.num_rows), "available": int(np.sum(within == True)),  # noqa: E712 (nulls)
+            "tracking": int(np.sum(mode == "tracking")),
+            "false_locks": int(np.sum(f.column("false_lock").to_numpy(zero_copy_only=False) == True))}  # noqa: E712
+
+
+def progress_postfix(stats: dict) -> str:
+    n = stats.get("frames", 0)
+    if not n:
+        return ""
+    return (f"available {100 * stats.get('available', 0) / n:.1f}%, tracking {100 * stats.get('tracking', 0) / n:.1f}%, "
+            f"false locks {stats.get('false_locks', 0)}")
