@@ -32,6 +32,7 @@ from dualsight.jobs.cli import hil_star as cli_hil_star
 from dualsight.jobs.cli import nightly as cli_nightly
 from dualsight.jobs.cli import peer as cli_peer
 from dualsight.jobs.cli import prox as cli_prox
+from dualsight.jobs.cli import star_track as cli_star_track
 from dualsight.jobs.cli.args import Parser, add_lake_arg, add_run_args, latest_run, open_lake, positive_int, run_id_arg
 from dualsight.jobs.engine.errors import Interrupted
 from dualsight.version import __version__
@@ -40,6 +41,7 @@ from dualsight.warehouse.paths import os_error_text
 # The one table from commands to job kinds (jobs/engine/runner.py JOB_KINDS maps kinds to modules).
 COMMAND_KINDS = {
     ("star", "run"): "star",
+    ("star", "track"): "star_track",
     ("prox", "sweep"): "prox_sweep",
     ("prox", "trajectory"): "prox_trajectory",
     ("hil", "star"): "hil_star",
@@ -73,6 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--case", type=positive_int(0, 10**9), required=True)
     p.add_argument("-o", "--output", type=Path, default=None, help="recording file (default: <run>-case<I>.rrd)")
     p.set_defaults(func=cmd_star_replay)
+    cli_star_track.register(ssub)
     star.set_defaults(func=lambda a: _help(star))
 
     for register in (cli_prox.register, cli_hil_star.register, cli_calibrate.register_calibrate, cli_nightly.register,
