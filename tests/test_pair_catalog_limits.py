@@ -94,11 +94,10 @@ def test_estimate_against_the_real_builds(mag, theta_deg, tol, tmp_path):
     assert est.mag_limit == mag and est.field_deg == pytest.approx(theta_deg)
 
 
-def test_estimate_is_cheap_on_the_largest_catalog():
+def test_estimate_of_the_hostile_field():
+    """Its time is benchmarks/bench_pair_estimate.py's (0.2-0.3 s at V 8), not a test's."""
     cat = load_star_catalog(StarCatalogConfig(mag_limit=8.0))
-    t0 = time.perf_counter()
     est = estimate_pairs(cat.unit, math.radians(173.5), 8.0)
-    assert time.perf_counter() - t0 < 3.0
     # nearly every pair of the sky: N (N - 1) / 2 x (1 - cos 173.5) / 2 for a uniform sky, within 1 %
     n = len(cat)
     assert est.pairs == pytest.approx(n * (n - 1) / 2 * (1 - math.cos(math.radians(173.5))) / 2, rel=0.01)
@@ -156,7 +155,7 @@ def test_hostile_camera_is_refused_in_one_line_fast(tmp_path, cache):
     assert line.startswith(f"dualsight: error: {cam}: the pair catalog of a 173.5 deg field"), line
     for part in ("to V 8 (41,4", "pairs", "GB on disk", "to build", "--mag-limit", "DUALSIGHT_MAX_PAIR_GB="):
         assert part in line, (part, line)
-    assert float(secs) < 15 and int(rss_kb) < 1 << 20            # seconds, and under 1 GiB peak RSS
+    assert float(secs) < 15 and int(rss_kb) < 1 << 20    # the issue's bound: seconds (a hang guard), < 1 GiB RSS
     assert not lake.exists()
     left = sorted(p.name for p in cache.iterdir()) if cache.exists() else []
     assert not [n for n in left if "pairs" in n], left           # no pair catalog, no build folder, no lock
