@@ -23,6 +23,8 @@ Spec (TOML; every table optional, defaults = preset ``paper``)::
     [detect]   ... (kernels/detect.py DetectConfig)
     [voting]   ... (nav/starid.py VotingConfig; angles as *_arcsec)
     [robust]   ... (the same keys, for the robust method)
+    [target]   ... (dualsight/config.py TargetConfig: a spacecraft in the field, issue 23; absent = none, and the
+                   run is exactly the run of the same spec before [target] existed, with the target columns null)
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ from dualsight.errors import ConfigError, InputError
 from dualsight.jobs.kinds import star_summaries
 from dualsight.jobs.kinds.star_tables import CASES_SCHEMA, DETECTIONS_SCHEMA, cases_table, detections_table
 from dualsight.jobs.engine.runner import prepare, run_job
-from dualsight.config import dataclass_from_table, dataclass_to_table, validate
+from dualsight.config import TargetConfig, dataclass_from_table, dataclass_to_table, validate
 from dualsight.jobs.engine.specs import preset_and_config
 from dualsight.kernels import detect as kdetect
 from dualsight.kernels import starfield as kstar
@@ -51,16 +53,21 @@ from dualsight.kernels.detect import DetectConfig
 from dualsight.kernels.digest import frame_digest_taichi
 from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
 from dualsight.nav.errors import STATUS_NAMES
-from dualsight.nav.observations import observations
+from dualsight.nav.resolved_blobs import excluded_blobs, star_blob_limit, without_excluded
+from dualsight.nav.observations import observations, ragged_rank
 from dualsight.nav.pair_index import VotingIndex
 from dualsight.nav.star_solution import centroid_weights, identify, solve
 from dualsight.nav.truth_match import match_truth
 from dualsight.nav.voting_config import VotingConfig
-from dualsight.scene.attitude import euler123_to_dcm, quat_to_dcm, quaternions_from_uniforms
+from dualsight.scene.attitude import euler123_to_dcm, quat_to_dcm, quaternions_from_uniforms, unit_to_radec
 from dualsight.scene.camera import Camera
 from dualsight.scene.case_rng import streams as case_streams
 from dualsight.scene.psf_file import sensor_psf, with_psf_digest
+from dualsight.scene.satellite import load_satellite
 from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
+from dualsight.scene.target_in_field import (MAX_WINDOW_PX, TargetFrame, diameter_px, draw_targets, target_frames,
+                                             with_target)
+from dualsight.scene.target_photometry import target_shape
 
 NAME = "star"
 PRIMARY = "star_cases"
@@ -134,14 +141,18 @@ class StarSpec:
     error_frame: Literal["camera", "inertial"] = "camera"
     detector: Literal["global", "local"] = "global"     # "auto" in a TOML is resolved by auto_detector()
     source: str = field(default="defaults", compare=False)
+    target: TargetConfig | None = None                  # issue 23: a spacecraft in the field
 
     def to_dict(self) -> dict:
-        return {"seed": self.seed, "batch_size": self.batch_size, "attitudes": self.attitudes,
-                "error_frame": self.error_frame, "detector": self.detector, "camera": self.camera.to_dict(),
-                "catalog": dataclass_to_table(self.catalog), "sensor": _sensor_table(self.sensor),
-                "detect": dataclass_to_table(self.detect), "voting": dataclass_to_table(self.voting),
-                "compare_robust": self.robust is not None,
-                "robust": dataclass_to_table(self.robust) if self.robust is not None else {}}
+        d = {"seed": self.seed, "batch_size": self.batch_size, "attitudes": self.attitudes,
+             "error_frame": self.error_frame, "detector": self.detector, "camera": self.camera.to_dict(),
+             "catalog": dataclass_to_table(self.catalog), "sensor": _sensor_table(self.sensor),
+             "detect": dataclass_to_table(self.detect), "voting": dataclass_to_table(self.voting),
+             "compare_robust": self.robust is not None,
+             "robust": dataclass_to_table(self.robust) if self.robust is not None else {}}
+        if self.target is not None:      # only then: the canonical spec of a run without a target is unchanged
+            d["target"] = {k: v for k, v in dataclass_to_table(self.target).items() if v is not None}
+        return d
 
 
 def _sensor_table(sensor: SensorConfig) -> dict:
@@ -172,6 +183,7 @@ class StarTable(BaseModel):
     detect: dict = {}
     voting: dict = {}
     robust: dict = {}
+    target: dict | None = None
 
 
 def spec_from_dict(d: dict, source: str = "spec") -> StarSpec:
@@ -188,9 +200,25 @@ def spec_from_dict(d: dict, source: str = "spec") -> StarSpec:
     robust = (dataclass_from_table(VotingConfig, d.get("robust"), source=source, section="robust",
                                    base=VotingConfig.robust(tolerance_rad=voting.tolerance_rad))
               if cmp_ else None)
+    target = target_from_table(d.get("target"), camera, source) if top.target is not None else None
     return StarSpec(camera=camera, catalog=catalog, sensor=sensor, detect=detect, voting=voting, robust=robust,
                     seed=int(seed), batch_size=int(bs), attitudes=att, error_frame=frame,
-                    detector=auto_detector(sensor) if top.detector == "auto" else top.detector, source=source)
+                    detector=auto_detector(sensor) if top.detector == "auto" else top.detector, source=source,
+                    target=target)
+
+
+def target_from_table(table: dict, camera: Camera, source: str) -> TargetConfig:
+    """The ``[target]`` table validated (``TargetConfig``), its satellite file read and checked
+    (``scene/satellite.load_satellite``: errors name that file and key), and its nearest range checked against the
+    largest window a resolved target may take (``scene/target_in_field.MAX_WINDOW_PX``)."""
+    cfg = dataclass_from_table(TargetConfig, table, source=source, section="target")
+    sat = load_satellite(cfg.satellite)
+    diam = float(diameter_px(target_shape(sat.components).bounding_radius, cfg.range_m[0], camera))
+    if diam > MAX_WINDOW_PX - 8:
+        raise ConfigError(f"the target ({cfg.satellite}) is {diam:.0f} px across at {cfg.range_m[0]:g} m; the "
+                          f"nearest range must keep it under {MAX_WINDOW_PX - 8} px",
+                          source=source, field="target.range_m")
+    return cfg
 
 
 def auto_detector(sensor: SensorConfig) -> Literal["global", "local"]:
@@ -293,6 +321,9 @@ class StarContext:
     pairs: object
     index: object
     psf: np.ndarray | None = None
+    target_sat: object = None          # with [target]: its SatelliteConfig ...
+    target_shape: object = None        # ... its photometric elements (scene/target_photometry.TargetShape) ...
+    star_blob_limit: int | None = None  # ... and the most pixels a star's blob may have (nav/resolved_blobs.py)
 
 
 def pair_angle(camera: Camera) -> float:
@@ -304,7 +335,32 @@ def make_context(spec: StarSpec) -> StarContext:
     cat = load_star_catalog(spec.catalog)
     pairs = load_pair_catalog(cat, pair_angle(spec.camera))
     psf = sensor_psf(spec.sensor, error=lambda msg: ConfigError(msg, source=spec.source, field="sensor"))
-    return StarContext(cat, pairs, VotingIndex.load_or_build(pairs), psf)
+    if spec.target is None:
+        return StarContext(cat, pairs, VotingIndex.load_or_build(pairs), psf)
+    sat = load_satellite(spec.target.satellite)
+    return StarContext(cat, pairs, VotingIndex.load_or_build(pairs), psf, sat, target_shape(sat.components),
+                       brightest_star_blob_limit(spec, float(np.min(cat.vmag)), psf))
+
+
+BLOB_PROBES = 8
+"""Sub-pixel positions at which :func:`brightest_star_blob_limit` renders the brightest star."""
+
+
+def brightest_star_blob_limit(spec: StarSpec, vmag: float, psf: np.ndarray | None = None) -> int:
+    """The most pixels a star's blob may have under this spec (``nav/resolved_blobs.star_blob_limit``): a star of
+    ``vmag`` (the catalog's brightest) rendered alone at :data:`BLOB_PROBES` sub-pixel positions near the image
+    centre through the spec's own sensor and detector (noise seeds 1..n), its largest blob measured."""
+    cam, n = spec.camera, BLOB_PROBES
+    k = np.arange(n)
+    x = (cam.width // 2 + (k % 4) / 4.0 + 0.125)[:, None]
+    y = (cam.height // 2 + (k // 4) / 2.0 + 0.25)[:, None]
+    flux = np.full((n, 1), float(flux_from_magnitude(vmag, spec.sensor)), np.float32)
+    one = np.ones((n, 1), bool)
+    fs = FieldStars(x, y, flux, one, np.zeros((n, 1), np.int64), one, np.ones(n, np.int64))
+    r = render_and_detect(fs, np.arange(1, n + 1, dtype=np.uint64), cam, spec.sensor, spec.detect,
+                          attitude=np.tile(np.eye(3), (n, 1, 1)), detector=spec.detector, psf=psf)
+    npix = r.detections.npix
+    return star_blob_limit(npix if len(npix) else np.ones(1))
 
 
 # ------------------------------------------------------------------------------------------ cases
@@ -459,14 +515,23 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
     flux = flux_from_magnitude(cat.vmag.astype(np.float64), spec.sensor)
     field_ = stars_in_field(draw["A_true"], cat.unit, flux, spec.camera,
                             psf_margin_px(spec.sensor, spec.camera, ctx.psf))
+    render_field, tcases, tf = field_, None, None
+    if spec.target is not None:      # issue 23: the target's light joins the stars', the stars behind it dim
+        tcases = draw_targets(spec.target, spec.seed, case_ids, draw["A_true"], spec.camera)
+        tf = target_frames(spec.target, ctx.target_sat, ctx.target_shape, tcases, field_, spec.camera, spec.sensor)
+        render_field, field_ = with_target(field_, tf)
     t["sample"] = time.perf_counter_ns() - t0
 
-    r = render_and_detect(field_, draw["noise_seed"], spec.camera, spec.sensor, spec.detect, keep_images=keep_images,
-                          attitude=draw["A_true"], detector=spec.detector, psf=ctx.psf)
+    r = render_and_detect(render_field, draw["noise_seed"], spec.camera, spec.sensor, spec.detect,
+                          keep_images=keep_images, attitude=draw["A_true"], detector=spec.detector, psf=ctx.psf)
     t["render"], t["detect"] = r.t_render_ns, r.t_detect_ns
 
     t1 = time.perf_counter_ns()
     obs = observations(r.detections, B, spec.camera)
+    excluded = None
+    if spec.target is not None and spec.target.exclude_resolved:   # blobs no star can make never vote
+        excluded = excluded_blobs(r.detections.npix, ctx.star_blob_limit)
+        obs = without_excluded(obs, r.detections.case, r.detections.offsets, excluded)
     # the reference's method: its chance probability is not stored (p_chance is the robust method's)
     ident = identify(obs, cat.unit, ctx.index, spec.voting, cat_vmag=cat.vmag, chance=False)
     t["identify"] = time.perf_counter_ns() - t1
@@ -487,11 +552,67 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
 
     truth = match_truth(r.detections, field_, obs, cat.hip)
     per_case = {k: (np.full(B, v // max(B, 1), dtype=np.int64) if v is not None else None) for k, v in t.items()}
+    tcols = target_columns(tcases, tf, r.detections, obs, ident, alt, excluded) if tf is not None else None
     tables = {"star_cases": cases_table(case_ids, spec, draw, field_, r.detections, obs, ident, sol, truth, per_case,
-                                        alt, r.digest),
-              "star_detections": detections_table(case_ids, r.detections, obs, ident, sol, truth, ctx.catalog)}
+                                        alt, r.digest, target=tcols[0] if tcols else None),
+              "star_detections": detections_table(case_ids, r.detections, obs, ident, sol, truth, ctx.catalog,
+                                                  target=tcols[1] if tcols else None)}
     return {"draw": draw, "field": field_, "rendered": r, "obs": obs, "ident": ident, "sol": sol, "alt": alt,
-            "truth": truth, "tables": tables}
+            "truth": truth, "tables": tables, "target": tf, "target_cases": tcases, "excluded": excluded}
+
+
+def target_detection(det, tf: TargetFrame) -> np.ndarray:
+    """(B,) int64 index (into the batch's detections) of the detection nearest each case's target centre of
+    brightness within ``max(3, diameter / 2 + 3)`` px, -1 where none (or no target)."""
+    B = len(tf.present)
+    case = np.asarray(det.case, np.int64)
+    d2 = (det.x - tf.cob_x_px[case]) ** 2 + (det.y - tf.cob_y_px[case]) ** 2
+    rad = np.maximum(3.0, 0.5 * tf.diameter_px + 3.0)
+    k = np.flatnonzero(tf.present[case] & (d2 <= rad[case] ** 2))
+    k = k[np.lexsort((d2[k], case[k]))]
+    out = np.full(B, -1, np.int64)
+    first = np.unique(case[k], return_index=True)[1]
+    out[case[k[first]]] = k[first]
+    return out
+
+
+def target_columns(tcases, tf: TargetFrame, det, obs, ident, alt, excluded) -> tuple[dict, dict]:
+    """The target columns of ``star_cases`` and ``star_detections`` (jobs/kinds/star_tables.py
+    TARGET_CASE_FIELDS, TARGET_DETECTION_FIELDS) of a batch."""
+    B, K = len(tf.present), len(det.x)
+    kt = target_detection(det, tf)
+    has = kt >= 0
+    kk = np.maximum(kt, 0)
+    _, rank = ragged_rank(det.case, det.offsets)
+    S = obs.valid.shape[1]
+    b = np.arange(B)
+    rk = rank[kk] if K else np.zeros(B, np.int64)
+    in_obs = has & (rk < S)
+    slot = np.where(in_obs, rk, 0)
+    voted = in_obs & obs.valid[b, slot]
+    acc = lambda idn: voted & idn.accepted[b, slot] & (idn.ids[b, slot] >= 0)  # noqa: E731
+    exc = np.zeros(K, bool) if excluded is None else np.asarray(excluded, bool)
+    masked = lambda v: pa.array(v, mask=~has)  # noqa: E731
+    ra, dec = unit_to_radec(tcases.sun_icrs)
+    pres = tf.present
+    cases = {
+        "target_present": pres, "target_vmag": tf.vmag, "target_electrons": tf.electrons,
+        "target_range_m": tcases.range_m, "target_phase_rad": tcases.phase_rad,
+        "target_x_px": tf.x_px, "target_y_px": tf.y_px, "target_cob_x_px": tf.cob_x_px, "target_cob_y_px": tf.cob_y_px,
+        "target_resolved": tf.resolved, "target_diameter_px": tf.diameter_px, "target_area_px": tf.area_px,
+        "target_pixels": pa.array(tf.pixels.astype(np.int32), mask=tf.pixels < 0),
+        "target_det_x_px": masked(det.x[kk] if K else np.zeros(B)),
+        "target_det_y_px": masked(det.y[kk] if K else np.zeros(B)),
+        "target_det_npix": masked((det.npix[kk] if K else np.zeros(B)).astype(np.int32)),
+        "target_excluded": masked(exc[kk] if K else np.zeros(B, bool)),
+        "target_voted": voted, "target_id_accepted": acc(ident),
+        "target_id_accepted_robust": acc(alt[0]) if alt is not None else pa.nulls(B, pa.bool_()),
+        "n_excluded": np.bincount(np.asarray(det.case, np.int64)[exc], minlength=B).astype(np.int32),
+        "sun_ra_rad": ra, "sun_dec_rad": dec, "sun_angle_rad": tf.sun_angle_rad, "sun_keepout": tf.sun_keepout,
+    }
+    is_t = np.zeros(K, bool)
+    is_t[kt[has]] = True
+    return cases, {"is_target": is_t, "excluded": exc}
 
 
 # ------------------------------------------------------------------------------------------ tables

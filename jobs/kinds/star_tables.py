@@ -12,11 +12,38 @@ from dualsight.nav.errors import STATUS_NAMES
 from dualsight.nav.observations import ragged_rank
 from dualsight.scene.attitude import boresight_radec
 
-__all__ = ["CASES_SCHEMA", "DETECTIONS_SCHEMA", "cases_table", "detections_table"]
+__all__ = ["CASES_SCHEMA", "DETECTIONS_SCHEMA", "TARGET_CASE_FIELDS", "TARGET_DETECTION_FIELDS", "cases_table",
+           "detections_table"]
 
 
 # ------------------------------------------------------------------------------------------ tables
 _MAT9 = pa.list_(pa.float64(), 9)
+
+TARGET_CASE_FIELDS = [
+    ("target_present", pa.bool_()),            # the case has a target in its field (and it is lit)
+    ("target_vmag", pa.float64()),             # apparent V magnitude (scene/target_photometry.py)
+    ("target_electrons", pa.float64()),        # e- per exposure on the stars' zero point
+    ("target_range_m", pa.float64()), ("target_phase_rad", pa.float64()),
+    ("target_x_px", pa.float64()), ("target_y_px", pa.float64()),           # projection of the body origin
+    ("target_cob_x_px", pa.float64()), ("target_cob_y_px", pa.float64()),   # of the photometric centre of brightness
+    ("target_resolved", pa.bool_()), ("target_diameter_px", pa.float64()),  # bounding sphere's apparent diameter
+    ("target_area_px", pa.float64()),          # projected area (px^2)
+    ("target_pixels", pa.int32()),             # pixels it covers (resolved targets; null for a point)
+    ("target_det_x_px", pa.float64()), ("target_det_y_px", pa.float64()),   # its detection (null: none)
+    ("target_det_npix", pa.int32()),
+    ("target_excluded", pa.bool_()),           # its blob was kept out of identification (nav/resolved_blobs.py)
+    ("target_voted", pa.bool_()),              # its detection went to identification as an observation
+    ("target_id_accepted", pa.bool_()),        # the reference's method accepted a catalog identity for it
+    ("target_id_accepted_robust", pa.bool_()),  # the robust method did
+    ("n_excluded", pa.int32()),                # blobs kept out of identification as larger than any star's
+    ("sun_ra_rad", pa.float64()), ("sun_dec_rad", pa.float64()),
+    ("sun_angle_rad", pa.float64()),           # Sun from the boresight
+    ("sun_keepout", pa.bool_()),               # inside the [target] sun_keepout_deg cone
+]
+TARGET_DETECTION_FIELDS = [
+    ("is_target", pa.bool_()),                 # the detection nearest the target's centre of brightness
+    ("excluded", pa.bool_()),                  # kept out of identification (a blob larger than any star's)
+]
 
 CASES_SCHEMA = pa.schema([
     ("case_id", pa.int64()), ("seed", pa.int64()), ("attitude_model", pa.string()),
@@ -36,6 +63,9 @@ CASES_SCHEMA = pa.schema([
     ("t_sample_ns", pa.int64()), ("t_render_ns", pa.int64()), ("t_detect_ns", pa.int64()),
     ("t_identify_ns", pa.int64()), ("t_attitude_ns", pa.int64()), ("t_robust_ns", pa.int64()),
     ("t_total_ns", pa.int64()),
+    # issue 23: a target in the field (null in every row of a run without [target]); appended, so every column
+    # above keeps its place and meaning
+    *TARGET_CASE_FIELDS,
 ])
 
 DETECTIONS_SCHEMA = pa.schema([
@@ -44,12 +74,16 @@ DETECTIONS_SCHEMA = pa.schema([
     ("used", pa.bool_()), ("votes", pa.int32()), ("verify_votes", pa.int32()), ("accepted", pa.bool_()),
     ("hip_assigned", pa.int32()), ("hip_true", pa.int32()), ("true_dist_px", pa.float64()),
     ("residual_rad", pa.float64()),
+    *TARGET_DETECTION_FIELDS,
 ])
 
 
 
 
-def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, alt=None, det_digest=None) -> pa.Table:
+def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, alt=None, det_digest=None,
+                target: dict | None = None) -> pa.Table:
+    """``star_cases`` rows of a batch; ``target``: the columns of :data:`TARGET_CASE_FIELDS` as (B,) arrays
+    (None: a run without a target, all null)."""
     B = len(case_ids)
     ra_t, dec_t = boresight_radec(draw["A_true"])
     ra_e, dec_e = boresight_radec(sol.A_est)
@@ -88,6 +122,7 @@ def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, al
         "t_sample_ns": t["sample"], "t_render_ns": t["render"], "t_detect_ns": t["detect"] if t["detect"] is not None else [None] * B,
         "t_identify_ns": t["identify"], "t_attitude_ns": t["attitude"],
         "t_robust_ns": t["robust"] if t.get("robust") is not None else [None] * B, "t_total_ns": total,
+        **{name: (target[name] if target is not None else pa.nulls(B, type=typ)) for name, typ in TARGET_CASE_FIELDS},
     }
     return pa.table({k: pa.array(v, type=CASES_SCHEMA.field(k).type)
                      if k not in ("A_true", "A_est") and not isinstance(v, pa.Array) else v
@@ -99,7 +134,9 @@ def _mat9(A: np.ndarray) -> pa.FixedSizeListArray:
     return pa.FixedSizeListArray.from_arrays(pa.array(flat), 9)
 
 
-def detections_table(case_ids, det, obs, ident, sol, truth, catalog) -> pa.Table:
+def detections_table(case_ids, det, obs, ident, sol, truth, catalog, target: dict | None = None) -> pa.Table:
+    """``star_detections`` rows of a batch; ``target``: the columns of :data:`TARGET_DETECTION_FIELDS` as (K,)
+    arrays (None: a run without a target, all null)."""
     case_local, rank = ragged_rank(det.case, det.offsets)
     S = obs.valid.shape[1]
     used = rank < S
@@ -115,7 +152,10 @@ def detections_table(case_ids, det, obs, ident, sol, truth, catalog) -> pa.Table
         "accepted": pick(ident.accepted, False), "hip_assigned": hip_assigned.astype(np.int32),
         "hip_true": truth.hip_true.astype(np.int32), "true_dist_px": truth.dist_px,
         "residual_rad": pick(sol.residual, np.nan),
+        **{name: (target[name] if target is not None else pa.nulls(len(det.x), type=typ))
+           for name, typ in TARGET_DETECTION_FIELDS},
     }
-    t = pa.table({k: pa.array(v, type=DETECTIONS_SCHEMA.field(k).type) for k, v in cols.items()},
+    t = pa.table({k: pa.array(v, type=DETECTIONS_SCHEMA.field(k).type) if not isinstance(v, pa.Array) else v
+                  for k, v in cols.items()},
                  schema=DETECTIONS_SCHEMA)
     return t
