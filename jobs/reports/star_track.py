@@ -43,10 +43,13 @@ def build(lake: Lake, run_id: str) -> dict:
     lis_ms = by_mode.get("lost_in_space", {}).get("lost_in_space_ms")
     shadow_ms = trk.get("shadow_lost_in_space_ms")
     speedup = (shadow_ms / trk["ms_per_frame"]) if shadow_ms and trk.get("ms_per_frame") else None
+    core = (trk.get("predict_ms") or 0.0) + (trk.get("track_ms") or 0.0)
+    speedup_core = (shadow_ms / core) if shadow_ms and core else None
     js = {
         "run": run_id, **{k: (float(v) if isinstance(v, float) else v) for k, v in s.items()},
         "false_locks_per_frame": s["false_locks"] / s["frames"],
         "tracking_speedup_same_frames": speedup,
+        "tracking_speedup_same_frames_without_rates": speedup_core,
         "lost_in_space_ms_acquisition_frames": lis_ms,
         "modes": modes,
         "reasons": [dict(zip(tables["star_track_reasons"][0], r)) for r in tables["star_track_reasons"][1]],
@@ -67,7 +70,7 @@ def _verdict(ok) -> str:
 
 def text(rep: dict) -> str:
     j = rep["json"]
-    sp = j["tracking_speedup_same_frames"]
+    sp, spc = j["tracking_speedup_same_frames"], j["tracking_speedup_same_frames_without_rates"]
     r3 = j["rate_att_within_3sigma"]
     rows = [
         ["availability (valid, within the limit), all frames", percent(j["availability"]), "", ""],
@@ -79,11 +82,14 @@ def text(rep: dict) -> str:
          f"{percent(j['blinded_reacquired_within_2'])} of {j['blinded_frames']}", "100 %",
          _verdict(None if j["blinded_reacquired_within_2"] is None else j["blinded_reacquired_within_2"] >= 1.0)],
         ["false locks", f"{j['false_locks']} in {j['frames']:,} frames", "0 in 10^5",
-         _verdict(j["false_locks"] == 0)],
+         "NOT met" if j["false_locks"] else ("met" if j["frames"] >= 100_000 else "too few frames")],
         ["rate (from attitudes) within 3 stated sigmas", "-" if r3 is None else percent(r3), ">= 99 %",
          _verdict(None if r3 is None else r3 >= TARGETS["rate_within_3sigma"])],
-        ["tracking speed-up on the same frames", "-" if sp is None else f"{sp:.1f}x", ">= 10x",
-         _verdict(None if sp is None else sp >= TARGETS["tracking_speedup"])],
+        ["tracking speed-up on the same frames (mean ms; whole tracker incl. rates)",
+         "-" if sp is None else f"{sp:.1f}x", ">= 10x", _verdict(None if sp is None else sp >= TARGETS["tracking_speedup"])],
+        ["  the same, predict + match + solve + verify only",
+         "-" if spc is None else f"{spc:.1f}x", ">= 10x",
+         _verdict(None if spc is None else spc >= TARGETS["tracking_speedup"])],
     ]
     lines = [
         f"star-tracking run {j['run']}: {j['sequences']} sequences, {j['frames']:,} frames "
