@@ -229,9 +229,15 @@ def test_hil_star_over_many_bad_images_names_five_and_says_where_the_rest_are(tm
     folder = _bad_images(tmp_path / "frames")
     lake = ["--lake", str(tmp_path / "lake")] if keep else ["--no-lake"]
     assert main(["hil", "star", str(folder), "--camera", str(CAMERA), "--no-progress", *lake]) == 1
-    err = capsys.readouterr().err.splitlines()
+    cap = capsys.readouterr()
+    err = cap.err.splitlines()
     skipped = [x for x in err if "skipped" in x]
     assert len(skipped) == 6
+    # the report prints the summary lines of the first 20 images and says where the other 10 are; the table
+    # below it has one row per image
+    assert [x.split(":")[0] for x in cap.out.splitlines() if ": ERROR " in x] == [f"img{i:02d}.png" for i in range(20)]
+    assert "of 10 more images: --json" in cap.out
+    assert sum(1 for x in cap.out.splitlines() if x.lstrip().startswith("img")) == 20 + 30
     assert all(x.startswith(f"dualsight: {folder / f'img{i:02d}.png'}: ") and
                x.endswith("; skipped, the other images go on") for i, x in enumerate(skipped[:5]))
     assert skipped[5].startswith("dualsight: 25 more images skipped (30 in all); every image's reason: ")

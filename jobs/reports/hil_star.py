@@ -129,6 +129,10 @@ def table6_text(rows: list[dict], max_rows: int | None = None) -> str:
     return format_table(cols, out)
 
 
+DETAIL_IMAGES = 20
+"""Images whose summary line and Table 6 the text report prints (the per-image table lists every image)."""
+
+
 def text_report(con, run_id: str, docs: list[dict], settings, camera=None) -> str:
     """Header, per image its summary line and Table 6, then the per-image table (all from the SQL reports).
     With ``camera`` the header says what the catalog depth gives that field (catalogs/auto_limit.py)."""
@@ -147,11 +151,14 @@ def text_report(con, run_id: str, docs: list[dict], settings, camera=None) -> st
     for r in rows:
         d = dict(zip(cols, r))
         t6.setdefault(d["case_id"], []).append(d)
-    for k, j in enumerate(docs):
+    for k, j in enumerate(docs[:DETAIL_IMAGES]):
         out.append(summary_line(j))
         if t6.get(k):
             out.append(table6_text(t6[k]))
         out.append("")
+    if len(docs) > DETAIL_IMAGES:
+        out += [f"(the summary lines and Table 6 of {len(docs) - DETAIL_IMAGES:,} more images: --json, or dualsight "
+                f"sql \"SELECT * FROM hil_star_stars WHERE run = '{run_id}'\"; every image has its row below)", ""]
     cols, rows = run_report(con, "hil_star_images", run=run_id)
     keep = ["image", "status", "stars_detected", "stars_identified", "T", "ra_deg", "dec_deg", "roll_deg",
             "boresight_error_arcsec", "residual_median_arcsec", "alt_boresight_error_arcsec", "ms"]
