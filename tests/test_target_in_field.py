@@ -230,3 +230,23 @@ def test_electrons_are_the_stars_conversion(campaign):
     vm = np.array(tgt.column("target_vmag").to_pylist())
     e = np.array(tgt.column("target_electrons").to_pylist())
     np.testing.assert_allclose(e, flux_from_magnitude(vm, SensorConfig()), rtol=1e-12)
+
+
+def test_campaign_bearing_rows(campaign):
+    """The target's inertial bearing in the rows: present wherever the robust method solved and the target was
+    detected; for point-like targets the median error against the true centre of brightness is a few arcsec
+    (noise-free frames: centroid and attitude errors ~0.1 px = 5.6 arcsec) and its error against the body origin
+    is never more than the target's angular radius plus 30 arcsec (it is at most the centre of brightness's offset)."""
+    base, tgt = campaign
+    g = lambda t, c: np.array([np.nan if v is None else v for v in t.column(c).to_pylist()], float)  # noqa: E731
+    st = np.array(tgt.column("status_robust").to_pylist())
+    det = np.array([v is not None for v in tgt.column("target_det_npix").to_pylist()])
+    cob = g(tgt, "target_bearing_cob_err_rad")
+    assert np.isfinite(cob[(st == "success") & det]).all()
+    res = np.array(tgt.column("target_resolved").to_pylist())
+    pt = (st == "success") & det & ~res
+    assert np.median(cob[pt]) < 5e-5
+    body = g(tgt, "target_bearing_err_rad")
+    radius = 0.5 * g(tgt, "target_diameter_px") / (17e-3 / 4.65e-6)        # rad: the paper camera's focal length
+    assert np.all(body[pt] < radius[pt] + 30 / 206265)
+    assert base.column("target_bearing_nees").null_count == base.num_rows

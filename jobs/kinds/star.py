@@ -52,11 +52,13 @@ from dualsight.kernels import starfield as kstar
 from dualsight.kernels.detect import DetectConfig
 from dualsight.kernels.digest import frame_digest_taichi
 from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
+from dualsight.nav.attitude import solve_identified
 from dualsight.nav.errors import STATUS_NAMES
 from dualsight.nav.resolved_blobs import excluded_blobs, star_blob_limit, without_excluded
 from dualsight.nav.observations import observations, ragged_rank
 from dualsight.nav.pair_index import VotingIndex
 from dualsight.nav.star_solution import centroid_weights, identify, solve
+from dualsight.nav.target_bearing import attitude_covariance, bearing_error, bearing_nees, inertial_bearing
 from dualsight.nav.truth_match import match_truth
 from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.attitude import euler123_to_dcm, quat_to_dcm, quaternions_from_uniforms, unit_to_radec
@@ -552,7 +554,10 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
 
     truth = match_truth(r.detections, field_, obs, cat.hip)
     per_case = {k: (np.full(B, v // max(B, 1), dtype=np.int64) if v is not None else None) for k, v in t.items()}
-    tcols = target_columns(tcases, tf, r.detections, obs, ident, alt, excluded) if tf is not None else None
+    tcols = (target_columns(tcases, tf, r.detections, obs, ident, alt, excluded,
+                            bearing=target_bearing_columns(spec, tf, tcases, r.detections, obs, ident, sol, alt,
+                                                           cat.unit, draw["A_true"]))
+             if tf is not None else None)
     tables = {"star_cases": cases_table(case_ids, spec, draw, field_, r.detections, obs, ident, sol, truth, per_case,
                                         alt, r.digest, target=tcols[0] if tcols else None),
               "star_detections": detections_table(case_ids, r.detections, obs, ident, sol, truth, ctx.catalog,
@@ -576,9 +581,53 @@ def target_detection(det, tf: TargetFrame) -> np.ndarray:
     return out
 
 
-def target_columns(tcases, tf: TargetFrame, det, obs, ident, alt, excluded) -> tuple[dict, dict]:
+CENTROID_FLOOR_PX = 0.02
+"""Smallest 1-sigma centroid error (px) assumed for the stars and the target in the bearing's covariance (the PSF
+model's own error; the same floor as the attitude weights of :func:`compute_batch`)."""
+
+
+def target_bearing_columns(spec: StarSpec, tf: TargetFrame, tcases, det, obs, ident, sol, alt, cat_unit,
+                           A_true) -> dict:
+    """The target's inertial bearing (``nav/target_bearing.py``) from its detection and the attitude of the robust
+    method (the reference's without ``compare_robust``), per case: estimate (RA, Dec), errors against the true
+    direction of the body origin and of the centre of brightness, 1-sigma (rad, per axis: sqrt(trace / 2)) and
+    NEES (2 dof, against the centre of brightness: what the covariance describes).  Null where there is no
+    attitude or no detection of the target."""
+    B = len(tf.present)
+    idn, sl = (alt if alt is not None else (ident, sol))
+    kt = target_detection(det, tf)
+    n_used = (idn.accepted & (idn.ids >= 0) & obs.valid).sum(1)
+    _, ok, cov_unit = solve_identified(obs.vec, idn.ids, idn.accepted & obs.valid, cat_unit, return_cov=True)
+    f = max(spec.camera.fx, spec.camera.fy)
+    # the stars' a-posteriori variance per axis (rad^2): the attitude's scale and the target centroid's variance
+    s2 = attitude_covariance(np.ones((B, 1, 1)), sl.residual, n_used, floor_rad=CENTROID_FLOOR_PX / f)[:, 0, 0]
+    P = np.where(ok[:, None, None], cov_unit, 0.0) * s2[:, None, None]
+    sigma_px = np.sqrt(s2) * f
+    if det.sigma_px is not None:
+        sigma_px = np.where(kt >= 0, np.hypot(np.asarray(det.sigma_px)[np.maximum(kt, 0)], CENTROID_FLOOR_PX),
+                            sigma_px)
+    use = (kt >= 0) & ok & sl.ok
+    A = np.where(use[:, None, None], sl.A_est, np.eye(3))
+    xy = np.stack([det.x[np.maximum(kt, 0)], det.y[np.maximum(kt, 0)]], -1) if len(det.x) else np.zeros((B, 2))
+    u, C = inertial_bearing(A, np.where(use[:, None, None], P, 0.0), xy, sigma_px, spec.camera)
+    At = np.swapaxes(np.asarray(A_true, np.float64), 1, 2)
+    u_body = np.einsum("bij,bj->bi", At, tcases.pos_cam / tcases.range_m[:, None])
+    cob = spec.camera.backproject(np.stack([tf.cob_x_px, tf.cob_y_px], -1))
+    u_cob = np.einsum("bij,bj->bi", At, cob)
+    ra, dec = unit_to_radec(u)
+    nees = np.full(B, np.nan)
+    if use.any():
+        nees[use] = bearing_nees(u[use], u_cob[use], C[use])
+    m = lambda v: pa.array(np.where(use, v, 0.0), pa.float64(), mask=~use)  # noqa: E731
+    return {"target_ra_rad": m(ra), "target_dec_rad": m(dec), "target_bearing_err_rad": m(bearing_error(u, u_body)),
+            "target_bearing_cob_err_rad": m(bearing_error(u, u_cob)),
+            "target_bearing_sigma_rad": m(np.sqrt(np.trace(C, axis1=1, axis2=2) / 2)), "target_bearing_nees": m(nees)}
+
+
+def target_columns(tcases, tf: TargetFrame, det, obs, ident, alt, excluded, bearing: dict | None = None
+                   ) -> tuple[dict, dict]:
     """The target columns of ``star_cases`` and ``star_detections`` (jobs/kinds/star_tables.py
-    TARGET_CASE_FIELDS, TARGET_DETECTION_FIELDS) of a batch."""
+    TARGET_CASE_FIELDS, TARGET_DETECTION_FIELDS) of a batch; ``bearing``: :func:`target_bearing_columns`."""
     B, K = len(tf.present), len(det.x)
     kt = target_detection(det, tf)
     has = kt >= 0
@@ -609,6 +658,7 @@ def target_columns(tcases, tf: TargetFrame, det, obs, ident, alt, excluded) -> t
         "target_id_accepted_robust": acc(alt[0]) if alt is not None else pa.nulls(B, pa.bool_()),
         "n_excluded": np.bincount(np.asarray(det.case, np.int64)[exc], minlength=B).astype(np.int32),
         "sun_ra_rad": ra, "sun_dec_rad": dec, "sun_angle_rad": tf.sun_angle_rad, "sun_keepout": tf.sun_keepout,
+        **(bearing or {}),
     }
     is_t = np.zeros(K, bool)
     is_t[kt[has]] = True

@@ -39,6 +39,13 @@ TARGET_CASE_FIELDS = [
     ("sun_ra_rad", pa.float64()), ("sun_dec_rad", pa.float64()),
     ("sun_angle_rad", pa.float64()),           # Sun from the boresight
     ("sun_keepout", pa.bool_()),               # inside the [target] sun_keepout_deg cone
+    # its inertial line of sight (nav/target_bearing.py) through the robust method's attitude (null: no attitude
+    # or no detection of the target)
+    ("target_ra_rad", pa.float64()), ("target_dec_rad", pa.float64()),
+    ("target_bearing_err_rad", pa.float64()),      # against the true direction of the body origin
+    ("target_bearing_cob_err_rad", pa.float64()),  # against the true direction of its centre of brightness
+    ("target_bearing_sigma_rad", pa.float64()),    # stated 1-sigma per axis, sqrt(trace(cov) / 2)
+    ("target_bearing_nees", pa.float64()),         # 2-dof NEES against the centre of brightness
 ]
 TARGET_DETECTION_FIELDS = [
     ("is_target", pa.bool_()),                 # the detection nearest the target's centre of brightness
