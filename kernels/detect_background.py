@@ -40,6 +40,58 @@ def _sorted_mad(s: np.ndarray, med: np.ndarray) -> np.ndarray:
     return np.minimum(d0, d1).astype(np.float64)
 
 
+def _first_at_least(s: np.ndarray, v: np.ndarray, strict: bool) -> np.ndarray:
+    """Per row of sorted ``s`` (T, N): the count of values < v (``strict`` False) or <= v (True), v (T,), by
+    bisection over the rows at once (one gather per row and step)."""
+    T, N = s.shape
+    rows = np.arange(T)
+    lo, hi = np.zeros(T, np.int64), np.full(T, N, np.int64)
+    for _ in range(int(math.ceil(math.log2(N + 1))) + 1):
+        m = (lo + hi) // 2
+        x = s[rows, np.minimum(m, N - 1)]
+        below = (x <= v) if strict else (x < v)
+        go = below & (m < hi)
+        lo = np.where(go, m + 1, lo)
+        hi = np.where(go, hi, m)
+    return lo
+
+
+def lattice_quantiles(s: np.ndarray, p) -> np.ndarray:
+    """Quantiles ``p`` (P,) in (0, 1) of each row of sorted values ``s`` (T, N) on the 1-ADU lattice of integer
+    counts, interpolated within the tied level (grouped-data quantile): a value v held by n_eq of the row's values,
+    n_lo of them below it, stands for the interval [v - 1/2, v + 1/2), filled uniformly, so the quantile at rank
+    p N is v - 1/2 + (p N - n_lo) / n_eq (continuous in p; for untied values it is within 1/2 ADU of the order
+    statistic).  Returns (T, P) float64 (ADU)."""
+    T, N = s.shape
+    out = np.empty((T, len(p)))
+    for j, q in enumerate(p):
+        k = q * N
+        v = s[:, min(max(int(k), 0), N - 1)].astype(np.float64)
+        n_lo = _first_at_least(s, v, False)
+        n_eq = np.maximum(_first_at_least(s, v, True) - n_lo, 1)
+        out[:, j] = v - 0.5 + np.clip((k - n_lo) / n_eq, 0.0, 1.0)
+    return out
+
+
+def lattice_start(s: np.ndarray):
+    """The clipping's starting centre and sigma of the rows of sorted ``s`` (T, N) whose median is a tied value
+    (integer counts whose noise spans a few ADU, or a frame dark-subtracted and clipped at 0): there the median
+    moves in whole ADU and the MAD rounds to one level or to 0 (a sigma of 0 would never widen the clipping
+    window and every noise peak would be a star).  Their centre is the interpolated median and their sigma the
+    interpolated interquartile range / 1.34898 (:func:`lattice_quantiles`; both exact for a normal distribution
+    sampled finely, and sigma > 0 as soon as a quarter of the row differs from its median level).
+    Returns (centre (R,), sigma (R,), row indices (R,)) float64, float64, int64, or None when no row is tied."""
+    T, N = s.shape
+    if N < 4:
+        return None
+    m = (N - 1) // 2
+    tied = np.flatnonzero((s[:, m] == s[:, max(m - 1, 0)]) | (s[:, m] == s[:, min(m + 1, N - 1)]))
+    if tied.size == 0:
+        return None
+    q = lattice_quantiles(s[tied], (0.25, 0.5, 0.75))
+    return q[:, 1], (q[:, 2] - q[:, 0]) / 1.3489795, tied
+
+
 def clipped_stats(s: np.ndarray, clip: float, iters: int):
     """Sigma-clipped level and noise of each row of sorted values ``s`` (T, N), any real dtype (ADU): the median and
     1.4826 MAD, then ``iters`` windows of the values within ``clip`` sigma of the centre (clipped mean, clipped
@@ -56,6 +108,10 @@ def clipped_stats(s: np.ndarray, clip: float, iters: int):
     rows = np.arange(T, dtype=np.int64)
     med = 0.5 * (s[:, (N - 1) // 2].astype(np.float64) + s[:, N // 2])
     sig = 1.4826 * _sorted_mad(s, med)
+    tied = lattice_start(s)
+    if tied is not None:             # quantised rows: interpolated median and quartiles (lattice_start)
+        t_med, t_sig, t_rows = tied
+        med[t_rows], sig[t_rows] = t_med, t_sig
     if iters <= 0:
         return med, sig, np.ones(T)
     d = np.empty((T, N + 1), np.float32)            # a zero column ends every row: windows never run past it
@@ -133,9 +189,21 @@ def median_1d(v: np.ndarray) -> float:
     return float(a) if N % 2 else 0.5 * (float(a) + float(b))
 
 
+def order_statistic(v: np.ndarray, k: int) -> float:
+    """The k-th smallest value (0-based) of a 1-D sample ``v``, exactly, as ``np.partition(v, k)[k]`` (the
+    bracketed selection of :func:`median_1d`)."""
+    return float(_kth_pair(v, int(k))[0])
+
+
 def robust_std(v: np.ndarray, clip: float = 3.0, iters: int = 3, sub: int = 4) -> float:
-    """Sigma-clipped standard deviation (truncation-corrected) of a sample ``v`` (any shape, flattened; the
-    result in its units, float; 0 for fewer than 8 values or a constant sample): the median and 1.4826 MAD,
+    """The standard deviation of :func:`robust_stats` (its docstring)."""
+    return robust_stats(v, clip, iters, sub)[1]
+
+
+def robust_stats(v: np.ndarray, clip: float = 3.0, iters: int = 3, sub: int = 4) -> tuple[float, float]:
+    """(Sigma-clipped mean, sigma-clipped standard deviation (truncation-corrected)) of a sample ``v`` (any shape,
+    flattened; in its units, floats; (0, 0) for fewer than 8 values, (median, 0) for a sample whose MAD is 0):
+    the median and 1.4826 MAD,
     then the first ``iters`` - 1 windows (clipped mean and standard deviation of the values with
     |v - c| <= clip sd) on every ``sub``-th value, the last window on all values (sample sizes >= 4096;
     smaller samples: every window on all values).  The last window's mean and standard deviation are the full
@@ -144,12 +212,12 @@ def robust_std(v: np.ndarray, clip: float = 3.0, iters: int = 3, sub: int = 4) -
     kept values' sum and sum of squares relative to the previous centre (exact medians: :func:`median_1d`)."""
     v = np.asarray(v, np.float64).ravel()
     if v.size < 8:
-        return 0.0
+        return 0.0, 0.0
     first = v[::sub] if v.size >= 4096 and iters > 1 else v
     c = median_1d(first)
     sd = 1.4826 * median_1d(np.abs(first - c))
     if sd <= 0:
-        return 0.0
+        return c, 0.0
     corr = 1.0 / math.sqrt(_clip_var_factor(clip))
     for it in range(iters):
         dv = (v if it == iters - 1 else first) - c
@@ -161,7 +229,7 @@ def robust_std(v: np.ndarray, clip: float = 3.0, iters: int = 3, sub: int = 4) -
         # einsum's own loop, not BLAS: a threaded ddot splits the sum by thread count, and a frame must give the
         # same bits in a 1-thread worker as in a 2-thread process
         c, sd = c + m, math.sqrt(max(float(np.einsum("i,i->", w, w)) / n - m * m, 0.0)) * corr
-    return sd
+    return c, sd
 
 
 def _last_window(t: np.ndarray, level: np.ndarray, sig: np.ndarray, clip: float):

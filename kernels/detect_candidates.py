@@ -6,13 +6,29 @@ numpy/OpenCV functions over arrays; ``cfg`` is a :class:`~dualsight.kernels.dete
 
 import numpy as np
 
-from dualsight.kernels.detect_background import robust_std
+from dualsight.kernels.detect_background import order_statistic, robust_stats
 from dualsight.kernels.detect_psf import psf_kernel_1d
 
 
 NOISE_SAMPLE_STRIDE = 4
 """Rows and columns between the pixels of the noise sample of :func:`matched_filter` (~48,000 pixels of a 1024 x 768
 frame: the ratio sigma_F / sigma to ~0.3 %)."""
+
+
+TAIL_P, TAIL_Z = (0.97725, 0.99865), (2.0, 3.0)
+"""The matched filter's upper-tail check: the noise sample's quantiles ``TAIL_P``, ``TAIL_Z`` sigmas above the
+centre for a normal noise (Phi(2), Phi(3)).  A noise whose right tail is heavier than its core (dark-subtracted
+8-bit frames clamped at the black level: more than half of the sky pixels 0, the rest a few ADU) has a scale at 3
+sigma, (q(Phi(3)) - centre) / 3, above its clipped standard deviation; when it is more than ``TAIL_MARGIN`` above,
+the filtered image's sigma is that scale times its growth from 2 to 3 sigma, (q3 / 3) / (q2 / 2), carried once more
+towards the threshold (measured on clamped, correlated 8-bit noise of 1-2 ADU: the scale that gives the normal
+tail's pixel count at 1e-5 is 1.07-1.10 x the 3-sigma scale, the growth 1.07-1.11;
+tests/test_detect_quantised.py)."""
+
+TAIL_MARGIN = 1.05
+"""The tail's scale replaces the clipped standard deviation only when it exceeds it by this factor (a normal sample
+of ~48,000 values puts the 3-sigma scale within ~1.2 % (1 sigma) of the standard deviation: 1.05 is ~4 of those
+sigmas, so normal frames keep the clipped standard deviation)."""
 
 
 class FilteredNoise:
@@ -35,7 +51,7 @@ class FilteredNoise:
         return np.maximum(self.sig_map[r, c], self.floor) * self.ratio * self.row[r] * self.col[c]
 
 
-def matched_filter(R, sig_map, s, floor, cache=None):
+def matched_filter(R, sig_map, s, floor, cache=None, tail=False):
     """Matched-filtered SNR image Z ((H, W) float32, in units of its own noise), the noise ratio sigma_F / sigma
     (float), and Z's noise sigma_F (a :class:`FilteredNoise`: evaluated at pixels on demand) of the
     background-subtracted frame R ((H, W) float32, ADU) with PSF sigma ``s`` (px); ``floor`` (ADU, float32) is
@@ -43,8 +59,13 @@ def matched_filter(R, sig_map, s, floor, cache=None):
 
     Outside the frame R is 0 (its expectation), so near an edge F sums fewer pixels and its white-noise sigma
     is sigma sqrt(sum over the kernel's in-frame part of K^2): Z is normalised by that, exactly, per row and
-    column.  ``sig_map`` (the pixel noise, (H, W) float32) is not modified; ``cache`` (a dict, one per R) keeps
-    R's sample noise and 1 / max(sig_map, floor) between calls on the same R."""
+    column.  Z's scale is measured on a strided sample of F / max(sigma, floor) (every 4th row and column, whole
+    taps from the edges): its clipped mean is subtracted and Z divided by its clipped standard deviation (the
+    ratio), so a noise correlated between pixels, or a pixel noise the tiles misjudge (quantised to one level), is
+    normalised by the filtered noise's own sigma, never by sigma sqrt(sum k^2).  ``tail`` (a frame clamped at its
+    black level, :func:`clamped`) also checks the sample's upper tail (:data:`TAIL_P`).  ``sig_map`` (the pixel
+    noise, (H, W) float32) is not modified; ``cache`` (a dict, one per R) keeps 1 / max(sig_map, floor) between
+    calls on the same R."""
     import cv2
 
     H, W = R.shape
@@ -52,19 +73,23 @@ def matched_filter(R, sig_map, s, floor, cache=None):
     k = psf_kernel_1d(s)
     h = len(k) // 2
     F = cv2.sepFilter2D(R, cv2.CV_32F, k.astype(np.float32), k.astype(np.float32), borderType=cv2.BORDER_CONSTANT)
-    st = NOISE_SAMPLE_STRIDE  # the sample: every st-th row and column, from e >= h px from the edges (whole taps)
-    e = 4 * -(-h // 4)
-    inner = (slice(e, max(e + 1, H - e), st), slice(e, max(e + 1, W - e), st))
-    sa = cache.get(e)         # R's noise at the sample: the same for both passes (unless their e differ)
-    if sa is None:
-        sa = cache[e] = robust_std(R[inner])
-    sfv = robust_std(F[inner])
-    k2 = k * k
-    white = float(k2.sum())
-    ratio = sfv / sa if sa > 0 and sfv > 0 else white
     inv = cache.get("inv")
     if inv is None:
         inv = cache["inv"] = 1.0 / np.maximum(sig_map, np.float32(floor))
+    F = cv2.multiply(F, inv, dst=F)            # F / max(sigma, floor): unit-variance up to the ratio below
+    st = NOISE_SAMPLE_STRIDE  # the sample: every st-th row and column, from e >= h px from the edges (whole taps)
+    e = 4 * -(-h // 4)
+    inner = (slice(e, max(e + 1, H - e), st), slice(e, max(e + 1, W - e), st))
+    sample = F[inner].ravel()
+    centre, ratio = robust_stats(sample)       # the filtered noise's own centre and sigma (relative to the map)
+    k2 = k * k
+    if not ratio > 0:
+        centre, ratio = 0.0, float(k2.sum())   # a constant frame: the white-noise ratio
+    elif tail and sample.size >= 4096:         # the upper tail's own scale (a clamped noise: TAIL_P)
+        tail3 = (order_statistic(sample, int(TAIL_P[1] * sample.size)) - centre) / TAIL_Z[1]
+        if tail3 > TAIL_MARGIN * ratio:
+            tail2 = (order_statistic(sample, int(TAIL_P[0] * sample.size)) - centre) / TAIL_Z[0]
+            ratio = tail3 * max(1.0, tail3 / tail2) if tail2 > 0 else tail3
     cum = np.concatenate([[0.0], np.cumsum(k2)])
 
     def edge(n):    # sqrt(in-frame sum of k_i^2 / sum k_i^2) for the first min(h, n) positions from an edge
@@ -72,12 +97,32 @@ def matched_filter(R, sig_map, s, floor, cache=None):
         return np.sqrt((cum[-1] - cum[np.maximum(h - i, 0)]) / cum[-1]).astype(np.float32)  # taps i - h .. h
 
     er, ec = edge(H), edge(W)
-    Z = cv2.multiply(F, inv, dst=F, scale=1.0 / ratio)           # F / (max(sigma, floor) ratio)
+    Z = F
+    Z -= np.float32(centre)
+    Z *= np.float32(1.0 / ratio)                                    # (F / max(sigma, floor) - centre) / ratio
     Z[:er.size] /= er[:, None]
     Z[H - er.size:] /= er[::-1, None]
     Z[:, :ec.size] /= ec[None, :]
     Z[:, W - ec.size:] /= ec[None, ::-1]
     return Z, ratio, FilteredNoise(sig_map, floor, ratio, er, ec)
+
+
+CLAMPED_FRACTION = 0.25
+"""A frame is clamped at its black level (:func:`clamped`) when more than this fraction of a strided sample of its
+pixels hold its smallest value (a normal noise of sigma >= 0.5 ADU puts ~2 % of its pixels at its lowest level only
+when sigma < 0.3; a dark-subtracted frame clipped at 0 puts half or more of its sky there)."""
+
+
+def clamped(img) -> bool:
+    """Whether an (H, W) frame (ADU) is clamped at its black level: more than :data:`CLAMPED_FRACTION` of every 4th
+    row and column's pixels equal the sample's minimum (and the sample is not constant): its noise is censored,
+    skewed to the right (:func:`matched_filter`'s ``tail``)."""
+    v = img[::4, ::4]
+    if v.size == 0:
+        return False
+    lo = v.min()
+    n_lo = int(np.count_nonzero(v == lo))
+    return CLAMPED_FRACTION * v.size < n_lo < v.size
 
 
 def find_candidates(Z, cfg):

@@ -24,7 +24,11 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
    (~sigma / sqrt(T^2), 0.031 sigma for 32 px tiles; the half alone: 0.044 sigma; tests/test_detect_real.py).
    The tile's level is the final clipped mean and its noise the corrected clipped standard deviation — not
    the median and the MAD themselves, which on integer ADU with sigma ~2-3 ADU move in 0.5-ADU steps: a 0.5
-   ADU error of the level is 0.65 sigma of the matched-filtered image at PSF sigma 0.9 px.  Tiles that keep less
+   ADU error of the level is 0.65 sigma of the matched-filtered image at PSF sigma 0.9 px.  Where the median is a
+   tied value (integer counts whose noise spans 1-2 levels, or a dark-subtracted frame clamped at 0: the MAD is
+   one level or 0, and a sigma of 0 never widens its window) the clipping starts from the 1-ADU lattice's
+   interpolated median and interquartile range / 1.349 instead
+   (:func:`~dualsight.kernels.detect_background.lattice_start`).  Tiles that keep less
    than half of their pixels (a bright star, a glare) are replaced by the frame's median tile; a 3 x 3
    median filter over the tile grid (``mesh_filter``, as SExtractor's BACK_FILTERSIZE) removes the
    remaining outliers.  Level and noise are interpolated bilinearly between tile centres (tile (i, j)'s
@@ -32,11 +36,14 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
 2. **Matched filter.**  The background-subtracted frame R is correlated with the pixel-integrated
    Gaussian PSF of standard deviation ``psf_sigma_px`` (separable kernel k_i = Phi((i + 1/2)/s) -
    Phi((i - 1/2)/s), |i| <= ceil(3 s), normalised; R = 0 outside the frame).  The filtered image's own
-   noise is measured: the clipped standard deviation of a strided sample of the filtered image F (every 4th
+   noise is measured: the clipped mean and standard deviation of a strided sample of F / sigma (every 4th
    row and column from 4 ceil(h / 4) px off the edges, h = ceil(3 s): ~48,000 pixels; median, MAD and the
-   first two windows on every 4th sample value, the last window on all) divided by that of R at the same
-   pixels (for white noise sum_i k_i^2; a correlated noise gives more) scales the local noise map (measured:
-   within ~0.3 % of the ratio over every pixel on the ESA frames); near the edges the kernel's missing taps
+   first two windows on every 4th sample value, the last window on all): the mean is subtracted and the
+   standard deviation (the ratio sigma_F / sigma: sum_i k_i^2 for white noise, more for a noise correlated
+   between pixels) scales the local noise map, so Z is in units of the filtered noise's own sigma even where
+   the tiles' sigma is off (quantised, clamped); a frame clamped at its black level (over a quarter of its
+   pixels at its minimum) also has the sample's upper tail checked (``detect_candidates.TAIL_P``: its noise is
+   skewed to the right).  Near the edges the kernel's missing taps
    are accounted for exactly (Z's noise is evaluated at pixels on demand, not stored as a map).  Pixels of
    Z = F / sigma_F > ``k_sigma`` are foreground.  For a star of flux Fs with pixel fractions P_i on white
    noise sigma, Z at the star's pixel is (up to the pixel phase) the optimal, PSF-weighted integrated SNR
@@ -113,7 +120,7 @@ from pydantic import Field
 from dualsight.config import check_fields
 from dualsight.kernels.detect import Detections, as_frames
 from dualsight.kernels.detect_background import interpolate_tiles, tile_background
-from dualsight.kernels.detect_candidates import find_candidates, matched_filter
+from dualsight.kernels.detect_candidates import clamped, find_candidates, matched_filter
 from dualsight.kernels.detect_psf import cut_stamps, fit_psf, flux_fraction_3x3, psf_kernel_1d, sharpness_limit
 from dualsight.kernels.sensor_config import MAX_ADU
 
@@ -376,7 +383,8 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
     floor = np.float32(max(cfg.noise_floor_adu, 1e-6))
     s = cfg.psf_sigma_px if cfg.psf_sigma_px is not None else cfg.psf_sigma_init_px
     rcache = {}
-    Z, ratio, sig_f = matched_filter(R, sig_map, s, floor, rcache)   # sig_f: Z's noise, edges included
+    tail = clamped(img)                   # a frame clamped at its black level: its filtered noise's tail checked
+    Z, ratio, sig_f = matched_filter(R, sig_map, s, floor, rcache, tail)   # sig_f: Z's noise, edges included
     if cfg.psf_sigma_px is None:     # measure the PSF width on bright, unsaturated, isolated stars
         m = _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=True)
         # fitted widths under MIN_MEASURED_SIGMA_PX are not stars' (hot-pixel clusters, cosmic-ray tracks: ~0.2 px)
@@ -389,7 +397,7 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
             s_new = float(np.clip(np.median(m["s"][use]), 0.2, 20.0))
             if abs(s_new - s) > 0.02 * s:
                 s = s_new
-                Z, ratio, sig_f = matched_filter(R, sig_map, s, floor, rcache)
+                Z, ratio, sig_f = matched_filter(R, sig_map, s, floor, rcache, tail)
     m = _measure(img, R, sig_map, Z, sig_f, s, cfg, sat)
     med_sig = float(np.median(sig))
     return _Frame(x=m["x"], y=m["y"], flux=m["flux"], npix=m["npix"], sigma_px=m["sigma_px"],
