@@ -56,30 +56,33 @@ def _first_at_least(s: np.ndarray, v: np.ndarray, strict: bool) -> np.ndarray:
     return lo
 
 
-def lattice_quantiles(s: np.ndarray, p) -> np.ndarray:
+def lattice_quantiles(s: np.ndarray, p, counter=None) -> np.ndarray:
     """Quantiles ``p`` (P,) in (0, 1) of each row of sorted values ``s`` (T, N) on the 1-ADU lattice of integer
     counts, interpolated within the tied level (grouped-data quantile): a value v held by n_eq of the row's values,
     n_lo of them below it, stands for the interval [v - 1/2, v + 1/2), filled uniformly, so the quantile at rank
     p N is v - 1/2 + (p N - n_lo) / n_eq (continuous in p; for untied values it is within 1/2 ADU of the order
-    statistic).  Returns (T, P) float64 (ADU)."""
+    statistic).  ``counter(v, strict)`` (optional) gives each row's count of values < v (<= v when strict), as
+    a bisection over the rows does by default.  Returns (T, P) float64 (ADU)."""
     T, N = s.shape
+    counter = counter or (lambda v, strict: _first_at_least(s, v, strict))
     out = np.empty((T, len(p)))
     for j, q in enumerate(p):
         k = q * N
         v = s[:, min(max(int(k), 0), N - 1)].astype(np.float64)
-        n_lo = _first_at_least(s, v, False)
-        n_eq = np.maximum(_first_at_least(s, v, True) - n_lo, 1)
+        n_lo = counter(v, False)
+        n_eq = np.maximum(counter(v, True) - n_lo, 1)
         out[:, j] = v - 0.5 + np.clip((k - n_lo) / n_eq, 0.0, 1.0)
     return out
 
 
-def lattice_start(s: np.ndarray):
+def lattice_start(s: np.ndarray, counter=None):
     """The clipping's starting centre and sigma of the rows of sorted ``s`` (T, N) whose median is a tied value
     (integer counts whose noise spans a few ADU, or a frame dark-subtracted and clipped at 0): there the median
     moves in whole ADU and the MAD rounds to one level or to 0 (a sigma of 0 would never widen the clipping
     window and every noise peak would be a star).  Their centre is the interpolated median and their sigma the
     interpolated interquartile range / 1.34898 (:func:`lattice_quantiles`; both exact for a normal distribution
     sampled finely, and sigma > 0 as soon as a quarter of the row differs from its median level).
+    ``counter(rows, v, strict)`` (optional): the counts of values < v (<= v when strict) of the given rows.
     Returns (centre (R,), sigma (R,), row indices (R,)) float64, float64, int64, or None when no row is tied."""
     T, N = s.shape
     if N < 4:
@@ -88,7 +91,8 @@ def lattice_start(s: np.ndarray):
     tied = np.flatnonzero((s[:, m] == s[:, max(m - 1, 0)]) | (s[:, m] == s[:, min(m + 1, N - 1)]))
     if tied.size == 0:
         return None
-    q = lattice_quantiles(s[tied], (0.25, 0.5, 0.75))
+    rc = None if counter is None else (lambda v, strict: counter(tied, v, strict))
+    q = lattice_quantiles(s[tied], (0.25, 0.5, 0.75), rc)
     return q[:, 1], (q[:, 2] - q[:, 0]) / 1.3489795, tied
 
 
@@ -107,11 +111,29 @@ def clipped_stats(s: np.ndarray, clip: float, iters: int):
     T, N = s.shape
     rows = np.arange(T, dtype=np.int64)
     med = 0.5 * (s[:, (N - 1) // 2].astype(np.float64) + s[:, N // 2])
-    sig = 1.4826 * _sorted_mad(s, med)
-    tied = lattice_start(s)
+    sig = np.zeros(T)
+    integer = s.dtype.kind == "u" and s.dtype.itemsize <= 2
+    if integer:
+        # integer keys row x B + s (B = max + 2): counts below a value of every row in one searchsorted
+        vmax = int(np.iinfo(s.dtype).max) + 1
+        B = vmax + 1
+        kt = np.int32 if T * B < 2 ** 31 else np.int64
+        base = rows.astype(kt) * kt(B)
+        keys = (s.astype(kt) + base[:, None]).ravel()
+        first = rows * N
+
+        def lattice_count(r, v, strict):    # rows r: values < v (<= v when strict), v integer-valued
+            return np.searchsorted(keys, base[r] + v.astype(kt), "right" if strict else "left") - first[r]
+    tied = lattice_start(s, lattice_count if integer else None)
+    untied = np.ones(T, bool)
     if tied is not None:             # quantised rows: interpolated median and quartiles (lattice_start)
         t_med, t_sig, t_rows = tied
         med[t_rows], sig[t_rows] = t_med, t_sig
+        untied[t_rows] = False
+    if untied.all():
+        sig = 1.4826 * _sorted_mad(s, med)
+    elif untied.any():
+        sig[untied] = 1.4826 * _sorted_mad(s[untied], med[untied])
     if iters <= 0:
         return med, sig, np.ones(T)
     d = np.empty((T, N + 1), np.float32)            # a zero column ends every row: windows never run past it
@@ -119,15 +141,9 @@ def clipped_stats(s: np.ndarray, clip: float, iters: int):
     np.subtract(s, med.astype(np.float32)[:, None], out=d[:, :N], casting="unsafe")
     dd = d * d
     flat, flat2 = d.ravel(), dd.ravel()
-    if s.dtype.kind == "u" and s.dtype.itemsize <= 2:      # s - med: half-integers, exact in float32 and float64
-        # integer keys row x B + s (B = max + 2); for integer s and the float32 threshold t (exactly, in float64):
+    if integer:
+        # for integer s and the float32 threshold t (exactly, in float64):
         # s - med < t <=> s < ceil(med + t) and s - med <= t <=> s < floor(med + t) + 1
-        vmax = int(np.iinfo(s.dtype).max) + 1
-        B = vmax + 1
-        kt = np.int32 if T * B < 2 ** 31 else np.int64
-        base = rows.astype(kt) * kt(B)
-        keys = (s.astype(kt) + base[:, None]).ravel()
-        first = rows * N
 
         def count(t, side):          # values of each row < t (side "left") or <= t ("right")
             x = med + t.astype(np.float64)
@@ -272,11 +288,10 @@ def tile_background(img: np.ndarray, tile: int = 32, clip: float = 3.0, iters: i
         a = np.pad(a, ((0, ny * tile - H), (0, nx * tile - W)), mode="symmetric")
     T = ny * nx
     t = np.ascontiguousarray(a.reshape(ny, tile, nx, tile).transpose(0, 2, 1, 3)).reshape(T, tile * tile)
-    if iters >= 1 and tile % 2 == 0:    # the first windows on the checkerboard half, the last on every pixel
+    if iters >= 1 and tile % 2 == 0:    # the first windows on every other row and column, the last on every pixel
         h = tile // 2
-        half = np.concatenate([np.ascontiguousarray(a[o::2, o::2].reshape(ny, h, nx, h).transpose(0, 2, 1, 3))
-                               .reshape(T, h * h) for o in (0, 1)], axis=1)
-        level, sig, _ = clipped_stats(np.sort(half, axis=1, kind=kind), clip, iters - 1)
+        quarter = np.ascontiguousarray(a[::2, ::2].reshape(ny, h, nx, h).transpose(0, 2, 1, 3)).reshape(T, h * h)
+        level, sig, _ = clipped_stats(np.sort(quarter, axis=1, kind=kind), clip, iters - 1)
         level, sig, kept = _last_window(t, level, sig, clip)
     else:
         level, sig, kept = clipped_stats(np.sort(t, axis=1, kind=kind), clip, iters)

@@ -18,10 +18,10 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
    1.4826 MAD; the following ones on the clipped mean with the clipped standard deviation corrected for the
    truncation (for a normal distribution clipped at +-c sigma the standard deviation is
    sigma sqrt(1 - 2 c phi(c) / (2 Phi(c) - 1)): 0.98657 sigma at c = 3).  The median, the MAD and all windows
-   but the last are computed on the tile's checkerboard half (pixels with r + c even; sorted once, each window
-   the contiguous run of sorted values), the last window on all of the tile's pixels (tiles of odd size, or
-   ``clip_iters`` 0: everything on all pixels): the level's error is then that of the all-pixel clipped mean
-   (~sigma / sqrt(T^2), 0.031 sigma for 32 px tiles; the half alone: 0.044 sigma; tests/test_detect_real.py).
+   but the last are computed on a quarter of the tile's pixels (even rows and even columns; sorted once, each
+   window the contiguous run of sorted values), the last window on all of the tile's pixels (tiles of odd size,
+   or ``clip_iters`` 0: everything on all pixels): the level's error is then that of the all-pixel clipped mean
+   (~sigma / sqrt(T^2), 0.031 sigma for 32 px tiles; the quarter alone: 0.063 sigma; tests/test_detect_real.py).
    The tile's level is the final clipped mean and its noise the corrected clipped standard deviation — not
    the median and the MAD themselves, which on integer ADU with sigma ~2-3 ADU move in 0.5-ADU steps: a 0.5
    ADU error of the level is 0.65 sigma of the matched-filtered image at PSF sigma 0.9 px.  Where the median is a
@@ -238,10 +238,26 @@ class _Frame:
     hot: int
 
 
-def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False):
-    """Hot-pixel test, saturation and PSF fit of the candidates of one frame (``sig_f``: Z's noise map)."""
+class _Binned:
+    """A 2 x 2-binned image seen at full-resolution pixel indices: ``view[r, c]`` is ``image[r // 2, c // 2]``
+    (clipped to the binned image: the odd last row or column of the frame falls in the last bin)."""
+
+    def __init__(self, image, shape):
+        self.image = image
+        self.shape = shape
+
+    def __getitem__(self, rc):
+        r, c = rc
+        return self.image[np.minimum(np.asarray(r) // 2, self.shape[0] - 1),
+                          np.minimum(np.asarray(c) // 2, self.shape[1] - 1)]
+
+
+def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False, cands=None, spike_tap=None):
+    """Hot-pixel test, saturation and PSF fit of the candidates of one frame (``sig_f``: Z's noise map; ``cands``:
+    the candidates (rows, cols, npix, large components) when not those of Z; ``spike_tap``: the weight of one
+    pixel's excess in Z x sigma_F, when Z is not the full-resolution filter of width s)."""
     H, W = R.shape
-    pr, pc, npix, n_large = find_candidates(Z, cfg)
+    pr, pc, npix, n_large = find_candidates(Z, cfg) if cands is None else cands
     K = pr.size
     e = np.zeros(0)
     if K == 0:
@@ -286,7 +302,7 @@ def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False):
         stat = peak - rmax * m4
         hot_px = (stat > cfg.hot_pixel_k * noise * math.sqrt(1.0 + rmax * rmax / 4.0)) & ~is_sat
         k0 = psf_kernel_1d(s)
-        k00 = float(k0[len(k0) // 2] ** 2)
+        k00 = float(k0[len(k0) // 2] ** 2) if spike_tap is None else spike_tap
         z_wo = Z[r0, c0] - (peak - m4) * k00 / sig_f[r0, c0]          # Z at the spike without its excess
         keep = ~hot_px | (z_wo > cfg.k_sigma)
         n_hot = int((hot_px & ~keep).sum())
@@ -374,6 +390,28 @@ clusters or cosmic-ray tracks (measured ~0.2 px on rendered frames with hot pixe
 is undersampled: its stars cannot be told from hot pixels anyway."""
 
 
+def _measure_width(img, R, sig_map, s, cfg, sat, floor, tail):
+    """The PSF-width pass (module docstring): the candidates of the 2 x 2-binned residual's matched filter (PSF
+    sigma s / 2 in binned pixels; a quarter of the full pass's work), each at the top-left pixel of its bin (the
+    brightest pixel of R within one pixel of it is the star's), fitted with the width free on full-resolution
+    stamps of R (:func:`_measure`, ``fit_sigma``; a hot pixel's excess weighs 1/4 of the binned kernel's centre
+    tap in the binned Z)."""
+    import cv2
+
+    H, W = R.shape
+    h2, w2 = H // 2, W // 2
+    if h2 < 8 or w2 < 8:
+        Z, _, sig_f = matched_filter(R, sig_map, s, floor, None, tail)
+        return _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=True)
+    Rb = cv2.resize(R[:2 * h2, :2 * w2], (w2, h2), interpolation=cv2.INTER_AREA)          # 2 x 2 means
+    sb = np.ascontiguousarray(sig_map[:2 * h2:2, :2 * w2:2])     # the scale: matched_filter measures its own
+    Zb, _, sfb = matched_filter(Rb, sb, 0.5 * s, floor, None, tail)
+    prb, pcb, npix, n_large = find_candidates(Zb, cfg)
+    kb = psf_kernel_1d(0.5 * s)
+    return _measure(img, R, sig_map, _Binned(Zb, Zb.shape), _Binned(sfb, Zb.shape), s, cfg, sat, fit_sigma=True,
+                    cands=(2 * prb, 2 * pcb, npix, n_large), spike_tap=float(kb[len(kb) // 2] ** 2) / 4.0)
+
+
 def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
     H, W = img.shape
     level, sig = tile_background(img, cfg.tile_px, cfg.clip_sigma, cfg.clip_iters, cfg.mesh_filter)
@@ -384,9 +422,8 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
     s = cfg.psf_sigma_px if cfg.psf_sigma_px is not None else cfg.psf_sigma_init_px
     rcache = {}
     tail = clamped(img)                   # a frame clamped at its black level: its filtered noise's tail checked
-    Z, ratio, sig_f = matched_filter(R, sig_map, s, floor, rcache, tail)   # sig_f: Z's noise, edges included
     if cfg.psf_sigma_px is None:     # measure the PSF width on bright, unsaturated, isolated stars
-        m = _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=True)
+        m = _measure_width(img, R, sig_map, s, cfg, sat, floor, tail)
         # fitted widths under MIN_MEASURED_SIGMA_PX are not stars' (hot-pixel clusters, cosmic-ray tracks: ~0.2 px)
         good = m["ok"] & ~m["saturated"] & (m["s"] >= MIN_MEASURED_SIGMA_PX)
         use = np.flatnonzero(good & (m["snr"] > 30))
@@ -397,7 +434,7 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
             s_new = float(np.clip(np.median(m["s"][use]), 0.2, 20.0))
             if abs(s_new - s) > 0.02 * s:
                 s = s_new
-                Z, ratio, sig_f = matched_filter(R, sig_map, s, floor, rcache, tail)
+    Z, ratio, sig_f = matched_filter(R, sig_map, s, floor, rcache, tail)   # sig_f: Z's noise, edges included
     m = _measure(img, R, sig_map, Z, sig_f, s, cfg, sat)
     med_sig = float(np.median(sig))
     return _Frame(x=m["x"], y=m["y"], flux=m["flux"], npix=m["npix"], sigma_px=m["sigma_px"],

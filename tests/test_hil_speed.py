@@ -20,7 +20,7 @@ import pytest
 
 from dualsight.kernels import detect_local as dl
 from dualsight.kernels.detect_background import clipped_stats
-from dualsight.kernels.detect_candidates import find_candidates
+from dualsight.kernels.detect_candidates import find_candidates, sparse_components
 from dualsight.kernels.detect_psf import fit_psf, psf_profiles
 from helpers import ROOT, shared_real
 
@@ -75,7 +75,7 @@ def _labeller_components(Z, k_sigma, connectivity):
 
 @pytest.mark.parametrize("connectivity", [8, 4])
 @pytest.mark.parametrize("k_sigma", [3.0, 5.0, 5.1])
-def test_candidates_equal_the_project_labellers(connectivity, k_sigma, monkeypatch):
+def test_candidates_equal_the_project_labellers(connectivity, k_sigma):
     import cv2
 
     rng = np.random.default_rng(11)
@@ -92,33 +92,28 @@ def test_candidates_equal_the_project_labellers(connectivity, k_sigma, monkeypat
     cfg = dl.LocalDetectConfig(k_sigma=k_sigma, connectivity=connectivity, max_blob_pixels=500)
     n_ref, lab_ref = _labeller_components(Z, k_sigma, connectivity)
 
-    # the production candidate search as it runs (OpenCV), its call to cv2.connectedComponents recorded
-    seen = []
-    real = cv2.connectedComponents
+    # the production search's components (sparse_components over the foreground pixels) are the labeller's and
+    # OpenCV's: the same partition of the same foreground (the float32 threshold)
+    t = np.float32(k_sigma)
+    if float(t) > k_sigma:
+        t = np.nextafter(t, np.float32(-np.inf))
+    f = np.flatnonzero(Z > t)
+    assert np.array_equal(f, np.flatnonzero(lab_ref > 0))
+    lab = sparse_components(f, H, W, connectivity)
+    n_cv, lab_cv = cv2.connectedComponents((Z > t).view(np.uint8), connectivity=connectivity, ltype=cv2.CV_32S)
+    assert n_ref == n_cv == lab.max() + 2 > 30
+    for other in (lab_ref.ravel()[f], lab_cv.ravel()[f]):
+        pairs = np.unique(np.stack([lab, other]), axis=1)
+        assert pairs.shape[1] == n_ref - 1
+    # numbered by each component's first pixel in raster order
+    assert np.array_equal(np.unique(lab, return_index=True)[1], np.sort(np.unique(lab, return_index=True)[1]))
 
-    def recorded(image, *a, **k):
-        n, lab = real(image, *a, **k)
-        seen.append((np.array(image, copy=True), n, lab.copy()))
-        return n, lab
-
-    monkeypatch.setattr(cv2, "connectedComponents", recorded)
-    got = find_candidates(Z, cfg)
-    assert len(seen) == 1, "the candidate search no longer labels with cv2.connectedComponents"
-    fg, n_cv, lab_cv = seen[0]
-    # OpenCV's components are the labeller's: the same foreground (the float32 threshold), the same partition
-    assert np.array_equal(fg != 0, lab_ref > 0)
-    assert n_cv == n_ref > 30
-    pairs = np.unique(np.stack([lab_cv[lab_ref > 0], lab_ref[lab_ref > 0]]), axis=1)
-    assert pairs.shape[1] == n_ref - 1 and len(np.unique(pairs[0])) == len(np.unique(pairs[1])) == n_ref - 1
-
-    # the same production search with the labeller's components in place of OpenCV's gives the same candidates
-    monkeypatch.setattr(cv2, "connectedComponents", lambda image, *a, **k: (n_ref, lab_ref.copy()))
-    ref = find_candidates(Z, cfg)
-    assert got[3] == ref[3] and ref[3] >= 1
-    og, orf = np.lexsort((got[1], got[0])), np.lexsort((ref[1], ref[0]))
-    assert len(og) == len(orf) > 30
-    for a, b in zip(got[:3], ref[:3]):
-        np.testing.assert_array_equal(a[og], b[orf])
+    # the candidates: each one's npix is its component's size (the labeller's), large components counted
+    pr, pc, npix, n_large = find_candidates(Z, cfg)
+    sizes = np.bincount(lab_ref.ravel())
+    assert len(pr) > 30 and np.array_equal(npix, sizes[lab_ref[pr, pc]])
+    assert n_large == int((sizes[1:] > cfg.max_blob_pixels).sum()) >= 1
+    assert (Z[pr, pc] > k_sigma).all()
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
@@ -175,3 +170,23 @@ def test_voting_engine_starts_taichi_only_for_long_runs():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.split() == ["numpy", "False", "numpy", "False", "taichi", "True", "taichi"]
+
+
+@pytest.mark.parametrize("connectivity", [8, 4])
+@pytest.mark.parametrize("density", [0.1, 0.35, 0.6])
+def test_sparse_components_are_opencvs_on_random_masks(connectivity, density):
+    """sparse_components on random masks (every neighbour configuration, the frame's edges, one-pixel-wide frames):
+    the partition of cv2.connectedComponents, numbered in raster order of the components' first pixels."""
+    import cv2
+
+    rng = np.random.default_rng([int(density * 100), connectivity])
+    for H, W in ((60, 80), (1, 50), (50, 1), (7, 7)):
+        m = rng.random((H, W)) < density
+        f = np.flatnonzero(m)
+        lab = sparse_components(f, H, W, connectivity)
+        n_cv, lab_cv = cv2.connectedComponents(m.astype(np.uint8), connectivity=connectivity, ltype=cv2.CV_32S)
+        assert lab.size == f.size and (f.size == 0 or lab.max() + 2 == n_cv)
+        pairs = np.unique(np.stack([lab, lab_cv.ravel()[f]]), axis=1)
+        assert pairs.shape[1] == n_cv - 1
+        first = np.unique(lab, return_index=True)[1]
+        assert np.all(np.diff(first) > 0)
