@@ -1,7 +1,7 @@
 """A star-tracking campaign against the issue's targets (issue 22, point 6), measured in one run.
 
     python benchmarks/bench_star_track.py [--cases 1000] [--frames 50] [--fps 10] [--rate-max 1] [--workers 2]
-        [--lake DIR] [--run ID] [--seed 22]
+        [--lake DIR] [--run ID] [--seed 22] [--shard-size N]
 
 The ``realistic`` preset (the paper's star camera, 1024 x 768, 17 mm, catalog to V 5.5, with the realistic CMOS
 sensor: defocused PSF, shot/read/dark noise, hot pixels, the local detector), sequences of ``--frames`` frames at
@@ -48,6 +48,7 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=22)
     ap.add_argument("--lake", type=Path, default=None, help="lake folder (default: a new temporary folder)")
     ap.add_argument("--run", default=None)
+    ap.add_argument("--shard-size", type=int, default=None, help="sequences per shard (default: the engine's)")
     args = ap.parse_args()
     lake = Lake(args.lake or Path(tempfile.mkdtemp(prefix="bench_star_track_")))
     config = {"sequence": {"frames": args.frames, "fps": args.fps, "exposure_s": min(0.1, 1.0 / args.fps),
@@ -55,7 +56,7 @@ def main() -> int:
                            "shadow_lost_in_space": True}}
     plan = star_track.plan_run("realistic", config, seed=args.seed, cases=args.cases, run_id=args.run)
     t0 = time.perf_counter()
-    m = star_track.start_run(plan, lake, workers=args.workers)
+    m = star_track.start_run(plan, lake, workers=args.workers, shard_size=args.shard_size)
     wall = time.perf_counter() - t0
     print(f"conditions: {args.cases} sequences x {args.frames} frames at {args.fps:g} fps, realistic preset (paper "
           f"camera, realistic sensor, local detector), constant rates uniform in [0, {args.rate_max:g}] deg/s, "
