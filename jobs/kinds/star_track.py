@@ -41,9 +41,10 @@ from dualsight.jobs.engine.runner import prepare, run_job
 from dualsight.jobs.engine.specs import preset_and_config
 from dualsight.jobs.kinds import star
 from dualsight.jobs.kinds.star_track_tables import FRAMES_SCHEMA, SEQUENCES_SCHEMA, frames_table, sequence_row
+from dualsight.kernels.digest import to_int64
 from dualsight.kernels.sensor_config import flux_from_magnitude
 from dualsight.nav.errors import axis_errors, total_error_angle
-from dualsight.nav.sequence import run_sequence
+from dualsight.nav.sequence import NO_FIX, run_sequence
 from dualsight.scene.attitude import euler123_to_dcm
 from dualsight.scene.attitude_trajectory import (BLANK, BLINDED, DROPPED, add_jitter, constant_rate, eigenaxis_slew,
                                                  gyro_rates, sinusoid_jitter)
@@ -231,7 +232,7 @@ def render_sequence(spec: StarTrackSpec, ctx: star.StarContext, draw: dict) -> d
             t_r[fr] = r.t_render_ns // len(fr)
             if r.t_detect_ns is not None:
                 t_d[fr] = r.t_detect_ns // len(fr)
-            digest[fr] = np.asarray(r.digest).view(np.int64) if r.digest is not None else 0
+            digest[fr] = to_int64(r.digest) if r.digest is not None else 0
             for j, k in enumerate(fr):
                 a, b = int(det.offsets[j]), int(det.offsets[j + 1])
                 per_frame[k] = np.stack([det.x[a:b], det.y[a:b]], axis=1)
@@ -268,7 +269,7 @@ def compute_sequence(spec: StarTrackSpec, ctx: star.StarContext, case_id: int) -
                        shadow_lis=seq.shadow_lost_in_space)
     err = axis_errors(res.A, draw["A_true"], frame=sp.error_frame)
     tot = total_error_angle(res.A, draw["A_true"])
-    valid = res.mode != 0
+    valid = res.mode != NO_FIX
     lim = seq.error_limit_arcsec * ARCSEC
     with np.errstate(invalid="ignore"):
         within = valid & np.all(np.abs(err) <= lim, axis=1) & (tot <= math.sqrt(3.0) * lim)

@@ -15,9 +15,9 @@ import pyarrow as pa
 
 from dualsight.kernels.digest import to_int64
 from dualsight.nav.angular_rate import rate_from_attitudes
-from dualsight.nav.sequence import MODE_NAMES, REASON_NAMES
+from dualsight.nav.sequence import LOST_IN_SPACE, MODE_NAMES, NO_FIX, REASON_NAMES, TRACKING
 from dualsight.scene.attitude import boresight_radec
-from dualsight.scene.attitude_trajectory import EVENT_NAMES
+from dualsight.scene.attitude_trajectory import DROPPED, EVENT_NAMES
 from dualsight.scene.units import ARCSEC
 
 __all__ = ["FRAMES_SCHEMA", "SEQUENCES_SCHEMA", "frames_table", "sequence_row", "reacquisitions"]
@@ -161,7 +161,7 @@ def frames_table(case_id: int, spec, out: dict) -> pa.Table:
         cols[f"gyro_{a}_deg_s"] = _nullable(gyro[:, i] * deg)
     frame_of = np.repeat(np.arange(T), np.diff(off))
     if res.shadow_rows is not None:
-        both = (res.det_row >= 0) & (res.shadow_rows >= 0) & (res.mode[frame_of] == 2) & res.shadow_verified[frame_of]
+        both = (res.det_row >= 0) & (res.shadow_rows >= 0) & (res.mode[frame_of] == TRACKING) & res.shadow_verified[frame_of]
         agree = np.bincount(frame_of[both & (res.det_row == res.shadow_rows)], minlength=T).astype(np.int32)
         disagree = np.bincount(frame_of[both & (res.det_row != res.shadow_rows)], minlength=T).astype(np.int32)
         shadow = {"shadow_verified": res.shadow_verified, "t_shadow_lis_ns": _int_or_null(res.t_shadow_ns),
@@ -170,7 +170,7 @@ def frames_table(case_id: int, spec, out: dict) -> pa.Table:
         shadow = {k: pa.nulls(T, FRAMES_SCHEMA.field(k).type)
                   for k in ("shadow_verified", "t_shadow_lis_ns", "n_id_agree", "n_id_disagree")}
     cols.update({"image_digest": pa.array(to_int64(r["digest"].view(np.uint64)), _L,
-                                          mask=d["events"] == 3),
+                                          mask=d["events"] == DROPPED),
                  "t_render_ns": _int_or_null(r["t_render_ns"]), "t_detect_ns": _int_or_null(r["t_detect_ns"]),
                  "t_predict_ns": _int_or_null(res.t_predict_ns), "t_track_ns": _int_or_null(res.t_track_ns),
                  "t_lis_ns": _int_or_null(res.t_lis_ns), "t_rate_ns": _int_or_null(res.t_rate_ns),
@@ -199,11 +199,12 @@ def sequence_row(case_id: int, spec, out: dict) -> dict:
     z = z[np.all(np.isfinite(z), axis=1)]
     return {
         "case_id": int(case_id), "seed": int(spec.seed), "motion": d["motion"], "rate_deg_s": d["rate_deg_s"],
-        "gyro": bool(seq.gyro), "frames": T, "frames_with_image": int(np.sum(d["events"] != 3)),
+        "gyro": bool(seq.gyro), "frames": T, "frames_with_image": int(np.sum(d["events"] != DROPPED)),
         "frames_valid": int(valid.sum()), "frames_within_limit": int(within.sum()),
         "availability": float(within.sum() / T),
-        "frames_tracking": int(np.sum(res.mode == 2)), "frames_lost_in_space": int(np.sum(res.mode == 1)),
-        "frames_none": int(np.sum(res.mode == 0)),
+        "frames_tracking": int(np.sum(res.mode == TRACKING)),
+        "frames_lost_in_space": int(np.sum(res.mode == LOST_IN_SPACE)),
+        "frames_none": int(np.sum(res.mode == NO_FIX)),
         "first_fix_frame": int(first[0]) if first.size else None,
         "time_to_first_fix_s": float(d["t"][first[0]] - d["t"][0]) if first.size else None,
         "losses": len(reacq) + unrec, "reacquisition_frames": reacq,
