@@ -33,13 +33,14 @@ sigmas, so normal frames keep the clipped standard deviation)."""
 
 class FilteredNoise:
     """Noise sigma_F of the matched-filtered image at given pixels, without the (H, W) map: at pixel (r, c) it is
-    max(sigma(r, c), floor) x ratio x e_row(r) x e_col(c), with e the edge factors of :func:`matched_filter`.
+    ratio x e_row(r) x e_col(c) / inv(r, c), with inv the inverse pixel-noise map and e the edge factors of
+    :func:`matched_filter`.
 
     ``noise[r, c]`` (integer index arrays, or scalars) gives float32 values like the map would."""
 
-    def __init__(self, sig_map, floor, ratio, er, ec):
-        self.sig_map, self.floor, self.ratio = sig_map, np.float32(floor), np.float32(ratio)
-        H, W = sig_map.shape
+    def __init__(self, inv, ratio, er, ec):
+        self.inv, self.ratio = inv, np.float32(ratio)
+        H, W = inv.shape
         self.row = np.ones(H, np.float32)
         self.col = np.ones(W, np.float32)
         for v, e in ((self.row, er), (self.col, ec)):
@@ -48,39 +49,33 @@ class FilteredNoise:
 
     def __getitem__(self, rc):
         r, c = rc
-        return np.maximum(self.sig_map[r, c], self.floor) * self.ratio * self.row[r] * self.col[c]
+        return self.ratio * self.row[r] * self.col[c] / self.inv[r, c]
 
 
-def matched_filter(R, sig_map, s, floor, cache=None, tail=False):
+def matched_filter(R, inv, s, tail=False):
     """Matched-filtered SNR image Z ((H, W) float32, in units of its own noise), the noise ratio sigma_F / sigma
     (float), and Z's noise sigma_F (a :class:`FilteredNoise`: evaluated at pixels on demand) of the
-    background-subtracted frame R ((H, W) float32, ADU) with PSF sigma ``s`` (px); ``floor`` (ADU, float32) is
-    the smallest pixel noise used.
+    background-subtracted frame R ((H, W) float32, ADU) with PSF sigma ``s`` (px); ``inv`` ((H, W) float32, 1/ADU)
+    is the inverse of the pixel noise (floored), not modified.
 
     Outside the frame R is 0 (its expectation), so near an edge F sums fewer pixels and its white-noise sigma
     is sigma sqrt(sum over the kernel's in-frame part of K^2): Z is normalised by that, exactly, per row and
-    column.  Z's scale is measured on a strided sample of F / max(sigma, floor) (every 4th row and column, whole
-    taps from the edges): its clipped mean is subtracted and Z divided by its clipped standard deviation (the
-    ratio), so a noise correlated between pixels, or a pixel noise the tiles misjudge (quantised to one level), is
-    normalised by the filtered noise's own sigma, never by sigma sqrt(sum k^2).  ``tail`` (a frame clamped at its
-    black level, :func:`clamped`) also checks the sample's upper tail (:data:`TAIL_P`).  ``sig_map`` (the pixel
-    noise, (H, W) float32) is not modified; ``cache`` (a dict, one per R) keeps 1 / max(sig_map, floor) between
-    calls on the same R."""
+    column.  Z's scale is measured on a strided sample of F x inv (every 4th row and column, whole taps from the
+    edges): its clipped mean is subtracted and Z divided by its clipped standard deviation (the ratio), so a
+    noise correlated between pixels, or a pixel noise the tiles misjudge (quantised to one level), is normalised
+    by the filtered noise's own sigma, never by sigma sqrt(sum k^2).  ``tail`` (a frame clamped at its black
+    level, :func:`clamped`) also checks the sample's upper tail (:data:`TAIL_P`).  Two passes over the frame
+    after the filter: Z = F x inv / ratio, then the centre."""
     import cv2
 
     H, W = R.shape
-    cache = {} if cache is None else cache
     k = psf_kernel_1d(s)
     h = len(k) // 2
     F = cv2.sepFilter2D(R, cv2.CV_32F, k.astype(np.float32), k.astype(np.float32), borderType=cv2.BORDER_CONSTANT)
-    inv = cache.get("inv")
-    if inv is None:
-        inv = cache["inv"] = 1.0 / np.maximum(sig_map, np.float32(floor))
-    F = cv2.multiply(F, inv, dst=F)            # F / max(sigma, floor): unit-variance up to the ratio below
     st = NOISE_SAMPLE_STRIDE  # the sample: every st-th row and column, from e >= h px from the edges (whole taps)
     e = 4 * -(-h // 4)
     inner = (slice(e, max(e + 1, H - e), st), slice(e, max(e + 1, W - e), st))
-    sample = F[inner].ravel()
+    sample = (F[inner] * inv[inner]).ravel()
     centre, ratio = robust_stats(sample)       # the filtered noise's own centre and sigma (relative to the map)
     k2 = k * k
     if not ratio > 0:
@@ -97,14 +92,14 @@ def matched_filter(R, sig_map, s, floor, cache=None, tail=False):
         return np.sqrt((cum[-1] - cum[np.maximum(h - i, 0)]) / cum[-1]).astype(np.float32)  # taps i - h .. h
 
     er, ec = edge(H), edge(W)
-    Z = F
-    Z -= np.float32(centre)
-    Z *= np.float32(1.0 / ratio)                                    # (F / max(sigma, floor) - centre) / ratio
+    Z = cv2.multiply(F, inv, dst=F, scale=1.0 / ratio)              # (F / sigma - centre) / ratio
+    if centre:
+        Z -= np.float32(centre / ratio)
     Z[:er.size] /= er[:, None]
     Z[H - er.size:] /= er[::-1, None]
     Z[:, :ec.size] /= ec[None, :]
     Z[:, W - ec.size:] /= ec[None, ::-1]
-    return Z, ratio, FilteredNoise(sig_map, floor, ratio, er, ec)
+    return Z, ratio, FilteredNoise(inv, ratio, er, ec)
 
 
 CLAMPED_FRACTION = 0.25

@@ -31,8 +31,9 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
    (:func:`~dualsight.kernels.detect_background.lattice_start`).  Tiles that keep less
    than half of their pixels (a bright star, a glare) are replaced by the frame's median tile; a 3 x 3
    median filter over the tile grid (``mesh_filter``, as SExtractor's BACK_FILTERSIZE) removes the
-   remaining outliers.  Level and noise are interpolated bilinearly between tile centres (tile (i, j)'s
-   centre is pixel coordinate ((j + 0.5) T, (i + 0.5) T); constant beyond the outer centres).
+   remaining outliers.  The level and the inverse noise 1 / max(sigma, ``noise_floor_adu``) are interpolated
+   bilinearly between tile centres (tile (i, j)'s centre is pixel coordinate ((j + 0.5) T, (i + 0.5) T);
+   constant beyond the outer centres): the pixel noise is the harmonic interpolation of the tiles'.
 2. **Matched filter.**  The background-subtracted frame R is correlated with the pixel-integrated
    Gaussian PSF of standard deviation ``psf_sigma_px`` (separable kernel k_i = Phi((i + 1/2)/s) -
    Phi((i - 1/2)/s), |i| <= ceil(3 s), normalised; R = 0 outside the frame).  The filtered image's own
@@ -252,8 +253,9 @@ class _Binned:
                           np.minimum(np.asarray(c) // 2, self.shape[1] - 1)]
 
 
-def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False, cands=None, spike_tap=None):
-    """Hot-pixel test, saturation and PSF fit of the candidates of one frame (``sig_f``: Z's noise map; ``cands``:
+def _measure(img, R, inv, Z, sig_f, s, cfg, sat, fit_sigma=False, cands=None, spike_tap=None):
+    """Hot-pixel test, saturation and PSF fit of the candidates of one frame (``inv``: the inverse pixel noise map;
+    ``sig_f``: Z's noise map; ``cands``:
     the candidates (rows, cols, npix, large components) when not those of Z; ``spike_tap``: the weight of one
     pixel's excess in Z x sigma_F, when Z is not the full-resolution filter of width s)."""
     H, W = R.shape
@@ -292,7 +294,7 @@ def _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=False, cands=None
     # mean of the in-frame 4-neighbours (at an edge the clipped index would be the spike itself)
     n4 = ((r0 > 0).astype(np.float64) + (r0 < H - 1) + (c0 > 0) + (c0 < W - 1))
     m4 = (at(-1, 0) * (r0 > 0) + at(1, 0) * (r0 < H - 1) + at(0, -1) * (c0 > 0) + at(0, 1) * (c0 < W - 1)) / n4
-    noise = np.maximum(sig_map[r0, c0].astype(np.float64), cfg.noise_floor_adu)
+    noise = np.maximum(1.0 / inv[r0, c0].astype(np.float64), cfg.noise_floor_adu)
     is_sat = img[r0, c0] >= sat if sat is not None else np.zeros(K, bool)     # saturation: at pixels, no map
     hot_px = np.zeros(K, bool)
     keep = np.ones(K, bool)
@@ -390,7 +392,7 @@ clusters or cosmic-ray tracks (measured ~0.2 px on rendered frames with hot pixe
 is undersampled: its stars cannot be told from hot pixels anyway."""
 
 
-def _measure_width(img, R, sig_map, s, cfg, sat, floor, tail):
+def _measure_width(img, R, inv, s, cfg, sat, tail):
     """The PSF-width pass (module docstring): the candidates of the 2 x 2-binned residual's matched filter (PSF
     sigma s / 2 in binned pixels; a quarter of the full pass's work), each at the top-left pixel of its bin (the
     brightest pixel of R within one pixel of it is the star's), fitted with the width free on full-resolution
@@ -401,14 +403,14 @@ def _measure_width(img, R, sig_map, s, cfg, sat, floor, tail):
     H, W = R.shape
     h2, w2 = H // 2, W // 2
     if h2 < 8 or w2 < 8:
-        Z, _, sig_f = matched_filter(R, sig_map, s, floor, None, tail)
-        return _measure(img, R, sig_map, Z, sig_f, s, cfg, sat, fit_sigma=True)
+        Z, _, sig_f = matched_filter(R, inv, s, tail)
+        return _measure(img, R, inv, Z, sig_f, s, cfg, sat, fit_sigma=True)
     Rb = cv2.resize(R[:2 * h2, :2 * w2], (w2, h2), interpolation=cv2.INTER_AREA)          # 2 x 2 means
-    sb = np.ascontiguousarray(sig_map[:2 * h2:2, :2 * w2:2])     # the scale: matched_filter measures its own
-    Zb, _, sfb = matched_filter(Rb, sb, 0.5 * s, floor, None, tail)
+    ib = np.ascontiguousarray(inv[:2 * h2:2, :2 * w2:2])     # the scale: matched_filter measures its own
+    Zb, _, sfb = matched_filter(Rb, ib, 0.5 * s, tail)
     prb, pcb, npix, n_large = find_candidates(Zb, cfg)
     kb = psf_kernel_1d(0.5 * s)
-    return _measure(img, R, sig_map, _Binned(Zb, Zb.shape), _Binned(sfb, Zb.shape), s, cfg, sat, fit_sigma=True,
+    return _measure(img, R, inv, _Binned(Zb, Zb.shape), _Binned(sfb, Zb.shape), s, cfg, sat, fit_sigma=True,
                     cands=(2 * prb, 2 * pcb, npix, n_large), spike_tap=float(kb[len(kb) // 2] ** 2) / 4.0)
 
 
@@ -416,14 +418,13 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
     H, W = img.shape
     level, sig = tile_background(img, cfg.tile_px, cfg.clip_sigma, cfg.clip_iters, cfg.mesh_filter)
     bg = interpolate_tiles(level, cfg.tile_px, H, W)
-    sig_map = interpolate_tiles(sig, cfg.tile_px, H, W)
-    R = np.subtract(img, bg, dtype=np.float32)
     floor = np.float32(max(cfg.noise_floor_adu, 1e-6))
+    inv = interpolate_tiles(1.0 / np.maximum(sig, floor), cfg.tile_px, H, W)    # 1 / the pixel noise (harmonic)
+    R = np.subtract(img, bg, dtype=np.float32)
     s = cfg.psf_sigma_px if cfg.psf_sigma_px is not None else cfg.psf_sigma_init_px
-    rcache = {}
     tail = clamped(img)                   # a frame clamped at its black level: its filtered noise's tail checked
     if cfg.psf_sigma_px is None:     # measure the PSF width on bright, unsaturated, isolated stars
-        m = _measure_width(img, R, sig_map, s, cfg, sat, floor, tail)
+        m = _measure_width(img, R, inv, s, cfg, sat, tail)
         # fitted widths under MIN_MEASURED_SIGMA_PX are not stars' (hot-pixel clusters, cosmic-ray tracks: ~0.2 px)
         good = m["ok"] & ~m["saturated"] & (m["s"] >= MIN_MEASURED_SIGMA_PX)
         use = np.flatnonzero(good & (m["snr"] > 30))
@@ -434,8 +435,8 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
             s_new = float(np.clip(np.median(m["s"][use]), 0.2, 20.0))
             if abs(s_new - s) > 0.02 * s:
                 s = s_new
-    Z, ratio, sig_f = matched_filter(R, sig_map, s, floor, rcache, tail)   # sig_f: Z's noise, edges included
-    m = _measure(img, R, sig_map, Z, sig_f, s, cfg, sat)
+    Z, ratio, sig_f = matched_filter(R, inv, s, tail)   # sig_f: Z's noise, edges included
+    m = _measure(img, R, inv, Z, sig_f, s, cfg, sat)
     med_sig = float(np.median(sig))
     return _Frame(x=m["x"], y=m["y"], flux=m["flux"], npix=m["npix"], sigma_px=m["sigma_px"],
                   saturated=m["saturated"], level=float(np.median(level)),

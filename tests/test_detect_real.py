@@ -638,8 +638,9 @@ def test_psf_fit_stops_at_the_least_squares_minimum():
 def test_filtered_noise_is_the_map_with_the_edges_exact():
     """matched_filter's Z and its noise sigma_F (evaluated at pixels, no map): Z x sigma_F is the correlation of R with
     the pixel-integrated Gaussian kernel (numpy, R = 0 outside the frame) less one measured centre x the pixel noise
-    at every sampled pixel, edges and corners included, and sigma_F = max(sigma, floor) x ratio x e(r) x e(c), e(i) = sqrt(sum over the kernel's
-    in-frame taps of k^2 / sum k^2) (math.erf kernel); on white noise the measured ratio is sqrt(sum k^2)."""
+    at every sampled pixel, edges and corners included, and sigma_F = max(sigma, floor) x ratio x e(r) x e(c),
+    e(i) = sqrt(sum over the kernel's in-frame taps of k^2 / sum k^2) (math.erf kernel); on white noise the
+    measured ratio is sqrt(sum k^2)."""
     from dualsight.kernels.detect_candidates import matched_filter
 
     rng = np.random.default_rng(13)
@@ -647,7 +648,8 @@ def test_filtered_noise_is_the_map_with_the_edges_exact():
     sig = (2.0 + rng.uniform(0, 0.5, (Hs, Ws))).astype(np.float32)
     R = (rng.normal(0, 1.0, (Hs, Ws)) * sig).astype(np.float32)     # the map is R's noise
     sig[5, 7] = 0.01                                                   # under the floor
-    Z, ratio, sf = matched_filter(R, sig, s, np.float32(0.29))
+    inv = (1.0 / np.maximum(sig, np.float32(0.29))).astype(np.float32)
+    Z, ratio, sf = matched_filter(R, inv, s)
     hk = math.ceil(3 * s)
     k = np.array([_Phi((i + 0.5) / s) - _Phi((i - 0.5) / s) for i in range(-hk, hk + 1)])
     k /= k.sum()
