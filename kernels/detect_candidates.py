@@ -1,8 +1,9 @@
 """Stage 2 of the real-sensor detector (:mod:`dualsight.kernels.detect_local`, steps 2 and 3 of its docstring):
 the matched filter (:func:`matched_filter`: the background-subtracted frame correlated with the pixel-integrated
 Gaussian PSF, in units of the filtered image's own noise) and the candidate stars above its threshold
-(:func:`find_candidates`: OpenCV connected components of the foreground, their local maxima, deblending).  Pure
-numpy/OpenCV functions over arrays; ``cfg`` is a :class:`~dualsight.kernels.detect_local.LocalDetectConfig`."""
+(:func:`find_candidates`: connected components of the foreground pixels (:func:`sparse_components`), their local
+maxima, deblending), and whether a frame is clamped at its black level (:func:`clamped`).  Pure numpy/OpenCV
+functions over arrays; ``cfg`` is a :class:`~dualsight.kernels.detect_local.LocalDetectConfig`."""
 
 import numpy as np
 

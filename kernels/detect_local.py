@@ -52,8 +52,9 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
    this integrated SNR, not on the peak pixel's SNR: a pixel-centred 5-sigma star is found with
    probability ~0.5 (Z at each pixel is Gaussian with unit variance around its noise-free value;
    tests/test_detect_real.py checks the rate against that expectation), a 7-sigma star ~98 %.
-3. **Candidates.**  Foreground components (OpenCV's connected components of Z > ``k_sigma``; the same
-   components as :mod:`dualsight.kernels.labelling`, tests/test_hil_speed.py) larger than ``max_blob_pixels`` are not
+3. **Candidates.**  Foreground components (connected components of the pixels of Z > ``k_sigma``, labelled over
+   those pixels only by :func:`~dualsight.kernels.detect_candidates.sparse_components`; the same components as
+   OpenCV's and :mod:`dualsight.kernels.labelling`'s, tests/test_hil_speed.py) larger than ``max_blob_pixels`` are not
    stars (a glare, the Moon): they are counted (``large_blobs``), not centroided.  In each component the
    local maxima of Z (3 x 3) are candidates; a secondary maximum is a second star only when it is at
    least ``deblend_min_sep_px`` from every brighter maximum of the component and Z dips between them
@@ -93,19 +94,24 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
 7. **No silent caps.**  At most ``max_blobs_per_frame`` stars per frame (the highest fitted flux) are
    returned; the others are counted in ``blobs_dropped`` and a warning is logged, as for ``large_blobs``.
 
-With ``psf_sigma_px`` None the PSF width is measured per frame: a first pass at ``psf_sigma_init_px``
-fits the width of up to 25 bright (SNR > 30; SNR > 15 when fewer than 3 reach 30), unsaturated, isolated stars;
+With ``psf_sigma_px`` None the PSF width is measured per frame: a first pass at ``psf_sigma_init_px``, on the
+2 x 2-binned R (its matched filter at half the width in binned pixels: a quarter of a full pass; the stars' fits on
+full-resolution stamps), fits the width of up to 25 bright (SNR > 30; SNR > 15 when fewer than 3 reach 30),
+unsaturated, isolated stars;
 their median (needs 3; fits under ``MIN_MEASURED_SIGMA_PX`` = 0.35 px are hot-pixel clusters, not stars) is used
 for the final pass, else the initial width.  (Measured on the 8 ESA frames, 2026-11-24: widths 0.636-0.705 px;
 the frame with a bright sky, which has fewer than 3 stars above SNR 30, is measured from the SNR > 15 stars
-instead of keeping the initial 1.0.)
+instead of keeping the initial 1.0; from the binned first pass, 2026-11-27: within 0.015 px of those.)
 
 Centroids use the continuous pixel convention (pixel (r, c) has its centre at (c + 0.5, r + 0.5)).
-Cost (1024 x 768, one core, ``benchmarks/bench_hil_speed.py frame``): ~18-20 ms CPU per ESA frame (~250 stars
-each, width measured: two filter and candidate passes) on a loaded 2-core machine — background ~4.3, matched
-filter ~3.7 (both passes), candidates ~2.4, hot-pixel test and PSF fits ~7.5 (width pass included), other ~0.9
-(it was ~38-43 ms with every tile and noise-sample value sorted / partitioned, a dilation for the maxima and
-fits run to 1e-4 px).
+Cost (one core, ``benchmarks/bench_detect_speed.py``, 2026-11-27, load 3.8-3.9 on the 2-core machine, CPU time):
+~12 ms per ESA frame (1024 x 768, 90-520 detections, width measured) — background ~3.3, matched filter ~1.6
+(binned width pass and final pass, noise samples included), candidates ~1.0, hot-pixel test and PSF fits ~5.2
+(width pass included), other ~0.8; ~11 ms per rendered 1024 x 1024 sensor-noise frame (20-50 stars):
+background ~3.9, filter ~2.3, candidates ~0.85, fits ~2.5, other ~1.0.  The code of 00d8bee in the same runs:
+16.0-16.2 and 14.2-14.7 ms (a full-resolution width pass, OpenCV's full-frame labelling, the noise map and its
+inverse as (H, W) maps).  Earlier: ~38-43 ms with every tile and noise-sample value sorted / partitioned, a
+dilation for the maxima and fits run to 1e-4 px.
 """
 
 from __future__ import annotations
