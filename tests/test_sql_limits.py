@@ -151,3 +151,16 @@ def test_lake_sql_timeout_and_memory_limit(lake):
                          stderr=subprocess.PIPE, preexec_fn=_cap)
     rc, out, err, _ = finish(p, 30)
     assert rc == 0 and out == "ok\n", err
+
+
+def test_in_process_sql_restores_the_process_memory_limit(lake):
+    # `main(["sql", ...])` in a caller's process (tests, notebooks): the cap holds during the query only; a cap
+    # left behind made every later test of the suite run out of memory
+    from helpers import run_cli
+
+    before = resource.getrlimit(resource.RLIMIT_DATA)
+    rc, out, err = run_cli(["sql", "SELECT 42 AS x", "--lake", lake])
+    assert rc == 0 and "42" in out, err
+    rc, out, err = run_cli(["sql", "SELECT repeat('x', 2000000000)", "--lake", lake, "--memory-limit", "256MiB"])
+    assert rc == 2 and "OutOfMemoryException" in err
+    assert resource.getrlimit(resource.RLIMIT_DATA) == before

@@ -7,6 +7,7 @@ and take named parameters (``$run``).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import resource
@@ -148,28 +149,38 @@ PROCESS_HEADROOM = 256 * 2**20
 """Bytes the ``dualsight sql`` process may map beyond DuckDB's memory limit (the printed rows, Python)."""
 
 
-def cap_process_memory(memory_limit: int) -> int | None:
-    """Cap this process's private writable memory (``RLIMIT_DATA``, Linux) at what it maps now plus
-    ``memory_limit`` plus :data:`PROCESS_HEADROOM` bytes; returns the cap, or None where it cannot be set.
+@contextlib.contextmanager
+def process_memory_cap(memory_limit: int):
+    """Within the block, this process's private writable memory (``RLIMIT_DATA``, Linux) is capped at what it
+    maps on entry plus ``memory_limit`` plus :data:`PROCESS_HEADROOM` bytes; the previous limit is restored on
+    exit.  Yields the cap, or None where it cannot be set (then nothing changes).
 
     DuckDB's ``memory_limit`` governs its buffer manager, not every allocation: ``repeat('x', 2000000000)``
     builds its string outside it and peaked near 8 GB under a 1 GB limit.  Under this cap the allocation
     fails inside DuckDB, which raises ``OutOfMemoryException`` (one line, :func:`_guarded`).  For the command
-    line only: a library call must not lower the limits of its caller's process (``Lake.sql`` keeps DuckDB's).
+    line (``dualsight sql``), which may run in a caller's process (``main([...])``): hence the restore.
+    ``Lake.sql`` keeps DuckDB's limit only.
     """
     try:
         status = Path("/proc/self/status").read_text()
         vm_data = next(int(line.split()[1]) * 1024 for line in status.splitlines() if line.startswith("VmData:"))
-        soft, hard = resource.getrlimit(resource.RLIMIT_DATA)
+        old = resource.getrlimit(resource.RLIMIT_DATA)
+        soft, hard = old
         cap = vm_data + int(memory_limit) + PROCESS_HEADROOM
         if hard != resource.RLIM_INFINITY:
             cap = min(cap, hard)
         if soft != resource.RLIM_INFINITY and soft <= cap:
-            return soft
-        resource.setrlimit(resource.RLIMIT_DATA, (cap, hard))
-        return cap
+            old = None                                    # already as tight: leave it
+        else:
+            resource.setrlimit(resource.RLIMIT_DATA, (cap, hard))
     except (OSError, ValueError, StopIteration):
-        return None
+        yield None
+        return
+    try:
+        yield cap
+    finally:
+        if old is not None:
+            resource.setrlimit(resource.RLIMIT_DATA, old)
 
 
 def _timeout_seconds(value, name: str) -> float | None:

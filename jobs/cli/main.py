@@ -267,11 +267,12 @@ def cmd_sql(args) -> int:
     try:
         limits = query.SqlLimits(args.timeout, args.memory_limit, timeout_name="--timeout SECONDS",
                                  memory_name="--memory-limit")
-        query.cap_process_memory(limits.memory_limit)
         if args.csv:
-            return _sql_csv(query, args, limits)
+            with query.process_memory_cap(limits.memory_limit):
+                return _sql_csv(query, args, limits)
         row_limit = query.DEFAULT_ROW_LIMIT if args.limit is None else (args.limit or None)
-        cols, rows, total, cut = query.sql_rows(open_lake(args), args.query, limits, row_limit=row_limit)
+        with query.process_memory_cap(limits.memory_limit):
+            cols, rows, total, cut = query.sql_rows(open_lake(args), args.query, limits, row_limit=row_limit)
         if args.json:
             print(json.dumps([dict(zip(cols, r)) for r in rows], default=str, indent=1))
         elif cols:
