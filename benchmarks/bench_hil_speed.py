@@ -21,7 +21,8 @@
            ``--images`` images (default 600; symlinks in a temporary folder), decode included, N = 1 and 2;
            steady state = (images(600) - images(64)) / (time(600) - time(64)), i.e. without the fixed cost of
            the process, the workers' start and the report (64 images = 4 batches of 16: both workers start in
-           the short run too).  ``--hil-args`` adds options to both runs (e.g. "--detector global
+           the short run too); also the steady-state CPU time per frame of all the run's processes (children's
+           rusage), which a loaded machine does not inflate.  ``--hil-args`` adds options to both runs (e.g. "--detector global
            --no-compare", the throughput settings).  Target: >= 100 frames/s on 2 cores.
 
 Usage:  python benchmarks/bench_hil_speed.py [frame|process|batch|all] [--repeats 5] [--images 600] [--hil-args '...']
@@ -285,6 +286,15 @@ def bench_process(repeats: int) -> None:
 SMALL_IMAGES = 64          # the short run of the batch bench: 4 batches of 16, so 2 workers both start in it
 
 
+def _children_cpu() -> float:
+    """User + system CPU seconds of this process's finished children (and theirs): the work of a run, whatever
+    else the machine runs."""
+    import resource
+
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
 def bench_batch(n_images: int, workers_list=(1, 2), extra: tuple[str, ...] = ()) -> None:
     src = frames()
     env = dict(os.environ)
@@ -302,19 +312,24 @@ def bench_batch(n_images: int, workers_list=(1, 2), extra: tuple[str, ...] = ())
         for workers in workers_list:
             env_w = dict(env)
             env_w["DUALSIGHT_TI_THREADS"] = "1"
-            t = {}
+            t, cpu = {}, {}
             for name, folder, n in (("small", small, n_small), ("big", big, n_images)):
                 subprocess.run(hil_cmd([folder], "--workers", str(workers), *extra), capture_output=True, env=env_w)
+                c0 = _children_cpu()
                 t0 = time.perf_counter()
                 r = subprocess.run(hil_cmd([folder], "--workers", str(workers), *extra), capture_output=True,
                                    env=env_w, text=True)
                 t[name] = time.perf_counter() - t0
+                cpu[name] = _children_cpu() - c0
                 if r.returncode:
                     print(f"batch: --workers {workers}, {n} images FAILED: {r.stderr.strip()[-600:]}")
                     t[name] = float("nan")
             rate = (n_images - n_small) / max(t["big"] - t["small"], 1e-9)
+            cpu_ms = 1e3 * (cpu["big"] - cpu["small"]) / (n_images - n_small)
             print(f"batch: --workers {workers} {' '.join(extra)}: {n_images} images {t['big']:.2f} s ({n_images / t['big']:.1f} "
-                  f"frames/s whole process), {n_small} images {t['small']:.2f} s; steady state {rate:.1f} frames/s")
+                  f"frames/s whole process), {n_small} images {t['small']:.2f} s; steady state {rate:.1f} frames/s; "
+                  f"CPU {cpu_ms:.1f} ms per frame (steady state, all the run's processes: {1e3 / cpu_ms:.0f} frames/s "
+                  f"per core of work, whatever else the machine runs)")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
