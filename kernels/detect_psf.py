@@ -246,16 +246,24 @@ def fit_psf(stamp, w0, r0, c0, x, y, s, noise, gain, fit_sigma=False, iters=10, 
             st0 = np.concatenate([c0[act], r0[act]])
             s2 = np.concatenate([s_in[act], s_in[act]])
             frozen = frozen[keep]
-    x, y, A, b = out[:, 0], out[:, 1], out[:, 2], out[:, 3]
-    s_out = out[:, 4] if fit_sigma else s_in.copy()
-    ok = np.isfinite(H4).all((1, 2)) & (np.abs(np.linalg.det(H4)) > 0)
+    return fit_outcome(out, H4, r0, c0, n, out[:, 4] if fit_sigma else s_in.copy())
+
+
+def fit_outcome(params, fisher, r0, c0, n, s):
+    """What :func:`fit_psf` returns from the final parameters ``params`` (K, >= 4) (x, y, A, b, ...) and the Fisher
+    matrices ``fisher`` (K, 4, 4) of (x, y, A, b) of stamps of n x n pixels from (r0, c0), the widths ``s`` (K,):
+    (x, y, A, b, s, cov, ok), cov the Fisher inverse, ok where the matrix is invertible, A > 0, the position finite,
+    inside the stamp by more than half a pixel, and its variances positive."""
+    K = params.shape[0]
+    x, y, A, b = params[:, 0], params[:, 1], params[:, 2], params[:, 3]
+    ok = np.isfinite(fisher).all((1, 2)) & (np.abs(np.linalg.det(fisher)) > 0)
     cov = np.full((K, 4, 4), np.nan)
     if ok.any():
-        cov[ok] = np.linalg.inv(H4[ok])
+        cov[ok] = np.linalg.inv(fisher[ok])
     half = n / 2.0
     ok &= (A > 0) & np.isfinite(x) & np.isfinite(y) & (np.abs(x - (c0 + half)) < half - 0.5) \
         & (np.abs(y - (r0 + half)) < half - 0.5) & (np.diagonal(cov, axis1=1, axis2=2)[:, :2] > 0).all(1)
-    return x, y, A, b, s_out, cov, ok
+    return x, y, A, b, s, cov, ok
 
 
 def cut_stamps(R, valid, r, c, h, img=None, sat=None):
