@@ -14,7 +14,10 @@ own time, nested calls excluded (``bench_hil_speed.Timers``).
 with ``git worktree add`` into a temporary folder and runs the same measurement there (its own package, by
 PYTHONPATH), alternating the two ``--rounds`` times, so a ratio is measured under the same load.
 
-Usage:  python benchmarks/bench_detect_speed.py [--rounds 2] [--repeats 3] [--rendered 8] [--against 00d8bee]
+``--taichi`` starts Taichi in every measuring process first: this tree's detector then fits its PSFs in Taichi
+(``kernels/detect_psf_fit.py``), as it does in the star job and in processes that run the global detector.
+
+Usage:  python benchmarks/bench_detect_speed.py [--rounds 2] [--repeats 3] [--rendered 8] [--against 00d8bee] [--taichi]
         python benchmarks/bench_detect_speed.py --against none            # this tree only
 """
 
@@ -40,6 +43,7 @@ STAGES = [("detect_local", "tile_background", "background"), ("detect_local", "i
           ("detect_candidates", "robust_std", "filter"),
           ("detect_local", "find_candidates", "candidates"),
           ("detect_local", "_measure", "hot pixels + fit"), ("detect_local", "fit_psf", "hot pixels + fit"),
+          ("detect_local", "fit_psf_compiled", "hot pixels + fit"),
           ("detect_local", "cut_stamps", "hot pixels + fit")]
 
 CHILD = r"""
@@ -52,8 +56,11 @@ cv2.setNumThreads(1)
 sys.path.insert(0, sys.argv[1])
 from bench_hil_speed import Timers
 import importlib
-stages, sets, repeats = json.loads(sys.argv[2]), json.loads(sys.argv[3]), int(sys.argv[4])
+stages, sets, repeats, taichi = json.loads(sys.argv[2]), json.loads(sys.argv[3]), int(sys.argv[4]), sys.argv[5] == "1"
 dl = importlib.import_module("dualsight.kernels.detect_local")
+if taichi:                      # a process that runs Taichi: the compiled PSF fits (detect_local, step 5)
+    from dualsight.kernels.taichi_runtime import ensure_init
+    ensure_init()
 T = Timers()
 for mod, name, label in stages:
     m = importlib.import_module("dualsight.kernels." + mod)
@@ -79,9 +86,10 @@ print(json.dumps(out))
 """
 
 
-def measure(tree: Path, sets: dict, repeats: int, core: str | None) -> dict:
+def measure(tree: Path, sets: dict, repeats: int, core: str | None, taichi: bool = False) -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree))
-    cmd = [sys.executable, "-c", CHILD, str(ROOT / "benchmarks"), json.dumps(STAGES), json.dumps(sets), str(repeats)]
+    cmd = [sys.executable, "-c", CHILD, str(ROOT / "benchmarks"), json.dumps(STAGES), json.dumps(sets), str(repeats),
+           "1" if taichi else "0"]
     if core is not None and shutil.which("taskset"):
         cmd = ["taskset", "-c", core, *cmd]
     r = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=str(tree))
@@ -106,6 +114,8 @@ def main() -> None:
     ap.add_argument("--rendered", type=int, default=8, help="rendered 1024 x 1024 frames, 0 = none (default 8)")
     ap.add_argument("--against", default=BEFORE, help="commit to compare with, or 'none' (default 00d8bee)")
     ap.add_argument("--core", default="0", help="CPU the measuring processes are pinned to (default 0)")
+    ap.add_argument("--taichi", action="store_true", help="start Taichi in the measuring processes first (this "
+                    "tree's detector then fits in Taichi, as in the star job and long hil star runs)")
     a = ap.parse_args()
     if not 1 <= a.rounds <= 20 or not 1 <= a.repeats <= 50 or not 0 <= a.rendered <= 200:
         ap.error("--rounds in [1, 20], --repeats in [1, 50], --rendered in [0, 200]")
@@ -129,9 +139,10 @@ def main() -> None:
         results = {tag: [] for tag, _ in trees}
         for _ in range(a.rounds):
             for tag, tree in trees:
-                results[tag].append(measure(tree, sets, a.repeats, a.core))
+                results[tag].append(measure(tree, sets, a.repeats, a.core, a.taichi))
         print(f"detect_real CPU ms per frame, one core, median over frames x {a.repeats} repeats, "
-              f"{a.rounds} alternated rounds (stage = own time of its functions)")
+              f"{a.rounds} alternated rounds (stage = own time of its functions)"
+              + ("; Taichi started first (compiled PSF fits)" if a.taichi else "; no Taichi (numpy PSF fits)"))
         for set_name in sets:
             print(set_name + ":")
             for i in range(a.rounds):
