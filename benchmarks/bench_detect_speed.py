@@ -14,8 +14,8 @@ own time, nested calls excluded (``bench_hil_speed.Timers``).
 with ``git worktree add`` into a temporary folder and runs the same measurement there (its own package, by
 PYTHONPATH), alternating the two ``--rounds`` times, so a ratio is measured under the same load.
 
-``--taichi`` starts Taichi in every measuring process first: this tree's detector then fits its PSFs in Taichi
-(``kernels/detect_psf_fit.py``), as it does in the star job and in processes that run the global detector.
+``--taichi`` measures with ``LocalDetectConfig(fit_engine="taichi")`` where the tree has that setting (the PSF fits
+as one Taichi kernel, ``kernels/detect_psf_fit.py``; the kernels' start is outside the timed passes).
 
 Usage:  python benchmarks/bench_detect_speed.py [--rounds 2] [--repeats 3] [--rendered 8] [--against 00d8bee] [--taichi]
         python benchmarks/bench_detect_speed.py --against none            # this tree only
@@ -58,9 +58,8 @@ from bench_hil_speed import Timers
 import importlib
 stages, sets, repeats, taichi = json.loads(sys.argv[2]), json.loads(sys.argv[3]), int(sys.argv[4]), sys.argv[5] == "1"
 dl = importlib.import_module("dualsight.kernels.detect_local")
-if taichi:                      # a process that runs Taichi: the compiled PSF fits (detect_local, step 5)
-    from dualsight.kernels.taichi_runtime import ensure_init
-    ensure_init()
+import dataclasses
+fit_taichi = taichi and "fit_engine" in {f.name for f in dataclasses.fields(dl.LocalDetectConfig)}
 T = Timers()
 for mod, name, label in stages:
     m = importlib.import_module("dualsight.kernels." + mod)
@@ -69,7 +68,7 @@ for mod, name, label in stages:
 out = {"package": os.path.dirname(dl.__file__)}
 for set_name, paths in sets.items():
     imgs = [cv2.imread(p, cv2.IMREAD_UNCHANGED) for p in paths]
-    cfg = dl.LocalDetectConfig()
+    cfg = dl.LocalDetectConfig(fit_engine="taichi") if fit_taichi else dl.LocalDetectConfig()
     n = [len(dl.detect_real(im[None], cfg)) for im in imgs]
     per = {}
     for _ in range(repeats):
@@ -114,8 +113,8 @@ def main() -> None:
     ap.add_argument("--rendered", type=int, default=8, help="rendered 1024 x 1024 frames, 0 = none (default 8)")
     ap.add_argument("--against", default=BEFORE, help="commit to compare with, or 'none' (default 00d8bee)")
     ap.add_argument("--core", default="0", help="CPU the measuring processes are pinned to (default 0)")
-    ap.add_argument("--taichi", action="store_true", help="start Taichi in the measuring processes first (this "
-                    "tree's detector then fits in Taichi, as in the star job and long hil star runs)")
+    ap.add_argument("--taichi", action="store_true", help="LocalDetectConfig(fit_engine='taichi') where the tree "
+                    "has that setting: the PSF fits as one Taichi kernel")
     a = ap.parse_args()
     if not 1 <= a.rounds <= 20 or not 1 <= a.repeats <= 50 or not 0 <= a.rendered <= 200:
         ap.error("--rounds in [1, 20], --repeats in [1, 50], --rendered in [0, 200]")
@@ -142,7 +141,7 @@ def main() -> None:
                 results[tag].append(measure(tree, sets, a.repeats, a.core, a.taichi))
         print(f"detect_real CPU ms per frame, one core, median over frames x {a.repeats} repeats, "
               f"{a.rounds} alternated rounds (stage = own time of its functions)"
-              + ("; Taichi started first (compiled PSF fits)" if a.taichi else "; no Taichi (numpy PSF fits)"))
+              + ("; fit_engine 'taichi' where the tree has it" if a.taichi else "; numpy PSF fits"))
         for set_name in sets:
             print(set_name + ":")
             for i in range(a.rounds):

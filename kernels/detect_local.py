@@ -4,9 +4,8 @@ handling, PSF-fit centroids with their Cramér-Rao uncertainty.
 :func:`detect_real` returns the same :class:`~dualsight.kernels.detect.Detections` as
 :func:`dualsight.kernels.detect.detect_stars` (as :class:`LocalDetections`, a subclass that adds per-frame
 counters), so identification and attitude take either.  Every frame is processed on its own (numpy and
-OpenCV; the PSF fits in Taichi only where the process runs Taichi already, step 5): its detections do not depend
-on the batch it is in, and a star's PSF fit does not depend on the other stars (each leaves the batched fit when
-it converges).
+OpenCV; the PSF fits in Taichi with ``fit_engine`` "taichi", step 5): its detections do not depend on the batch it
+is in, and a star's PSF fit does not depend on the other stars (each leaves the batched fit when it converges).
 
 One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile statistics), steps 2-3
 :mod:`dualsight.kernels.detect_candidates` (matched filter, candidates), the PSF and its fit (steps 4-5)
@@ -80,11 +79,11 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
    of the Fisher matrix I = sum_i grad(mu_i) grad(mu_i)^T / var_i over (x, y, A, b), ``sigma_px`` =
    sqrt((C_xx + C_yy) / 2) (Winick 1986, "Cramér-Rao lower bounds on the performance of charge-coupled-
    device optical position estimators", JOSA A 3, 1809).  Background-limited and well sampled it is
-   sigma_px = sqrt(8 pi) s^2 sigma / Fs = sqrt(2) s / SNR; photon-limited, s / sqrt(N_photons).  In a process
-   that already runs Taichi (the star job, the global detector, a long ``hil star`` run that starts it for its
-   voting) the fits run as one compiled kernel (:mod:`dualsight.kernels.detect_psf_fit`: 3-5x faster, positions
-   equal to the numpy fit's within ~1e-13 px, not bit for bit); elsewhere in numpy, so a one-image process starts
-   no kernels (Taichi's start and the two fit kernels' ~1.2 s would triple it).  The fit
+   sigma_px = sqrt(8 pi) s^2 sigma / Fs = sqrt(2) s / SNR; photon-limited, s / sqrt(N_photons).  With
+   ``fit_engine`` "taichi" the fits run as one compiled kernel (:mod:`dualsight.kernels.detect_psf_fit`: 3-5x
+   faster, positions equal to the numpy fit's within ~1e-13 px, not bit for bit, so the engine is a setting of the
+   run, never chosen by what the process happens to run); the default "numpy" starts no kernels (Taichi's start and
+   the two fit kernels cost ~1.2 s per process: a one-image ``hil star`` would take twice as long).  The fit
    is the maximum-likelihood estimate under that model, which reaches the bound at moderate SNR
    (measured: tests/test_detect_real.py).  A fit that does not converge falls back to the 3 x 3
    intensity-weighted centroid with sigma_px = sqrt(2) s / Z.
@@ -135,7 +134,6 @@ from dualsight.kernels.detect_background import interpolate_tiles, tile_backgrou
 from dualsight.kernels.detect_candidates import clamped, find_candidates, matched_filter
 from dualsight.kernels.detect_psf import cut_stamps, fit_psf, flux_fraction_3x3, psf_kernel_1d, sharpness_limit
 from dualsight.kernels.detect_psf_fit import fit_psf_compiled
-from dualsight.kernels.taichi_runtime import is_initialised
 from dualsight.kernels.sensor_config import MAX_ADU
 
 __all__ = ["LocalDetectConfig", "LocalDetections", "MIN_MEASURED_SIGMA_PX", "detect_real",
@@ -176,6 +174,7 @@ class LocalDetectConfig:
     deblend_min_sep_px : smallest separation of two stars in one component (px), in [0, 100].
     deblend_contrast : relative dip of Z between two maxima that makes them two stars, in [0, 1].
     connectivity : 8 or 4 (foreground components).
+    fit_engine : "numpy" or "taichi", the PSF fits' implementation (module docstring, step 5).
     """
 
     k_sigma: Annotated[float, Field(ge=1.0, le=1000.0)] = 5.0
@@ -195,6 +194,7 @@ class LocalDetectConfig:
     deblend_min_sep_px: Annotated[float, Field(ge=0.0, le=100.0)] = 2.0
     deblend_contrast: Annotated[float, Field(ge=0.0, le=1.0)] = 0.2
     connectivity: Literal[4, 8] = 8
+    fit_engine: Literal["numpy", "taichi"] = "numpy"
 
     def __post_init__(self):
         check_fields(self, units=_UNITS)
@@ -373,7 +373,7 @@ def _measure(img, R, inv, Z, sig_f, s, cfg, sat, fit_sigma=False, cands=None, sp
         x0 = c0[idx] + 0.5 + dxs
         y0 = r0[idx] + 0.5 + dys
         usable = w0.reshape(idx.size, -1).sum(1)
-        fit = fit_psf_compiled if is_initialised() else fit_psf         # module docstring, step 5
+        fit = fit_psf_compiled if cfg.fit_engine == "taichi" else fit_psf          # module docstring, step 5
         xf, yf, Af, _, sf_, cf, okf = fit(st, w0, rr0, cc0, x0, y0, np.full(idx.size, s), noise[idx],
                                           cfg.gain_e_per_adu, fit_sigma=fit_sigma)
         okf &= usable >= 6
