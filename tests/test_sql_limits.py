@@ -18,11 +18,12 @@ import pytest
 
 ENDLESS = "WITH RECURSIVE t(n) AS (SELECT 1 UNION ALL SELECT n+1 FROM t) SELECT count(*) FROM t"
 AS_CAP = 3 * 2**30            # address space: DuckDB reserves more than it touches
-# the child writes its own peak resident memory (KiB) to $PEAK_FILE at exit (RUSAGE_CHILDREN would be the
-# largest child of the whole test session, not this command's)
-DUALSIGHT = [sys.executable, "-c", "import atexit, os, resource, sys\n"
-             "atexit.register(lambda: open(os.environ['PEAK_FILE'], 'w').write("
-             "str(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)))\n"
+# the child writes its own peak resident memory (KiB, VmHWM) to $PEAK_FILE at exit (RUSAGE_CHILDREN would be the
+# largest child of the whole test session, and the child's own ru_maxrss carries the forking test process's
+# size across exec)
+DUALSIGHT = [sys.executable, "-c", "import atexit, os, sys\n"
+             "atexit.register(lambda: open(os.environ['PEAK_FILE'], 'w').write(next(x.split()[1] for x in "
+             "open('/proc/self/status') if x.startswith('VmHWM:'))))\n"
              "from dualsight.jobs.cli.main import main; sys.exit(main())"]
 
 
