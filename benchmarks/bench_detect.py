@@ -23,7 +23,8 @@ Scores per method and condition:
                 detector's detections: success / confident-wrong rates and the attitude error
 Methods:
   local         detect_real(frames, LocalDetectConfig(psf_sigma_px=<sensor's>, gain_e_per_adu=<sensor's>))
-  local-auto    the same with the PSF width measured per frame (psf_sigma_px None), as in HIL
+  local-auto    the same with the PSF width measured per frame (psf_sigma_px None), as in HIL; and with
+                fit_engine "taichi" (the PSF fits as one Taichi kernel, kernels/detect_psf_fit.py)
   global        detect_stars(frames, the spec's DetectConfig) (k 5, min_pixels 3)
   sep           sep.Background (32 px meshes, 3 x 3 filter) + sep.extract(matched filter = the pixel-
                 integrated PSF, err = the background rms map, minarea 1) + sep.winpos (windowed centroid,
@@ -151,10 +152,11 @@ def per_frame(det):
 
 
 # ============================================================================ methods
-def run_local(images, sensor, auto=False):
+def run_local(images, sensor, auto=False, fit_engine="numpy"):
     from dualsight.kernels.detect_local import LocalDetectConfig, detect_real
 
-    cfg = LocalDetectConfig(psf_sigma_px=None if auto else sensor.psf_sigma_px, gain_e_per_adu=sensor.gain_e_per_adu)
+    cfg = LocalDetectConfig(psf_sigma_px=None if auto else sensor.psf_sigma_px, gain_e_per_adu=sensor.gain_e_per_adu,
+                            fit_engine=fit_engine)
     sat = min(sensor.full_well_e / sensor.gain_e_per_adu + sensor.bias_adu, sensor.max_adu) - 3 * (
         sensor.read_noise_e / sensor.gain_e_per_adu)
     det = detect_real(images, cfg, saturation_adu=sat)
@@ -246,6 +248,9 @@ def bench(condition, frames, repeats, out=print, sil=True):
     (ax, ay), adet = run_local(images, sensor, auto=True)
     rows.append(["local-auto", score(ax, ay, truth, snr),
                  best_time(lambda: run_local(images, sensor, auto=True), repeats)])
+    (tx, ty), _ = run_local(images, sensor, auto=True, fit_engine="taichi")      # the kernels built: untimed
+    rows.append(["local-auto, Taichi fits", score(tx, ty, truth, snr),
+                 best_time(lambda: run_local(images, sensor, auto=True, fit_engine="taichi"), repeats)])
     (gx, gy), gdet = run_global(images, spec.detect)
     rows.append([f"global (k {spec.detect.k_sigma:g}, min_px {spec.detect.min_pixels})", score(gx, gy, truth, snr),
                  best_time(lambda: run_global(images, spec.detect), repeats)])
