@@ -82,6 +82,24 @@ def quat_to_dcm(q: np.ndarray) -> np.ndarray:
     ], axis=-2)
 
 
+
+def dcm_to_quat(R: np.ndarray) -> np.ndarray:
+    """(B, 4) unit quaternions (x, y, z, w), w >= 0, with ``quat_to_dcm(q) == R`` for (B, 3, 3) rotation matrices
+    (Shepperd 1978: from the largest of 1 + trace and the diagonal, no loss near 180 deg); NaN rows stay NaN."""
+    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+    d0, d1, d2 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    cand = np.stack([1 + d0 + d1 + d2, 1 + d0 - d1 - d2, 1 - d0 + d1 - d2, 1 - d0 - d1 + d2], axis=-1)
+    k = np.argmax(np.nan_to_num(cand, nan=-1.0), axis=-1)
+    s = 2 * np.sqrt(np.maximum(np.take_along_axis(cand, k[:, None], -1)[:, 0], 0))      # 4 |component k|
+    xw, yw, zw = R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]   # 4 xw, 4 yw, 4 zw
+    xy, xz, yz = R[:, 0, 1] + R[:, 1, 0], R[:, 0, 2] + R[:, 2, 0], R[:, 1, 2] + R[:, 2, 1]   # 4 xy, 4 xz, 4 yz
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = np.select([k[:, None] == 0, k[:, None] == 1, k[:, None] == 2],
+                      [np.stack([xw, yw, zw, s * s / 4], -1), np.stack([s * s / 4, xy, xz, xw], -1),
+                       np.stack([xy, s * s / 4, yz, yw], -1)],
+                      np.stack([xz, yz, s * s / 4, zw], -1)) / s[:, None]
+    return q * np.where(q[:, 3:] < 0, -1.0, 1.0)
+
 def radec_to_unit(ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
     """(..., 3) ICRS unit vectors from right ascension and declination (rad)."""
     ra, dec = np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
