@@ -18,6 +18,7 @@ from dualsight.catalogs.stars import StarCatalogConfig
 from dualsight.errors import ConfigError
 from dualsight.config import dataclass_from_table, dataclass_to_table, validate
 from dualsight.jobs.kinds.hil_common import Frozen, ImageEntry, fixed_point
+from dualsight.jobs.kinds.hil_star_track import TrackSpec
 from dualsight.kernels.detect import DetectConfig
 from dualsight.kernels.detect_local import LocalDetectConfig
 from dualsight.nav.voting_config import VotingConfig
@@ -136,6 +137,14 @@ class HilStarSpec(Frozen):
     settings: StarSettings = Field(default_factory=StarSettings)
     images: tuple[ImageEntry, ...] = Field(min_length=1, max_length=10_000_000)
     truths: tuple[StarTruth, ...] = ()
+    track: TrackSpec | None = None          # hil star --track (jobs/kinds/hil_star_track.py); absent: no tracking
+
+    def to_dict(self) -> dict:
+        """Canonical dict; ``track`` only when set (runs without ``--track`` keep their canonical form)."""
+        d = super().to_dict()
+        if d["track"] is None:
+            del d["track"]
+        return d
 
     def truth(self, k: int) -> StarTruth:
         return self.truths[k] if self.truths else _NO_TRUTH
@@ -222,6 +231,9 @@ def spec_from_dict(d: dict, source: str = "spec") -> HilStarSpec:
     if m.truths and len(m.truths) != len(m.images):
         raise ConfigError(f"must be empty or have one entry per image ({len(m.images)}), got {len(m.truths)}",
                           source=source, field="truths")
+    if m.track is not None and len(m.track.times_utc) != len(m.images):
+        raise ConfigError(f"must have one time per image ({len(m.images)}), got {len(m.track.times_utc)}",
+                          source=source, field="track.times_utc")
     cam, settings = normalise_run(m.camera, m.settings, source=source)
     return m.model_copy(update={"camera": cam, "settings": settings})
 
