@@ -3,7 +3,7 @@
     dualsight hil star IMAGES... --camera FILE [--truth FILE]
                       [--lat DEG --lon DEG [--height M] [--time UTC] [--alt DEG] [--az DEG] [--roll DEG]]
                       [--method robust|paper] [--mag-limit M] [--tolerance-arcsec A] [--max-stars N]
-                      [--config FILE.toml] [--json] [--overlay-dir DIR]
+                      [--config FILE.toml] [--json] [--overlay-dir DIR] [--track [--times FILE.csv]]
                       [--lake DIR] [--run ID] [--no-lake] [--workers N] [--scheduler ADDR] [--shard-size N]
     dualsight hil prox ...   (jobs/cli/hil_prox.py)
 
@@ -31,6 +31,16 @@ identified star); with ``--overlay-dir`` it draws the reference's Figure 11 per 
     residual_median_arcsec}, stars [{hip, vmag, x_px, y_px, pred_x_px, pred_y_px, error_arcsec,
     truth_error_arcsec, truth_match, truth_id_agrees}]
 (null where not applicable; definitions in nav/hil_score.py).
+
+``--track`` treats the images as one ordered sequence (issue 22, point 4; jobs/kinds/hil_star_track.py): each
+image's time from ``--times FILE`` (CSV with the header ``image,utc``), else FITS ``DATE-OBS``, EXIF
+``DateTimeOriginal``, or the file name (scene/frame_times.py); the images are sorted by time (the JSON list and
+the case ids follow that order), run as one shard, and go through the tracker's state machine (nav/sequence.py:
+lost-in-space until a fix, then tracking, fallback).  Each JSON object gains ``time_utc``, ``time_source``,
+``mode`` ("lost_in_space", "tracking" or "none"), ``mode_reason``, ``track_stars``, ``track_ra_deg``,
+``track_dec_deg``, ``track_roll_deg`` (the sequence's attitude), ``rate_deg_s`` [x, y, z] (camera frame),
+``rate_sigma_deg_s`` [x, y, z] (1 sigma per axis), ``rate_source`` ("stars" or "attitudes"); the other keys
+stay the lost-in-space answer of each image alone.
 
 Exit status: 0 when every image was processed (identified or not), 1 when an image could not be read
 (it still gets a row with ``error`` set, a message on stderr, and the other images run), 2 for bad
@@ -102,6 +112,13 @@ def add_star_parser(hsub) -> argparse.ArgumentParser:
     s.add_argument("--config", type=Path, default=None,
                    help="TOML overriding the settings: method, background_block_px, max_obs, batch_size, "
                         "[catalog], [detect], [voting], [alt_voting]")
+    t = p.add_argument_group("image sequences (jobs/kinds/hil_star_track.py)")
+    t.add_argument("--track", action="store_true",
+                   help="treat the images as one sequence ordered by time: lost-in-space until a fix, then "
+                        "tracking; adds time_utc, mode and rate_deg_s per image")
+    t.add_argument("--times", type=Path, default=None, metavar="FILE.csv",
+                   help="with --track: each image's UTC time, a CSV with the header image,utc (default: FITS "
+                        "DATE-OBS, EXIF DateTimeOriginal, or a YYYY-MM-DDTHHMMSS in the file name)")
     o = p.add_argument_group("output")
     o.add_argument("--json", action="store_true", help="print one JSON list, one object per image")
     o.add_argument("--overlay-dir", type=Path, default=None,

@@ -26,6 +26,7 @@ from dualsight.jobs.reports import hil_star as hil_report
 from dualsight.nav.distortion_procedure import FULL_CONFIG, MIN_STARS
 from dualsight.scene.camera import Camera, read_toml
 from dualsight.scene.camera_file import write_camera_toml
+from dualsight.scene.frame_times import frame_times, time_order
 from dualsight.scene.skytruth import load_truth_json
 from dualsight.scene.timescale import observation_epoch
 from dualsight.warehouse.query import connect, run_report
@@ -45,6 +46,17 @@ def star_spec_from_args(args):
     paths = expand_inputs(args.images)
     if not paths:
         raise InputError("no image files given", source="IMAGES")
+    track = None
+    if getattr(args, "times", None) is not None and not getattr(args, "track", False):
+        raise InputError("goes with --track (the images as one ordered sequence)", source="--times")
+    if getattr(args, "track", False):
+        if args.sweep or args.fit_distortion:
+            raise InputError("solves one sequence with one set of settings; drop --sweep and --fit-distortion",
+                             source="--track")
+        times = frame_times(paths, args.times)
+        order = time_order(times)
+        paths, times = [paths[i] for i in order], [times[i] for i in order]
+        track = {"times_utc": [t.iso for t in times], "time_sources": [t.source for t in times]}
     epoch = args.epoch if args.epoch is not None else (observation_epoch(paths, args.time) or 2000.0)
     settings = settings_from_args(args, config, epoch)
     truth_file = load_truth_json(args.truth) if args.truth is not None else None
@@ -56,8 +68,10 @@ def star_spec_from_args(args):
         site = Site(args.lat, args.lon, args.height, args.time, args.alt, args.az, args.roll, args.pressure)
     elif args.alt is not None or args.az is not None:
         raise InputError("--alt/--az need the site: give --lat and --lon too", source="--lat")
-    spec = spec_from_dict(hs.build_spec(paths, camera, settings, resolve_star_truths(paths, truth_file, site)),
-                          source="hil star")
+    d = hs.build_spec(paths, camera, settings, resolve_star_truths(paths, truth_file, site))
+    if track is not None:
+        d["track"] = track
+    spec = spec_from_dict(d, source="hil star")
     hs.check_pair_catalog(spec, source=str(args.camera))     # a pair catalog too large to build: one line, now
     return spec
 
@@ -71,6 +85,11 @@ def run(args) -> int:
     spec = star_spec_from_args(args)
     if args.sweep:
         return run_sweep(args, spec, t_start)
+    if spec.track is not None:                          # one sequence: every image in one shard, in time order
+        if getattr(args, "shard_size", None) not in (None, n_cases(spec)):
+            raise InputError(f"--track runs the images as one shard; omit --shard-size or give {n_cases(spec)}",
+                             source="--shard-size")
+        args = argparse.Namespace(**{**vars(args), "shard_size": n_cases(spec)})
     with engine_lake(args) as (lake, kept):
         manifest = run_engine("hil_star", spec.to_dict(), n_cases(spec), lake, args, label="hil star")
         run_id = manifest["run_id"]

@@ -70,6 +70,7 @@ from dualsight.jobs.engine.specs import check_memory
 from dualsight.jobs.kinds.hil_common import ImageEntry, check_unchanged, rows_table, spec_base
 from dualsight.jobs.kinds.hil_star_spec import MAX_VOTE_CELLS, HilStarSpec, StarSettings, StarTruth
 from dualsight.jobs.kinds import hil_star_spec
+from dualsight.jobs.kinds.hil_star_track import track_columns
 from dualsight.jobs.kinds.star import catalog_bytes, pair_angle
 from dualsight.kernels.detect import DetectConfig, detect_stars
 from dualsight.kernels.detect_local import LocalDetectConfig, detect_real, subtract_local_background
@@ -214,6 +215,8 @@ class ImageResult:
     case_id: int
     row: dict
     stars: list[StarRow] = field(default_factory=list)
+    detections: tuple | None = None
+    """(xy (D, 2) px brightest first, sigma_px (D,) or None) of the frame's detections, for ``--track``."""
 
 
 def read_frame(entry: ImageEntry, camera: Camera) -> tuple[np.ndarray, object]:
@@ -296,6 +299,11 @@ def compute_shard(spec: HilStarSpec, case_ids: np.ndarray, ctx: Context) -> dict
     results = []
     for s in range(0, len(ids), bs):
         results.extend(_run_batch([int(k) for k in ids[s:s + bs]], spec, ctx))
+    if spec.track is not None:                        # hil star --track: the frames as one sequence
+        cols = track_columns([r.case_id for r in results], [r.detections for r in results], spec.track, ctx,
+                             engine=voting_engine(len(spec.images)))
+        for r, c in zip(results, cols):
+            r.row.update(c)
     return tables(results)
 
 
@@ -397,6 +405,9 @@ def solve_frames(frames: np.ndarray, results: list[ImageResult], truths: list[St
         t_read = t_read_ns[b] if t_read_ns is not None else None
         res.row.update(share, t_read_ns=t_read, t_total_ns=(t_read or 0) + sum(share.values()),
                        background_adu=float(bg[b]))
+        s0, s1 = int(det.offsets[b]), int(det.offsets[b + 1])
+        sig = (np.hypot(det.sigma_px[s0:s1], floor) if det.sigma_px is not None and floor is not None else None)
+        res.detections = (np.stack([det.x[s0:s1], det.y[s0:s1]], axis=1), sig)     # the attitude's weights
         _fill(res, b, det, obs, ident, sol, alt, truths[b], ctx)
     return results
 
@@ -522,6 +533,10 @@ IMAGES_SCHEMA = pa.schema([
     ("mag_limit", pa.float64()), ("tolerance_rad", pa.float64()), ("max_stars", pa.int32()),
     ("t_read_ns", pa.int64()), ("t_detect_ns", pa.int64()), ("t_identify_ns", pa.int64()),
     ("t_attitude_ns", pa.int64()), ("t_alt_ns", pa.int64()), ("t_total_ns", pa.int64()),
+    # --track only (jobs/kinds/hil_star_track.py), null otherwise
+    ("time_utc", pa.string()), ("time_source", pa.string()), ("track_mode", pa.string()),
+    ("track_reason", pa.string()), ("track_stars", pa.int32()), ("track_A", _MAT9),
+    ("rate_rad_s", pa.list_(pa.float64(), 3)), ("rate_cov", _MAT9), ("rate_source", pa.string()),
 ])
 
 STARS_SCHEMA = pa.schema([

@@ -22,10 +22,12 @@ import numpy as np
 from dualsight.catalogs.auto_limit import describe_mag_limit
 from dualsight.errors import ImageError, output_path
 from dualsight.warehouse.cells import table_cells
+from dualsight.scene.attitude import unit_to_radec
+from dualsight.scene.pointing import roll_deg
 from dualsight.scene.starfield_geometry import catalog_in_image
 from dualsight.scene.units import ARCSEC
 
-__all__ = ["fetch", "to_json", "summary_line", "table6_text", "text_report", "write_overlays", "licence_credit"]
+__all__ = ["fetch", "to_json", "track_json", "summary_line", "table6_text", "text_report", "write_overlays", "licence_credit"]
 
 
 def fetch(con, run_id: str) -> tuple[list[dict], dict[int, list[dict]]]:
@@ -85,11 +87,33 @@ def to_json(r: dict, stars: list[dict], overlay: str | None = None) -> dict:
                       "residual_median_arcsec": _as(r.get("alt_residual_median_rad"))}
     if r.get("truth_note"):
         out["truth_note"] = r["truth_note"]
+    if r.get("time_utc") is not None:                   # hil star --track
+        out.update(track_json(r))
     out["stars"] = [{"hip": s["hip"], "vmag": round(s["vmag"], 2), "x_px": round(s["x_px"], 3),
                      "y_px": round(s["y_px"], 3), "pred_x_px": round(s["pred_x_px"], 3),
                      "pred_y_px": round(s["pred_y_px"], 3), "error_arcsec": _as(s["residual_rad"]),
                      "truth_error_arcsec": _as(s["truth_residual_rad"]), "truth_match": s["truth_match"],
                      "truth_id_agrees": s["truth_id_agrees"]} for s in stars]
+    return out
+
+
+def track_json(r: dict) -> dict:
+    """The ``--track`` keys of one image row (jobs/cli/hil_star.py): time, mode, the sequence's attitude, the rate
+    (deg/s, camera frame) and its 1-sigma per axis."""
+    out = {"time_utc": r["time_utc"], "time_source": r.get("time_source"), "mode": r.get("track_mode"),
+           "mode_reason": r.get("track_reason"), "track_stars": r.get("track_stars"),
+           "track_ra_deg": None, "track_dec_deg": None, "track_roll_deg": None,
+           "rate_deg_s": None, "rate_sigma_deg_s": None, "rate_source": r.get("rate_source")}
+    if r.get("track_A") is not None:
+        A = np.asarray(r["track_A"], np.float64).reshape(3, 3)
+        ra, dec = unit_to_radec(A[2])
+        out.update(track_ra_deg=round(math.degrees(float(ra)), 6), track_dec_deg=round(math.degrees(float(dec)), 6),
+                   track_roll_deg=round(float(roll_deg(A)), 4))
+    if r.get("rate_rad_s") is not None:
+        out["rate_deg_s"] = [float(math.degrees(v)) for v in r["rate_rad_s"]]
+        C = np.asarray(r["rate_cov"], np.float64).reshape(3, 3) if r.get("rate_cov") is not None else None
+        if C is not None and np.all(np.isfinite(np.diag(C))):
+            out["rate_sigma_deg_s"] = [float(math.degrees(math.sqrt(max(v, 0.0)))) for v in np.diag(C)]
     return out
 
 
