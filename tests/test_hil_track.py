@@ -198,3 +198,62 @@ def test_a_fixed_ground_camera_sees_the_sidereal_rate_about_the_pole(tmp_path):
         assert off_axis < min(bound, 5.0), (k, off_axis, bound)
         # the sequence's attitude is the rendered one (boresight within 10 arcsec)
         assert abs(d["track_dec_deg"] - np.degrees(np.arcsin(A[k][2, 2]))) < 10 / 3600
+
+
+# ============================================================================================ the ESA frames
+def _esa():
+    from helpers import ROOT, shared_real
+
+    esa = shared_real() / "esa_tetra3"
+    if not (esa / "truth.json").exists():
+        pytest.skip(f"ESA tetra3 frames not found at {esa}")
+    return ROOT / "examples" / "cameras" / "esa_tetra3.toml", sorted(esa.glob("*.tiff"))
+
+
+def test_esa_frames_at_one_instant_are_solved_lost_in_space_each(tmp_path):
+    """The eight ESA frames share one time (their file names) and eight pointings: no sequence (dt = 0), each
+    frame lost in space alone, no rate; the lost-in-space keys are those of a run without --track."""
+    cam, frames = _esa()
+    rc, docs, err = _track(cam, frames, None, tmp_path / "lake")
+    assert rc == 0, err
+    assert len(docs) == 8 and {d["time_utc"] for d in docs} == {"2019-07-29T20:47:26.000000Z"}
+    assert {d["time_source"] for d in docs} == {"file_name"}
+    assert [(d["mode"], d["mode_reason"], d["rate_deg_s"]) for d in docs] == [("lost_in_space", "no_prior", None)] * 8
+    for d in docs:         # the sequence's attitude is the frame's own lost-in-space answer
+        assert d["identified"] and abs(d["track_dec_deg"] - d["dec_deg"]) < 1 / 3600, d["image"]
+
+
+def test_esa_frames_given_as_a_sequence_fall_back_to_lost_in_space(tmp_path):
+    """The same frames 7 s apart by a --times CSV: the prediction from the previous pointing (>= 20 deg away)
+    matches nothing, so every frame falls back to lost in space and is solved; the rate is the (large) one
+    between two successive fixes."""
+    cam, frames = _esa()
+    times = tmp_path / "t.csv"
+    times.write_text("image,utc\n" + "".join(f"{p.name},2019-07-29T20:47:{7 * k:02d}Z\n" for k, p in enumerate(frames)))
+    rc, docs, err = _track(cam, frames, times, tmp_path / "lake")
+    assert rc == 0, err
+    assert [d["image"] for d in docs] == [p.name for p in frames]
+    assert [d["mode"] for d in docs] == ["lost_in_space"] * 8
+    assert docs[0]["mode_reason"] == "no_prior"
+    assert all(d["mode_reason"] in ("too_few_matches", "p_chance", "residual", "degenerate") for d in docs[1:])
+    assert all(d["rate_deg_s"] is not None and np.linalg.norm(d["rate_deg_s"]) > 1.0 for d in docs[1:])
+
+
+def test_track_refusals_are_one_line(tmp_path, capsys):
+    from dualsight.jobs.cli.main import main
+    from helpers import ROOT
+
+    import cv2
+
+    cam = ROOT / "examples" / "cameras" / "esa_tetra3.toml"
+    img = tmp_path / "no_time.tiff"
+    cv2.imwrite(str(img), np.zeros((768, 1024), np.uint16))
+    bad = tmp_path / "t.csv"
+    bad.write_text("image,utc\nno_time.tiff,soon\n")
+    for argv, needle in ((["--track"], "--track: no_time.tiff: no time"),
+                         (["--times", str(bad)], "--times: goes with --track"),
+                         (["--track", "--times", str(bad)], f"{bad}: line 2: field utc is not an ISO 8601 time"),
+                         (["--track", "--sweep", "k-sigma=4,5"], "--track: solves one sequence")):
+        assert main(["hil", "star", str(img), "--camera", str(cam), "--no-lake", *argv]) == 2, argv
+        e = capsys.readouterr().err
+        assert e.count("\n") == 1 and needle in e, (argv, e)
