@@ -58,7 +58,7 @@ def _as_int(name):
 
 def _rss(t: pa.Table) -> pa.ChunkedArray:
     """sqrt(err_x^2 + err_y^2 + err_z^2) (rad), null when any axis is null (as the SQL expression)."""
-    x, y, z = (_col(t, f"err_{a}_rad") for a in "xyz")
+    x, y, z = (pc.cast(_col(t, f"err_{a}_rad"), pa.float64()) for a in "xyz")   # stored float32: square in double
     return pc.sqrt(pc.add(pc.add(pc.multiply(x, x), pc.multiply(y, y)), pc.multiply(z, z)))
 
 
