@@ -148,21 +148,26 @@ def test_a_tampered_stored_metric_fails_the_replay_naming_it(star_lake, tmp_path
     shutil.copytree(star_lake, lake2)
     _, rows = run_sql(lake2, f"SELECT {column_name} FROM star_cases WHERE run = 's' AND case_id = 7")
     old = rows[0][0]
-    _tamper(lake2, "s", "star_cases", 7, column_name, old + delta)
+    new = old + delta if isinstance(old, int) else float(np.float32(old + delta))   # errors are stored float32
+    assert new != old
+    _tamper(lake2, "s", "star_cases", 7, column_name, new)
     _, rows = run_sql(lake2, f"SELECT {column_name} FROM star_cases WHERE run = 's' AND case_id = 7")
-    assert rows[0][0] == old + delta                     # the lake serves the tampered value
+    assert rows[0][0] == new                             # the lake serves the tampered value
     assert main(["replay", "--lake", str(lake2), "--run", "s", "--case", "7", "-o", str(tmp_path / "x.rrd")]) == 2
     err = capsys.readouterr().err
-    assert f"column {column_name} is {old + delta!r} in the lake, {old!r} recomputed" in err
+    assert f"column {column_name} is {new!r} in the lake, {old!r} recomputed" in err
     assert main(["replay", "--lake", str(lake2), "--run", "s", "--case", "6", "-o", str(tmp_path / "y.rrd")]) == 0
 
 
 def test_star_recording_has_magnitudes_and_both_attitudes(star_lake, tmp_path):
     from dualsight.jobs.kinds import star
 
-    _, rows = run_sql(star_lake, "SELECT case_id, A_true, A_est FROM star_cases WHERE run = 's' "
-                                 "AND status = 'success' ORDER BY case_id LIMIT 1")
-    case_id, A_true, A_est = rows[0]
+    from dualsight.scene.attitude import euler123_to_dcm, quat_to_dcm
+
+    _, rows = run_sql(star_lake, "SELECT case_id, [theta1_rad, theta2_rad, theta3_rad], q_est FROM star_cases "
+                                 "WHERE run = 's' AND status = 'success' ORDER BY case_id LIMIT 1")
+    case_id, theta, q_est = rows[0]
+    A_true, A_est = euler123_to_dcm(np.asarray([theta]))[0], quat_to_dcm(np.asarray(q_est))[0]   # float32 rows
     _, hips = run_sql(star_lake, f"SELECT hip_assigned FROM star_detections WHERE run = 's' AND case_id = {case_id} "
                                  "AND accepted ORDER BY det_index")
     out = tmp_path / "c.rrd"

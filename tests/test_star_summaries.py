@@ -77,7 +77,8 @@ def _cols(t: pa.Table) -> dict:
             continue
         valid = ~pc.is_null(col).to_numpy(zero_copy_only=False).astype(bool)
         fill = "" if pa.types.is_string(col.type) else (False if pa.types.is_boolean(col.type) else 0)
-        out[name] = (col.fill_null(fill).to_numpy(zero_copy_only=False), valid)
+        v = col.fill_null(fill).to_numpy(zero_copy_only=False)
+        out[name] = (v.astype(np.float64) if v.dtype.kind == "f" else v, valid)   # float32 rows: sums in double
     return out
 
 

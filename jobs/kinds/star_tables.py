@@ -10,14 +10,15 @@ import pyarrow as pa
 from dualsight.kernels.digest import to_int64
 from dualsight.nav.errors import STATUS_NAMES
 from dualsight.nav.observations import ragged_rank
-from dualsight.scene.attitude import boresight_radec
+from dualsight.scene.attitude import dcm_to_quat
+from dualsight.scene.units import angle_between
 
 __all__ = ["CASES_SCHEMA", "DETECTIONS_SCHEMA", "TARGET_CASE_FIELDS", "TARGET_DETECTION_FIELDS", "cases_table",
            "detections_table"]
 
 
 # ------------------------------------------------------------------------------------------ tables
-_MAT9 = pa.list_(pa.float64(), 9)
+_QUAT = pa.list_(pa.float32(), 4)
 
 TARGET_CASE_FIELDS = [
     ("target_present", pa.bool_()),            # the case has a target in its field (and it is lit)
@@ -52,21 +53,21 @@ TARGET_DETECTION_FIELDS = [
     ("excluded", pa.bool_()),                  # kept out of identification (a blob larger than any star's)
 ]
 
+_F32 = pa.float32()
+
 CASES_SCHEMA = pa.schema([
     ("case_id", pa.int64()), ("seed", pa.int64()), ("attitude_model", pa.string()),
-    ("theta1_rad", pa.float64()), ("theta2_rad", pa.float64()), ("theta3_rad", pa.float64()),
-    ("A_true", _MAT9), ("A_est", _MAT9),
-    ("ra_true_rad", pa.float64()), ("dec_true_rad", pa.float64()),
-    ("ra_est_rad", pa.float64()), ("dec_est_rad", pa.float64()),
-    ("noise_seed", pa.uint64()), ("image_digest", pa.int64()), ("blobs_dropped", pa.int32()),
+    ("theta1_rad", _F32), ("theta2_rad", _F32), ("theta3_rad", _F32),
+    ("q_est", _QUAT), ("boresight_err_rad", _F32),
+    ("image_digest", pa.int64()), ("blobs_dropped", pa.int32()),
     ("n_generated", pa.int32()), ("n_observed", pa.int32()), ("n_used", pa.int32()),
     ("n_identified", pa.int32()), ("n_correct_ids", pa.int32()), ("n_wrong_ids", pa.int32()),
     ("id_correct", pa.bool_()), ("T", pa.int32()),
-    ("err_x_rad", pa.float64()), ("err_y_rad", pa.float64()), ("err_z_rad", pa.float64()),
-    ("err_total_rad", pa.float64()), ("status", pa.string()),
+    ("err_x_rad", _F32), ("err_y_rad", _F32), ("err_z_rad", _F32),
+    ("err_total_rad", _F32), ("status", pa.string()),
     ("T_robust", pa.int32()), ("n_identified_robust", pa.int32()), ("id_correct_robust", pa.bool_()),
-    ("err_x_robust_rad", pa.float64()), ("err_y_robust_rad", pa.float64()), ("err_z_robust_rad", pa.float64()),
-    ("err_total_robust_rad", pa.float64()), ("status_robust", pa.string()), ("p_chance", pa.float64()),
+    ("err_x_robust_rad", _F32), ("err_y_robust_rad", _F32), ("err_z_robust_rad", _F32),
+    ("err_total_robust_rad", _F32), ("status_robust", pa.string()), ("p_chance", _F32),
     ("t_sample_ns", pa.int64()), ("t_render_ns", pa.int64()), ("t_detect_ns", pa.int64()),
     ("t_identify_ns", pa.int64()), ("t_attitude_ns", pa.int64()), ("t_robust_ns", pa.int64()),
     ("t_total_ns", pa.int64()),
@@ -74,6 +75,20 @@ CASES_SCHEMA = pa.schema([
     # above keeps its place and meaning
     *TARGET_CASE_FIELDS,
 ])
+"""One row per case, ~90 B per case on disk (issue 24 point 5; ``benchmarks/bench_lake_bytes.py``).  What a case
+needs and nothing it can recompute: the truth attitude is the case's seed (``default_rng([seed, case_id])``: the
+draw, the noise seed and the frame; replay redraws them and checks ``image_digest``), so neither ``A_true`` nor the
+noise seed nor the boresight RA/Dec (the third rows of the attitudes) is stored.  Floats are float32 where their
+precision is far beyond what they measure: angles and errors in rad to 6e-8 relative (an error of 10 arcsec to
+6e-7 arcsec, a theta to 0.02 arcsec), ``p_chance`` to 6e-8 relative.
+
+* ``theta1..3_rad``: the reference's 1-2-3 angles of the true attitude (NaN for ``attitude_model`` "uniform").
+* ``q_est``: estimated attitude as a unit quaternion (x, y, z, w), w >= 0, with
+  ``scene.attitude.quat_to_dcm(q_est) = A_est`` (inertial -> camera, to float32 rounding); NaN without attitude.
+* ``boresight_err_rad``: angle between the estimated and the true camera +z axes (third rows of A_est, A_true),
+  NaN without attitude.
+* ``err_*_rad``: the reference's Eqs. 4-7 (:mod:`dualsight.nav.errors`); ``err_total_rad`` the rotation angle.
+"""
 
 DETECTIONS_SCHEMA = pa.schema([
     ("case_id", pa.int64()), ("det_index", pa.int32()),
@@ -92,8 +107,6 @@ def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, al
     """``star_cases`` rows of a batch; ``target``: the columns of :data:`TARGET_CASE_FIELDS` as (B,) arrays
     (None: a run without a target, all null)."""
     B = len(case_ids)
-    ra_t, dec_t = boresight_radec(draw["A_true"])
-    ra_e, dec_e = boresight_radec(sol.A_est)
     total = sum(v for v in t.values() if v is not None)
     status = np.asarray(STATUS_NAMES, dtype=object)[sol.status]
     names = np.asarray(STATUS_NAMES, dtype=object)
@@ -105,7 +118,7 @@ def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, al
                   "err_z_robust_rad": sol_r.axis_err[:, 2], "err_total_robust_rad": sol_r.total_err,
                   "status_robust": names[sol_r.status],
                   # null (not NaN) without an answer, so that SQL aggregates over the column skip those cases
-                  "p_chance": pa.array(ident_r.p_chance, pa.float64(), mask=~np.isfinite(ident_r.p_chance))}
+                  "p_chance": pa.array(ident_r.p_chance, pa.float32(), mask=~np.isfinite(ident_r.p_chance))}
     else:
         robust = {k: [None] * B for k in ("T_robust", "n_identified_robust", "id_correct_robust", "err_x_robust_rad",
                                           "err_y_robust_rad", "err_z_robust_rad", "err_total_robust_rad",
@@ -114,9 +127,8 @@ def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, al
         "case_id": np.asarray(case_ids, dtype=np.int64), "seed": np.full(B, spec.seed, dtype=np.int64),
         "attitude_model": np.full(B, spec.attitudes, dtype=object),
         "theta1_rad": draw["angles"][:, 0], "theta2_rad": draw["angles"][:, 1], "theta3_rad": draw["angles"][:, 2],
-        "A_true": _mat9(draw["A_true"]), "A_est": _mat9(sol.A_est),
-        "ra_true_rad": ra_t, "dec_true_rad": dec_t, "ra_est_rad": ra_e, "dec_est_rad": dec_e,
-        "noise_seed": draw["noise_seed"], "image_digest": to_int64(det_digest),
+        "q_est": _quat(sol.A_est), "boresight_err_rad": angle_between(sol.A_est[:, 2], draw["A_true"][:, 2]),
+        "image_digest": to_int64(det_digest),
         "blobs_dropped": (det.blobs_dropped.astype(np.int32) if det.blobs_dropped is not None else [None] * B),
         "n_generated": field_.n_generated.astype(np.int32), "n_observed": np.diff(det.offsets).astype(np.int32),
         "n_used": obs.valid.sum(1).astype(np.int32), "n_identified": ident.accepted.sum(1).astype(np.int32),
@@ -132,13 +144,14 @@ def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, al
         **{name: (target[name] if target is not None else pa.nulls(B, type=typ)) for name, typ in TARGET_CASE_FIELDS},
     }
     return pa.table({k: pa.array(v, type=CASES_SCHEMA.field(k).type)
-                     if k not in ("A_true", "A_est") and not isinstance(v, pa.Array) else v
+                     if not isinstance(v, pa.Array) else v
                      for k, v in cols.items()}, schema=CASES_SCHEMA)
 
 
-def _mat9(A: np.ndarray) -> pa.FixedSizeListArray:
-    flat = np.ascontiguousarray(A.reshape(-1, 9), dtype=np.float64).ravel()
-    return pa.FixedSizeListArray.from_arrays(pa.array(flat), 9)
+def _quat(A: np.ndarray) -> pa.FixedSizeListArray:
+    """(B, 3, 3) attitudes -> (B,) float32 quaternions (x, y, z, w), w >= 0 (:func:`dcm_to_quat`)."""
+    flat = dcm_to_quat(A).astype(np.float32).ravel()
+    return pa.FixedSizeListArray.from_arrays(pa.array(flat), 4)
 
 
 def detections_table(case_ids, det, obs, ident, sol, truth, catalog, target: dict | None = None) -> pa.Table:

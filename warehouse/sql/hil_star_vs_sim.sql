@@ -1,7 +1,7 @@
 -- Real against simulated runs of the same camera: a star HIL run ($run, datasets hil_star and
 -- hil_star_stars) beside a star SIL run ($sim_run, star_cases and star_detections), both voting methods
 -- of the simulation.  Errors in arcseconds against each run's truth; "identified" = T > 0.
--- Boresight error = angle between the third rows (camera +z) of A_est and A_true, 2 asin(chord / 2).
+-- Boresight error = angle between the third rows (camera +z) of A_est and A_true (star_cases: boresight_err_rad).
 SELECT source, method, cases, identified_rate, success_rate, median_stars_observed, median_stars_identified,
        mean_T, median_boresight_error_arcsec, median_attitude_error_arcsec, median_residual_arcsec FROM (
     SELECT 1 AS k, 'real' AS source, any_value(method) AS method, count(*) AS cases,
@@ -22,10 +22,8 @@ SELECT source, method, cases, identified_rate, success_rate, median_stars_observ
            median(n_observed),
            median(n_identified) FILTER (WHERE T > 0),
            avg(T) FILTER (WHERE T > 0),
-           median(2 * asin(sqrt((A_est[7] - A_true[7]) ^ 2 + (A_est[8] - A_true[8]) ^ 2
-                                + (A_est[9] - A_true[9]) ^ 2) / 2)) FILTER (WHERE isfinite(A_est[9]))
-               * arcsec_per_rad(),
-           median(err_total_rad) FILTER (WHERE isfinite(err_total_rad)) * arcsec_per_rad(),
+           median(boresight_err_rad::DOUBLE) FILTER (WHERE isfinite(boresight_err_rad)) * arcsec_per_rad(),
+           median(err_total_rad::DOUBLE) FILTER (WHERE isfinite(err_total_rad)) * arcsec_per_rad(),
            (SELECT median(residual_rad) FROM star_detections
              WHERE run = $sim_run AND accepted AND isfinite(residual_rad)) * arcsec_per_rad()
     FROM star_cases WHERE run = $sim_run
