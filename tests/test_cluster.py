@@ -94,7 +94,7 @@ def test_star_and_prox_on_the_cluster_equal_in_process(tmp_path, cluster):
     from dualsight.jobs.kinds import prox, star
 
     spec, _ = star.resolve_spec("paper", None, seed=9)
-    cols = "case_id, n_generated, n_observed, T, status, A_est::VARCHAR, err_total_rad::VARCHAR"
+    cols = "case_id, n_generated, n_observed, T, status, q_est::VARCHAR, err_total_rad::VARCHAR"
     for where, kw in (("local", {"workers": 1}), ("dask", {"scheduler": cluster.address})):
         run_job("star", spec, n_cases=40, lake=Lake(tmp_path / where), run_id="s", shard_size=20, progress=False,
                 **kw)
