@@ -118,7 +118,7 @@ def test_star_report_sql_and_json_agree_with_the_lake(readme_run):
     assert doc["success_rate"] == pytest.approx(n_ok / n, abs=1e-12)
     rc, out, err, _ = result(readme_run, "dualsight star report --run big #")
     assert f"{100 * n_ok / n:.1f}" in out
-    rc, out, err, _ = result(readme_run, "dualsight sql ")
+    rc, out, err, _ = result(readme_run, "dualsight sql \"SELECT status")
     printed = {m.group(1): int(m.group(2)) for m in re.finditer(r"^\s*(\w+)\s+(\d+)\s*$", out, flags=re.M)}
     assert printed.get("success") == n_ok and sum(printed.values()) == n == 10000
 
