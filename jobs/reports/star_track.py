@@ -68,11 +68,12 @@ def _verdict(ok) -> str:
     return "-" if ok is None else ("met" if ok else "NOT met")
 
 
-def text(rep: dict) -> str:
+def target_rows(rep: dict) -> list[list[str]]:
+    """The targets table (metric, run, target, verdict) of :func:`text`, as printed cells (the HTML report's too)."""
     j = rep["json"]
     sp, spc = j["tracking_speedup_same_frames"], j["tracking_speedup_same_frames_without_rates"]
     r3 = j["rate_att_within_3sigma"]
-    rows = [
+    return [
         ["availability (valid, within the limit), all frames", percent(j["availability"]), "", ""],
         ["availability, normal frames (no blank/blinded/dropped)", percent(j["availability_normal_frames"]),
          ">= 99.9 %", _verdict(None if j["availability_normal_frames"] is None
@@ -91,6 +92,11 @@ def text(rep: dict) -> str:
          "-" if spc is None else f"{spc:.1f}x", ">= 10x",
          _verdict(None if spc is None else spc >= TARGETS["tracking_speedup"])],
     ]
+
+
+def text(rep: dict) -> str:
+    j = rep["json"]
+    rows = target_rows(rep)
     lines = [
         f"star-tracking run {j['run']}: {j['sequences']} sequences, {j['frames']:,} frames "
         f"({j['frames_normal']:,} normal)",
