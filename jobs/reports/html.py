@@ -18,10 +18,11 @@ from dualsight.catalogs.areas import area_table
 from dualsight.errors import InputError
 from dualsight.jobs.reports import hil_prox as hil_prox_report
 from dualsight.jobs.reports import star as star_report
+from dualsight.jobs.reports import star_track as track_report
 from dualsight.jobs.reports.prox import build_report
 from dualsight.scene.imageio import read_image
 from dualsight.viz import html_page as H
-from dualsight.viz import prox_figures
+from dualsight.viz import prox_figures, track_figures
 from dualsight.viz.case_crop import case_crop_png
 from dualsight.viz.figures import png_bytes, thumbnail_png
 from dualsight.viz.star_figures import error_vs_observed_figure
@@ -277,9 +278,84 @@ def _generic(lake, con, m, run_id):
                        run_id)
     return [(f"First rows of {ds}", H.table(cols, table_cells(cols, rows)))]
 
+TRACKED = 4
+"""Sequences of a star-tracking run drawn as error against time (the least available first)."""
+
+
+def _star_track(lake, con, m, run_id):
+    """Star tracking (issue 22, point 5): the text report's targets, summary, per-mode and lock-reason tables
+    (``jobs/reports/star_track.py`` over ``warehouse/sql/star_track_*.sql``) and the figures of
+    ``viz/track_figures.py``: error per axis against time of the least available sequences with the mode shaded,
+    availability at each frame and latency per frame by mode."""
+    rep = track_report.build(lake, run_id)
+    j = rep["json"]
+    summary = [("sequences", j["sequences"]), ("frames (normal: no blank, blinded or dropped)",
+                                                 f"{j['frames']:,} ({j['frames_normal']:,})"),
+               ("availability, all frames", percent(j["availability"])),
+               ("availability, normal frames", percent(j["availability_normal_frames"])),
+               ("valid attitude (within the limit or not)", percent(j["valid_share"])),
+               ("tracking share", percent(j["tracking_share"])), ("two-star locks", j["two_star_frames"]),
+               ("time to first fix, mean / max (s)", f"{cell('s', j['mean_time_to_first_fix_s'])} / "
+                                                     f"{cell('s', j['max_time_to_first_fix_s'])}"),
+               ("sequences never fixed", j["sequences_never_fixed"]),
+               ("re-acquisitions after a loss (mean / max frames)",
+                f"{j['reacquisitions']} ({cell('mean', j['mean_reacquisition_frames'])} / "
+                f"{cell('frames', j['max_reacquisition_frames'])})"),
+               ("losses not recovered before the sequence ended", j["unrecovered_losses"]),
+               ("false locks", j["false_locks"]),
+               ("rate error RMS from attitudes / from stars (deg/s)",
+                f"{cell('rate_deg_s', j['rate_att_err_rms_deg_s'])} / {cell('rate_deg_s', j['rate_star_err_rms_deg_s'])}"),
+               ("rate from stars within 3 stated sigmas", percent(j["rate_star_within_3sigma"])),
+               ("identities of tracking vs lost-in-space on the same frames (equal / different)",
+                "-" if j["ids_equal_to_lost_in_space"] is None else
+                f"{j['ids_equal_to_lost_in_space']} / {j['ids_different_from_lost_in_space']}")]
+    secs = [("Star tracking: targets (issue 22, point 6)",
+             H.table(["metric", "run", "target", "verdict"], track_report.target_rows(rep))),
+            ("Star tracking: campaign", H.table(["measure", "value"], summary)),
+            ("Star tracking: error and latency per mode",
+             H.table(*_cells(rep["tables"]["star_track_modes"]))),
+            ("Star tracking: lock reasons by frame event",
+             H.table(*_cells(rep["tables"]["star_track_reasons"]), left=3))]
+    cols, seqs = _rows(con, "SELECT case_id, motion, rate_deg_s, availability, losses, false_locks "
+                            "FROM star_sequences WHERE run = $run ORDER BY availability, losses DESC, case_id "
+                            f"LIMIT {TRACKED}", run_id)
+    ids = ",".join(str(int(r[0])) for r in seqs) or "-1"
+    fcols, frames = _rows(con, "SELECT case_id, t_s, mode, err_x_arcsec, err_y_arcsec, err_z_arcsec FROM star_frames "
+                               f"WHERE run = $run AND case_id IN ({ids}) ORDER BY case_id, frame", run_id)
+    fr = {c: np.array([r[i] for r in frames], dtype=object) for i, c in enumerate(fcols)}
+    drawn = []
+    for cid, motion, rate, avail, losses, fl in seqs:
+        k = fr["case_id"] == cid
+        drawn.append({"case_id": cid, "t_s": fr["t_s"][k].astype(float), "mode": fr["mode"][k],
+                      "title": f"sequence {cid}: {motion}, peak rate {cell('rate_deg_s', rate)} deg/s, available "
+                               f"{percent(avail)}, {losses} loss(es), {fl} false lock(s)",
+                      **{f"err_{a}_arcsec": np.array([np.nan if v is None else v for v in fr[f"err_{a}_arcsec"][k]],
+                                                     dtype=float) for a in "xyz"}})
+    limit = (m["spec"].get("sequence") or {}).get("error_limit_arcsec")
+    replay = (f"<p>Replay a sequence into rerun (its frames on the <code>frame</code> time line): <code>dualsight "
+              f"replay --lake {H.esc(_lake_arg(lake))} --run {H.esc(shlex.quote(run_id))} --case N -o seqN.rrd</code>"
+              "</p>")
+    secs.append(("Star tracking: error per axis against time",
+                 replay + H.figure(png_bytes(lambda p: track_figures.error_vs_time_figure(drawn, p, limit)),
+                                   "track-error-vs-time", f"Error per axis (arcsec, symmetric log) of the "
+                                   f"{len(drawn)} least available sequences; background: tracking (green), "
+                                   "lost in space (orange), no fix (red); dashed: the error limit")))
+    ev = j["error_vs_time"]
+    per_frame = {"t_s": [r["t_s"] for r in ev], "availability": [r["availability"] for r in ev]}
+    secs.append(("Star tracking: availability and latency by mode",
+                 H.figure(png_bytes(lambda p: track_figures.availability_latency_figure(per_frame, j["modes"], p)),
+                          "track-availability-latency", "Left: share of the sequences with a valid attitude within "
+                          "the limit at each frame.  Right: latency per frame by mode and stage (ms, log scale)")))
+    return secs
+
+
+def _cells(table: tuple) -> tuple:
+    cols, rows = table
+    return cols, table_cells(cols, rows)
+
 
 KINDS = {"star": _star, "prox_sweep": _prox, "prox_trajectory": _prox, "hil_star": _hil_star,
-         "hil_prox": _hil_prox}
+         "hil_prox": _hil_prox, "star_track": _star_track}
 
 
 def build_html(lake: Lake, run_id: str) -> str:
