@@ -112,3 +112,52 @@ def log_image_case(rec, *, image: np.ndarray | None, points: np.ndarray, labels:
         rec.log("camera/image/detections", rr.Points2D(points, radii=4.0, colors=[[40, 220, 40]],
                                                        labels=labels or None))
     rec.log("case", rr.TextDocument(info_md, media_type=rr.MediaType.MARKDOWN))
+
+
+def circles(centres: np.ndarray, radii: np.ndarray, n: int = 32) -> np.ndarray:
+    """(P, n + 1, 2) closed polygons of ``n`` sides around ``centres`` (P, 2) px with ``radii`` (P,) px."""
+    a = np.linspace(0.0, 2.0 * np.pi, n + 1)
+    ring = np.stack([np.cos(a), np.sin(a)], axis=-1)                                  # (n + 1, 2)
+    return np.asarray(centres, np.float64)[:, None, :] + np.asarray(radii, np.float64)[:, None, None] * ring
+
+
+def log_track_frame(rec, *, frame: int, image: np.ndarray | None, det_xy: np.ndarray, det_labels: list[str],
+                    det_used: np.ndarray, windows_xy: np.ndarray | None, windows_r: np.ndarray | None,
+                    truth_xy: np.ndarray, mode_text: str, info_md: str, attitudes: dict | None = None,
+                    scalars: dict | None = None):
+    """Log one frame of a star-tracking sequence at ``frame`` on the ``frame`` time line.
+
+    image : (H, W) raw frame or None (a dropped frame).  det_xy : (K, 2) centroids (col, row; top-left corner
+    convention); det_labels : (K,) "HIP <id>" of the detections in the answer, "" otherwise; det_used : (K,) bool
+    (green / grey).  windows_xy, windows_r : (P, 2) predicted positions and (P,) match-window radii (px) of tracking
+    (``nav.tracking.Prediction``), drawn as yellow circles, or None where tracking did not run.  truth_xy : (G, 2)
+    catalog stars at the true attitude (blue).  mode_text : the mode as a line of ``mode`` (TextLog).
+    attitudes : {"true": A, "estimated": A or None} (:func:`log_attitudes`).  scalars : numbers (:func:`log_scalars`).
+    Entities of an earlier frame that this frame lacks are cleared, so that the time line never shows a stale one.
+    """
+    rec.set_time("frame", sequence=frame)
+    log_attitudes(rec, attitudes or {})
+    for name, A in (attitudes or {}).items():
+        if A is None or not np.all(np.isfinite(A)):
+            rec.log(f"attitude/{name}", rr.Clear(recursive=False))
+    log_scalars(rec, scalars or {})
+    if image is not None:
+        rec.log("camera/image", rr.Image(_display(image)))
+    else:
+        rec.log("camera/image", rr.Clear(recursive=True))
+    green, grey, blue, yellow = [40, 220, 40], [150, 150, 150], [80, 140, 255], [250, 210, 40]
+    if len(truth_xy):
+        rec.log("camera/image/truth", rr.Points2D(truth_xy, radii=6.0, colors=[blue]))
+    else:
+        rec.log("camera/image/truth", rr.Clear(recursive=False))
+    if len(det_xy):
+        colors = np.where(np.asarray(det_used, bool)[:, None], green, grey).astype(np.uint8)
+        rec.log("camera/image/detections", rr.Points2D(det_xy, radii=3.0, colors=colors, labels=det_labels))
+    else:
+        rec.log("camera/image/detections", rr.Clear(recursive=False))
+    if windows_xy is not None and len(windows_xy):
+        rec.log("camera/image/windows", rr.LineStrips2D(circles(windows_xy, windows_r), colors=[yellow]))
+    else:
+        rec.log("camera/image/windows", rr.Clear(recursive=False))
+    rec.log("mode", rr.TextLog(mode_text))
+    rec.log("case", rr.TextDocument(info_md, media_type=rr.MediaType.MARKDOWN))

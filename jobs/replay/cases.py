@@ -39,6 +39,21 @@ def _stored_row(lake: Lake, dataset: str, run_id: str, case_id: int) -> dict:
     return dict(zip([d[0] for d in cur.description], rows[0]))
 
 
+def stored_rows(lake: Lake, dataset: str, run_id: str, case_id: int, order: str = "case_id") -> list[dict]:
+    """Every stored row of ``dataset`` of case ``case_id`` of run ``run_id`` (``run`` left out), ``ORDER BY
+    order`` (a column name of the dataset); InputError naming the option when the dataset or the case is absent."""
+    if dataset not in lake.datasets():
+        raise InputError(f"no {dataset} dataset in {lake.root}", source="--lake")
+    con = connect(lake)
+    cur = con.execute(f"SELECT * EXCLUDE (run) FROM {dataset} WHERE run = $run AND case_id = $case ORDER BY {order}",
+                      {"run": run_id, "case": int(case_id)})
+    cols = [d[0] for d in cur.description]
+    rows = [dict(zip(cols, r)) for r in cur.fetchall()]
+    if not rows:
+        raise InputError(f"run {run_id!r} has no case {case_id} in {lake.root}", source="--case")
+    return rows
+
+
 def compare_rows(stored: dict, fresh: dict) -> list[str]:
     """Names of the non-timing columns whose values differ (NaN equals NaN)."""
     bad = []

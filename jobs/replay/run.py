@@ -1,6 +1,6 @@
 """``dualsight replay``: the cases of any run, chosen by ``--case`` or an SQL predicate, each verified against its row
 and recorded for rerun by its kind's replay (jobs/replay/cases.py for star and any other kind, jobs/replay/prox.py
-for proximity cases).
+for proximity cases, jobs/replay/star_track.py for star-tracking sequences: every frame on the ``frame`` time line).
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ from pathlib import Path
 from dualsight.errors import InputError
 from dualsight.jobs.replay.cases import recording_path, replay_generic_case, replay_star_case, select_cases
 from dualsight.jobs.replay.prox import replay_prox_case
+from dualsight.jobs.replay.star_track import replay_track_case
 from dualsight.viz.recording import open_recording
 from dualsight.warehouse.lake import Lake
 
@@ -47,6 +48,8 @@ def replay_run(lake: Lake, run_id: str, *, case: int | None = None, where: str |
             replay_star_case(lake, run_id, c, path, rec=rec)
         elif kind in ("prox_sweep", "prox_trajectory"):
             replay_prox_case(lake, run_id, c, path, rec=rec)
+        elif kind == "star_track":
+            replay_track_case(lake, run_id, c, path, rec=rec)
         else:
             replay_generic_case(lake, manifest, c, path, rec=rec)
         if path not in out:
