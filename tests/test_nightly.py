@@ -385,8 +385,9 @@ def test_the_shipped_suites_load():
     quick = ns.load_suite("quick")
     standard = ns.load_suite("standard")
     assert [j.kind for j in quick.jobs] == [j.kind for j in standard.jobs] == \
-        ["star", "star", "prox_sweep", "prox_trajectory", "hil_star", "hil_prox"]
-    assert [j.n_cases for j in standard.jobs[:3]] == [20000, 2000, 3300]
+        ["star", "star", "star_track", "prox_sweep", "prox_trajectory", "hil_star", "hil_prox"]
+    assert [j.n_cases for j in standard.jobs[:4]] == [20000, 2000, 200, 3300]
     assert standard.jobs[1].spec["sensor"]["shot_noise"]
-    assert all(j.fresh_cases == j.n_cases for j in standard.jobs[:4])
+    assert standard.jobs[2].spec["sequence"]["blinded"] == 1 and quick.jobs[2].n_cases == 24
+    assert all(j.fresh_cases == j.n_cases for j in standard.jobs[:5])
     assert standard.jobs[0].make(99, 10)[0]["seed"] == 99

@@ -77,6 +77,12 @@ METRICS = {
         _dist("attitude_err_arcsec", "attitude_err_arcsec", "nightly_hil_star"),
         _dist("residual_arcsec", "residual_arcsec", "nightly_hil_star_stars"),
     ],
+    "star_track": [
+        _dist("availability", "availability", "nightly_star_track", "higher"),
+        _rate("false_lock_rate", "false_lock", "nightly_star_track", "lower"),
+        _dist("rate_err_deg_s", "rate_err_deg_s", "nightly_star_track"),
+        _dist("err_total_arcsec", "err_total_arcsec", "nightly_star_track"),
+    ],
     "hil_prox": [
         _rate("found_rate", "found", "nightly_hil_prox"),
         _rate("within_rate", "within", "nightly_hil_prox"),

@@ -8,9 +8,10 @@ Layout (every error names the file, the key as ``job.<i>.<key>`` and what is all
 
     [[job]]
     name = "star_paper"        # [a-z][a-z0-9_]{0,29}; run ids are nightly-<night>-<name>[.fresh]
-    kind = "star"              # star | prox_sweep | prox_trajectory | hil_star | hil_prox
+    kind = "star"              # star | star_track | prox_sweep | prox_trajectory | hil_star | hil_prox
     spec = "paper"             # a preset name, a TOML file (the keys of that job's --config) or an inline table
-    cases = 2000               # star: cases; prox_sweep: ranges x orientations; prox_trajectory: frames
+    cases = 2000               # star: cases; star_track: sequences; prox_sweep: ranges x orientations;
+                               # prox_trajectory: frames
     seed = 1                   # the fixed seed (default: the spec's)
     fresh_cases = 2000         # the fresh-seed sample's cases (default: = cases; 0: none)
 
@@ -58,10 +59,18 @@ from dualsight.scene.skytruth import load_truth_json
 from dualsight.scene.timescale import observation_epoch
 
 REPO = Path(__file__).resolve().parents[2]
-MC_KINDS = ("star", "prox_sweep", "prox_trajectory")
+MC_KINDS = ("star", "star_track", "prox_sweep", "prox_trajectory")
+SEQUENCE_KINDS = ("star", "star_track")
+"""Monte Carlo kinds whose case count is the number of cases itself (no sweep grid, no trajectory frames)."""
 HIL_KINDS = ("hil_star", "hil_prox")
 KINDS = MC_KINDS + HIL_KINDS
 MAX_SUITE_CASES = 10**7
+
+TRACK_SPEC = {"preset": "paper", "sequence": {"frames": 50, "motion": "mixed", "rate_max_deg_s": 1.0,
+                                             "blinded": 1, "dropped": 1}}
+"""The nightly's star-tracking campaign (issue 22, point 5): the paper preset's camera and sensor, sequences of 50
+frames at the default 10 frames/s, constant rates and slews up to 1 deg/s, one blinded and one dropped frame each
+(so that re-acquisition is exercised every night)."""
 
 STANDARD = {
     "name": "standard",
@@ -70,6 +79,7 @@ STANDARD = {
     "job": [
         {"name": "star_paper", "kind": "star", "spec": "paper", "cases": 20000, "seed": 1},
         {"name": "star_noisy", "kind": "star", "spec": "examples/star/noisy_sensor.toml", "cases": 2000, "seed": 7},
+        {"name": "star_track_paper", "kind": "star_track", "spec": TRACK_SPEC, "cases": 200, "seed": 1},
         {"name": "prox_sweep_accurate", "kind": "prox_sweep", "spec": "accurate", "cases": 3300, "seed": 1},
         {"name": "prox_trajectory", "kind": "prox_trajectory", "spec": "paper", "seed": 1},
         {"name": "hil_star_esa", "kind": "hil_star", "images": "{shared}/data/real/esa_tetra3/*.tiff",
@@ -80,7 +90,8 @@ STANDARD = {
     ],
 }
 """The built-in standard suite (`dualsight nightly`): the star paper preset at 20,000 cases, the noisy sensor
-example at 2,000, the accurate proximity sweep (11 ranges x 300 orientations), the reference trajectory, and
+example at 2,000, a star-tracking campaign of 200 sequences (:data:`TRACK_SPEC`), the accurate proximity sweep
+(11 ranges x 300 orientations), the reference trajectory, and
 the HIL star (ESA frames) and HIL proximity (OpenCV chessboard) jobs when ../shared has the photos."""
 
 
@@ -226,9 +237,9 @@ def _images(text: str, base: Path) -> tuple[list[Path], str | None]:
 
 # ============================================================================================ Monte Carlo specs
 def _mc_module(kind: str):
-    from dualsight.jobs.kinds import prox, star          # Taichi
+    from dualsight.jobs.kinds import prox, star, star_track          # Taichi
 
-    return star if kind == "star" else prox
+    return {"star": star, "star_track": star_track}.get(kind, prox)
 
 
 def _mc_raw(j: JobTable, at: str, source: str, base: Path) -> dict:
@@ -253,7 +264,7 @@ def _mc_raw(j: JobTable, at: str, source: str, base: Path) -> dict:
     if config is not None and isinstance(sat, str) and not Path(sat).is_absolute() and (config.parent / sat).exists():
         d["satellite"] = str(config.parent / sat)          # as `prox sweep --config`: relative to that file
     d = deep_merge(d, inline)
-    if j.kind != "star":
+    if j.kind not in SEQUENCE_KINDS:
         d["job"] = "sweep" if j.kind == "prox_sweep" else "trajectory"
     d["_source"] = str(config) if config is not None else f"{source} {at}.spec"
     d["_at"] = at
@@ -269,7 +280,7 @@ def _mc_spec(kind: str, raw: dict, cases: int | None, seed: int | None, source: 
     cases_field = at if at.endswith("cases") else f"{at}.cases"
     if seed is not None:
         d["seed"] = int(seed)
-    if kind == "star":
+    if kind in SEQUENCE_KINDS:
         n = cases if cases is not None else d.get("cases", 200)
         if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_SUITE_CASES:
             raise ConfigError(f"must be an integer in [1, {MAX_SUITE_CASES:,}], got {n!r}", source=source,
