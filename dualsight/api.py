@@ -432,9 +432,9 @@ class Lake:
 
 
 # ============================================================================================ run
-RUN_KINDS = ("star", "prox_sweep", "prox_trajectory", "selftest")
+RUN_KINDS = ("star", "star_track", "prox_sweep", "prox_trajectory", "selftest")
 """Job kinds :func:`run` starts: the Monte Carlo jobs the command line starts from a preset, a config and a seed
-(``dualsight star run``, ``prox sweep``, ``prox trajectory``, ``selftest run``).  The hardware-in-the-loop kinds
+(``dualsight star run``, ``star track``, ``prox sweep``, ``prox trajectory``, ``selftest run``).  The hardware-in-the-loop kinds
 (hil_star, hil_prox, calibrate) take images, not cases: :func:`solve` covers one image, the command line a run."""
 
 
@@ -442,10 +442,11 @@ def _kind_functions(kind: str) -> tuple[Mapping, Callable, Callable]:
     """(presets, plan, start) of a job kind of :data:`RUN_KINDS`: the one table :func:`run` dispatches through,
     the kind module's own functions, which its command calls too (``plan(preset, config, seed=, cases=,
     run_id=)`` -> a plan with ``run_id``; ``start(plan, lake, workers=, scheduler=, shard_size=, progress=)``)."""
-    from dualsight.jobs.kinds import prox, selftest, star          # Taichi, pyarrow
+    from dualsight.jobs.kinds import prox, selftest, star, star_track          # Taichi, pyarrow
 
     table = {
         "star": (star.PRESETS, star.plan_run, star.start_run),
+        "star_track": (star_track.PRESETS, star_track.plan_run, star_track.start_run),
         "prox_sweep": (prox.PRESETS, functools.partial(prox.plan_run, job="sweep"), prox.start_run),
         "prox_trajectory": (prox.PRESETS, functools.partial(prox.plan_run, job="trajectory"), prox.start_run),
         "selftest": (selftest.PRESETS, selftest.plan_run, selftest.start_run),
@@ -464,6 +465,7 @@ def run(kind: str, spec: str | os.PathLike | Mapping | None = None, *, cases: in
     kind : the job kind (:data:`RUN_KINDS`) and the command it is:
 
         - ``"star"``: the star-tracker Monte Carlo, ``dualsight star run``;
+        - ``"star_track"``: star tracking over image sequences (one sequence a case), ``dualsight star track``;
         - ``"prox_sweep"``: the proximity range sweep (ranges x random orientations), ``dualsight prox sweep``;
         - ``"prox_trajectory"``: the proximity trajectory, frame by frame, ``dualsight prox trajectory``;
         - ``"selftest"``: the engine's self-test job, ``dualsight selftest run``.

@@ -26,6 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import tomli_w
 
 import dualsight
 from dualsight.errors import ConfigError, ImageError, InputError
@@ -45,6 +46,8 @@ STAR_TIMING = ("t_sample_ns", "t_render_ns", "t_detect_ns", "t_identify_ns", "t_
 STAR_ORDER = {"star_cases": "case_id", "star_detections": "case_id, det_index"}
 PROX_TIMING = ("t_sample_ns", "t_render_ns", "t_blob_paper_ns", "t_blob_subpixel_ns", "t_total_ns")
 PROX_ORDER = {"prox_cases": "case_id"}
+TRACK_TIMING = ("t_render_ns", "t_detect_ns", "t_predict_ns", "t_track_ns", "t_lis_ns", "t_rate_ns", "t_nav_ns",
+                "t_shadow_lis_ns", "t_sample_ns", "t_total_ns")
 
 
 def rotation_angle_arcsec(A: np.ndarray, B: np.ndarray) -> float:
@@ -566,6 +569,9 @@ RUNS = {
                    r"prox-sweep-paper-5-6", PROX_ORDER, PROX_TIMING, {"preset": "accurate", "ranges_m": [3.0, 20.0]}),
     "prox_trajectory": ("paper", 7, 4, 3, ["prox", "trajectory", "--preset", "paper", "--frames", "7", "--seed", "4"],
                         r"prox-trajectory-paper-4-7", PROX_ORDER, PROX_TIMING, "accurate"),
+    "star_track": ({"preset": "paper", "sequence": {"frames": 8}}, 4, 3, 2, None, r"star_track-3-4-[0-9a-f]{8}",
+                   {"star_sequences": "case_id", "star_frames": "case_id, frame"}, TRACK_TIMING,
+                   {"preset": "paper", "sequence": {"frames": 9}}),
     "selftest": (None, 40, 7, 10, ["selftest", "run", "--cases", "40", "--seed", "7"], r"selftest-[0-9a-f]{16}",
                  {"selftest_cases": "case_id", "selftest_items": "case_id, item"}, (), {"lam": 5.0}),
 }
@@ -578,12 +584,16 @@ def test_every_kind_runs_as_its_command(kind, tmp_path):
     id is refused with one line, the lake untouched."""
     spec, cases, seed, shard, argv, id_pattern, order, timing, other = RUNS[kind]
     api_lake, cli_lake = tmp_path / "api", tmp_path / "cli"
+    if argv is None:                      # a spec the command takes as --config
+        cfg = tmp_path / "spec.toml"
+        cfg.write_text(tomli_w.dumps({k: v for k, v in spec.items() if k != "preset"}))
+        argv = ["star", "track", "--preset", spec["preset"], "--config", cfg, "--cases", str(cases), "--seed", str(seed)]
     call = dict(cases=cases, seed=seed, lake=api_lake, workers=1, shard_size=shard)
     rid = dualsight.run(kind, spec, **call)
     rc, _, err = run_cli([*argv, "--lake", cli_lake, "--workers", "1", "--shard-size", shard, "--no-progress"])
     assert rc == 0, err
-    assert re.fullmatch(id_pattern, rid) and re.search(rf"^run {re.escape(rid)}: complete, {cases} cases", err,
-                                                       flags=re.M), (rid, err)
+    assert re.fullmatch(id_pattern, rid) and re.search(rf"^run {re.escape(rid)}: complete, {cases} "
+                                                       "(cases|sequences)", err, flags=re.M), (rid, err)
     from dualsight.warehouse.lake import Lake as Store
 
     m_api, m_cli = Store(api_lake).read_manifest(rid), Store(cli_lake).read_manifest(rid)
@@ -618,8 +628,8 @@ def test_every_kind_runs_as_its_command(kind, tmp_path):
 
 @pytest.mark.parametrize("kwargs, kind, text", [
     ({"kind": "nope"}, InputError, "kind: unknown or unsupported job kind 'nope'; dualsight.run starts star, "
-                                   "prox_sweep, prox_trajectory, selftest (hil_star, hil_prox and calibrate take images"),
-    ({"kind": "hil_star"}, InputError, "dualsight.run starts star, prox_sweep, prox_trajectory, selftest"),
+                                   "star_track, prox_sweep, prox_trajectory, selftest (hil_star, hil_prox and calibrate take images"),
+    ({"kind": "hil_star"}, InputError, "dualsight.run starts star, star_track, prox_sweep, prox_trajectory, selftest"),
     ({"kind": "calibrate"}, InputError, "unknown or unsupported job kind 'calibrate'"),
     ({"kind": "prox_sweep", "cases": 10}, InputError, "cases: must be a multiple of the sweep's 11 ranges"),
     ({"kind": "prox_sweep", "spec": "noisy"}, ConfigError, "unknown preset 'noisy'; known presets: accurate, paper"),
