@@ -80,6 +80,17 @@ def add_run_args(p: argparse.ArgumentParser, *, cases: bool = True):
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def print_run_end(manifest: dict, run_id: str, n_cases: int, lake, report: str, *, unit: str = "cases",
+                  rate_digits: int = 0) -> None:
+    """The two stderr lines a Monte Carlo command ends with: the run's status, size and rate
+    (``run R: complete, N cases in LAKE, X cases/s``) and the command that reports it."""
+    ex = manifest["executions"][-1]
+    el = ex.get("elapsed_s")
+    rate = f", {ex.get('cases_run', n_cases) / el:.{rate_digits}f} {unit}/s" if el else ""
+    print(f"run {run_id}: {manifest['status']}, {n_cases} {unit} in {lake.root}{rate}", file=sys.stderr)
+    print(f"report: {report} --lake {lake.root} --run {run_id}", file=sys.stderr)
+
+
 def latest_run(lake, kinds) -> str:
     """Id of the newest run (by creation time) of one of the job ``kinds`` in ``lake``; InputError when none."""
     runs = [m for m in lake.list_manifests() if m.get("kind") in kinds]

@@ -33,7 +33,8 @@ from dualsight.jobs.cli import nightly as cli_nightly
 from dualsight.jobs.cli import peer as cli_peer
 from dualsight.jobs.cli import prox as cli_prox
 from dualsight.jobs.cli import star_track as cli_star_track
-from dualsight.jobs.cli.args import Parser, add_lake_arg, add_run_args, latest_run, open_lake, positive_int, run_id_arg
+from dualsight.jobs.cli.args import (Parser, add_lake_arg, add_run_args, latest_run, open_lake, positive_int,
+                                     print_run_end, run_id_arg)
 from dualsight.jobs.engine.errors import Interrupted
 from dualsight.version import __version__
 from dualsight.warehouse.paths import os_error_text
@@ -211,11 +212,7 @@ def cmd_star_run(args) -> int:
           file=sys.stderr)
     manifest = star.start_run(plan, lake, workers=args.workers, scheduler=args.scheduler,
                               shard_size=args.shard_size, progress=not args.no_progress)
-    ex = manifest["executions"][-1]
-    el = ex.get("elapsed_s")
-    rate = f", {ex.get('cases_run', n_cases) / el:.0f} cases/s" if el else ""
-    print(f"run {run_id}: {manifest['status']}, {n_cases} cases in {lake.root}{rate}", file=sys.stderr)
-    print(f"report: dualsight star report --lake {lake.root} --run {run_id}", file=sys.stderr)
+    print_run_end(manifest, run_id, n_cases, lake, "dualsight star report")
     return 0
 
 

@@ -12,9 +12,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 
-from dualsight.jobs.cli.args import add_run_args, latest_run, open_lake
+from dualsight.jobs.cli.args import add_run_args, latest_run, open_lake, print_run_end
 
 
 def register(ssub) -> None:
@@ -42,9 +41,6 @@ def cmd_star_track(args: argparse.Namespace) -> int:
     lake = open_lake(args)
     m = star_track.start_run(plan, lake, workers=args.workers, scheduler=args.scheduler, shard_size=args.shard_size,
                              progress=not args.no_progress)
-    ex = m["executions"][-1]
-    el = ex.get("elapsed_s")
-    rate = f", {ex.get('cases_run', plan.n_cases) / el:.2f} sequences/s" if el else ""
-    print(f"run {plan.run_id}: {m['status']}, {plan.n_cases} sequences in {lake.root}{rate}", file=sys.stderr)
-    print(f"report: dualsight star track --report --lake {lake.root} --run {plan.run_id}", file=sys.stderr)
+    print_run_end(m, plan.run_id, plan.n_cases, lake, "dualsight star track --report", unit="sequences",
+                  rate_digits=2)
     return 0
