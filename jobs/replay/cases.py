@@ -74,12 +74,13 @@ def compare_rows(stored: dict, fresh: dict) -> list[str]:
     return bad
 
 
-def _refuse_mismatch(stored: dict, fresh: dict, case_id: int, run_id: str, manifest: dict):
-    """InputError naming the first differing column and both values, when the recomputed row differs."""
+def refuse_mismatch(stored: dict, fresh: dict, case_id: int, run_id: str, manifest: dict, what: str = ""):
+    """InputError naming the first differing column and both values, when the recomputed row differs;
+    ``what`` prefixes the column (e.g. ``"frame 7: "`` for a row of a sequence)."""
     diff = compare_rows(stored, fresh)
     if diff:
         c = diff[0]
-        raise InputError(f"replay of case {case_id} does not reproduce the lake: column {c} is {stored[c]!r} in "
+        raise InputError(f"replay of case {case_id} does not reproduce the lake: {what}column {c} is {stored[c]!r} in "
                          f"the lake, {fresh[c]!r} recomputed ({len(diff)} column(s) differ: {', '.join(diff[:6])}); "
                          f"run made with {manifest.get('code_version')}", source=f"run {run_id}")
 
@@ -130,7 +131,7 @@ def recompute_case(lake: Lake, run_id: str, case_id: int, job, dataset: str, kin
     ctx = job.make_context(spec)
     out = job.compute_batch(spec, ctx, np.array([case_id], dtype=np.int64), keep_images=True)
     fresh = out["tables"][dataset].to_pylist()[0]
-    _refuse_mismatch(stored, fresh, case_id, run_id, manifest)
+    refuse_mismatch(stored, fresh, case_id, run_id, manifest)
     return manifest, spec, ctx, out, fresh
 
 
@@ -230,7 +231,7 @@ def verify_case(lake: Lake, manifest: dict, case_id: int):
     ctx = mod.make_context(spec)
     tables = mod.compute_shard(spec, np.array([case_id], dtype=np.int64), ctx)
     fresh = tables[manifest["primary"]].to_pylist()[0]
-    _refuse_mismatch(stored, fresh, case_id, run_id, manifest)
+    refuse_mismatch(stored, fresh, case_id, run_id, manifest)
     return spec, ctx, stored, tables
 
 

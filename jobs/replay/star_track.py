@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from dualsight.errors import InputError
-from dualsight.jobs.replay.cases import compare_rows, recording_path, stored_rows
+from dualsight.jobs.replay.cases import recording_path, refuse_mismatch, stored_rows
 from dualsight.kernels.digest import to_int64
 from dualsight.kernels.sensor_config import flux_from_magnitude
 from dualsight.nav.sequence import MODE_NAMES, NO_FIX
@@ -28,15 +28,6 @@ from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
 from dualsight.warehouse.lake import Lake
 
 __all__ = ["replay_track_case", "frame_images", "predicted_windows"]
-
-
-def _refuse(stored: dict, fresh: dict, what: str, case_id: int, run_id: str, manifest: dict) -> None:
-    diff = compare_rows(stored, fresh)
-    if diff:
-        c = diff[0]
-        raise InputError(f"replay of case {case_id} does not reproduce the lake: {what}column {c} is {stored[c]!r} "
-                         f"in the lake, {fresh[c]!r} recomputed ({len(diff)} column(s) differ: {', '.join(diff[:6])}); "
-                         f"run made with {manifest.get('code_version')}", source=f"run {run_id}")
 
 
 def frame_images(spec, ctx, draw: dict) -> dict[int, tuple[np.ndarray, int]]:
@@ -119,13 +110,13 @@ def replay_track_case(lake: Lake, run_id: str, case_id: int, output: Path | None
     spec = star_track.spec_from_dict(manifest["spec"], source=f"manifest of run {run_id}")
     ctx = star_track.make_context(spec)
     out = star_track.compute_sequence(spec, ctx, case_id)
-    _refuse(seq_row, out["sequence"], "", case_id, run_id, manifest)
+    refuse_mismatch(seq_row, out["sequence"], case_id, run_id, manifest)
     fresh = out["frames"].to_pylist()
     if len(fresh) != len(frames):
         raise InputError(f"replay of case {case_id} does not reproduce the lake: {len(frames)} frame rows in the lake, "
                          f"{len(fresh)} recomputed", source=f"run {run_id}")
     for s, f in zip(frames, fresh):
-        _refuse(s, f, f"frame {s['frame']}: ", case_id, run_id, manifest)
+        refuse_mismatch(s, f, case_id, run_id, manifest, what=f"frame {s['frame']}: ")
     images = frame_images(spec, ctx, out["draw"])
     for k, (_, dig) in images.items():
         if dig != frames[k]["image_digest"]:
