@@ -38,7 +38,7 @@ from dualsight.errors import ConfigError
 
 __all__ = ["check_fields", "allowed_range", "validate", "plain_tree", "printable_key", "friendly_key", "MAX_DEPTH",
            "ANGLE_KEY_SUFFIXES", "dataclass_from_table", "dataclass_to_table", "check_range", "TrackingConfig",
-           "TargetConfig", "SequenceConfig"]
+           "TargetConfig", "SequenceConfig", "OutputConfig"]
 
 
 @functools.lru_cache(maxsize=None)
@@ -502,3 +502,30 @@ class SequenceConfig:
         if self.blank + self.blinded + self.dropped >= self.frames:
             raise ConfigError(f"blank + blinded + dropped must be < frames ({self.frames}), got "
                               f"{self.blank + self.blinded + self.dropped}", field="sequence.blinded")
+
+
+# ============================================================================================ star-run output (issue 24.5)
+@dataclasses.dataclass(frozen=True)
+class OutputConfig:
+    """What a star run stores beside its one row per case (``[output]`` of a star spec; issue 24, point 5).
+
+    detections : the per-star detail (dataset ``star_detections``, one row per detection, ~420 B per case of the
+        paper preset against ~94 B in ``star_cases``): "on" always, "off" never, "auto" (default) only when the
+        run has at most ``detections_max_cases`` cases.  Every report number but the blob breakdown comes from
+        ``star_cases``; a replay recomputes a case's detections from its row whether they were kept or not.
+    detections_max_cases : the largest run "auto" keeps the detections of, an integer in [0, 1e9] (default 100,000:
+        ~42 MB of detections for the paper preset).
+
+    What a run keeps is part of its identity (``jobs/kinds/star.py`` stores the resolved choice in the canonical
+    spec when the detections are dropped), so a resume never mixes shards with and without them.
+    """
+
+    detections: typing.Literal["auto", "on", "off"] = "auto"
+    detections_max_cases: typing.Annotated[int, pydantic.Field(ge=0, le=10**9)] = 100_000
+
+    def __post_init__(self):
+        check_fields(self, lambda name, msg: ConfigError(msg, field=f"output.{name}"))
+
+    def keeps_detections(self, n_cases: int) -> bool:
+        """True when a run of ``n_cases`` cases stores ``star_detections`` under these settings."""
+        return self.detections == "on" or (self.detections == "auto" and n_cases <= self.detections_max_cases)
