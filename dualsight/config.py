@@ -529,3 +529,112 @@ class OutputConfig:
     def keeps_detections(self, n_cases: int) -> bool:
         """True when a run of ``n_cases`` cases stores ``star_detections`` under these settings."""
         return self.detections == "on" or (self.detections == "auto" and n_cases <= self.detections_max_cases)
+
+
+# ============================================================================================ rendezvous (issue 23, point 5)
+_RdvPos = typing.Annotated[float, pydantic.Field(ge=-1e5, le=1e5)]
+_RdvVel = typing.Annotated[float, pydantic.Field(ge=-100.0, le=100.0)]
+_RdvDv = typing.Annotated[float, pydantic.Field(ge=-10.0, le=10.0)]
+_RdvTime = typing.Annotated[float, pydantic.Field(gt=0.0, le=1e6)]
+_RDV_UNITS = {"altitude_km": "km", "inclination_deg": "deg", "raan_deg": "deg", "arg_lat_deg": "deg",
+              "position_m": "m", "velocity_m_s": "m/s", "dispersion_position_m": "m",
+              "dispersion_velocity_m_s": "m/s", "duration_s": "s", "frame_interval_s": "s",
+              "manoeuvre_times_s": "s", "manoeuvre_dv_m_s": "m/s", "dv_error_m_s": "m/s",
+              "pointing_error_deg": "deg", "target_rate_deg_s": "deg/s", "attitude_sigma_arcsec": "arcsec",
+              "cob_sigma_frac": "of the diameter", "prior_position_m": "m", "prior_velocity_m_s": "m/s",
+              "accel_psd": "m^2/s^3", "converged_after_frames": "frames"}
+
+
+@dataclasses.dataclass(frozen=True)
+class RendezvousConfig:
+    """One approach of a rendezvous campaign (``[rendezvous]`` of a ``dualsight rendezvous run`` spec; issue 23,
+    point 5; ``jobs/kinds/rendezvous.py``).  Every field's range is part of its type, checked when the dataclass is
+    built (ConfigError naming ``rendezvous.<field>``, the value and the range) and when a TOML table is validated.
+
+    Reference orbit (the target's, circular; ``scene/relative_orbit.CircularOrbit``): altitude_km in [150, 40000]
+        (default 500), inclination_deg in [0, 180] (51.6), raan_deg and arg_lat_deg in [0, 360] (30, 0).
+    Initial relative state of the chaser in the target's Hill frame (x radial, y along-track, z cross-track):
+        position_m (3 values, each in [-1e5, 1e5] m; default [0, -2000, 0]: 2 km behind on V-bar), velocity_m_s
+        (each in [-100, 100] m/s; default 0); per-case dispersion (1-sigma per axis, Gaussian):
+        dispersion_position_m in [0, 1e4] m (default 20), dispersion_velocity_m_s in [0, 10] m/s (default 0.005).
+    Frames: duration_s in (0, 1e6] s (default 6300), frame_interval_s in (0, 1e4] s (default 100); frames at
+        0, dt, 2 dt, ... <= duration, at most 10000.
+    Known manoeuvres: manoeuvre_times_s (up to 16 times in (0, duration]) and manoeuvre_dv_m_s (as many [dvx, dvy,
+        dvz] in the Hill frame, each in [-10, 10] m/s); the executed delta-v carries a Gaussian error per axis of
+        dv_error_frac x |dv| (in [0, 1], default 0.01) and dv_error_m_s (in [0, 1], default 0), both known to the
+        filter.
+    Pointing: "target" (boresight on the true target with a Gaussian pointing error of pointing_error_deg per axis,
+        in [0, 10], default 0.5, drawn per frame) or "inertial" (held on the target's initial nominal direction).
+    camera: "star" (the star preset's camera and ``sensor`` preset: stars give the attitude) or the path of a
+        camera file (a proximity camera: no stars are rendered, the attitude comes from the chaser's own star
+        tracker with attitude_sigma_arcsec per axis, in (0, 3600], default 10).
+    sensor: star sensor preset "ideal", "paper" (default) or "realistic" (``jobs/kinds/star.py``).
+    satellite: the target's satellite file (1 to 4096 characters); it spins at target_rate_deg_s about an axis
+        drawn per case (in [0, 30], default 1).
+    sun_icrs: unit vector towards the Sun (ICRS, norm 1 +- 1e-3); absent = the reference orbit's normal.
+    range_source: "blobber" (a range from every resolved blob: ``nav/blobber.py``, its [min, max] the
+        uncertainty) or "none" (bearings only).
+    cob_sigma_frac: 1-sigma of the centre of brightness about the body's centre, as a fraction of the apparent
+        diameter of the bounding sphere (in [0, 1], default 0.1): the bearing noise a resolved target adds.
+    Filter (``nav/relative_filter.py``): prior_position_m in (0, 1e5] m and prior_velocity_m_s in (0, 100] m/s
+        (1-sigma per axis about the nominal state; defaults: the dispersion, 20 m and 0.005 m/s), accel_psd in
+        [0, 1e-3] m^2/s^3 (default 1e-12), iterations in [1, 20] (default 3).
+    converged_after_frames: frames after which the report holds the filter to its chi-square bounds, in [0, 10000]
+        (default 10).
+    """
+
+    altitude_km: typing.Annotated[float, pydantic.Field(ge=150.0, le=40000.0)] = 500.0
+    inclination_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=180.0)] = 51.6
+    raan_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=360.0)] = 30.0
+    arg_lat_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=360.0)] = 0.0
+    position_m: typing.Annotated[tuple[_RdvPos, _RdvPos, _RdvPos], pydantic.Field(min_length=3, max_length=3)] = \
+        (0.0, -2000.0, 0.0)
+    velocity_m_s: typing.Annotated[tuple[_RdvVel, _RdvVel, _RdvVel], pydantic.Field(min_length=3, max_length=3)] = \
+        (0.0, 0.0, 0.0)
+    dispersion_position_m: typing.Annotated[float, pydantic.Field(ge=0.0, le=1e4)] = 20.0
+    dispersion_velocity_m_s: typing.Annotated[float, pydantic.Field(ge=0.0, le=10.0)] = 0.005
+    duration_s: _RdvTime = 6300.0
+    frame_interval_s: typing.Annotated[float, pydantic.Field(gt=0.0, le=1e4)] = 100.0
+    manoeuvre_times_s: typing.Annotated[tuple[_RdvTime, ...], pydantic.Field(max_length=16)] = ()
+    manoeuvre_dv_m_s: typing.Annotated[tuple[tuple[_RdvDv, _RdvDv, _RdvDv], ...], pydantic.Field(max_length=16)] = ()
+    dv_error_frac: typing.Annotated[float, pydantic.Field(ge=0.0, le=1.0)] = 0.01
+    dv_error_m_s: typing.Annotated[float, pydantic.Field(ge=0.0, le=1.0)] = 0.0
+    pointing: typing.Literal["target", "inertial"] = "target"
+    pointing_error_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=10.0)] = 0.5
+    camera: typing.Annotated[str, pydantic.Field(min_length=1, max_length=4096)] = "star"
+    sensor: typing.Literal["ideal", "paper", "realistic"] = "paper"
+    attitude_sigma_arcsec: typing.Annotated[float, pydantic.Field(gt=0.0, le=3600.0)] = 10.0
+    satellite: typing.Annotated[str, pydantic.Field(min_length=1, max_length=4096)] = \
+        "examples/satellites/cubesat_3u.toml"
+    target_rate_deg_s: typing.Annotated[float, pydantic.Field(ge=0.0, le=30.0)] = 1.0
+    sun_icrs: typing.Annotated[tuple[_TargetUnit, _TargetUnit, _TargetUnit],
+                               pydantic.Field(min_length=3, max_length=3)] | None = None
+    range_source: typing.Literal["blobber", "none"] = "none"
+    cob_sigma_frac: typing.Annotated[float, pydantic.Field(ge=0.0, le=1.0)] = 0.1
+    prior_position_m: typing.Annotated[float, pydantic.Field(gt=0.0, le=1e5)] = 20.0
+    prior_velocity_m_s: typing.Annotated[float, pydantic.Field(gt=0.0, le=100.0)] = 0.005
+    accel_psd: typing.Annotated[float, pydantic.Field(ge=0.0, le=1e-3)] = 1e-12
+    iterations: typing.Annotated[int, pydantic.Field(ge=1, le=20)] = 3
+    converged_after_frames: typing.Annotated[int, pydantic.Field(ge=0, le=10_000)] = 10
+
+    def __post_init__(self):
+        check_fields(self, lambda name, msg: ConfigError(msg, field=f"rendezvous.{name}"), _RDV_UNITS)
+        frames = int(math.floor(self.duration_s / self.frame_interval_s + 1e-9)) + 1
+        if frames > 10_000 or frames < 2:
+            raise ConfigError(f"duration_s / frame_interval_s must give 2 to 10000 frames, got {frames}",
+                              field="rendezvous.frame_interval_s")
+        if len(self.manoeuvre_times_s) != len(self.manoeuvre_dv_m_s):
+            raise ConfigError(f"must have one [dvx, dvy, dvz] per manoeuvre time ({len(self.manoeuvre_times_s)}), "
+                              f"got {len(self.manoeuvre_dv_m_s)}", field="rendezvous.manoeuvre_dv_m_s")
+        for i, t in enumerate(self.manoeuvre_times_s):
+            if t > self.duration_s:
+                raise ConfigError(f"must lie in (0, duration_s = {self.duration_s:g}] s, got {t!r}",
+                                  field=f"rendezvous.manoeuvre_times_s[{i}]")
+        if self.sun_icrs is not None and abs(math.hypot(*self.sun_icrs) - 1.0) > 1e-3:
+            raise ConfigError(f"must be a unit vector (norm 1 +- 1e-3), got {list(self.sun_icrs)!r}",
+                              field="rendezvous.sun_icrs")
+
+    @property
+    def frames(self) -> int:
+        """Frames per approach: t = 0, dt, ... <= duration_s."""
+        return int(math.floor(self.duration_s / self.frame_interval_s + 1e-9)) + 1
