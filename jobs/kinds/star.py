@@ -25,6 +25,8 @@ Spec (TOML; every table optional, defaults = preset ``paper``)::
     [robust]   ... (the same keys, for the robust method)
     [target]   ... (dualsight/config.py TargetConfig: a spacecraft in the field, issue 23; absent = none, and the
                    run is exactly the run of the same spec before [target] existed, with the target columns null)
+    [output]   detections = "auto" (or "on", "off"), detections_max_cases = 100000 (dualsight/config.py
+               OutputConfig; jobs/kinds/star_output.py: whether star_detections is written, part of the identity)
 """
 
 from __future__ import annotations
@@ -44,8 +46,9 @@ from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
 from dualsight.errors import ConfigError, InputError
 from dualsight.jobs.kinds import star_summaries
 from dualsight.jobs.kinds.star_tables import CASES_SCHEMA, DETECTIONS_SCHEMA, cases_table, detections_table
+from dualsight.jobs.kinds.star_output import with_case_count
 from dualsight.jobs.engine.runner import prepare, run_job
-from dualsight.config import TargetConfig, dataclass_from_table, dataclass_to_table, validate
+from dualsight.config import OutputConfig, TargetConfig, dataclass_from_table, dataclass_to_table, validate
 from dualsight.jobs.engine.specs import preset_and_config
 from dualsight.kernels import detect as kdetect
 from dualsight.kernels import starfield as kstar
@@ -144,6 +147,7 @@ class StarSpec:
     detector: Literal["global", "local"] = "global"     # "auto" in a TOML is resolved by auto_detector()
     source: str = field(default="defaults", compare=False)
     target: TargetConfig | None = None                  # issue 23: a spacecraft in the field
+    keep_detections: bool = True                        # issue 24.5: [output] detections, resolved (OutputConfig)
 
     def to_dict(self) -> dict:
         d = {"seed": self.seed, "batch_size": self.batch_size, "attitudes": self.attitudes,
@@ -154,6 +158,8 @@ class StarSpec:
              "robust": dataclass_to_table(self.robust) if self.robust is not None else {}}
         if self.target is not None:      # only then: the canonical spec of a run without a target is unchanged
             d["target"] = {k: v for k, v in dataclass_to_table(self.target).items() if v is not None}
+        if not self.keep_detections:     # only then: a run that keeps them has the canonical spec it always had
+            d["output"] = {"detections": "off"}
         return d
 
 
@@ -186,6 +192,7 @@ class StarTable(BaseModel):
     voting: dict = {}
     robust: dict = {}
     target: dict | None = None
+    output: dict = {}
 
 
 def spec_from_dict(d: dict, source: str = "spec") -> StarSpec:
@@ -203,10 +210,12 @@ def spec_from_dict(d: dict, source: str = "spec") -> StarSpec:
                                    base=VotingConfig.robust(tolerance_rad=voting.tolerance_rad))
               if cmp_ else None)
     target = target_from_table(d.get("target"), camera, source) if top.target is not None else None
+    # "auto" against the table's case count (resolve() puts the run's there; none: kept)
+    out = dataclass_from_table(OutputConfig, d.get("output"), source=source, section="output")
     return StarSpec(camera=camera, catalog=catalog, sensor=sensor, detect=detect, voting=voting, robust=robust,
                     seed=int(seed), batch_size=int(bs), attitudes=att, error_frame=frame,
                     detector=auto_detector(sensor) if top.detector == "auto" else top.detector, source=source,
-                    target=target)
+                    target=target, keep_detections=out.keeps_detections(top.cases or 0))
 
 
 def target_from_table(table: dict, camera: Camera, source: str) -> TargetConfig:
@@ -238,7 +247,7 @@ def auto_detector(sensor: SensorConfig) -> Literal["global", "local"]:
 
 
 def resolve(preset: str | None, config: Path | str | dict | None, *, seed: int | None = None,
-            cases: int | None = None) -> tuple[StarSpec, int]:
+            cases: int | None = None, detections: str | None = None) -> tuple[StarSpec, int]:
     """Merge preset, config file and flags into the validated spec; returns (spec, number of cases).
 
     The one way from the command line to a spec: ``spec.to_dict()`` is its canonical dict (what the
@@ -251,15 +260,16 @@ def resolve(preset: str | None, config: Path | str | dict | None, *, seed: int |
     if isinstance(n, bool) or not isinstance(n, int) or n < 1 or n > 10**9:
         raise InputError(f"number of cases must be an integer in [1, 1e9], got {n!r}",
                          source="--cases" if cases is not None else source)
+    d = with_case_count(d, n, detections)
     spec = spec_from_dict(d, source=source)
     load_star_catalog(spec.catalog)
     return spec, int(n)
 
 
 def resolve_spec(preset: str | None, config: Path | str | dict | None, *, seed: int | None = None,
-                 cases: int | None = None) -> tuple[dict, int]:
+                 cases: int | None = None, detections: str | None = None) -> tuple[dict, int]:
     """:func:`resolve` in the engine's form: (``spec.to_dict()``, number of cases)."""
-    spec, n = resolve(preset, config, seed=seed, cases=cases)
+    spec, n = resolve(preset, config, seed=seed, cases=cases, detections=detections)
     return spec.to_dict(), n
 
 
@@ -289,12 +299,12 @@ class StarRun:
 
 
 def plan_run(preset: str | None = None, config: Path | str | dict | None = None, *, seed: int | None = None,
-             cases: int | None = None, run_id: str | None = None) -> StarRun:
+             cases: int | None = None, run_id: str | None = None, detections: str | None = None) -> StarRun:
     """Everything ``dualsight star run`` decides before the lake is touched, for it and ``dualsight.run``:
     the preset (default paper), the config file or table over it and the flags merged and validated
     (:func:`resolve_spec`), the run's identity (``prepare`` of jobs/engine/runner.py), its id (``run_id``, default
     ``star-<seed>-<cases>-<first 8 digits of the spec hash>``) and the catalog sizes (:func:`catalog_info`)."""
-    spec_dict, n = resolve_spec(preset, config, seed=seed, cases=cases)
+    spec_dict, n = resolve_spec(preset, config, seed=seed, cases=cases, detections=detections)
     source = (("config table" if isinstance(config, dict) else str(config)) if config is not None
               else f"preset {preset or 'paper'}")
     _, _, _, h = prepare(NAME, spec_dict, n, source=source)
@@ -389,7 +399,7 @@ def draw_cases(spec: StarSpec, case_ids: np.ndarray) -> dict:
 def compute_shard(spec: StarSpec, case_ids: np.ndarray, ctx: StarContext) -> dict[str, pa.Table]:
     """The engine's contract: rows of ``case_ids`` (int64, ascending) in kernel batches of ``spec.batch_size``,
     and the shard's exact partial aggregates for the report (``star_summaries``, :mod:`dualsight.jobs.kinds.star_summaries`)."""
-    parts = {d: [] for d in ("star_cases", "star_detections")}
+    parts = {d: [] for d in datasets(spec) if d != star_summaries.DATASET}
     for s in range(0, len(case_ids), spec.batch_size):
         out = compute_batch(spec, ctx, case_ids[s: s + spec.batch_size])["tables"]
         for d in parts:
@@ -668,6 +678,12 @@ def target_columns(tcases, tf: TargetFrame, det, obs, ident, alt, excluded, bear
 # ------------------------------------------------------------------------------------------ tables
 SCHEMAS = {"star_cases": CASES_SCHEMA, "star_detections": DETECTIONS_SCHEMA,
            star_summaries.DATASET: star_summaries.SCHEMA}
+
+
+def datasets(spec: StarSpec) -> list[str]:
+    """The datasets a run of ``spec`` writes (the engine's optional hook): :data:`SCHEMAS` without
+    ``star_detections`` when the spec drops them (``[output] detections``, issue 24.5)."""
+    return [d for d in SCHEMAS if spec.keep_detections or d != "star_detections"]
 
 
 # ------------------------------------------------------------------------------------------ progress
