@@ -10,6 +10,7 @@ that defines::
     make_context(spec) -> ctx          per-process state (catalogs, tables), built once per worker process
     compute_shard(spec, case_ids, ctx) -> {dataset: pa.Table}
     optional: memory_estimate(spec) -> bytes, shard_summary(tables) -> {name: int}, progress_postfix(stats) -> str
+              datasets(spec) -> [names]: the datasets of SCHEMAS this spec writes (default: all)
 
 Identity.  A run is its canonical spec: ``spec_hash`` is a SHA-256 over the kind, the canonical spec, the
 number of cases and the code version (:func:`dualsight.version.code_version`).  The manifest and every
@@ -212,7 +213,7 @@ def run_job(kind: str, spec_dict: dict, *, n_cases: int, lake: Lake, run_id: str
     if scheduler is not None and (not isinstance(scheduler, str) or not scheduler.strip()):
         raise InputError(f"must be a Dask scheduler address such as tcp://host:8786, got {scheduler!r}",
                          source="--scheduler")
-    datasets = list(mod.SCHEMAS)
+    datasets = list(mod.datasets(spec) if hasattr(mod, "datasets") else mod.SCHEMAS)   # a kind may drop some
     existing = lake.read_manifest(run_id)          # refuse a conflicting id before touching anything
     if existing is not None:
         _refuse_other(existing, kind, canonical, n_cases, h, lake, run_id)
