@@ -1,6 +1,7 @@
 """The ``dualsight`` command line.
 
     dualsight star run     [--preset paper] [--config FILE.toml] [--cases N] [--seed S] [--lake DIR] [--run ID]
+                           [--detections auto|on|off]
     dualsight star report  [--lake DIR] [--run ID] [--json] [--plot FILE.png]
     dualsight star replay  --run ID --case I [--lake DIR] [-o FILE.rrd]
     dualsight prox ...     (see ``dualsight prox --help``)
@@ -36,6 +37,7 @@ from dualsight.jobs.cli import star_track as cli_star_track
 from dualsight.jobs.cli.args import (Parser, add_lake_arg, add_run_args, latest_run, open_lake, positive_int,
                                      print_run_end, run_id_arg)
 from dualsight.jobs.engine.errors import Interrupted
+from dualsight.jobs.kinds import star_output
 from dualsight.version import __version__
 from dualsight.warehouse.paths import os_error_text
 
@@ -63,6 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
     ssub = star.add_subparsers(dest="action", metavar="ACTION")
     p = ssub.add_parser("run", help="run (or resume) a star-tracker Monte Carlo into the lake")
     add_run_args(p)
+    p.add_argument("--detections", choices=("auto", "on", "off"), default=None,
+                   help="keep the per-star rows (star_detections): auto (the spec's [output], default: up to "
+                        "100,000 cases), on or off; part of the run's identity")
     p.set_defaults(func=cmd_star_run)
     p = ssub.add_parser("report", help="reliability summary, Table 5, error vs stars observed")
     add_lake_arg(p)
@@ -203,7 +208,8 @@ def cmd_star_run(args) -> int:
     from dualsight.jobs.kinds import star
 
     # plan_run and start_run are what dualsight.run("star", ...) calls: same spec, identity, run id and rows
-    plan = star.plan_run(args.preset, args.config, seed=args.seed, cases=args.cases, run_id=args.run)
+    plan = star.plan_run(args.preset, args.config, seed=args.seed, cases=args.cases, run_id=args.run,
+                         detections=args.detections)
     run_id, n_cases = plan.run_id, plan.n_cases
     lake = open_lake(args)
     info = plan.catalog
@@ -213,6 +219,8 @@ def cmd_star_run(args) -> int:
     manifest = star.start_run(plan, lake, workers=args.workers, scheduler=args.scheduler,
                               shard_size=args.shard_size, progress=not args.no_progress)
     print_run_end(manifest, run_id, n_cases, lake, "dualsight star report")
+    if not star_output.kept(manifest):
+        print(star_output.not_kept_note(manifest, "per-star detail"), file=sys.stderr)
     return 0
 
 
