@@ -26,6 +26,8 @@ from dualsight.errors import InputError
 from dualsight.warehouse.cells import cell, percent, table_cells
 from dualsight.jobs.kinds.star_summaries import DATASET as SUMMARIES
 from dualsight.jobs.kinds.star_summaries import merge_sql
+from dualsight.jobs.kinds.star_output import kept as detections_kept
+from dualsight.jobs.kinds.star_output import not_kept_note
 from dualsight.scene.units import ARCSEC
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.paths import is_run_id
@@ -167,7 +169,19 @@ def build(lake: Lake, run_id: str, source: str = "auto") -> dict:
     }
     if breakdown is not None:
         js["detections_per_successful_case"] = breakdown
-    return {"summary": s, "tables": tables, "json": js, "source": src, "breakdown": breakdown}
+    note = detections_note(lake, run_id)
+    if note:
+        js["detections_note"] = note
+    return {"summary": s, "tables": tables, "json": js, "source": src, "breakdown": breakdown, "note": note}
+
+
+def detections_note(lake: Lake, run_id: str) -> str | None:
+    """The one line the report prints in place of the blob breakdown when the run did not keep its per-star rows
+    (``star_detections``: ``[output] detections``, issue 24.5), with how to get them; None when it kept them."""
+    m = lake.read_manifest(run_id) if is_run_id(run_id) else None
+    if m is None or detections_kept(m):
+        return None
+    return not_kept_note(m, "blob breakdown of Table 5 (per-star rows)")
 
 
 BREAKDOWN_CASES = 100_000
@@ -180,11 +194,11 @@ def detection_breakdown(lake: Lake, run_id: str) -> dict | None:
     """What "stars observed" counts, averaged over the successful cases (``warehouse/sql/star_detection_breakdown.sql``
     over ``star_cases`` and ``star_detections``): generated, observed (= blobs), matched, edge, split, false_blobs,
     missed (per case), cases and cases_observed_gt_generated (counts), sampled (True when only the successful
-    cases among the first :data:`BREAKDOWN_CASES` were read).  None when the run has no detection rows or no camera
-    size in its manifest."""
-    if "star_detections" not in lake.datasets():
-        return None
+    cases among the first :data:`BREAKDOWN_CASES` were read).  None when the run has no detection rows (or did not
+    keep them: ``[output] detections``) or no camera size in its manifest."""
     m = lake.read_manifest(run_id) or {}
+    if not detections_kept(m) or "star_detections" not in lake.datasets():
+        return None
     cam = (m.get("spec") or {}).get("camera") or {}
     if "width" not in cam or "height" not in cam:
         return None
@@ -265,6 +279,7 @@ def text(rep: dict) -> str:
         "",
         "Table 5 (averages over the successful cases)",
         format_table(*table5_rows(rep)),
+        *([rep["note"]] if rep.get("note") else []),
         "",
         "Error vs stars observed (Figures 9-10), successful cases",
         format_table(*rep["tables"]["star_error_vs_observed"], floatfmt="{:.2f}"),
