@@ -138,7 +138,8 @@ def _star(lake, con, m, run_id):
     rep = star_report.build(lake, run_id)      # per-shard summaries when the run has them, else a full scan
     t = rep["tables"]
     secs = [("Reliability (reference section 3.3)", _reliability(rep)),
-            ("Table 5: stars and errors of the successful cases", H.table(*star_report.table5_rows(rep))),
+            ("Table 5: stars and errors of the successful cases", H.table(*star_report.table5_rows(rep))
+             + (f'<p class="note">{H.esc(rep["note"])}</p>' if rep.get("note") else "")),
             ("Reference method beside dualsight's robust voting",
              H.table(t["star_robust"][0], table_cells(*t["star_robust"]))),
             ("Figures 9 and 10: error against stars observed",
