@@ -190,14 +190,17 @@ def chi2_mean_bounds(dof: int, runs: int, prob: float = 0.95) -> tuple[float, fl
 
 
 def run(x0, P0, times, orbit: CircularOrbit, cfg: FilterConfig, *, bearings=None, bearing_cov=None,
-        ranges=None, range_sig=None, dv_times=(), dv=None):
+        ranges=None, range_sig=None, dv_times=(), dv=None, adjust=None):
     """The filter over a sequence of frames, batched over B runs.
 
     x0 (B, 6), P0 (B, 6, 6) at ``times[0]``; times (T,) s increasing; bearings (B, T, 3) ICRS lines of sight with
     bearing_cov (B, T, 3, 3), NaN rows where a frame has none; ranges and range_sig (B, T) m, NaN where none;
     dv_times (M,) s in (times[0], times[-1]] and dv (M, 3) or (B, M, 3) m/s the known manoeuvres (a manoeuvre at a
-    frame's time is applied before that frame's measurements).  Returns the updated states (B, T, 6) and
-    covariances (B, T, 6, 6) at every frame."""
+    frame's time is applied before that frame's measurements); adjust: optional ``adjust(k, x, P, u, C) -> (u, C)``
+    called at frame k after the prediction with the predicted states x (K, 6), covariances P (K, 6, 6), bearings
+    u (K, 3) and covariances C (K, 3, 3) of the K runs that have a bearing there, returning the bearings and
+    covariances to update with (e.g. a centre-of-brightness correction at the predicted range).  Returns the
+    updated states (B, T, 6) and covariances (B, T, 6, 6) at every frame."""
     times = np.asarray(times, np.float64)
     n = orbit.mean_motion
     x, P = np.array(x0, np.float64), np.array(P0, np.float64)
@@ -225,8 +228,10 @@ def run(x0, P0, times, orbit: CircularOrbit, cfg: FilterConfig, *, bearings=None
             b = np.asarray(bearings[:, k], np.float64)
             ok = np.all(np.isfinite(b), axis=-1)
             if ok.any():
-                x[ok], P[ok] = bearing_update(x[ok], P[ok], b[ok], np.asarray(bearing_cov[:, k])[ok], R[k],
-                                              cfg.iterations)
+                bu, bc = b[ok], np.asarray(bearing_cov[:, k])[ok]
+                if adjust is not None:
+                    bu, bc = adjust(k, x[ok], P[ok], bu, bc)
+                x[ok], P[ok] = bearing_update(x[ok], P[ok], bu, bc, R[k], cfg.iterations)
         if ranges is not None:
             r = np.asarray(ranges[:, k], np.float64)
             ok = np.isfinite(r)
