@@ -311,7 +311,7 @@ _TrackStars = typing.Annotated[int, pydantic.Field(ge=2, le=1000)]
 _TRACKING_UNITS = {"window_k_sigma": "sigma", "window_min_px": "px", "window_max_px": "px", "tight_window_px": "px",
                    "centroid_sigma_px": "px", "min_stars": "stars", "min_stars_tight": "stars",
                    "max_predicted": "stars", "residual_k_sigma": "sigma", "max_rms_sigma": "sigma",
-                   "initial_cone_rad": "rad", "rate_sigma_rad_s": "rad/s"}
+                   "initial_cone_rad": "rad", "rate_sigma_rad_s": "rad/s", "max_sigma_rad": "rad"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -344,6 +344,12 @@ class TrackingConfig:
         without a covariance (a hint, an old solution), in (0, 10 deg] (default 0.05 deg).
     rate_sigma_rad_s : 1-sigma rate uncertainty per axis (rad/s) assumed when no rate is known (after a
         lost-in-space fix), in (0, 30 deg/s] (default 0.5 deg/s).
+    max_sigma_rad : an attitude (tracking's or lost-in-space's) is output as valid only when its stated
+        covariance, scaled by the fit's a posteriori variance factor ``max(1, rms^2)``, has every principal
+        1-sigma at most this (rad), in (0, 10 deg] (default 25 arcsec: a quarter of the reference's 100 arcsec
+        limit, so a valid attitude beyond the limit is a 4-sigma event).  A weaker one (a two-star or
+        short-baseline solution's roll) is *degraded*: not output, not a prior (``nav/sequence.py``).  TOML also
+        takes ``max_sigma_arcsec``.
     """
 
     window_k_sigma: typing.Annotated[float, pydantic.Field(gt=0, le=20.0)] = 5.0
@@ -359,6 +365,7 @@ class TrackingConfig:
     max_p_chance: typing.Annotated[float, pydantic.Field(gt=0, le=1.0)] = 1e-3
     initial_cone_rad: typing.Annotated[float, pydantic.Field(gt=0, le=10 * _DEG)] = 0.05 * _DEG
     rate_sigma_rad_s: typing.Annotated[float, pydantic.Field(gt=0, le=30 * _DEG)] = 0.5 * _DEG
+    max_sigma_rad: typing.Annotated[float, pydantic.Field(gt=0, le=10 * _DEG)] = 25.0 * _DEG / 3600.0
 
     def __post_init__(self):
         check_fields(self, lambda name, msg: ConfigError(msg, field=f"tracking.{name}"), _TRACKING_UNITS)
@@ -431,9 +438,13 @@ class TargetConfig:
 # ============================================================================================ star sequences (issue 22)
 _SeqRate = typing.Annotated[float, pydantic.Field(ge=0.0, le=30.0)]
 _SeqCount = typing.Annotated[int, pydantic.Field(ge=0, le=10_000)]
+_SeqPsdFreq = typing.Annotated[float, pydantic.Field(ge=0.0, le=500.0)]
+_SeqPsd = typing.Annotated[float, pydantic.Field(ge=0.0, le=1e8)]
+_SeqPsdAxis = typing.Annotated[float, pydantic.Field(ge=0.0, le=100.0)]
 _SEQUENCE_UNITS = {"frames": "frames", "fps": "Hz", "exposure_s": "s", "rate_max_deg_s": "deg/s",
                    "slew_angle_max_deg": "deg", "slew_accel_deg_s2": "deg/s^2", "jitter_arcsec": "arcsec",
-                   "jitter_freq_hz": "Hz", "gyro_noise_deg_s": "deg/s", "gyro_bias_deg_s": "deg/s",
+                   "jitter_freq_hz": "Hz", "jitter_psd_freq_hz": "Hz",
+                   "jitter_psd_arcsec2_hz": "arcsec^2/Hz", "gyro_noise_deg_s": "deg/s", "gyro_bias_deg_s": "deg/s",
                    "blank": "frames", "blinded": "frames", "dropped": "frames", "max_coast_frames": "frames",
                    "lis_min_stars": "stars", "error_limit_arcsec": "arcsec"}
 
@@ -458,6 +469,13 @@ class SequenceConfig:
     slew_accel_deg_s2 : in (0, 100] deg/s^2 (default 0.5).
     jitter_arcsec : amplitude per axis of a sinusoidal jitter (arcsec), in [0, 3600] (default 0: none);
         jitter_freq_hz : its frequency, in (0, 1000] Hz (default 2); phases from the case's generator.
+    jitter_psd_freq_hz, jitter_psd_arcsec2_hz : a jitter with a given one-sided power spectral density, laid over
+        the motion besides the sinusoid (default none): >= 2 strictly increasing frequencies in [0, fps / 2] Hz (the
+        frame rate's Nyquist frequency: the renderer smears each frame along one straight chord, so faster jitter
+        would only alias) and the PSD at each, arcsec^2/Hz in [0, 1e8], not all zero; piecewise linear between the
+        points, zero outside (``scene/attitude_trajectory.jitter_from_psd_table``: each axis' variance is the PSD's
+        integral).  jitter_psd_axes : the PSD's factor per camera axis [x, y, z], each in [0, 100] (default
+        [1, 1, 1]: the same spectrum on every axis; [1, 1, 0]: no roll jitter).
     smear : render each frame smeared by its true body rate over the exposure (default True).
     gyro : the tracker gets a rate gyro's readings (default False): true rate + a constant bias drawn per axis
         with 1-sigma ``gyro_bias_deg_s`` (in [0, 10], default 0) + white noise ``gyro_noise_deg_s`` per sample
@@ -482,6 +500,10 @@ class SequenceConfig:
     slew_accel_deg_s2: typing.Annotated[float, pydantic.Field(gt=0.0, le=100.0)] = 0.5
     jitter_arcsec: typing.Annotated[float, pydantic.Field(ge=0.0, le=3600.0)] = 0.0
     jitter_freq_hz: typing.Annotated[float, pydantic.Field(gt=0.0, le=1000.0)] = 2.0
+    jitter_psd_freq_hz: tuple[_SeqPsdFreq, ...] = dataclasses.field(default=(), metadata={"omit_if_default": True})
+    jitter_psd_arcsec2_hz: tuple[_SeqPsd, ...] = dataclasses.field(default=(), metadata={"omit_if_default": True})
+    jitter_psd_axes: tuple[_SeqPsdAxis, _SeqPsdAxis, _SeqPsdAxis] = dataclasses.field(
+        default=(1.0, 1.0, 1.0), metadata={"omit_if_default": True})
     smear: bool = True
     gyro: bool = False
     gyro_noise_deg_s: typing.Annotated[float, pydantic.Field(ge=0.0, le=10.0)] = 0.01
@@ -499,6 +521,19 @@ class SequenceConfig:
         if self.exposure_s > 1.0 / self.fps:
             raise ConfigError(f"must be <= 1 / fps ({1.0 / self.fps:g} s), got {self.exposure_s!r}",
                               field="sequence.exposure_s")
+        f, S = self.jitter_psd_freq_hz, self.jitter_psd_arcsec2_hz
+        if f or S:
+            if len(f) < 2 or len(S) != len(f):
+                raise ConfigError(f"needs >= 2 frequencies and one PSD value per frequency, got "
+                                  f"{len(f)} frequencies and {len(S)} values", field="sequence.jitter_psd_arcsec2_hz")
+            if any(b <= a for a, b in zip(f[:-1], f[1:])):
+                raise ConfigError(f"must be strictly increasing, got {list(f)!r}", field="sequence.jitter_psd_freq_hz")
+            if f[-1] > 0.5 * self.fps:
+                raise ConfigError(f"must be <= fps / 2 ({0.5 * self.fps:g} Hz, the frames' Nyquist frequency), got "
+                                  f"{f[-1]!r}", field="sequence.jitter_psd_freq_hz")
+            if not any(v > 0 for v in S):
+                raise ConfigError("must not be all zero (leave both keys out for no jitter)",
+                                  field="sequence.jitter_psd_arcsec2_hz")
         if self.blank + self.blinded + self.dropped >= self.frames:
             raise ConfigError(f"blank + blinded + dropped must be < frames ({self.frames}), got "
                               f"{self.blank + self.blinded + self.dropped}", field="sequence.blinded")
@@ -536,6 +571,10 @@ _RdvPos = typing.Annotated[float, pydantic.Field(ge=-1e5, le=1e5)]
 _RdvVel = typing.Annotated[float, pydantic.Field(ge=-100.0, le=100.0)]
 _RdvDv = typing.Annotated[float, pydantic.Field(ge=-10.0, le=10.0)]
 _RdvTime = typing.Annotated[float, pydantic.Field(gt=0.0, le=1e6)]
+_RdvDispP = typing.Annotated[float, pydantic.Field(ge=0.0, le=1e4)]
+_RdvDispV = typing.Annotated[float, pydantic.Field(ge=0.0, le=10.0)]
+_RdvPriorP = typing.Annotated[float, pydantic.Field(gt=0.0, le=1e5)]
+_RdvPriorV = typing.Annotated[float, pydantic.Field(gt=0.0, le=100.0)]
 _RDV_UNITS = {"altitude_km": "km", "inclination_deg": "deg", "raan_deg": "deg", "arg_lat_deg": "deg",
               "position_m": "m", "velocity_m_s": "m/s", "dispersion_position_m": "m",
               "dispersion_velocity_m_s": "m/s", "duration_s": "s", "frame_interval_s": "s",
@@ -555,8 +594,9 @@ class RendezvousConfig:
         (default 500), inclination_deg in [0, 180] (51.6), raan_deg and arg_lat_deg in [0, 360] (30, 0).
     Initial relative state of the chaser in the target's Hill frame (x radial, y along-track, z cross-track):
         position_m (3 values, each in [-1e5, 1e5] m; default [0, -2000, 0]: 2 km behind on V-bar), velocity_m_s
-        (each in [-100, 100] m/s; default 0); per-case dispersion (1-sigma per axis, Gaussian):
-        dispersion_position_m in [0, 1e4] m (default 20), dispersion_velocity_m_s in [0, 10] m/s (default 0.005).
+        (each in [-100, 100] m/s; default 0); per-case dispersion (1-sigma per Hill axis x, y, z, Gaussian):
+        dispersion_position_m 3 values in [0, 1e4] m (default [2, 100, 2]), dispersion_velocity_m_s 3 values in
+        [0, 10] m/s (default 1e-4 each).
     Frames: duration_s in (0, 1e6] s (default 6300), frame_interval_s in (0, 1e4] s (default 100); frames at
         0, dt, 2 dt, ... <= duration, at most 10000.
     Known manoeuvres: manoeuvre_times_s (up to 16 times in (0, duration]) and manoeuvre_dv_m_s (as many [dvx, dvy,
@@ -574,10 +614,12 @@ class RendezvousConfig:
     sun_icrs: unit vector towards the Sun (ICRS, norm 1 +- 1e-3); absent = the reference orbit's normal.
     range_source: "blobber" (a range from every resolved blob: ``nav/blobber.py``, its [min, max] the
         uncertainty) or "none" (bearings only).
-    cob_sigma_frac: 1-sigma of the centre of brightness about the body's centre, as a fraction of the apparent
-        diameter of the bounding sphere (in [0, 1], default 0.1): the bearing noise a resolved target adds.
-    Filter (``nav/relative_filter.py``): prior_position_m in (0, 1e5] m and prior_velocity_m_s in (0, 100] m/s
-        (1-sigma per axis about the nominal state; defaults: the dispersion, 20 m and 0.005 m/s), accel_psd in
+    phase_correction: move each bearing from the centre of brightness to the centre by the Lambertian sphere of
+        the target's mean projected area at the predicted range and the measured phase angle (default True).
+    cob_sigma_frac: 1-sigma of the centre of brightness about the body's centre after that correction, as a
+        fraction of the bounding sphere's diameter, at the predicted range (in [0, 1], default 0.1).
+    Filter (``nav/relative_filter.py``): prior_position_m 3 values in (0, 1e5] m and prior_velocity_m_s 3 values in
+        (0, 100] m/s (1-sigma per Hill axis about the nominal state; defaults: the dispersion's), accel_psd in
         [0, 1e-3] m^2/s^3 (default 1e-12), iterations in [1, 20] (default 3).
     converged_after_frames: frames after which the report holds the filter to its chi-square bounds, in [0, 10000]
         (default 10).
@@ -591,8 +633,10 @@ class RendezvousConfig:
         (0.0, -2000.0, 0.0)
     velocity_m_s: typing.Annotated[tuple[_RdvVel, _RdvVel, _RdvVel], pydantic.Field(min_length=3, max_length=3)] = \
         (0.0, 0.0, 0.0)
-    dispersion_position_m: typing.Annotated[float, pydantic.Field(ge=0.0, le=1e4)] = 20.0
-    dispersion_velocity_m_s: typing.Annotated[float, pydantic.Field(ge=0.0, le=10.0)] = 0.005
+    dispersion_position_m: typing.Annotated[tuple[_RdvDispP, _RdvDispP, _RdvDispP],
+                                            pydantic.Field(min_length=3, max_length=3)] = (2.0, 100.0, 2.0)
+    dispersion_velocity_m_s: typing.Annotated[tuple[_RdvDispV, _RdvDispV, _RdvDispV],
+                                              pydantic.Field(min_length=3, max_length=3)] = (1e-4, 1e-4, 1e-4)
     duration_s: _RdvTime = 6300.0
     frame_interval_s: typing.Annotated[float, pydantic.Field(gt=0.0, le=1e4)] = 100.0
     manoeuvre_times_s: typing.Annotated[tuple[_RdvTime, ...], pydantic.Field(max_length=16)] = ()
@@ -610,9 +654,12 @@ class RendezvousConfig:
     sun_icrs: typing.Annotated[tuple[_TargetUnit, _TargetUnit, _TargetUnit],
                                pydantic.Field(min_length=3, max_length=3)] | None = None
     range_source: typing.Literal["blobber", "none"] = "none"
+    phase_correction: bool = True
     cob_sigma_frac: typing.Annotated[float, pydantic.Field(ge=0.0, le=1.0)] = 0.1
-    prior_position_m: typing.Annotated[float, pydantic.Field(gt=0.0, le=1e5)] = 20.0
-    prior_velocity_m_s: typing.Annotated[float, pydantic.Field(gt=0.0, le=100.0)] = 0.005
+    prior_position_m: typing.Annotated[tuple[_RdvPriorP, _RdvPriorP, _RdvPriorP],
+                                       pydantic.Field(min_length=3, max_length=3)] = (2.0, 100.0, 2.0)
+    prior_velocity_m_s: typing.Annotated[tuple[_RdvPriorV, _RdvPriorV, _RdvPriorV],
+                                         pydantic.Field(min_length=3, max_length=3)] = (1e-4, 1e-4, 1e-4)
     accel_psd: typing.Annotated[float, pydantic.Field(ge=0.0, le=1e-3)] = 1e-12
     iterations: typing.Annotated[int, pydantic.Field(ge=1, le=20)] = 3
     converged_after_frames: typing.Annotated[int, pydantic.Field(ge=0, le=10_000)] = 10
