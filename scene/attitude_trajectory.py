@@ -9,7 +9,10 @@ frame) with ``dA/dt = -[omega x] A`` (``scene/rotation_vector.py``).  Pieces:
   profile (constant acceleration ``a`` up to the rate limit ``w``, coast, constant deceleration; a triangle when
   the angle is shorter than ``w^2 / a``);
 * :func:`sinusoid_jitter` (a sum of sinusoids, phases drawn from the case's generator) and
-  :func:`jitter_from_psd` (amplitudes from a one-sided power spectral density, ``a_k = sqrt(2 S(f_k) df)``),
+  :func:`jitter_from_psd` (amplitudes from a one-sided power spectral density, ``a_k = sqrt(2 S(f_k) df)``);
+  a PSD tabulated at arbitrary increasing frequencies (piecewise linear between them, zero outside) is put on an
+  even grid by :func:`psd_bins` (each bin's exact mean, so the variance is the PSD's integral exactly) and drawn
+  by :func:`jitter_from_psd_table`,
   laid over a base motion by :func:`add_jitter` with the exact rate of the composition
   (``omega = J_r(delta) d(delta)/dt + R(delta) omega_base``, ``J_r`` the right Jacobian of SO(3), Markley &
   Crassidis 2014, Sec. 2.9 / Barfoot 2017, Eq. 7.77);
@@ -28,7 +31,7 @@ import numpy as np
 from dualsight.scene.rotation_vector import cross_matrix, frame_rotation, frame_rotation_vector
 
 __all__ = ["constant_rate", "slew_profile", "slew_duration", "eigenaxis_slew", "sinusoid_jitter", "jitter_from_psd",
-           "add_jitter", "right_jacobian", "gyro_rates", "EVENT_NAMES", "NORMAL", "BLANK", "BLINDED", "DROPPED",
+           "PSD_BINS", "psd_integral", "psd_bins", "jitter_from_psd_table", "add_jitter", "right_jacobian", "gyro_rates", "EVENT_NAMES", "NORMAL", "BLANK", "BLINDED", "DROPPED",
            "frame_events"]
 
 EVENT_NAMES = ("normal", "blank", "blinded", "dropped")
@@ -124,6 +127,59 @@ def jitter_from_psd(times: np.ndarray, freqs_hz: np.ndarray, psd_rad2_hz: np.nda
     df = float(np.mean(np.diff(f))) if f.size > 1 else 1.0
     S = np.broadcast_to(np.asarray(psd_rad2_hz, np.float64).reshape(f.size, -1), (f.size, 3))
     return sinusoid_jitter(times, f, np.sqrt(2.0 * S * df), rng)
+
+
+PSD_BINS = 256
+"""Sinusoids of :func:`jitter_from_psd_table` per axis: the tabulated band cut into this many equal bins."""
+
+
+def _cumulative_psd(f: np.ndarray, S: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``F(x) = integral from f[0] to x`` of the piecewise-linear PSD through ``(f, S)`` (zero outside the table).
+    f : (K,) increasing; S : (K, A); x : (M,).  Returns (M, A)."""
+    x = np.clip(np.asarray(x, np.float64), f[0], f[-1])
+    Fk = np.concatenate([np.zeros((1, S.shape[1])), np.cumsum(0.5 * (S[1:] + S[:-1]) * np.diff(f)[:, None], axis=0)])
+    i = np.clip(np.searchsorted(f, x, side="right") - 1, 0, f.size - 2)
+    slope = (S[i + 1] - S[i]) / (f[i + 1] - f[i])[:, None]
+    h = (x - f[i])[:, None]
+    return Fk[i] + S[i] * h + 0.5 * slope * h * h
+
+
+def psd_integral(freqs_hz: np.ndarray, psd: np.ndarray) -> np.ndarray:
+    """Variance (the PSD's units x Hz) of a one-sided PSD tabulated at ``freqs_hz`` (K,) increasing, piecewise
+    linear between the points and zero outside: the trapezoid sum, per column of ``psd`` (K,) or (K, A)."""
+    f = np.asarray(freqs_hz, np.float64)
+    S = np.asarray(psd, np.float64).reshape(f.size, -1)
+    return np.sum(0.5 * (S[1:] + S[:-1]) * np.diff(f)[:, None], axis=0)
+
+
+def psd_bins(freqs_hz: np.ndarray, psd: np.ndarray, n_bins: int = PSD_BINS):
+    """A tabulated one-sided PSD on an even grid: the band ``[f_0, f_{K-1}]`` cut into ``n_bins`` equal bins of
+    width ``df``; each bin's value is the exact mean of the piecewise-linear PSD over it, so ``sum S_m df`` is the
+    PSD's integral (:func:`psd_integral`) exactly.
+
+    freqs_hz : (K,) strictly increasing, K >= 2.  psd : (K,) or (K, A), >= 0.
+    Returns (bin centres (n_bins,) Hz, bin means (n_bins, A))."""
+    f = np.asarray(freqs_hz, np.float64).reshape(-1)
+    if f.size < 2 or np.any(np.diff(f) <= 0):
+        raise ValueError(f"a PSD table needs >= 2 strictly increasing frequencies, got {f.tolist()}")
+    S = np.asarray(psd, np.float64).reshape(f.size, -1)
+    edges = np.linspace(f[0], f[-1], int(n_bins) + 1)
+    F = _cumulative_psd(f, S, edges)
+    df = edges[1] - edges[0]
+    return 0.5 * (edges[1:] + edges[:-1]), np.maximum(np.diff(F, axis=0) / df, 0.0)
+
+
+def jitter_from_psd_table(times: np.ndarray, freqs_hz: np.ndarray, psd_rad2_hz: np.ndarray,
+                          rng: np.random.Generator, n_bins: int = PSD_BINS):
+    """Jitter whose one-sided PSD per axis is tabulated at increasing frequencies (piecewise linear between them,
+    zero outside): :func:`psd_bins` then :func:`jitter_from_psd` (``n_bins`` sinusoids per axis, random phases from
+    ``rng``).  Over the phases each axis' variance is ``psd_integral`` exactly and its autocorrelation
+    ``R(tau) = sum_m S_m df cos(2 pi f_m tau)`` (the Wiener-Khinchin integral on the bins).
+
+    times : (T,) s.  freqs_hz : (K,) Hz.  psd_rad2_hz : (K,) (all axes) or (K, 3) rad^2/Hz.
+    Returns delta (T, 3) rad and its time derivative (T, 3) rad/s."""
+    fm, Sm = psd_bins(freqs_hz, psd_rad2_hz, n_bins)
+    return jitter_from_psd(times, fm, np.broadcast_to(Sm, (fm.size, 3)), rng)
 
 
 def right_jacobian(delta: np.ndarray) -> np.ndarray:

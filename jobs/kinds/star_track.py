@@ -1,7 +1,7 @@
 """Star tracking over image sequences: the ``star_track`` job kind (issue 22, point 1; orchestration only).
 
     draw a sequence (here, from default_rng([seed, i])): initial attitude, trajectory (scene.attitude_trajectory:
-    constant rate, eigenaxis slew, jitter), gyro readings, events -> stars in the field of every frame
+    constant rate, eigenaxis slew, jitter: a sinusoid and/or a given spectrum), gyro readings, events -> stars in the field of every frame
     (scene.starfield_geometry) -> render and detect each frame with the star job's chain (jobs.kinds.star:
     render_and_detect, smeared by the frame's true body rate) -> the tracker's state machine over the frames
     (nav.sequence: lost-in-space, tracking, fallback, rates) -> errors per axis (nav.errors) -> Arrow rows
@@ -47,7 +47,7 @@ from dualsight.nav.errors import axis_errors, total_error_angle
 from dualsight.nav.sequence import NO_FIX, run_sequence
 from dualsight.scene.attitude import euler123_to_dcm
 from dualsight.scene.attitude_trajectory import (BLANK, BLINDED, DROPPED, add_jitter, constant_rate, eigenaxis_slew,
-                                                 gyro_rates, sinusoid_jitter)
+                                                 gyro_rates, jitter_from_psd_table, sinusoid_jitter)
 from dualsight.scene.rotation_vector import frame_rotation
 from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
 from dualsight.scene.units import ARCSEC, DEG
@@ -150,7 +150,8 @@ def draw_sequence(spec: StarTrackSpec, case_id: int) -> dict:
     Returns dict: t (T,) s; A_true (T, 3, 3); omega (T, 3) rad/s true body rate; events (T,) int8
     (``scene.attitude_trajectory.EVENT_NAMES``); gyro (T, 3) rad/s or None; motion str; rate_deg_s (peak rate);
     noise_seeds (T,) uint64 per-frame sensor seeds.  Draw order: 3 Euler angles, motion choice, axis (3 normals),
-    rate or slew angle and start, jitter phases, gyro bias and noise, event frames, noise seeds.
+    rate or slew angle and start, jitter phases (the sinusoid's, then the PSD's ``PSD_BINS`` per axis when
+    set), gyro bias and noise, event frames, noise seeds.
     """
     seq = spec.sequence
     rng = np.random.default_rng([spec.seed, int(case_id)])
@@ -174,6 +175,10 @@ def draw_sequence(spec: StarTrackSpec, case_id: int) -> dict:
         rate = min(seq.rate_max_deg_s, math.degrees(math.sqrt(angle * seq.slew_accel_deg_s2 * DEG)))
     if seq.jitter_arcsec > 0:
         d, dd = sinusoid_jitter(t, np.array([seq.jitter_freq_hz]), np.full((1, 3), seq.jitter_arcsec * ARCSEC), rng)
+        A, omega = add_jitter(A, omega, d, dd)
+    if seq.jitter_psd_freq_hz:            # a jitter of a given spectrum (rad^2/Hz per camera axis)
+        S = np.outer(seq.jitter_psd_arcsec2_hz, seq.jitter_psd_axes) * ARCSEC ** 2
+        d, dd = jitter_from_psd_table(t, np.array(seq.jitter_psd_freq_hz), S, rng)
         A, omega = add_jitter(A, omega, d, dd)
     gyro = None
     if seq.gyro:
