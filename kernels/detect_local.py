@@ -4,8 +4,8 @@ handling, PSF-fit centroids with their Cramér-Rao uncertainty.
 :func:`detect_real` returns the same :class:`~dualsight.kernels.detect.Detections` as
 :func:`dualsight.kernels.detect.detect_stars` (as :class:`LocalDetections`, a subclass that adds per-frame
 counters), so identification and attitude take either.  Every frame is processed on its own (numpy and
-OpenCV; the PSF fits in Taichi with ``fit_engine`` "taichi", step 5): its detections do not depend on the batch it
-is in, and a star's PSF fit does not depend on the other stars (each leaves the batched fit when it converges).
+OpenCV; the PSF fits in Taichi with ``fit_engine`` "taichi", the default, step 5): its detections do not depend
+on the batch it is in, and a star's PSF fit does not depend on the other stars (each leaves the batched fit when it converges).
 
 One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile statistics), steps 2-3
 :mod:`dualsight.kernels.detect_candidates` (matched filter, candidates), the PSF and its fit (steps 4-5)
@@ -80,10 +80,11 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
    sqrt((C_xx + C_yy) / 2) (Winick 1986, "Cramér-Rao lower bounds on the performance of charge-coupled-
    device optical position estimators", JOSA A 3, 1809).  Background-limited and well sampled it is
    sigma_px = sqrt(8 pi) s^2 sigma / Fs = sqrt(2) s / SNR; photon-limited, s / sqrt(N_photons).  With
-   ``fit_engine`` "taichi" the fits run as one compiled kernel (:mod:`dualsight.kernels.detect_psf_fit`: 3-5x
-   faster, positions equal to the numpy fit's within ~1e-13 px, not bit for bit, so the engine is a setting of the
-   run, never chosen by what the process happens to run); the default "numpy" starts no kernels (Taichi's start and
-   the two fit kernels cost ~1.2 s per process: a one-image ``hil star`` would take twice as long).  The fit
+   ``fit_engine`` "taichi" (the default) the fits run as one compiled kernel (:mod:`dualsight.kernels.detect_psf_fit`:
+   3-5x faster, positions equal to the numpy fit's within ~1e-12 px, not bit for bit, so the engine is a setting
+   of the run, never chosen by what the process happens to run); "numpy" starts no kernels (Taichi's start and the
+   two fit kernels cost ~1.1 s once per process, which a one-image ``hil star`` pays: the price of the default's
+   ~3 ms less per frame on every further frame; tests/test_detect_psf_fit.py).  The fit
    is the maximum-likelihood estimate under that model, which reaches the bound at moderate SNR
    (measured: tests/test_detect_real.py).  A fit that does not converge falls back to the 3 x 3
    intensity-weighted centroid with sigma_px = sqrt(2) s / Z.
@@ -174,7 +175,7 @@ class LocalDetectConfig:
     deblend_min_sep_px : smallest separation of two stars in one component (px), in [0, 100].
     deblend_contrast : relative dip of Z between two maxima that makes them two stars, in [0, 1].
     connectivity : 8 or 4 (foreground components).
-    fit_engine : "numpy" or "taichi", the PSF fits' implementation (module docstring, step 5).
+    fit_engine : "taichi" (default) or "numpy", the PSF fits' implementation (module docstring, step 5).
     """
 
     k_sigma: Annotated[float, Field(ge=1.0, le=1000.0)] = 5.0
@@ -194,7 +195,7 @@ class LocalDetectConfig:
     deblend_min_sep_px: Annotated[float, Field(ge=0.0, le=100.0)] = 2.0
     deblend_contrast: Annotated[float, Field(ge=0.0, le=1.0)] = 0.2
     connectivity: Literal[4, 8] = 8
-    fit_engine: Literal["numpy", "taichi"] = "numpy"
+    fit_engine: Literal["numpy", "taichi"] = "taichi"
 
     def __post_init__(self):
         check_fields(self, units=_UNITS)

@@ -91,7 +91,7 @@ def test_large_stamps_go_to_the_numpy_fit():
 
 
 def test_the_fit_engine_is_a_setting_and_numpy_starts_no_taichi():
-    """fit_engine "numpy" (the default) starts no Taichi; "taichi" gives the same stars at positions within 1e-9 px,
+    """fit_engine "numpy" starts no Taichi; "taichi" (the default) gives the same stars at positions within 1e-9 px,
     fluxes within 1e-9 relative, the same measured PSF width.  (In a fresh process: the test process may run
     Taichi already.)"""
     import subprocess
@@ -107,13 +107,15 @@ def test_the_fit_engine_is_a_setting_and_numpy_starts_no_taichi():
         "for cx, cy, f in zip(rng.uniform(10, 310, 40), rng.uniform(10, 246, 40), rng.uniform(300, 5000, 40)):\n"
         "    img += f * np.exp(-((xx + 0.5 - cx) ** 2 + (yy + 0.5 - cy) ** 2) / (2 * 0.8 ** 2)) / (2 * np.pi * 0.64)\n"
         "img = np.rint(img).astype(np.uint16)[None]\n"
-        "a = detect_real(img, LocalDetectConfig())\n"
+        "a = detect_real(img, LocalDetectConfig(fit_engine='numpy'))\n"
         "started = is_initialised()\n"
-        "b = detect_real(img, LocalDetectConfig(fit_engine='taichi'))\n"
-        "print(started, len(a), len(b), float(np.abs(a.x - b.x).max()), float(np.abs(a.y - b.y).max()),"
-        " float(np.abs(a.flux / b.flux - 1).max()), float(a.psf_sigma_px[0]), float(b.psf_sigma_px[0]))\n")
+        "b = detect_real(img, LocalDetectConfig())\n"
+        "print(started, is_initialised(), LocalDetectConfig().fit_engine, len(a), len(b), float(np.abs(a.x - b.x).max()),"
+        " float(np.abs(a.y - b.y).max()), float(np.abs(a.flux / b.flux - 1).max()), float(a.psf_sigma_px[0]),"
+        " float(b.psf_sigma_px[0]))\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
-    started, na, nb, dx, dy, df, sa, sb = r.stdout.split()
-    assert started == "False" and na == nb and int(na) >= 30
+    started, started_b, default, na, nb, dx, dy, df, sa, sb = r.stdout.split()
+    assert started == "False" and started_b == "True" and default == "taichi"
+    assert na == nb and int(na) >= 30
     assert float(dx) < 1e-9 and float(dy) < 1e-9 and float(df) < 1e-9 and abs(float(sa) - float(sb)) < 1e-9
