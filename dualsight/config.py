@@ -446,7 +446,8 @@ _SEQUENCE_UNITS = {"frames": "frames", "fps": "Hz", "exposure_s": "s", "rate_max
                    "jitter_freq_hz": "Hz", "jitter_psd_freq_hz": "Hz",
                    "jitter_psd_arcsec2_hz": "arcsec^2/Hz", "gyro_noise_deg_s": "deg/s", "gyro_bias_deg_s": "deg/s",
                    "blank": "frames", "blinded": "frames", "dropped": "frames", "max_coast_frames": "frames",
-                   "lis_min_stars": "stars", "error_limit_arcsec": "arcsec"}
+                   "lis_min_stars": "stars", "error_limit_arcsec": "arcsec", "bright_crossings": "crossings",
+                   "crossing_frames": "frames", "crossing_vmag": "mag", "crossing_radius_px": "px"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -489,6 +490,17 @@ class SequenceConfig:
         (default 100, the reference's limit).
     shadow_lost_in_space : also run lost-in-space on every frame, for the identities and the speed of both on the
         same frames (default False).
+    bright_crossings : bright objects crossing the field per sequence, integer in [0, 10000] (default 0): each a
+        planet or the Moon (not a catalog star) moving along a straight line across the image over
+        ``crossing_frames`` consecutive frames (in [1, 10000], < frames; default 5), at a random start after the
+        first frame, through a random point of the image's central half, covering the image's diagonal; its
+        magnitude ``crossing_vmag`` in [-30, 30] (default -4, Venus) and radius ``crossing_radius_px`` in
+        [0, 4096] px (default 0: a point with the star PSF; > 0: a uniform disk, the Moon ~ 0.0045 f).  Its frames
+        have the event ``crossing`` (a frame with another event keeps that one).
+    true_focal_error : the true focal length is the camera file's times (1 + this), in [-0.2, 0.2] (default 0):
+        frames are rendered with it, the tracker starts from the file's.
+    refine_focal : refine the focal length while tracking (``nav/focal_refine.py``: the least-squares focal
+        length of every fix, fused over the frames; the tracker uses the fused value), default False.
     """
 
     frames: typing.Annotated[int, pydantic.Field(ge=2, le=10_000)] = 50
@@ -515,6 +527,16 @@ class SequenceConfig:
     lis_min_stars: typing.Annotated[int, pydantic.Field(ge=3, le=100)] = 3
     error_limit_arcsec: typing.Annotated[float, pydantic.Field(gt=0.0, le=36000.0)] = 100.0
     shadow_lost_in_space: bool = False
+    bright_crossings: _SeqCount = dataclasses.field(default=0, metadata={"omit_if_default": True})
+    crossing_frames: typing.Annotated[int, pydantic.Field(ge=1, le=10_000)] = dataclasses.field(
+        default=5, metadata={"omit_if_default": True})
+    crossing_vmag: typing.Annotated[float, pydantic.Field(ge=-30.0, le=30.0)] = dataclasses.field(
+        default=-4.0, metadata={"omit_if_default": True})
+    crossing_radius_px: typing.Annotated[float, pydantic.Field(ge=0.0, le=4096.0)] = dataclasses.field(
+        default=0.0, metadata={"omit_if_default": True})
+    true_focal_error: typing.Annotated[float, pydantic.Field(ge=-0.2, le=0.2)] = dataclasses.field(
+        default=0.0, metadata={"omit_if_default": True})
+    refine_focal: bool = dataclasses.field(default=False, metadata={"omit_if_default": True})
 
     def __post_init__(self):
         check_fields(self, lambda name, msg: ConfigError(msg, field=f"sequence.{name}"), _SEQUENCE_UNITS)
@@ -534,6 +556,9 @@ class SequenceConfig:
             if not any(v > 0 for v in S):
                 raise ConfigError("must not be all zero (leave both keys out for no jitter)",
                                   field="sequence.jitter_psd_arcsec2_hz")
+        if self.bright_crossings and self.crossing_frames >= self.frames:
+            raise ConfigError(f"must be < frames ({self.frames}), got {self.crossing_frames!r}",
+                              field="sequence.crossing_frames")
         if self.blank + self.blinded + self.dropped >= self.frames:
             raise ConfigError(f"blank + blinded + dropped must be < frames ({self.frames}), got "
                               f"{self.blank + self.blinded + self.dropped}", field="sequence.blinded")
