@@ -1,0 +1,608 @@
+"""Relative navigation over a rendezvous approach: the ``rendezvous`` job kind (issue 23, point 5; orchestration only).
+
+One case is one approach of a chaser to a target near a circular orbit::
+
+    draw (default_rng([seed, i])): initial Hill state about the nominal, manoeuvre execution errors, the target's
+        spin, pointing errors, attitude-knowledge errors, per-frame noise seeds
+    -> truth by Clohessy-Wiltshire with the executed delta-v (scene/relative_orbit.propagate)
+    -> per frame: the camera attitude (pointed at the target with an error, or held inertially)
+    -> star camera ("camera = star"): stars + target in one frame (scene/target_in_field: target_frames,
+       with_target), rendered and detected by the star job's chain (jobs/kinds/star.render_and_detect), resolved
+       blobs kept out of the vote, star identification and attitude (nav/star_solution), the target's inertial
+       bearing through that attitude (nav/target_bearing.inertial_bearing)
+       proximity camera (a camera file): the target alone, rendered as the prox job does (kernels/points.render,
+       exact coverage), the blobber's centre of brightness and range with its [min, max] (nav/blobber.py,
+       "subpixel" estimator); the attitude from the chaser's own star tracker (true attitude + a Gaussian error of
+       ``attitude_sigma_arcsec`` per axis, the same sigma in the bearing's covariance)
+    -> the EKF over the frames (nav/relative_filter.run: CW prediction, the known manoeuvres with their nominal
+       delta-v and execution error, bearing and range updates) -> Arrow rows (jobs/kinds/rendezvous_tables.py)
+
+Simplifications (stated, not hidden): the target's detection in a star frame is the one nearest its true centre of
+brightness (``jobs/kinds/star.target_detection``, as the star job scores it), not found by its motion against the
+stars; no Earth shadow and no Earth or Moon in the field; the Sun is fixed in ICRS; the proximity renderer uses the
+satellite file's ambient and directional light (``I_a``, ``I_l``) as the prox job does.
+
+Spec (TOML)::
+
+    seed = 1
+    cases = 100
+    [rendezvous]   ... (dualsight/config.py RendezvousConfig)
+
+Presets: ``far`` (issue 23.6 e: V-bar hop 2 km -> 200 m with one known burn one orbit long, the star preset's
+camera, paper sensor, bearings only) and ``close`` (issue 23.6 d: the paper's proximity camera and 3U CubeSat,
+V-bar hop 50 m -> 2 m, bearings + blobber range).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+from pydantic import BaseModel, ConfigDict, Field
+
+from dualsight.config import RendezvousConfig, TargetConfig, dataclass_from_table, dataclass_to_table, validate
+from dualsight.errors import ConfigError, InputError
+from dualsight.jobs.engine.runner import prepare, run_job
+from dualsight.jobs.engine.specs import preset_and_config
+from dualsight.jobs.kinds import star
+from dualsight.jobs.kinds.rendezvous_tables import CASES_SCHEMA, FRAMES_SCHEMA, case_row, frames_table
+from dualsight.kernels.digest import frame_digest, to_int64
+from dualsight.kernels.sensor_config import flux_from_magnitude
+from dualsight.nav import relative_filter as rf
+from dualsight.nav.attitude import solve_identified
+from dualsight.nav.blobber import BlobberConfig, run_blobber
+from dualsight.nav.observations import observations
+from dualsight.nav.resolved_blobs import excluded_blobs, without_excluded
+from dualsight.nav.star_solution import centroid_weights, identify, solve
+from dualsight.nav.target_bearing import (attitude_covariance, bearing_error, inertial_bearing,
+                                          sphere_phase_correction)
+from dualsight.scene.attitude import quat_to_dcm, quaternions_from_uniforms
+from dualsight.scene.camera import Camera
+from dualsight.scene.relative_orbit import CircularOrbit, hill_to_icrs, propagate
+from dualsight.scene.rotation_vector import frame_rotation
+from dualsight.scene.satellite import load_satellite
+from dualsight.scene.starfield_geometry import stars_in_field
+from dualsight.scene.target_in_field import TargetCases, diameter_px, target_frames, with_target
+from dualsight.scene.target_photometry import sphere_photocentre_offset, target_shape
+from dualsight.scene.units import ARCSEC, DEG
+
+NAME = "rendezvous"
+PRIMARY = "rendezvous_cases"
+SCHEMAS = {"rendezvous_cases": CASES_SCHEMA, "rendezvous_frames": FRAMES_SCHEMA}
+DEFAULT_CASES = 100
+PROX_CHUNK = 8
+"""Proximity frames rendered per call (8 x 1024 x 768 float32 image + coverage: ~50 MB)."""
+RANGE_FLOOR_FRAC = 0.005
+"""Smallest 1-sigma of a blobber range given to the filter, as a fraction of the range (a [min, max] of zero width
+would be an exact range)."""
+
+
+def _hop_preset(altitude_km: float, start_m: float, end_m: float, frames_before: int, frames_orbit: int,
+                **extra) -> dict:
+    """A V-bar hop from ``start_m`` to ``end_m`` behind the target (y < 0) with one along-track burn
+    ``dv_y = (start - end) n / (6 pi)`` (CW: one orbit later the chaser is at ``end_m``, Curtis Sec. 7.5), fired
+    at frame ``frames_before``; frames every period / ``frames_orbit`` until one orbit after the burn."""
+    orbit = CircularOrbit(altitude_km * 1e3)
+    dt = orbit.period_s / frames_orbit
+    t_burn = frames_before * dt
+    dv = -(abs(start_m) - abs(end_m)) * orbit.mean_motion / (6.0 * math.pi)
+    return {"altitude_km": altitude_km, "position_m": [0.0, -abs(start_m), 0.0], "velocity_m_s": [0.0, 0.0, 0.0],
+            "frame_interval_s": dt, "duration_s": t_burn + orbit.period_s + 1e-6 * dt,
+            "manoeuvre_times_s": [t_burn], "manoeuvre_dv_m_s": [[0.0, dv, 0.0]], **extra}
+
+
+PRESETS = {
+    # issue 23.6 (e): 2 km -> 200 m on V-bar, one known burn (executed to 0.3 % per axis: the benchmark
+    # benchmarks/bench_relative_nav.py shows a 1 % burn error leaves ~1.8 % of range), star camera and the paper
+    # sensor, bearings only; 64 frames (~99.6 s apart), the burn at frame 6.
+    "far": {"seed": 1, "cases": DEFAULT_CASES, "rendezvous": _hop_preset(
+        500.0, 2000.0, 200.0, 6, 57, camera="star", sensor="paper", range_source="none", dv_error_frac=0.003,
+        dispersion_position_m=[2.0, 50.0, 2.0], dispersion_velocity_m_s=[1e-4] * 3,
+        prior_position_m=[2.0, 50.0, 2.0], prior_velocity_m_s=[1e-4] * 3, pointing_error_deg=0.5)},
+    # issue 23.6 (d): the paper's proximity camera and 3U CubeSat, 50 m -> 2 m on V-bar in one orbit, bearings and
+    # the blobber's range every frame the target is resolved; 61 frames (~96 s apart), the burn at frame 1.
+    "close": {"seed": 1, "cases": DEFAULT_CASES, "rendezvous": _hop_preset(
+        500.0, 50.0, 2.0, 1, 59, camera="examples/cameras/paper_prox.toml", range_source="blobber",
+        dv_error_frac=0.01, dispersion_position_m=[0.1, 2.5, 0.1], dispersion_velocity_m_s=[1e-4] * 3,
+        prior_position_m=[0.1, 2.5, 0.1], prior_velocity_m_s=[1e-4] * 3, pointing_error_deg=0.5,
+        phase_correction=False, cob_sigma_frac=0.05)},
+}
+
+
+class RendezvousTable(BaseModel):
+    """The top level of a rendezvous spec's TOML layout (pydantic); ``[rendezvous]`` becomes a RendezvousConfig."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    seed: int = Field(1, ge=0, le=2**63 - 1)
+    cases: int | None = Field(None, ge=1, le=10**9)
+    preset: str | None = None
+    rendezvous: dict = {}
+    camera_table: dict | None = None
+
+
+@dataclass(frozen=True)
+class RendezvousSpec:
+    """A validated rendezvous campaign: the approach (``RendezvousConfig``), the camera (the star preset's or the
+    camera file's, stored inline so a run replays without the file) and, with the star camera, the star job's spec
+    of the sensor preset with the target."""
+
+    seed: int
+    cfg: RendezvousConfig
+    camera: Camera
+    star: object = None                   # star.StarSpec (camera = "star") or None
+    source: str = field(default="spec", compare=False)
+
+    @property
+    def is_star(self) -> bool:
+        return self.cfg.camera == "star"
+
+    @property
+    def orbit(self) -> CircularOrbit:
+        c = self.cfg
+        return CircularOrbit(c.altitude_km * 1e3, c.inclination_deg * DEG, c.raan_deg * DEG, c.arg_lat_deg * DEG)
+
+    @property
+    def times(self) -> np.ndarray:
+        return np.arange(self.cfg.frames) * self.cfg.frame_interval_s
+
+    def to_dict(self) -> dict:
+        d = {"seed": self.seed, "rendezvous": dataclass_to_table(self.cfg)}
+        if not self.is_star:
+            d["camera_table"] = self.camera.to_dict()
+        return d
+
+
+def spec_from_dict(d: dict, source: str = "spec") -> RendezvousSpec:
+    """Validate a spec dict (TOML layout); every error names ``source`` and the key."""
+    top = validate(RendezvousTable, d, source=source)
+    cfg = dataclass_from_table(RendezvousConfig, d.get("rendezvous"), source=source, section="rendezvous")
+    last = (cfg.frames - 1) * cfg.frame_interval_s
+    for i, t in enumerate(cfg.manoeuvre_times_s):
+        if t > last + 1e-9:
+            raise ConfigError(f"must lie in (0, {last:g}] s (the last frame's time), got {t!r}", source=source,
+                              field=f"rendezvous.manoeuvre_times_s[{i}]")
+    load_satellite(cfg.satellite)                 # errors name that file and its key
+    if cfg.camera == "star":
+        if cfg.range_source != "none":
+            raise ConfigError("the star camera gives bearings only: must be 'none' with camera = 'star' (a range "
+                              "needs a proximity camera file)", source=source, field="rendezvous.range_source")
+        sd = {k: v for k, v in star.PRESETS[cfg.sensor].items() if k != "cases"}
+        sd = {**sd, "seed": int(top.seed), "target": {"satellite": cfg.satellite}}
+        sp = star.spec_from_dict(sd, source=source)
+        return RendezvousSpec(int(top.seed), cfg, sp.camera, sp, source)
+    if top.camera_table is not None:
+        camera = Camera.from_dict(top.camera_table, source=source)
+    else:
+        if not Path(cfg.camera).is_file():
+            raise ConfigError(f"no such camera file: {cfg.camera} ('star' or a camera file)", source=source,
+                              field="rendezvous.camera")
+        camera = Camera.from_toml(cfg.camera)
+    return RendezvousSpec(int(top.seed), cfg, camera, None, source)
+
+
+def resolve_spec(preset: str | None, config, *, seed: int | None = None, cases: int | None = None) -> tuple[dict, int]:
+    """The preset (default far), the ``--config`` TOML over it and the flags, validated: (canonical spec dict,
+    number of cases)."""
+    d, source = preset_and_config(PRESETS, preset, config, default="far")
+    if seed is not None:
+        d["seed"] = seed
+    n = cases if cases is not None else d.get("cases", DEFAULT_CASES)
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1 or n > 10**9:
+        raise InputError(f"number of cases must be an integer in [1, 1e9], got {n!r}",
+                         source="--cases" if cases is not None else source)
+    return spec_from_dict(d, source=source).to_dict(), int(n)
+
+
+@dataclass(frozen=True)
+class RendezvousRun:
+    """A rendezvous campaign resolved and identified but not yet run (:func:`plan_run`, :func:`start_run`)."""
+
+    spec: dict
+    n_cases: int
+    run_id: str
+    spec_hash: str
+    source: str
+
+
+def plan_run(preset: str | None = None, config: Path | str | dict | None = None, *, seed: int | None = None,
+             cases: int | None = None, run_id: str | None = None) -> RendezvousRun:
+    """Everything ``dualsight rendezvous run`` decides before the lake is touched: the spec, the run's identity and
+    its id (default ``rendezvous-<seed>-<cases>-<first 8 digits of the spec hash>``)."""
+    spec_dict, n = resolve_spec(preset, config, seed=seed, cases=cases)
+    source = (("config table" if isinstance(config, dict) else str(config)) if config is not None
+              else f"preset {preset or 'far'}")
+    _, _, _, h = prepare(NAME, spec_dict, n, source=source)
+    return RendezvousRun(spec_dict, n, run_id or f"rendezvous-{spec_dict['seed']}-{n}-{h[:8]}", h, source)
+
+
+def start_run(plan: RendezvousRun, lake, *, workers: int | None = None, scheduler: str | None = None,
+              shard_size: int | None = None, progress: bool = True) -> dict:
+    """Run (or resume) a planned campaign into ``lake`` with the engine's ``run_job``; returns the manifest."""
+    return run_job(NAME, plan.spec, n_cases=plan.n_cases, lake=lake, run_id=plan.run_id, workers=workers,
+                   scheduler=scheduler, shard_size=shard_size, progress=progress, label=f"rendezvous {plan.run_id}")
+
+
+@dataclass(frozen=True)
+class RendezvousContext:
+    """Per-process state: the target's satellite file and photometric shape, and either the star job's context
+    (catalogs, voting index, star blob limit) or the proximity renderer's mesh, materials and area table."""
+
+    sat: object
+    shape: object
+    star: object = None
+    mesh: object = None
+    materials: np.ndarray | None = None
+    table: object = None
+
+
+def make_context(spec: RendezvousSpec) -> RendezvousContext:
+    sat = load_satellite(spec.cfg.satellite)
+    if spec.is_star:
+        return RendezvousContext(sat, target_shape(sat.components), star=star.make_context(spec.star))
+    from dualsight.catalogs.areas import area_table        # pyarrow
+
+    return RendezvousContext(sat, target_shape(sat.components), mesh=sat.mesh(), materials=sat.materials(),
+                             table=area_table(sat, n=20000, bin_width=0.05))
+
+
+def memory_estimate(spec: RendezvousSpec) -> int:
+    """The star job's estimate (star camera) or the proximity chunk's frames (image and coverage, float32, x 4)."""
+    if spec.is_star:
+        return star.memory_estimate(spec.star)
+    return int(PROX_CHUNK * spec.camera.width * spec.camera.height * 4 * 2 * 4 + 200e6)
+
+
+# ------------------------------------------------------------------------------------------ one approach
+def draw_case(spec: RendezvousSpec, case_id: int) -> dict:
+    """Inputs of approach ``case_id`` from ``default_rng([seed, case_id])`` alone, always in this order whatever
+    the options: initial-state dispersion (6 normals), manoeuvre execution errors (M x 3 normals), the target's spin
+    axis (3 normals) and initial attitude (3 uniforms), pointing errors (T x 3 normals), attitude-knowledge errors
+    (T x 3 normals), per-frame sensor noise seeds (T).
+
+    Returns dict: x0 (6,) true initial Hill state; x0_nominal (6,); dv_nominal, dv_exec (M, 3) m/s; spin_axis (3,);
+    q0 (4,); pointing_err, attitude_err (T, 3) rad; noise_seeds (T,) uint64."""
+    c = spec.cfg
+    T, M = c.frames, len(c.manoeuvre_times_s)
+    rng = np.random.default_rng([spec.seed, int(case_id)])
+    nominal = np.array(list(c.position_m) + list(c.velocity_m_s), np.float64)
+    disp = np.array(list(c.dispersion_position_m) + list(c.dispersion_velocity_m_s))
+    x0 = nominal + rng.normal(size=6) * disp
+    dv_nom = np.asarray(c.manoeuvre_dv_m_s, np.float64).reshape(M, 3)
+    dv_sig = np.sqrt((c.dv_error_frac * np.linalg.norm(dv_nom, axis=1)) ** 2 + c.dv_error_m_s ** 2)
+    dv_exec = dv_nom + rng.normal(size=(M, 3)) * dv_sig[:, None]
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    u = rng.random(3)
+    q0 = quaternions_from_uniforms(u[0:1], u[1:2], u[2:3])[0]
+    pe = rng.normal(size=(T, 3)) * c.pointing_error_deg * DEG
+    ae = rng.normal(size=(T, 3)) * c.attitude_sigma_arcsec * ARCSEC
+    noise = rng.integers(0, 2**63 - 1, size=T, dtype=np.int64).astype(np.uint64)
+    return {"x0": x0, "x0_nominal": nominal, "dv_nominal": dv_nom, "dv_exec": dv_exec, "spin_axis": axis, "q0": q0,
+            "pointing_err": pe, "attitude_err": ae, "noise_seeds": noise}
+
+
+def truth_trajectory(spec: RendezvousSpec, draw: dict) -> np.ndarray:
+    """(T, 6) true Hill states at the frame times: CW from the drawn initial state with the executed manoeuvres."""
+    c = spec.cfg
+    return propagate(draw["x0"][None], spec.times, spec.orbit.mean_motion, dv_times=np.asarray(c.manoeuvre_times_s),
+                     dv=draw["dv_exec"][None] if len(c.manoeuvre_times_s) else None)[0]
+
+
+def sun_icrs(spec: RendezvousSpec) -> np.ndarray:
+    """(3,) unit vector towards the Sun: the spec's, else the reference orbit's normal."""
+    if spec.cfg.sun_icrs is not None:
+        s = np.asarray(spec.cfg.sun_icrs, np.float64)
+        return s / np.linalg.norm(s)
+    return hill_to_icrs(spec.orbit, [0.0])[0][:, 2]
+
+
+def look_at(los: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) attitudes (ICRS -> camera) with the boresight +z along ``los`` (T, 3) (unit) and +x along
+    ``up x los`` (``up`` (T, 3); where it is within 1e-6 of the boresight, ICRS x or y instead)."""
+    z = np.asarray(los, np.float64)
+    up = np.asarray(up, np.float64)
+    x = np.cross(up, z)
+    bad = np.linalg.norm(x, axis=-1) < 1e-6
+    if bad.any():
+        alt = np.where(np.abs(z[bad, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+        x[bad] = np.cross(alt, z[bad])
+    x /= np.linalg.norm(x, axis=-1, keepdims=True)
+    return np.stack([x, np.cross(z, x), z], -2)
+
+
+def geometry(spec: RendezvousSpec, draw: dict, truth: np.ndarray) -> dict:
+    """Per frame: true camera attitude A_true (T, 3, 3) (ICRS -> camera), the Hill rotation R (T, 3, 3), the true
+    line of sight u_true (T, 3) chaser -> target (ICRS), and the target's geometry in the camera frame as
+    ``scene/target_in_field.TargetCases`` (present = in front of the camera and inside the image)."""
+    c = spec.cfg
+    t = spec.times
+    R = hill_to_icrs(spec.orbit, t)
+    rho_i = np.einsum("tij,tj->ti", R, truth[:, :3])
+    rng_m = np.linalg.norm(rho_i, axis=1)
+    u_true = -rho_i / rng_m[:, None]
+    up = R[:, :, 2]                                              # the orbit normal: camera +x along-track-ish
+    if c.pointing == "target":
+        A_nom = look_at(u_true, up)
+    else:
+        x0n = draw["x0_nominal"][:3]
+        u0 = -(R[0] @ x0n) / np.linalg.norm(x0n)
+        A_nom = np.broadcast_to(look_at(u0[None], up[:1])[0], (len(t), 3, 3))
+    A = frame_rotation(draw["pointing_err"]) @ A_nom
+    pos_cam = np.einsum("tij,tj->ti", A, u_true * rng_m[:, None])
+    R_icrs = frame_rotation(draw["spin_axis"][None] * (c.target_rate_deg_s * DEG * t)[:, None]) @ \
+        quat_to_dcm(draw["q0"][None])[0]                      # body -> ICRS (passive rotation of the body's axes)
+    R_body = A @ R_icrs
+    s = sun_icrs(spec)
+    sun_cam = np.einsum("tij,j->ti", A, s)
+    o = -pos_cam / rng_m[:, None]                                # target -> camera
+    phase = np.arccos(np.clip(np.einsum("tk,tk->t", sun_cam, o), -1.0, 1.0))
+    xy, _ = spec.camera.project(pos_cam)
+    inside = (pos_cam[:, 2] > 0) & np.all(np.isfinite(xy), axis=1) & (xy[:, 0] >= 0) & \
+        (xy[:, 0] < spec.camera.width) & (xy[:, 1] >= 0) & (xy[:, 1] < spec.camera.height)
+    tc = TargetCases(inside, rng_m, pos_cam, R_body, sun_cam, np.broadcast_to(s, (len(t), 3)).copy(), phase)
+    return {"A_true": A, "R": R, "u_true": u_true, "targets": tc}
+
+
+def _empty_meas(T: int) -> dict:
+    nan = np.full(T, np.nan)
+    return {"attitude": np.zeros(T, np.int8), "n_stars": np.zeros(T, np.int64), "in_field": np.zeros(T, bool),
+            "detected": np.zeros(T, bool), "resolved": np.zeros(T, bool), "pixels": np.full(T, -1, np.int64),
+            "vmag": nan.copy(), "phase": nan.copy(), "u": np.full((T, 3), np.nan), "C": np.zeros((T, 3, 3)),
+            "bearing_used": np.zeros(T, bool), "bearing_err": nan.copy(), "bearing_sigma": nan.copy(),
+            "range": nan.copy(), "range_min": nan.copy(), "range_max": nan.copy(), "range_used": np.zeros(T, bool),
+            "range_sigma": nan.copy(), "digest": np.zeros(T, np.int64), "t_render_ns": np.zeros(T, np.int64),
+            "u_used": np.full((T, 3), np.nan), "C_used": np.zeros((T, 3, 3)), "bearing_raw_err": nan.copy()}
+
+
+def measure_star(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: dict, keep_images: bool = False):
+    """Star camera: stars and target in one frame, detection, identification, attitude, the target's bearing.
+    Returns (measurements dict, images (T, H, W) or None)."""
+    sp, sc = spec.star, ctx.star
+    cat = sc.catalog
+    tc = geo["targets"]
+    T = len(tc.range_m)
+    m = _empty_meas(T)
+    m["phase"] = tc.phase_rad
+    m["in_field"] = tc.present.copy()
+    flux = flux_from_magnitude(cat.vmag.astype(np.float64), sp.sensor)
+    A_true = geo["A_true"]
+    field_ = stars_in_field(A_true, cat.unit, flux, sp.camera, star.psf_margin_px(sp.sensor, sp.camera, sc.psf))
+    tcfg = TargetConfig(satellite=spec.cfg.satellite)
+    tf = target_frames(tcfg, ctx.sat, ctx.shape, tc, field_, sp.camera, sp.sensor)
+    render_field, _ = with_target(field_, tf)
+    m["resolved"], m["pixels"], m["vmag"] = tf.resolved.copy(), tf.pixels.copy(), tf.vmag.copy()
+    voting = sp.robust if sp.robust is not None else sp.voting
+    f = max(sp.camera.fx, sp.camera.fy)
+    images = [] if keep_images else None
+    bs = sp.batch_size
+    for s in range(0, T, bs):
+        fr = np.arange(s, min(T, s + bs))
+        sub = _take_field(render_field, fr)
+        r = star.render_and_detect(sub, draw["noise_seeds"][fr], sp.camera, sp.sensor, sp.detect,
+                                   keep_images=keep_images, attitude=A_true[fr], detector=sp.detector, psf=sc.psf)
+        if keep_images:
+            images.append(r.images)
+        m["t_render_ns"][fr] = (r.t_render_ns + (r.t_detect_ns or 0)) // len(fr)
+        m["digest"][fr] = to_int64(r.digest)
+        det = r.detections
+        obs = observations(det, len(fr), sp.camera)
+        obs = without_excluded(obs, det.case, det.offsets, excluded_blobs(det.npix, sc.star_blob_limit))
+        ident = identify(obs, cat.unit, sc.index, voting, cat_vmag=cat.vmag)
+        sol = solve(obs, ident, cat.unit, A_true[fr], sp.error_frame, weights=centroid_weights(det, obs, 0.02))
+        used = ident.accepted & (ident.ids >= 0) & obs.valid
+        n_used = used.sum(1)
+        _, ok, cov_unit = solve_identified(obs.vec, ident.ids, used, cat.unit, return_cov=True)
+        att_ok = ok & sol.ok
+        s2 = attitude_covariance(np.ones((len(fr), 1, 1)), sol.residual, n_used,
+                                 floor_rad=star.CENTROID_FLOOR_PX / f)[:, 0, 0]
+        P_att = np.where(att_ok[:, None, None], cov_unit, 0.0) * s2[:, None, None]
+        sub_tf = _take_tf(tf, fr)
+        kt = star.target_detection(det, sub_tf)
+        det_ok = kt >= 0
+        sig_px = np.sqrt(s2) * f                 # the stars' own centroid scatter (px)
+        if det.sigma_px is not None:
+            sig_px = np.where(det_ok, np.hypot(np.asarray(det.sigma_px)[np.maximum(kt, 0)], star.CENTROID_FLOOR_PX),
+                              sig_px)
+        use = det_ok & att_ok
+        A_est = np.where(use[:, None, None], sol.A_est, np.eye(3))
+        xy = (np.stack([det.x[np.maximum(kt, 0)], det.y[np.maximum(kt, 0)]], -1) if len(det.x)
+              else np.zeros((len(fr), 2)))
+        u, C = inertial_bearing(A_est, np.where(use[:, None, None], P_att, 0.0), xy, sig_px, sp.camera)
+        m["attitude"][fr] = np.where(att_ok, 1, 0)
+        m["n_stars"][fr] = np.where(att_ok, n_used, 0)
+        m["detected"][fr] = det_ok
+        m["u"][fr] = np.where(use[:, None], u, np.nan)
+        m["C"][fr] = np.where(use[:, None, None], C, 0.0)
+        m["bearing_used"][fr] = use
+    return m, (np.concatenate(images) if keep_images else None)
+
+
+def _take_field(f, idx):
+    return type(f)(*(getattr(f, k)[idx] for k in f.__dataclass_fields__))
+
+
+def _take_tf(tf, idx):
+    return type(tf)(*(getattr(tf, k)[idx] for k in tf.__dataclass_fields__))
+
+
+def _bearing_scores(m: dict, geo: dict) -> None:
+    """Fill the errors against the true direction to the body origin of the measured (``bearing_raw_err``) and the
+    used bearing (after the filter's adjustment), and the used one's stated 1-sigma per axis, where a bearing was
+    used."""
+    ok = m["bearing_used"]
+    if ok.any():
+        m["bearing_raw_err"][ok] = bearing_error(m["u"][ok], geo["u_true"][ok])
+        m["bearing_err"][ok] = bearing_error(m["u_used"][ok], geo["u_true"][ok])
+        m["bearing_sigma"][ok] = np.sqrt(np.trace(m["C_used"][ok], axis1=1, axis2=2) / 2)
+
+
+def measure_prox(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: dict, keep_images: bool = False):
+    """Proximity camera: the target rendered alone (exact coverage), the blobber's centre of brightness and range,
+    the bearing through the chaser's star-tracker attitude (truth + ``attitude_err``).  Returns (measurements,
+    images (T, H, W) or None)."""
+    from dualsight.kernels.points import render              # Taichi
+    from dualsight.scene.motion import place_body
+
+    c = spec.cfg
+    cam = spec.camera
+    tc = geo["targets"]
+    T = len(tc.range_m)
+    m = _empty_meas(T)
+    m["phase"], m["in_field"] = tc.phase_rad, tc.present.copy()
+    m["attitude"][:] = 2
+    light = ctx.sat.camera
+    bcfg = BlobberConfig(estimator="subpixel", threshold=0.0, target="all", connectivity=8)
+    A_true = geo["A_true"]
+    A_est = frame_rotation(draw["attitude_err"]) @ A_true
+    sa = c.attitude_sigma_arcsec * ARCSEC
+    diam = diameter_px(ctx.shape.bounding_radius, tc.range_m, cam)
+    m["resolved"] = tc.present & (diam >= 3.0)
+    images = [] if keep_images else None
+    for s in range(0, T, PROX_CHUNK):
+        fr = np.arange(s, min(T, s + PROX_CHUNK))
+        t0 = time.perf_counter_ns()
+        poses = place_body(ctx.sat, tc.R_body[fr], tc.pos_cam[fr], tc.sun_cam[fr])
+        img, cov = render("accurate", ctx.mesh, ctx.materials, poses.R, poses.t, poses.light, cam, light.I_a,
+                          light.I_l)
+        img = np.where(tc.present[fr, None, None], img, np.float32(0.0))
+        cov = np.where(tc.present[fr, None, None], cov, np.float32(0.0))
+        m["t_render_ns"][fr] = (time.perf_counter_ns() - t0) // len(fr)
+        m["digest"][fr] = to_int64(frame_digest(img))
+        if keep_images:
+            images.append(img)
+        b = run_blobber(img, cam, ctx.table, bcfg, coverage=cov)
+        found = b.found & tc.present[fr]
+        m["detected"][fr] = found
+        m["pixels"][fr] = np.where(found, np.nan_to_num(b.n_pixels), -1).astype(np.int64)
+        xy = np.where(found[:, None], b.cob_px, 0.5 * np.array([cam.width, cam.height]))
+        sig_px = np.full(len(fr), star.CENTROID_FLOOR_PX)
+        u, C = inertial_bearing(A_est[fr], np.broadcast_to(sa ** 2 * np.eye(3), (len(fr), 3, 3)), xy, sig_px, cam)
+        m["u"][fr] = np.where(found[:, None], u, np.nan)
+        m["C"][fr] = np.where(found[:, None, None], C, 0.0)
+        m["bearing_used"][fr] = found
+        rok = found & m["resolved"][fr] & np.isfinite(b.range_est) & (b.range_est > 0)
+        m["range"][fr] = np.where(rok, b.range_est, np.nan)
+        m["range_min"][fr] = np.where(rok, b.range_min, np.nan)
+        m["range_max"][fr] = np.where(rok, b.range_max, np.nan)
+    rok = np.isfinite(m["range"]) & (c.range_source == "blobber")
+    m["range_used"] = rok
+    m["range_sigma"] = np.where(rok, np.maximum(rf.range_sigma(m["range_min"], m["range_max"]),
+                                                RANGE_FLOOR_FRAC * m["range"]), np.nan)
+    return m, (np.concatenate(images) if keep_images else None)
+
+
+def filter_config(cfg: RendezvousConfig) -> rf.FilterConfig:
+    """The EKF's settings of a spec."""
+    return rf.FilterConfig(accel_psd=cfg.accel_psd, dv_sigma_frac=cfg.dv_error_frac, dv_sigma_m_s=cfg.dv_error_m_s,
+                           iterations=cfg.iterations)
+
+
+def equivalent_radius(shape) -> float:
+    """Radius (m) of the sphere with the target's mean projected area (a convex body's: its surface / 4, Cauchy):
+    ``sqrt((sum of facet areas + sum 4 pi r^2) / (4 pi))``."""
+    return math.sqrt((float(np.sum(shape.area)) + float(np.sum(4 * math.pi * shape.sphere_radius ** 2)))
+                     / (4 * math.pi))
+
+
+def bearing_adjuster(spec: RendezvousSpec, shape, m: dict):
+    """The filter's ``adjust`` hook (``nav/relative_filter.run``): at the predicted range r = |rho_pred|, the
+    measured bearing is moved from the centre of brightness towards the centre by the Lambertian sphere of
+    :func:`equivalent_radius` at the phase angle between the Sun and the measured line of sight
+    (``nav/target_bearing.sphere_phase_correction``, with ``phase_correction``), and the covariance grows by
+    ``(cob_sigma_frac x 2 bounding_radius / r)^2`` across it.  Records the bearings and covariances used in ``m``
+    (``u_used``, ``C_used``)."""
+    c = spec.cfg
+    r_eq = equivalent_radius(shape)
+    spread = c.cob_sigma_frac * 2.0 * shape.bounding_radius
+    s = sun_icrs(spec)
+
+    def adjust(k, x, P, u, C):
+        r = np.linalg.norm(x[:, :3], axis=1)
+        if c.phase_correction:
+            alpha = np.arccos(np.clip(-(u @ s), -1.0, 1.0))          # Sun - target - chaser
+            u = sphere_phase_correction(u, np.broadcast_to(s, u.shape), sphere_photocentre_offset(r_eq, alpha), r)
+        C = C + rf.isotropic_bearing_cov(u, spread / r)
+        m["u_used"][k], m["C_used"][k] = u[0], C[0]
+        return u, C
+
+    return adjust
+
+
+def run_filter(spec: RendezvousSpec, shape, draw: dict, m: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 6) estimates and (T, 6, 6) covariances of the EKF (one approach) from the nominal initial state and the
+    spec's prior, with the measurements ``m`` (bearings adjusted by :func:`bearing_adjuster`) and the nominal
+    manoeuvres."""
+    c = spec.cfg
+    P0 = np.diag(np.array(list(c.prior_position_m) + list(c.prior_velocity_m_s)) ** 2)
+    rng = np.where(m["range_used"], m["range"], np.nan)
+    xs, Ps = rf.run(draw["x0_nominal"][None], P0[None], spec.times, spec.orbit, filter_config(c),
+                    bearings=m["u"][None], bearing_cov=m["C"][None], ranges=rng[None],
+                    range_sig=np.nan_to_num(m["range_sigma"], nan=1.0)[None],
+                    dv_times=np.asarray(c.manoeuvre_times_s), dv=draw["dv_nominal"] if len(c.manoeuvre_times_s)
+                    else None, adjust=bearing_adjuster(spec, shape, m))
+    return xs[0], Ps[0]
+
+
+def burn_frames(spec: RendezvousSpec) -> tuple[np.ndarray, int]:
+    """(time since the first manoeuvre per frame (s; -1 before it or without one), the frame nearest one orbital
+    period after it (-1: none, or beyond the last frame by more than half a frame))."""
+    t = spec.times
+    c = spec.cfg
+    if not c.manoeuvre_times_s:
+        return np.full(len(t), -1.0), -1
+    t_b = min(c.manoeuvre_times_s)
+    since = np.where(t >= t_b, t - t_b, -1.0)
+    k = int(np.argmin(np.abs(t - (t_b + spec.orbit.period_s))))
+    return since, (k if abs(t[k] - t_b - spec.orbit.period_s) <= 0.5 * c.frame_interval_s else -1)
+
+
+def compute_case(spec: RendezvousSpec, ctx: RendezvousContext, case_id: int, keep_images: bool = False) -> dict:
+    """Draw, simulate, measure and filter one approach; returns every intermediate result with its rows
+    (``frames``: a pa.Table, ``case``: a dict)."""
+    t0 = time.perf_counter_ns()
+    draw = draw_case(spec, case_id)
+    truth = truth_trajectory(spec, draw)
+    geo = geometry(spec, draw, truth)
+    m, images = (measure_star if spec.is_star else measure_prox)(spec, ctx, draw, geo, keep_images)
+    t1 = time.perf_counter_ns()
+    xs, Ps = run_filter(spec, ctx.shape, draw, m)
+    _bearing_scores(m, geo)
+    nees = rf.nees(xs, Ps, truth)
+    nees_pos = rf.nees(xs[:, :3], Ps[:, :3, :3], truth[:, :3])
+    since, k = burn_frames(spec)
+    t2 = time.perf_counter_ns()
+    out = {"draw": draw, "times": spec.times, "truth": truth, "geo": geo, "meas": m, "est": xs, "cov": Ps,
+           "nees": nees, "nees_pos": nees_pos, "t_since_burn": since, "orbit_frame": k,
+           "dv_nominal": draw["dv_nominal"], "dv_exec": draw["dv_exec"], "t_nav_ns": t2 - t1, "t_total_ns": t2 - t0,
+           "images": images}
+    out["frames"] = frames_table(case_id, out)
+    out["case"] = case_row(case_id, spec.seed, "star" if spec.is_star else "proximity",
+                           spec.cfg.converged_after_frames, out)
+    return out
+
+
+def compute_shard(spec: RendezvousSpec, case_ids: np.ndarray, ctx: RendezvousContext) -> dict[str, pa.Table]:
+    """The engine's contract: one ``rendezvous_cases`` row and ``frames`` ``rendezvous_frames`` rows per case."""
+    frames, rows = [], []
+    for i in np.asarray(case_ids, np.int64):
+        o = compute_case(spec, ctx, int(i))
+        frames.append(o["frames"])
+        rows.append(o["case"])
+    cases = pa.Table.from_pylist(rows, schema=CASES_SCHEMA) if rows else CASES_SCHEMA.empty_table()
+    fr = pa.concat_tables(frames) if frames else FRAMES_SCHEMA.empty_table()
+    return {"rendezvous_cases": cases, "rendezvous_frames": fr}
+
+
+def shard_summary(tables: dict[str, pa.Table]) -> dict:
+    f = tables["rendezvous_frames"]
+    used = f.column("bearing_used").to_numpy(zero_copy_only=False)
+    return {"frames": int(f.num_rows), "bearings": int(np.sum(used))}
+
+
+def progress_postfix(stats: dict) -> str:
+    n = stats.get("frames", 0)
+    return f"bearings {100 * stats.get('bearings', 0) / n:.1f}% of frames" if n else ""
