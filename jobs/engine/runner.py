@@ -71,6 +71,7 @@ JOB_KINDS = {
     "hil_star_sweep": "dualsight.jobs.kinds.hil_star_sweep",
     "peer_star": "dualsight.jobs.kinds.peer_star",
     "star_track": "dualsight.jobs.kinds.star_track",
+    "rendezvous": "dualsight.jobs.kinds.rendezvous",
 }
 MAX_CASES = 10**9
 MAX_SHARD_SIZE = 10**6
