@@ -33,6 +33,7 @@ from dualsight.jobs.cli import hil_star as cli_hil_star
 from dualsight.jobs.cli import nightly as cli_nightly
 from dualsight.jobs.cli import peer as cli_peer
 from dualsight.jobs.cli import prox as cli_prox
+from dualsight.jobs.cli import rendezvous as cli_rendezvous
 from dualsight.jobs.cli import star_track as cli_star_track
 from dualsight.jobs.cli.args import (Parser, add_lake_arg, add_run_args, latest_run, open_lake, positive_int,
                                      print_run_end, run_id_arg)
@@ -51,6 +52,7 @@ COMMAND_KINDS = {
     ("hil", "prox"): "hil_prox",
     ("calibrate",): "calibrate",
     ("selftest", "run"): "selftest",
+    ("rendezvous", "run"): "rendezvous",
 }
 
 
@@ -84,7 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
     cli_star_track.register(ssub)
     star.set_defaults(func=lambda a: _help(star))
 
-    for register in (cli_prox.register, cli_hil_star.register, cli_calibrate.register_calibrate, cli_nightly.register,
+    for register in (cli_prox.register, cli_rendezvous.register, cli_hil_star.register,
+                     cli_calibrate.register_calibrate, cli_nightly.register,
                      cli_peer.register, cli_cache.register):    # the command groups of the other modules of jobs/cli
         register(sub)
 
