@@ -1,0 +1,131 @@
+"""The rendezvous report (``dualsight rendezvous report``): every number comes out of the SQL files
+``warehouse/sql/rendezvous_*.sql`` over the run's ``rendezvous_frames`` and ``rendezvous_cases`` (issue 23, point 5),
+set against the issue's targets (point 6 c, d, e):
+
+* ``rendezvous_summary``: availability, bearing error and its stated sigma, the filtered range error against the
+  single-frame blobber error and the velocity error from frame :data:`AFTER_FRAMES` on, the position error as % of
+  range one orbit after the first manoeuvre;
+* ``rendezvous_nees``: per frame, the mean NEES over the approaches (held against the two-sided 95 % chi-square
+  bounds of a mean of M approaches, ``nav/relative_filter.chi2_mean_bounds``, from the spec's
+  ``converged_after_frames`` on), the RMS position error and the filter's RMS sqrt(trace P_rr), against range.
+"""
+
+from __future__ import annotations
+
+from dualsight.errors import InputError
+from dualsight.nav.relative_filter import chi2_mean_bounds
+from dualsight.warehouse.cells import percent
+from dualsight.warehouse.lake import Lake
+from dualsight.warehouse.query import connect, format_table, run_report
+
+QUERIES = ("rendezvous_summary", "rendezvous_nees")
+AFTER_FRAMES = 20
+"""Point 6 (d): errors 'after 20 frames' are taken over the frames with index >= 20."""
+TARGETS = {"nees_inside_share": 1.0, "range_err_ratio": 0.5, "vel_err_m_s": 0.01, "orbit_pos_err_pct": 1.0}
+"""Issue 23, point 6: (c) the mean NEES inside its 95 % bounds at every frame after convergence; (d) filtered range
+error <= half the single-frame blobber error and velocity error <= 1 cm/s after 20 frames; (e) position error <= 1 %
+of range (1 sigma: RMS over approaches) one orbit after the manoeuvre."""
+
+
+def build(lake: Lake, run_id: str) -> dict:
+    """Run the queries for ``run_id``; returns {"tables": {name: (cols, rows)}, "summary": dict, "json": dict}."""
+    if "rendezvous_frames" not in lake.datasets():
+        raise InputError(f"no rendezvous_frames dataset in {lake.root}", source="--lake")
+    con = connect(lake)
+    try:
+        tables = {q: run_report(con, q, run=run_id, after=AFTER_FRAMES) for q in QUERIES}
+    finally:
+        con.close()
+    cols, rows = tables["rendezvous_summary"]
+    s = dict(zip(cols, rows[0]))
+    if not s["frames"]:
+        raise InputError(f"run {run_id!r} has no rendezvous frames in {lake.root}", source="--run")
+    m = lake.read_manifest(run_id) or {}
+    conv = int(((m.get("spec") or {}).get("rendezvous") or {}).get("converged_after_frames", 10))
+    per_frame = [dict(zip(tables["rendezvous_nees"][0], r)) for r in tables["rendezvous_nees"][1]]
+    M = int(s["approaches"])
+    lo, hi = chi2_mean_bounds(6, M, 0.95)
+    after = [r for r in per_frame if r["frame"] >= conv]
+    inside = [lo <= r["mean_nees"] <= hi for r in after]
+    ratio = (s["filtered_range_err_rms_m"] / s["blobber_range_err_rms_m"]
+             if s["filtered_range_err_rms_m"] is not None and s["blobber_range_err_rms_m"] else None)
+    js = {"run": run_id, **{k: (float(v) if isinstance(v, float) else v) for k, v in s.items()},
+          "after_frames": AFTER_FRAMES, "converged_after_frames": conv, "nees_bounds_95": [lo, hi],
+          "nees_frames_checked": len(after), "nees_frames_inside": int(sum(inside)),
+          "nees_inside_share": (sum(inside) / len(after)) if after else None,
+          "nees_frames_outside": [r["frame"] for r, ok in zip(after, inside) if not ok],
+          "nees_mean_after_convergence": (sum(r["mean_nees"] for r in after) / len(after)) if after else None,
+          "range_err_ratio": ratio, "per_frame": per_frame, "targets": TARGETS}
+    return {"tables": tables, "summary": s, "json": js}
+
+
+def _f(v, fmt="{:.3f}") -> str:
+    return "-" if v is None else fmt.format(v)
+
+
+def _verdict(ok) -> str:
+    return "-" if ok is None else ("met" if ok else "NOT met")
+
+
+def target_rows(rep: dict) -> list[list[str]]:
+    """The targets table (metric, run, target, verdict) of :func:`text`, as printed cells (the HTML report's too)."""
+    j = rep["json"]
+    lo, hi = j["nees_bounds_95"]
+    share = j["nees_inside_share"]
+    rows = [["(c) mean NEES over approaches inside its 95 % bounds, frames >= "
+             f"{j['converged_after_frames']}",
+             "-" if share is None else f"{j['nees_frames_inside']} of {j['nees_frames_checked']} frames "
+             f"(bounds {lo:.2f}-{hi:.2f}, mean {_f(j['nees_mean_after_convergence'], '{:.2f}')})",
+             "every frame", _verdict(None if share is None else share >= TARGETS["nees_inside_share"])]]
+    if j["late_range_frames"]:
+        r = j["range_err_ratio"]
+        rows.append([f"(d) filtered / single-frame blobber range error (RMS, frames >= {j['after_frames']} with a "
+                     "range)", "-" if r is None else f"{r:.3f} ({_f(j['filtered_range_err_rms_m'], '{:.4f}')} m vs "
+                     f"{_f(j['blobber_range_err_rms_m'], '{:.4f}')} m)", "<= 0.5",
+                     _verdict(None if r is None else r <= TARGETS["range_err_ratio"])])
+        v = j["late_vel_err_rms_m_s"]
+        rows.append([f"(d) velocity error RMS, frames >= {j['after_frames']}",
+                     "-" if v is None else f"{100 * v:.3f} cm/s (p95 {100 * j['late_vel_err_p95_m_s']:.3f}, max "
+                     f"{100 * j['late_vel_err_max_m_s']:.3f})", "<= 1 cm/s",
+                     _verdict(None if v is None else v <= TARGETS["vel_err_m_s"])])
+    if j["orbit_frames"]:
+        p = j["orbit_pos_err_rms_pct"]
+        rows.append(["(e) position error / range one orbit after the burn, RMS over approaches",
+                     f"{p:.3f} % at {j['orbit_range_mean_m']:.0f} m (p95 {j['orbit_pos_err_p95_pct']:.3f} %, filter "
+                     f"{j['orbit_sigma_mean_pct']:.3f} %)", "<= 1 %", _verdict(p <= TARGETS["orbit_pos_err_pct"])])
+    return rows
+
+
+def text(rep: dict) -> str:
+    j = rep["json"]
+    lines = [
+        f"rendezvous run {j['run']}: {j['approaches']} approaches x {j['frames_per_approach']} frames "
+        f"({j['frames']:,} frames), {j['camera']} camera",
+        "",
+        "Targets (issue 23, point 6)",
+        format_table(["metric", "run", "target", "verdict"], target_rows(rep)),
+        "",
+        f"availability (a bearing entered the filter): {percent(j['availability'])} of frames; target in the field "
+        f"{percent(j['in_field_share'])}, attitude {percent(j['attitude_share'])}, blobber range "
+        f"{percent(j['range_share'])}",
+        f"bearing error (used, after the centre-of-brightness correction): RMS {_f(j['bearing_err_rms_arcsec'], '{:.2f}')}"
+        f" arcsec, median {_f(j['bearing_err_p50_arcsec'], '{:.2f}')}, p95 {_f(j['bearing_err_p95_arcsec'], '{:.2f}')}"
+        f"; as measured {_f(j['bearing_raw_err_rms_arcsec'], '{:.2f}')}; stated 1-sigma per axis RMS "
+        f"{_f(j['bearing_sigma_rms_arcsec'], '{:.2f}')}; within 3 sigma (2-D: 3 sqrt 2 sigma) "
+        f"{'-' if j['bearing_within_3sigma'] is None else percent(j['bearing_within_3sigma'])}",
+        f"final: range {_f(j['final_range_mean_m'], '{:.1f}')} m mean, position error RMS "
+        f"{_f(j['final_pos_err_rms_m'], '{:.3f}')} m, velocity error RMS {_f(j['final_vel_err_rms_m_s'], '{:.5f}')} m/s",
+        f"time: {_f(j['ms_per_approach'], '{:.0f}')} ms per approach (render {_f(j['render_ms_per_frame'], '{:.1f}')} "
+        "ms per frame)",
+        "",
+        "mean NEES per frame (every 5th; * outside the 95 % bounds after convergence)",
+    ]
+    lo, hi = j["nees_bounds_95"]
+    rows = [[str(r["frame"]), f"{r['t_s']:.0f}", f"{r['range_mean_m']:.1f}", f"{r['pos_err_rms_m']:.3f}",
+             f"{r['sigma_pos_rms_m']:.3f}", f"{r['mean_nees']:.2f}" + (
+                 "*" if r["frame"] >= j["converged_after_frames"] and not lo <= r["mean_nees"] <= hi else ""),
+             percent(r["availability"])]
+            for r in j["per_frame"] if r["frame"] % 5 == 0 or r["frame"] == len(j["per_frame"]) - 1]
+    lines.append(format_table(["frame", "t s", "range m", "pos err RMS m", "sigma RMS m", "mean NEES", "bearings"],
+                              rows))
+    return "\n".join(lines)
