@@ -22,8 +22,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pyarrow as pa
 
 from dualsight.jobs.engine.runner import job_module
+from dualsight.jobs.kinds.star_tables import DETECTIONS_SCHEMA
 from dualsight.jobs.nightly import stats as st
 from dualsight.warehouse.query import run_report, sql_text
 
@@ -35,14 +37,15 @@ class Metric:
     column: str
     kind: str             # "rate" | "dist"
     direction: str        # "higher" | "lower" | "zero" (closer to zero is better)
+    needs: str | None = None   # a dataset a run may not keep (star_detections: [output] detections, issue 24.5)
 
 
 def _rate(name, col, q, direction="higher"):
     return Metric(name, q, col, "rate", direction)
 
 
-def _dist(name, col, q, direction="lower"):
-    return Metric(name, q, col, "dist", direction)
+def _dist(name, col, q, direction="lower", needs=None):
+    return Metric(name, q, col, "dist", direction, needs)
 
 
 _STAR = [
@@ -54,7 +57,7 @@ _STAR = [
     _dist("err_x_arcsec", "err_x_arcsec", "nightly_star"),
     _dist("err_y_arcsec", "err_y_arcsec", "nightly_star"),
     _dist("err_z_arcsec", "err_z_arcsec", "nightly_star"),
-    _dist("centroid_err_px", "centroid_err_px", "nightly_star"),
+    _dist("centroid_err_px", "centroid_err_px", "nightly_star", needs="star_detections"),
 ]
 _PROX = [
     _rate("found_rate", "found", "nightly_prox"),
@@ -93,11 +96,25 @@ METRICS = {
 
 
 class MetricSource:
-    """Per-run metric values from the lake (one SQL query per (query, run), cached)."""
+    """Per-run metric values from the lake (one SQL query per (query, run), cached).
 
-    def __init__(self, con):
+    ``lake`` (optional): where the runs' manifests say which datasets each run kept (:meth:`kept`); a dataset
+    that no run of the lake kept is an empty view of its schema, so a query joining it still runs."""
+
+    def __init__(self, con, lake=None):
         self.con = con
+        self.lake = lake
         self._cache = {}
+        views = {r[0] for r in con.execute("SELECT view_name FROM duckdb_views() WHERE NOT internal").fetchall()}
+        if "star_detections" not in views:
+            con.register("star_detections", DETECTIONS_SCHEMA.append(pa.field("run", pa.string())).empty_table())
+
+    def kept(self, run: str | None, dataset: str | None) -> bool:
+        """False when run ``run``'s manifest leaves ``dataset`` out of its datasets (True without a lake)."""
+        if run is None or dataset is None or self.lake is None:
+            return True
+        m = self.lake.read_manifest(run) or {}
+        return dataset in (m.get("datasets") or [dataset])
 
     def column(self, query: str, run: str, column: str) -> list:
         key = (query, run)
@@ -159,6 +176,13 @@ def metric_rows(src: MetricSource, job: str, kind: str, comparison: str, base_ru
     for m in METRICS[kind]:
         tag = f"{job}/{comparison}/{m.name}"
         common = dict(direction=m.direction, base_run=base_run, now_run=now_run, note=note)
+        lost = [r for r in (base_run, now_run) if not src.kept(r, m.needs)]
+        if lost:            # the per-star rows were not kept: said in one line, nothing tested
+            why = f"{m.needs} not kept in run {', '.join(lost)} ([output] detections; rerun with --detections on)"
+            for stat in ((m.name,) if m.kind == "rate" else (f"{m.name}.mean", f"{m.name}.p95")):
+                out.append(_row(job, kind, comparison, stat, None, None, "not kept", verdict="info",
+                                **dict(common, note=why)))
+            continue
         if m.kind == "rate":
             kb, nb = src.values(m, base_run) if base_run else (0, 0)
             kn, nn = src.values(m, now_run)
@@ -223,7 +247,7 @@ def compare_job(src: MetricSource, lake, job, runs: dict, base: dict | None, tp_
         rows += metric_rows(src, name, kind, "fixed", base_fixed, now_fixed, verdict="not comparable",
                             test="spec differs: " + "; ".join(diffs))
     else:
-        datasets = list(job_module(kind).SCHEMAS)
+        datasets = [d for d in job_module(kind).SCHEMAS if src.kept(now_fixed, d) and src.kept(base_fixed, d)]
         ra, rb, diff = src.identical(now_fixed, base_fixed, datasets)
         same = diff == 0 and ra == rb
         rows.append(_row(name, kind, "fixed", "rows", float(rb), float(ra),

@@ -89,7 +89,7 @@ def run_nightly(suite, lake, *, accept: bool = False, workers: int | None = None
     rows = []
     con = connect(lake, warn=lambda msg: log(f"  warning: {msg}"))
     try:
-        src = MetricSource(con)
+        src = MetricSource(con, lake)
         for job in suite.jobs:
             r = runs[job.name]
             if r.get("skipped"):
