@@ -346,10 +346,12 @@ class TrackingConfig:
         lost-in-space fix), in (0, 30 deg/s] (default 0.5 deg/s).
     max_sigma_rad : an attitude (tracking's or lost-in-space's) is output as valid only when its stated
         covariance, scaled by the fit's a posteriori variance factor ``max(1, rms^2)``, has every principal
-        1-sigma at most this (rad), in (0, 10 deg] (default 25 arcsec: a quarter of the reference's 100 arcsec
-        limit, so a valid attitude beyond the limit is a 4-sigma event).  A weaker one (a two-star or
-        short-baseline solution's roll) is *degraded*: not output, not a prior (``nav/sequence.py``).  TOML also
-        takes ``max_sigma_arcsec``.
+        1-sigma at most this (rad), in (0, 10 deg]; a weaker one (a two-star or short-baseline solution's roll) is
+        *degraded*: not output, not a prior (``nav/sequence.py``).  TOML also takes ``max_sigma_arcsec``.  The rule
+        is only as honest as the centroid sigmas: set it where the detector states them (the ``realistic``
+        preset's local detector: ``examples/star/track.toml`` uses 25 arcsec, a quarter of the reference's 100
+        arcsec limit, so a valid attitude beyond the limit is a 4-sigma event); the default, 10 deg, withholds
+        nothing (a detector without sigmas gets ``centroid_sigma_px``, an assumption, not a measurement).
     """
 
     window_k_sigma: typing.Annotated[float, pydantic.Field(gt=0, le=20.0)] = 5.0
@@ -365,7 +367,7 @@ class TrackingConfig:
     max_p_chance: typing.Annotated[float, pydantic.Field(gt=0, le=1.0)] = 1e-3
     initial_cone_rad: typing.Annotated[float, pydantic.Field(gt=0, le=10 * _DEG)] = 0.05 * _DEG
     rate_sigma_rad_s: typing.Annotated[float, pydantic.Field(gt=0, le=30 * _DEG)] = 0.5 * _DEG
-    max_sigma_rad: typing.Annotated[float, pydantic.Field(gt=0, le=10 * _DEG)] = 25.0 * _DEG / 3600.0
+    max_sigma_rad: typing.Annotated[float, pydantic.Field(gt=0, le=10 * _DEG)] = 10 * _DEG
 
     def __post_init__(self):
         check_fields(self, lambda name, msg: ConfigError(msg, field=f"tracking.{name}"), _TRACKING_UNITS)
