@@ -9,11 +9,15 @@ Per frame ``k`` (in time order), with the last fix (attitude ``A_f``, covariance
    covariance ``gyro_sigma^2 I / 2``; else the rate from the last two fixes of either mode,
    ``nav/angular_rate.rate_from_attitudes``, with its covariance; else zero with ``cfg.rate_sigma_rad_s``), predict,
    match in windows, solve with the centroid weights, verify.  Lock held: mode ``tracking``.
+   A lock whose stated covariance (scaled by the fit's variance factor) has a principal 1-sigma above
+   ``cfg.max_sigma_rad`` is *degraded* (a two-star or short-baseline roll): mode ``none``, reason ``degraded``, no
+   lost-in-space on the same stars, and it is no prior (the last output fix stays the prior).
 3. no prior, or tracking lost lock (its reason is kept in the row): **lost-in-space** on the same frame: geometric
    voting (``nav/star_solution.identify``, as the star job calls it) and the weighted SVD attitude
    (``nav/attitude.solve_identified``).  A fix is *verified* when the attitude is solved from at least
    ``lis_min_stars`` accepted stars, the match threshold ``T > 0`` and the chance-match probability is at most
-   ``cfg.max_p_chance`` (when the voting states it).  Verified: mode ``lost_in_space``; else ``none``.
+   ``cfg.max_p_chance`` (when the voting states it).  Verified: mode ``lost_in_space`` (degraded as in 2: ``none``);
+   else ``none``.
 4. with a fix at ``k``: the rate from the two attitudes (``rate_from_attitudes``, over ``t_k - t_f``) and from the
    displacements of the stars identified in both frames (``rate_from_stars``, Crassidis 2002), each with its
    covariance; the fix becomes the prior.
@@ -39,7 +43,7 @@ from dualsight.nav.angular_rate import pair_by_identity, rate_from_attitudes, ra
 from dualsight.nav.attitude import solve_identified
 from dualsight.nav.observations import MAX_OBS, Observations
 from dualsight.nav.star_solution import identify
-from dualsight.nav.tracking import LOCK_REASONS, NO_PRIOR, predict, propagate, track
+from dualsight.nav.tracking import DEGRADED, LOCK_REASONS, NO_PRIOR, max_sigma, predict, propagate, track
 
 __all__ = ["MODE_NAMES", "NO_FIX", "LOST_IN_SPACE", "TRACKING", "REASON_NAMES", "NO_IMAGE", "LisFix",
            "lost_in_space", "SequenceResult", "run_sequence"]
@@ -57,7 +61,8 @@ NO_IMAGE = len(LOCK_REASONS)
 class LisFix:
     """One frame's lost-in-space answer.  A (3, 3), cov (3, 3) rad^2 (NaN when not solved); verified : bool;
     rows : (D,) int64 catalog row of each detection (-1 unidentified); n_used : accepted stars; T : match
-    threshold; p_chance : chance-match probability (NaN when not computed)."""
+    threshold; p_chance : chance-match probability (NaN when not computed).  cov is scaled by the a posteriori
+    variance factor ``max(1, chi^2 / (2 n - 3))`` of the accepted stars' residuals, as tracking's."""
 
     A: np.ndarray
     cov: np.ndarray
@@ -97,7 +102,14 @@ def lost_in_space(xy: np.ndarray, sigma_px: np.ndarray, camera, cat_unit: np.nda
     p = float(ident.p_chance[0])
     verified = bool(ok[0]) and n >= min_stars and T > 0 and not (np.isfinite(p) and p > max_p_chance)
     rows[:S] = np.where(acc, ident.ids[0], -1)
-    return LisFix(A[0], P[0], verified, rows, n, T, p)
+    cov = P[0]
+    if verified:                          # the a posteriori variance factor, as tracking's (nav/tracking.track)
+        r = cat_unit[ident.ids[0][acc]] @ A[0].T
+        z2 = np.sum((r - vec[0][acc]) ** 2, axis=1) * w[0][acc]
+        f2 = float(np.sum(z2)) / max(1, 2 * n - 3)
+        if f2 > 1.0:
+            cov = cov * f2
+    return LisFix(A[0], cov, verified, rows, n, T, p)
 
 
 @dataclass(frozen=True)
@@ -110,7 +122,10 @@ class SequenceResult:
     final solution or lost-in-space's accepted stars).  two_star : bool, the lock rests on two stars.
     rms_sigma : tracking's post-fit RMS per degree of freedom (centroid sigmas; NaN elsewhere).
     p_chance : the answer's chance-match probability.  T_lis : lost-in-space's match threshold (0 where it did
-    not run).  rate_att, rate_star : (T, 3) rad/s rate from the last two fixes / from the stars seen in both, with
+    not run).  degraded : (T,) bool, a verified answer (tracking's or lost-in-space's) whose largest principal
+    1-sigma exceeds ``cfg.max_sigma_rad``: mode ``none`` (tracking's: reason ``degraded``), not a prior; its
+    attitude and covariance in A_degraded, cov_degraded (T, 3, 3) (NaN elsewhere).  sigma_max : (T,) rad that
+    largest principal 1-sigma of every verified answer (NaN elsewhere).  rate_att, rate_star : (T, 3) rad/s rate from the last two fixes / from the stars seen in both, with
     rate_att_cov, rate_star_cov (T, 3, 3) (rad/s)^2 (NaN where not available); rate_pairs : stars of rate_star.
     t_predict_ns (propagate + predict), t_track_ns (match + solve + verify), t_lis_ns (voting + attitude),
     t_rate_ns (both rates), t_total_ns : int64 wall time (-1 where the stage did not run).
@@ -135,6 +150,10 @@ class SequenceResult:
     rate_star: np.ndarray
     rate_star_cov: np.ndarray
     rate_pairs: np.ndarray
+    degraded: np.ndarray
+    sigma_max: np.ndarray
+    A_degraded: np.ndarray
+    cov_degraded: np.ndarray
     t_predict_ns: np.ndarray
     t_track_ns: np.ndarray
     t_lis_ns: np.ndarray
@@ -178,7 +197,8 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                n_predicted=np.zeros(T, np.int32), n_matched=np.zeros(T, np.int32), n_used=np.zeros(T, np.int32),
                two_star=np.zeros(T, bool), rms_sigma=np.full(T, np.nan), p_chance=np.full(T, np.nan),
                T_lis=np.zeros(T, np.int32), rate_att=nan3.copy(), rate_att_cov=nan33.copy(), rate_star=nan3.copy(),
-               rate_star_cov=nan33.copy(), rate_pairs=np.zeros(T, np.int32),
+               rate_star_cov=nan33.copy(), rate_pairs=np.zeros(T, np.int32), degraded=np.zeros(T, bool),
+               sigma_max=np.full(T, np.nan), A_degraded=nan33.copy(), cov_degraded=nan33.copy(),
                **{k: np.full(T, -1, np.int64) for k in ("t_predict_ns", "t_track_ns", "t_lis_ns", "t_rate_ns",
                                                         "t_total_ns")})
     det_row = np.full(K, -1, np.int64)
@@ -228,19 +248,29 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
             out["reason"][k] = res.reason
             out["n_predicted"][k], out["n_matched"][k] = res.n_predicted, res.n_matched
             if res.locked:
-                A, P, rows = res.A, res.cov, res.det_row
-                out["mode"][k] = TRACKING
                 out["n_used"][k], out["two_star"][k] = res.n_used, res.two_star
                 out["rms_sigma"][k], out["p_chance"][k] = res.rms_sigma, res.p_chance
-        if A is None:                                                   # acquire, or fall back
+                out["sigma_max"][k] = max_sigma(res.cov)
+                if res.degraded:              # verified but too weak to output; lost-in-space sees the same stars
+                    out["reason"][k], out["degraded"][k] = DEGRADED, True
+                    out["A_degraded"][k], out["cov_degraded"][k] = res.A, res.cov
+                else:
+                    A, P, rows = res.A, res.cov, res.det_row
+                    out["mode"][k] = TRACKING
+        if A is None and not out["degraded"][k]:                        # acquire, or fall back
             c0 = clock()
             fx_ = lis(xy, sg)
             out["t_lis_ns"][k] = clock() - c0
             out["T_lis"][k] = fx_.T
             if fx_.verified:
-                A, P, rows = fx_.A, fx_.cov, fx_.rows
-                out["mode"][k] = LOST_IN_SPACE
                 out["n_used"][k], out["p_chance"][k] = fx_.n_used, fx_.p_chance
+                out["sigma_max"][k] = max_sigma(fx_.cov)
+                if out["sigma_max"][k] > cfg.max_sigma_rad:
+                    out["degraded"][k] = True
+                    out["A_degraded"][k], out["cov_degraded"][k] = fx_.A, fx_.cov
+                else:
+                    A, P, rows = fx_.A, fx_.cov, fx_.rows
+                    out["mode"][k] = LOST_IN_SPACE
         if A is not None:
             det_row[s] = rows
             out["A"][k], out["cov"][k] = A, P

@@ -39,14 +39,14 @@ from dualsight.nav.attitude import svd_attitude
 from dualsight.nav.chance import binomial_tail
 from dualsight.scene.rotation_vector import frame_rotation
 from dualsight.scene.starfield_geometry import field_half_angle
-from dualsight.scene.units import angle_between
 
-__all__ = ["LOCK_REASONS", "LOCKED", "NO_PRIOR", "TOO_FEW_MATCHES", "DEGENERATE", "RESIDUAL", "P_CHANCE",
-           "Prediction", "TrackResult", "propagate", "predict", "match", "tracking_chance", "track"]
+__all__ = ["LOCK_REASONS", "LOCKED", "NO_PRIOR", "TOO_FEW_MATCHES", "DEGENERATE", "RESIDUAL", "P_CHANCE", "DEGRADED",
+           "Prediction", "TrackResult", "propagate", "predict", "match", "tracking_chance", "max_sigma", "track"]
 
-LOCK_REASONS = ("locked", "no_prior", "too_few_matches", "degenerate", "residual", "p_chance")
-"""Names of :attr:`TrackResult.reason` (index = code): lock held, or why it was lost."""
-LOCKED, NO_PRIOR, TOO_FEW_MATCHES, DEGENERATE, RESIDUAL, P_CHANCE = range(len(LOCK_REASONS))
+LOCK_REASONS = ("locked", "no_prior", "too_few_matches", "degenerate", "residual", "p_chance", "degraded")
+"""Names of :attr:`TrackResult.reason` (index = code): lock held, or why it was lost; ``degraded`` is set by the
+caller (``nav/sequence.py``) for a lock whose stated covariance is too wide to output (:attr:`TrackResult.degraded`)."""
+LOCKED, NO_PRIOR, TOO_FEW_MATCHES, DEGENERATE, RESIDUAL, P_CHANCE, DEGRADED = range(len(LOCK_REASONS))
 
 _EPS_ROT = 1e-6
 """Rotation step (rad) of the central differences of the pixel positions (truncation ~1e-12 px at 1e7 px focal
@@ -82,7 +82,8 @@ class TrackResult:
     n_predicted, n_matched (unique pairs before the residual test), n_used (in the final solution),
     n_ambiguous (windows with two or more detections) : int.  two_star : the lock rests on two stars (allowed
     only under a tight prediction).  rms_sigma : post-fit RMS per degree of freedom in centroid sigmas.
-    p_chance : chance-match probability (:func:`tracking_chance`).
+    p_chance : chance-match probability (:func:`tracking_chance`).  degraded : locked, but the stated covariance
+    (variance factor applied) has a principal 1-sigma above ``cfg.max_sigma_rad``: too weak to output.
     """
 
     A: np.ndarray
@@ -98,6 +99,7 @@ class TrackResult:
     two_star: bool
     rms_sigma: float
     p_chance: float
+    degraded: bool = False
 
 
 def propagate(A_prev: np.ndarray, cov_prev: np.ndarray, omega: np.ndarray, cov_omega: np.ndarray,
@@ -118,8 +120,23 @@ def propagate(A_prev: np.ndarray, cov_prev: np.ndarray, omega: np.ndarray, cov_o
 
 def _pixel_jacobian(v: np.ndarray, camera) -> np.ndarray:
     """(P, 2, 3) d(pixel) / d(theta) of camera-frame vectors ``v`` (P, 3) under a small frame rotation theta
-    (``v -> v - theta x v``), by central differences through ``camera.project`` (distortion included): the six
-    perturbed copies of every star in one projection call."""
+    (``v -> v - theta x v``).
+
+    Without distortion, the pinhole's image Jacobian of a rotation in closed form (x = v_x / v_z, y = v_y / v_z):
+    ``du/dtheta = fx (x y, -(1 + x^2), y)``, ``dv/dtheta = fy (1 + y^2, -x y, -x)`` (the rotational part of the
+    interaction matrix, Chaumette & Hutchinson, "Visual servo control I", IEEE RAM 2006, Eq. 11, in this frame
+    convention).  With distortion, central differences through ``camera.project``: the six perturbed copies of
+    every star in one projection call.
+    """
+    if not camera.has_distortion:
+        x, y = v[:, 0] / v[:, 2], v[:, 1] / v[:, 2]
+        G = np.empty((len(v), 2, 3))
+        xy = x * y
+        G[:, 0, 0], G[:, 0, 1], G[:, 0, 2] = xy, -1.0 - x * x, y
+        G[:, 1, 0], G[:, 1, 1], G[:, 1, 2] = 1.0 + y * y, -xy, -x
+        G[:, 0] *= camera.fx
+        G[:, 1] *= camera.fy
+        return G
     x, y, z = v[:, 0] * _EPS_ROT, v[:, 1] * _EPS_ROT, v[:, 2] * _EPS_ROT
     d = np.zeros((3,) + v.shape)                     # d[i] = v x (eps e_i)
     d[0, :, 1], d[0, :, 2] = z, -y
@@ -142,16 +159,19 @@ def predict(A: np.ndarray, cov: np.ndarray, cat_unit: np.ndarray, camera, cfg: T
     cand = np.flatnonzero(cat_unit @ A[2] > cos_half)                 # cone test, then the camera model
     v = cat_unit[cand] @ A.T
     px, front = camera.project(v)
-    inside = front & camera.in_image(np.nan_to_num(px, nan=-1.0))
+    inside = front & camera.in_image(px)      # inside the cone (< 90 deg): z > 0, px finite
     keep = np.flatnonzero(inside)[: cfg.max_predicted]
     rows, v, px = cand[keep], v[keep], px[keep]
+    cov = np.asarray(cov, np.float64)
     G = _pixel_jacobian(v, camera)
-    S = np.einsum("pik,kl,pjl->pij", G, np.asarray(cov, np.float64), G)
-    a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
+    GP = G @ cov                                                       # (P, 2, 3)
+    a = np.sum(GP[:, 0] * G[:, 0], axis=1)                             # S = G P G^T, its three entries
+    b = np.sum(GP[:, 0] * G[:, 1], axis=1)
+    c = np.sum(GP[:, 1] * G[:, 1], axis=1)
     lam = 0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b * b)          # largest eigenvalue of the 2 x 2
     sigma = np.sqrt(lam + cfg.centroid_sigma_px ** 2)
-    radius = np.clip(cfg.window_k_sigma * sigma, cfg.window_min_px, cfg.window_max_px)
-    return Prediction(A, np.asarray(cov, np.float64), rows.astype(np.int64), px, sigma, radius)
+    radius = np.minimum(np.maximum(cfg.window_k_sigma * sigma, cfg.window_min_px), cfg.window_max_px)
+    return Prediction(A, cov, rows.astype(np.int64), px, sigma, radius)
 
 
 def match(pred_xy: np.ndarray, radius_px: np.ndarray, det_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -213,8 +233,32 @@ def tracking_chance(n_used: int, n_predicted: int, n_detections: int, radius_px:
 
 
 def _solve(b: np.ndarray, r: np.ndarray, w: np.ndarray):
-    A, ok, cov = svd_attitude(b[None], r[None], w[None], return_cov=True)
-    return A[0], bool(ok[0]), cov[0]
+    """Weighted SVD attitude of one frame's pairs (Markley 1988; the math of ``nav.attitude.svd_attitude`` for
+    one case, without the batch's padding and checks, which cost more than the 3 x 3 factorisation on a tracked
+    frame).  b, r : (M, 3) observed / catalog unit vectors; w : (M,) rad^-2.  Returns (A (3, 3), ok, cov (3, 3)
+    rad^2): ``A = U diag(1, 1, d) V^T``, ``cov = U diag(1/(s2+s3), 1/(s3+s1), 1/(s1+s2)) U^T``, ``s3 = d S33``,
+    ``d = det U det V``; ok when the second singular value exceeds 1e-10 times the first (two non-parallel
+    stars)."""
+    U, s, Vt = np.linalg.svd((b * w[:, None]).T @ r)
+    (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = U.tolist()
+    (e0, e1, e2), (f0, f1, f2), (g0, g1, g2) = Vt.tolist()
+    d = ((a0 * (b1 * c2 - b2 * c1) - a1 * (b0 * c2 - b2 * c0) + a2 * (b0 * c1 - b1 * c0))
+         * (e0 * (f1 * g2 - f2 * g1) - e1 * (f0 * g2 - f2 * g0) + e2 * (f0 * g1 - f1 * g0)))
+    s1, s2, s3 = float(s[0]), float(s[1]), float(s[2]) * (1.0 if d > 0 else -1.0)
+    if not (s1 > 0.0 and s2 > 1e-10 * s1):
+        return None, False, None
+    Ud = U.copy()
+    if d < 0:
+        Ud[:, 2] = -Ud[:, 2]
+    return Ud @ Vt, True, (U * np.array([1.0 / (s2 + s3), 1.0 / (s3 + s1), 1.0 / (s1 + s2)])) @ U.T
+
+
+def max_sigma(cov: np.ndarray) -> float:
+    """Largest principal 1-sigma (rad) of a (3, 3) attitude error covariance (rad^2): the frame-free measure of
+    :attr:`TrackingConfig.max_sigma_rad`'s rule (NaN -> NaN)."""
+    if not np.all(np.isfinite(cov)):
+        return float("nan")
+    return float(np.sqrt(max(0.0, float(np.linalg.eigvalsh(cov)[-1]))))
 
 
 def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None, cat_unit: np.ndarray, camera,
@@ -223,53 +267,68 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
 
     det_xy : (D, 2) centroids (px).  det_sigma_px : optional (D,) 1-sigma centroid error per axis (px), e.g. the
     local detector's Cramér-Rao bound; None (or non-finite entries) = ``cfg.centroid_sigma_px``.  Weights
-    ``1 / sigma_rad^2`` with ``sigma_rad = sigma_px / fx`` (the pixel scale on the axis), so the returned
-    covariance is in rad^2.  cat_unit : (N, 3) the catalog ``pred.rows`` index.  camera : ``scene.camera.Camera``.
+    ``1 / sigma_rad^2`` with ``sigma_rad = sigma_px / f`` (the mean pixel scale), so the covariance is in rad^2;
+    it is then multiplied by the a posteriori variance factor ``max(1, rms^2)`` (``rms``: the post-fit residuals'
+    RMS per degree of freedom in their sigmas; a centroid error larger than the detector states, e.g. from smear,
+    widens the stated covariance instead of leaving it optimistic; Bevington & Robinson, "Data Reduction and Error
+    Analysis", 3rd ed., Sec. 7.2).  A verified answer whose largest principal 1-sigma exceeds ``cfg.max_sigma_rad``
+    is *degraded* (``TrackResult.degraded``; e.g. a two-star or short-baseline solution's roll): the caller does
+    not output it.  cat_unit : (N, 3) the catalog ``pred.rows`` index.  camera : ``scene.camera.Camera``.
     """
     det_xy = np.asarray(det_xy, np.float64).reshape(-1, 2)
     D = det_xy.shape[0]
     nan3 = np.full((3, 3), np.nan)
     det_row = np.full(D, -1, np.int64)
     res_px = np.full(D, np.nan)
-    sig = np.full(D, cfg.centroid_sigma_px) if det_sigma_px is None else np.asarray(det_sigma_px, np.float64)
-    sig = np.where(np.isfinite(sig) & (sig > 0), sig, cfg.centroid_sigma_px)
     P = len(pred.rows)
     star, det, n_amb = match(pred.xy, pred.radius_px, det_xy)
     n_matched = len(star)
-    tight = P > 0 and float(pred.radius_px.max()) <= cfg.tight_window_px
+    r_max = float(pred.radius_px.max()) if P else 0.0
+    tight = P > 0 and r_max <= cfg.tight_window_px
     need = cfg.min_stars_tight if tight else cfg.min_stars
 
     def lost(reason, n_used=0, rms=np.nan, p=np.nan):
         return TrackResult(nan3, nan3.copy(), False, reason, det_row, res_px, P, n_matched, n_used, n_amb,
-                           n_used == 2, float(rms), float(p))
+                           n_used == 2, float(rms), float(p), False)
 
     if n_matched < need:
         return lost(TOO_FEW_MATCHES, n_matched)
+    if det_sigma_px is None:
+        sig = np.full(n_matched, cfg.centroid_sigma_px)
+    else:
+        sig = np.asarray(det_sigma_px, np.float64)[det]
+        sig = np.where(np.isfinite(sig) & (sig > 0), sig, cfg.centroid_sigma_px)
     f = 0.5 * (camera.fx + camera.fy)
     b = camera.backproject(det_xy[det])
     r = cat_unit[pred.rows[star]]
-    sig_rad = sig[det] / f
-    w = 1.0 / sig_rad ** 2
+    sig_rad = sig / f
+    w = 1.0 / (sig_rad * sig_rad)
     A, ok, cov = _solve(b, r, w)
     if not ok:
         return lost(DEGENERATE, n_matched)
-    nres = angle_between(r @ A.T, b) / sig_rad
+    # residual angle: the chord |A r - b| (the angle to 1e-16 rad below 1e-5 rad, the arcsec regime; a larger
+    # chord is an outlier whatever its exact angle)
+    nres = np.sqrt(np.sum((r @ A.T - b) ** 2, axis=1)) / sig_rad
     use = nres <= cfg.residual_k_sigma
-    if not use.all():                                   # drop the outliers, solve once more
-        if use.sum() < need:
-            return lost(RESIDUAL, int(use.sum()))
+    n_used = int(np.count_nonzero(use))
+    if n_used < n_matched:                              # drop the outliers, solve once more
+        if n_used < need:
+            return lost(RESIDUAL, n_used)
         A, ok, cov = _solve(b[use], r[use], w[use])
         if not ok:
-            return lost(DEGENERATE, int(use.sum()))
-        nres = angle_between(r @ A.T, b) / sig_rad
-    n_used = int(use.sum())
+            return lost(DEGENERATE, n_used)
+        nres = np.sqrt(np.sum((r @ A.T - b) ** 2, axis=1)) / sig_rad
+    nu = nres[use]
     dof = max(1, 2 * n_used - 3)
-    rms = float(np.sqrt(np.sum(nres[use] ** 2) / dof))
-    p = tracking_chance(n_used, P, D, float(pred.radius_px.max()), camera.width * camera.height)
-    if rms > cfg.max_rms_sigma or np.any(nres[use] > cfg.residual_k_sigma):
+    rms = math.sqrt(float(nu @ nu) / dof)
+    p = tracking_chance(n_used, P, D, r_max, camera.width * camera.height)
+    if rms > cfg.max_rms_sigma or float(nu.max()) > cfg.residual_k_sigma:
         return lost(RESIDUAL, n_used, rms, p)
     if p > cfg.max_p_chance:
         return lost(P_CHANCE, n_used, rms, p)
+    if rms > 1.0:
+        cov = cov * (rms * rms)
     det_row[det[use]] = pred.rows[star[use]]
-    res_px[det[use]] = nres[use] * sig[det[use]]
-    return TrackResult(A, cov, True, LOCKED, det_row, res_px, P, n_matched, n_used, n_amb, n_used == 2, rms, p)
+    res_px[det[use]] = nu * sig[use]
+    return TrackResult(A, cov, True, LOCKED, det_row, res_px, P, n_matched, n_used, n_amb, n_used == 2, rms, p,
+                       max_sigma(cov) > cfg.max_sigma_rad)

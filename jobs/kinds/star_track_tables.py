@@ -15,6 +15,7 @@ import pyarrow as pa
 
 from dualsight.kernels.digest import to_int64
 from dualsight.nav.angular_rate import rate_from_attitudes
+from dualsight.nav.errors import axis_errors
 from dualsight.nav.sequence import LOST_IN_SPACE, MODE_NAMES, NO_FIX, REASON_NAMES, TRACKING
 from dualsight.scene.attitude import boresight_radec
 from dualsight.scene.attitude_trajectory import DROPPED, EVENT_NAMES
@@ -33,7 +34,8 @@ FRAMES_SCHEMA = pa.schema(
      ("false_lock", pa.bool_()), ("n_generated", _I), ("n_detections", _I), ("n_predicted", _I), ("n_matched", _I),
      ("n_used", _I), ("two_star", pa.bool_()), ("residual_rms_sigma", _F), ("p_chance", _F), ("T_lis", _I),
      ("err_x_arcsec", _F), ("err_y_arcsec", _F), ("err_z_arcsec", _F), ("err_total_arcsec", _F),
-     ("sigma_x_arcsec", _F), ("sigma_y_arcsec", _F), ("sigma_z_arcsec", _F)]
+     ("sigma_x_arcsec", _F), ("sigma_y_arcsec", _F), ("sigma_z_arcsec", _F),
+     ("degraded", pa.bool_()), ("sigma_max_arcsec", _F), ("degraded_err_max_arcsec", _F)]
     + [(f"rate_att_{a}_deg_s", _F) for a in _XYZ] + [(f"rate_att_sigma_{a}_deg_s", _F) for a in _XYZ]
     + [(f"rate_star_{a}_deg_s", _F) for a in _XYZ] + [(f"rate_star_sigma_{a}_deg_s", _F) for a in _XYZ]
     + [("rate_star_pairs", _I)]
@@ -46,7 +48,10 @@ FRAMES_SCHEMA = pa.schema(
 ``mode``: ``nav.sequence.MODE_NAMES``; ``lock_reason``: ``nav.sequence.REASON_NAMES`` (``locked``: tracking held,
 ``no_prior``: tracking did not run); ``valid``: an attitude was output; ``within_limit``: valid and every axis error
 (and the total angle / sqrt 3) within ``error_limit_arcsec``; ``false_lock``: valid and not within the limit;
-``sigma_*``: the attitude's stated 1-sigma per camera axis; ``rate_att_*``: the rate from this fix and the previous
+``sigma_*``: the attitude's stated 1-sigma per camera axis (the withheld one's on a degraded frame);
+``degraded``: the tracker verified an attitude but withheld it, its largest principal 1-sigma ``sigma_max_arcsec``
+(stated on every verified answer) above ``tracking.max_sigma_rad`` (not valid, so no false lock: it costs
+availability); ``degraded_err_max_arcsec``: the withheld attitude's largest axis error (what it would have cost); ``rate_att_*``: the rate from this fix and the previous
 one (``rate_star_*``: from the stars seen in both), ``true_rate_*``: the true body rate at the frame,
 ``true_rate_mean_*``: the true mean rate over the same interval as ``rate_att``; ``t_nav_ns``: the tracker's whole
 time on the frame (tracking, fallback and rates); ``shadow_*``, ``n_id_*``: lost-in-space run beside tracking
@@ -141,7 +146,11 @@ def frames_table(case_id: int, spec, out: dict) -> pa.Table:
         "residual_rms_sigma": _nullable(res.rms_sigma), "p_chance": _nullable(res.p_chance), "T_lis": res.T_lis,
         **{f"err_{a}_arcsec": _nullable(out["err"][:, i] / ARCSEC) for i, a in enumerate(_XYZ)},
         "err_total_arcsec": _nullable(out["total_err"] / ARCSEC),
-        **{f"sigma_{a}_arcsec": _nullable(np.sqrt(res.cov[:, i, i]) / ARCSEC) for i, a in enumerate(_XYZ)},
+        **{f"sigma_{a}_arcsec": _nullable(np.sqrt(np.where(res.degraded, res.cov_degraded[:, i, i], res.cov[:, i, i]))
+                                          / ARCSEC) for i, a in enumerate(_XYZ)},
+        "degraded": res.degraded, "sigma_max_arcsec": _nullable(res.sigma_max / ARCSEC),
+        "degraded_err_max_arcsec": _nullable(np.max(np.abs(axis_errors(res.A_degraded, d["A_true"],
+                                                                       frame=spec.star.error_frame)), axis=1) / ARCSEC),
     }
     prev = previous_fix(valid)
     true_mean = _true_mean_rate(d["A_true"], d["t"], np.where(valid, prev, -1))

@@ -1,5 +1,6 @@
 -- Star tracking campaign (issue 22, point 5): availability, first fix, re-acquisition, false locks, rate error and
--- its consistency with the stated sigmas, identities of tracking against lost-in-space on the same frames.
+-- its consistency with the stated sigmas, degraded frames (an attitude the tracker withheld: its stated sigma above
+-- tracking.max_sigma_rad; $limit: the error limit in arcsec), identities of tracking against lost-in-space on the same frames.
 -- Full scan of star_frames and star_sequences of one run ($run); rates in deg/s, errors in arcsec.
 WITH f AS (SELECT * FROM star_frames WHERE run = $run),
 s AS (SELECT * FROM star_sequences WHERE run = $run),
@@ -27,10 +28,19 @@ SELECT
     (SELECT count(*) FILTER (WHERE event = 'normal') FROM f)                    AS frames_normal,
     (SELECT avg(within_limit::INT) FROM f)                                      AS availability,
     (SELECT avg(within_limit::INT) FILTER (WHERE event = 'normal') FROM f)      AS availability_normal_frames,
+    (SELECT count(*) FILTER (WHERE event = 'crossing') FROM f)                  AS frames_crossing,
+    (SELECT avg(within_limit::INT) FILTER (WHERE event = 'crossing') FROM f)    AS availability_crossing_frames,
+    (SELECT count(*) FILTER (WHERE event = 'crossing' AND false_lock) FROM f)   AS false_locks_crossing_frames,
     (SELECT avg(valid::INT) FROM f)                                             AS valid_share,
     (SELECT avg((mode = 'tracking')::INT) FROM f)                               AS tracking_share,
     (SELECT sum(false_lock::INT) FROM f)                                        AS false_locks,
     (SELECT count(*) FILTER (WHERE two_star) FROM f)                            AS two_star_frames,
+    (SELECT count(*) FILTER (WHERE degraded) FROM f)                            AS degraded_frames,
+    (SELECT count(*) FILTER (WHERE degraded AND event = 'normal') FROM f)       AS degraded_normal_frames,
+    (SELECT count(*) FILTER (WHERE degraded AND degraded_err_max_arcsec > $limit) FROM f)
+                                                                                AS degraded_beyond_limit,
+    (SELECT count(*) FILTER (WHERE event = 'normal' AND NOT valid AND NOT coalesce(degraded, false)) FROM f)
+                                                                                AS normal_frames_without_answer,
     (SELECT avg(time_to_first_fix_s) FROM s)                                    AS mean_time_to_first_fix_s,
     (SELECT max(time_to_first_fix_s) FROM s)                                    AS max_time_to_first_fix_s,
     (SELECT count(*) FILTER (WHERE first_fix_frame IS NULL) FROM s)             AS sequences_never_fixed,
