@@ -3,12 +3,14 @@ sky's level and noise per frame from tiled, sigma-clipped statistics, median-fil
 (:func:`tile_background`) and interpolated between tile centres (:func:`interpolate_tiles`); and the
 sigma-clipped statistics themselves: of sorted rows (:func:`clipped_stats`, the tiles) and of one sample
 (:func:`robust_std`, the matched filter's noise measurement in :mod:`dualsight.kernels.detect_candidates`),
-with the exact :func:`median_1d`.  Pure numpy/OpenCV functions over arrays (ADU in, ADU out)."""
+with the exact :func:`median_1d`.  Pure numpy/OpenCV functions over arrays (ADU in, ADU out); the tiles' last
+clipping window optionally as one compiled pass (``engine`` "taichi": :mod:`dualsight.kernels.detect_passes`)."""
 
 import math
 
 import numpy as np
 
+from dualsight.kernels.detect_passes import pixel_dtype_supported, tile_window_sums
 
 _SQRT2 = math.sqrt(2.0)
 
@@ -267,11 +269,27 @@ def _last_window(t: np.ndarray, level: np.ndarray, sig: np.ndarray, clip: float)
             n / t.shape[1])
 
 
-def tile_background(img: np.ndarray, tile: int = 32, clip: float = 3.0, iters: int = 3, mesh: int = 3):
+def window_stats(sums: np.ndarray, level: np.ndarray, sig: np.ndarray, clip: float, N: int):
+    """One clipping window's outcome from its sums ``sums`` (T, 3) (count, sum of d, sum of d^2, d = v - level over
+    the values with |d| <= clip sigma, e.g. :func:`dualsight.kernels.detect_passes.tile_window_sums`) of rows of
+    ``N`` values: (mean, standard deviation x the truncation correction, kept fraction) (T,) float64, as
+    ``_last_window`` (the row's previous level and sigma kept where the window is empty or sigma is 0)."""
+    n = sums[:, 0]
+    m = np.maximum(n, 1.0)
+    mean = sums[:, 1] / m
+    var = np.maximum(sums[:, 2] / m - mean * mean, 0.0)
+    good = n > 0
+    corr = 1.0 / math.sqrt(_clip_var_factor(clip))
+    return (np.where(good, level + mean, level), np.where(good & (sig > 0), np.sqrt(var) * corr, sig), n / N)
+
+
+def tile_background(img: np.ndarray, tile: int = 32, clip: float = 3.0, iters: int = 3, mesh: int = 3,
+                    engine: str = "numpy"):
     """Level and noise sigma of every ``tile`` x ``tile`` square of one (H, W) frame (uint8, uint16 or float; ADU)
     (:mod:`dualsight.kernels.detect_local`, step 1): ``clip``-sigma clipping, ``iters`` windows, squares keeping
     under half of their pixels replaced by the frame's median square, a ``mesh`` x ``mesh`` median filter over
-    the grid (1 = off).
+    the grid (1 = off).  ``engine`` "taichi": the last window over all pixels in one compiled pass
+    (:func:`dualsight.kernels.detect_passes.tile_window_sums`, float64 sums), "numpy": ``_last_window`` (float32).
 
     Returns (level (ny, nx) float32, sigma (ny, nx) float32), ny = ceil(H / tile), nx = ceil(W / tile)."""
     import cv2
@@ -287,14 +305,20 @@ def tile_background(img: np.ndarray, tile: int = 32, clip: float = 3.0, iters: i
     if (ny * tile, nx * tile) != (H, W):
         a = np.pad(a, ((0, ny * tile - H), (0, nx * tile - W)), mode="symmetric")
     T = ny * nx
-    t = np.ascontiguousarray(a.reshape(ny, tile, nx, tile).transpose(0, 2, 1, 3)).reshape(T, tile * tile)
+
+    def tiles():
+        return np.ascontiguousarray(a.reshape(ny, tile, nx, tile).transpose(0, 2, 1, 3)).reshape(T, tile * tile)
     if iters >= 1 and tile % 2 == 0:    # the first windows on every other row and column, the last on every pixel
         h = tile // 2
         quarter = np.ascontiguousarray(a[::2, ::2].reshape(ny, h, nx, h).transpose(0, 2, 1, 3)).reshape(T, h * h)
         level, sig, _ = clipped_stats(np.sort(quarter, axis=1, kind=kind), clip, iters - 1)
-        level, sig, kept = _last_window(t, level, sig, clip)
+        if engine == "taichi" and pixel_dtype_supported(a.dtype):
+            level, sig, kept = window_stats(tile_window_sums(a, level, sig, clip, tile), level, sig, clip,
+                                            tile * tile)
+        else:
+            level, sig, kept = _last_window(tiles(), level, sig, clip)
     else:
-        level, sig, kept = clipped_stats(np.sort(t, axis=1, kind=kind), clip, iters)
+        level, sig, kept = clipped_stats(np.sort(tiles(), axis=1, kind=kind), clip, iters)
     bad = kept < 0.5
     if bad.any() and not bad.all():
         level[bad] = np.median(level[~bad])

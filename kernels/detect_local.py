@@ -4,8 +4,9 @@ handling, PSF-fit centroids with their Cramér-Rao uncertainty.
 :func:`detect_real` returns the same :class:`~dualsight.kernels.detect.Detections` as
 :func:`dualsight.kernels.detect.detect_stars` (as :class:`LocalDetections`, a subclass that adds per-frame
 counters), so identification and attitude take either.  Every frame is processed on its own (numpy and
-OpenCV; the PSF fits in Taichi with ``fit_engine`` "taichi", the default, step 5): its detections do not depend
-on the batch it is in, and a star's PSF fit does not depend on the other stars (each leaves the batched fit when it converges).
+OpenCV; the PSF fits and the tiles' last clipping window in Taichi with ``fit_engine`` "taichi", the default, steps
+1 and 5): its detections do not depend on the batch it is in, and a star's PSF fit does not depend on the other
+stars (each leaves the batched fit when it converges).
 
 One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile statistics), steps 2-3
 :mod:`dualsight.kernels.detect_candidates` (matched filter, candidates), the PSF and its fit (steps 4-5)
@@ -81,8 +82,9 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
    device optical position estimators", JOSA A 3, 1809).  Background-limited and well sampled it is
    sigma_px = sqrt(8 pi) s^2 sigma / Fs = sqrt(2) s / SNR; photon-limited, s / sqrt(N_photons).  With
    ``fit_engine`` "taichi" (the default) the fits run as one compiled kernel (:mod:`dualsight.kernels.detect_psf_fit`:
-   3-5x faster, positions equal to the numpy fit's within ~1e-12 px, not bit for bit, so the engine is a setting
-   of the run, never chosen by what the process happens to run); "numpy" starts no kernels (Taichi's start and the
+   3-5x faster, positions equal to the numpy fit's within ~1e-12 px, not bit for bit; with the tiles' last window
+   summed in float64 by :mod:`dualsight.kernels.detect_passes`, the detections within ~1e-7 px of the numpy path's:
+   the engine is a setting of the run, never chosen by what the process happens to run); "numpy" starts no kernels (Taichi's start and the
    two fit kernels cost ~1.1 s once per process, which a one-image ``hil star`` pays: the price of the default's
    ~3 ms less per frame on every further frame; tests/test_detect_psf_fit.py).  The fit
    is the maximum-likelihood estimate under that model, which reaches the bound at moderate SNR
@@ -230,7 +232,8 @@ def subtract_local_background(images: np.ndarray, cfg: LocalDetectConfig = Local
     out = np.empty((B, H, W), np.float32)
     lev = np.zeros(B)
     for b in range(B):     # one frame at a time (bounded memory), as detect_real
-        level, _ = tile_background(images[b], cfg.tile_px, cfg.clip_sigma, cfg.clip_iters, cfg.mesh_filter)
+        level, _ = tile_background(images[b], cfg.tile_px, cfg.clip_sigma, cfg.clip_iters, cfg.mesh_filter,
+                                   cfg.fit_engine)
         np.subtract(images[b], interpolate_tiles(level, cfg.tile_px, H, W), out=out[b], casting="unsafe")
         lev[b] = float(np.median(level))
     return out, lev
@@ -431,7 +434,7 @@ def _measure_width(img, R, inv, s, cfg, sat, tail):
 
 def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
     H, W = img.shape
-    level, sig = tile_background(img, cfg.tile_px, cfg.clip_sigma, cfg.clip_iters, cfg.mesh_filter)
+    level, sig = tile_background(img, cfg.tile_px, cfg.clip_sigma, cfg.clip_iters, cfg.mesh_filter, cfg.fit_engine)
     bg = interpolate_tiles(level, cfg.tile_px, H, W)
     floor = np.float32(max(cfg.noise_floor_adu, 1e-6))
     inv = interpolate_tiles(1.0 / np.maximum(sig, floor), cfg.tile_px, H, W)    # 1 / the pixel noise (harmonic)
