@@ -18,7 +18,8 @@ frame) with ``dA/dt = -[omega x] A`` (``scene/rotation_vector.py``).  Pieces:
   Crassidis 2014, Sec. 2.9 / Barfoot 2017, Eq. 7.77);
 * :func:`gyro_rates`: what a rate gyro reports, ``omega + b + n`` with a constant bias, white noise and an optional
   bias random walk;
-* :func:`frame_events`: per-frame events (a blank frame, the Sun or the Earth blinding the camera, a dropped frame).
+* :func:`frame_events`: per-frame events (a blank frame, the Sun or the Earth blinding the camera, a dropped frame);
+  :func:`crossing_paths`: bright objects crossing the image on straight lines over a few frames.
 
 Random draws come only from the ``numpy.random.Generator`` handed in (the case's ``default_rng([seed, i])``), never
 from global state.  Radians, seconds and hertz throughout.
@@ -32,13 +33,14 @@ from dualsight.scene.rotation_vector import cross_matrix, frame_rotation, frame_
 
 __all__ = ["constant_rate", "slew_profile", "slew_duration", "eigenaxis_slew", "sinusoid_jitter", "jitter_from_psd",
            "PSD_BINS", "psd_integral", "psd_bins", "jitter_from_psd_table", "add_jitter", "right_jacobian", "gyro_rates", "EVENT_NAMES", "NORMAL", "BLANK", "BLINDED", "DROPPED",
-           "frame_events"]
+           "CROSSING", "frame_events", "crossing_paths"]
 
-EVENT_NAMES = ("normal", "blank", "blinded", "dropped")
+EVENT_NAMES = ("normal", "blank", "blinded", "dropped", "crossing")
 """Per-frame event codes (index = code): a normal frame; a blank frame (no star visible: eclipse exit, lens cap,
 shutter fault); a blinded frame (the Sun or the Earth in the field: saturated background); a dropped frame (no
-image delivered)."""
-NORMAL, BLANK, BLINDED, DROPPED = range(len(EVENT_NAMES))
+image delivered); a bright object (a planet, the Moon: not a catalog star) crossing the field
+(:func:`crossing_paths`)."""
+NORMAL, BLANK, BLINDED, DROPPED, CROSSING = range(len(EVENT_NAMES))
 
 
 def constant_rate(times: np.ndarray, A0: np.ndarray, omega: np.ndarray, t0: float = 0.0):
@@ -240,3 +242,32 @@ def frame_events(n_frames: int, rng: np.random.Generator | None = None, *, blank
     for code, idx in ((BLANK, blank), (BLINDED, blinded), (DROPPED, dropped)):
         ev[np.asarray(idx, np.int64)] = code
     return ev
+
+
+def crossing_paths(n_frames: int, n_crossings: int, length: int, width: int, height: int,
+                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bright objects crossing the image on straight lines, each over ``length`` consecutive frames.
+
+    Per crossing (draw order): a start frame uniform in [1, n_frames - length] (so the first frame never has one),
+    a centre point uniform in the image's central half (px), a direction angle uniform in [0, 2 pi); the object
+    moves by ``diagonal / length`` px per frame, so that over its ``length`` frames it covers the image's diagonal,
+    at the centre point halfway.  Positions may fall outside the image (the object entering or leaving).
+    Returns frame (C,) int64, xy (C, 2) px (col, row) and crossing index (C,) int64, C = n_crossings * length
+    (frames beyond the sequence are dropped)."""
+    L = int(length)
+    fr, xy, idx = [], [], []
+    diag = float(np.hypot(width, height))
+    for c in range(int(n_crossings)):
+        start = int(rng.integers(1, max(2, int(n_frames) - L + 1)))
+        centre = np.array([width, height], np.float64) * (0.25 + 0.5 * rng.random(2))
+        phi = rng.uniform(0.0, 2.0 * np.pi)
+        j = np.arange(L)
+        step = (diag / L) * np.array([np.cos(phi), np.sin(phi)])
+        p = centre[None, :] + (j - 0.5 * (L - 1))[:, None] * step[None, :]
+        keep = start + j < int(n_frames)
+        fr.append(start + j[keep])
+        xy.append(p[keep])
+        idx.append(np.full(int(keep.sum()), c, np.int64))
+    if not fr:
+        return np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64)
+    return np.concatenate(fr).astype(np.int64), np.concatenate(xy), np.concatenate(idx)

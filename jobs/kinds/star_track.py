@@ -46,8 +46,11 @@ from dualsight.kernels.sensor_config import flux_from_magnitude
 from dualsight.nav.errors import axis_errors, total_error_angle
 from dualsight.nav.sequence import NO_FIX, run_sequence
 from dualsight.scene.attitude import euler123_to_dcm
-from dualsight.scene.attitude_trajectory import (BLANK, BLINDED, DROPPED, add_jitter, constant_rate, eigenaxis_slew,
-                                                 gyro_rates, jitter_from_psd_table, sinusoid_jitter)
+from dualsight.nav.resolved_blobs import excluded_blobs
+from dualsight.scene.attitude import unit_to_radec
+from dualsight.scene.attitude_trajectory import (BLANK, BLINDED, CROSSING, DROPPED, NORMAL, add_jitter, constant_rate,
+                                                 crossing_paths, eigenaxis_slew, gyro_rates, jitter_from_psd_table,
+                                                 sinusoid_jitter)
 from dualsight.scene.rotation_vector import frame_rotation
 from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
 from dualsight.scene.units import ARCSEC, DEG
@@ -135,7 +138,38 @@ def start_run(plan: StarTrackRun, lake, *, workers: int | None = None, scheduler
 
 
 def make_context(spec: StarTrackSpec) -> star.StarContext:
-    return star.make_context(spec.star)
+    """The star job's context; with bright crossings also the most pixels a star's blob may have (the crossing
+    object's larger blob is kept out of tracking and lost-in-space: ``nav/resolved_blobs.py``)."""
+    ctx = star.make_context(spec.star)
+    if spec.sequence.bright_crossings and ctx.star_blob_limit is None:
+        ctx = dataclasses.replace(ctx, star_blob_limit=star.brightest_star_blob_limit(
+            spec.star, float(np.min(ctx.catalog.vmag)), ctx.psf))
+    return ctx
+
+
+def truth_camera(spec: StarTrackSpec):
+    """The camera the frames are rendered with: the spec's, its focal length times ``1 + true_focal_error``."""
+    e = spec.sequence.true_focal_error
+    cam = spec.star.camera
+    return cam if e == 0 else dataclasses.replace(cam, fx=cam.fx * (1.0 + e), fy=cam.fy * (1.0 + e))
+
+
+def frame_sensor(spec: StarTrackSpec, draw: dict, k: int, rates_deg_s: np.ndarray):
+    """The sensor frame ``k`` is rendered with: the spec's, smeared by the frame's true rate ``rates_deg_s[k]``
+    (deg/s), the background at twice the full well on a blinded frame, and on a crossing frame the bright objects
+    at their positions of that frame (``draw["crossing_*"]``)."""
+    seq = spec.sequence
+    sensor = dataclasses.replace(spec.star.sensor, rate_deg_s=tuple(float(v) for v in rates_deg_s[k]))
+    ev = int(draw["events"][k])
+    if ev == BLINDED:                       # the Sun or the Earth in the field: the background saturates
+        sensor = dataclasses.replace(sensor, sky_background_e=2.0 * sensor.full_well_e)
+    elif ev == CROSSING:
+        on = np.flatnonzero(draw["crossing_frame"] == k)
+        rd = draw["crossing_radec_deg"][on]
+        sensor = dataclasses.replace(sensor, bright_objects=tuple(
+            {"ra_deg": float(r % 360.0), "dec_deg": float(d), "vmag": float(seq.crossing_vmag),
+             "radius_px": float(seq.crossing_radius_px)} for r, d in rd))
+    return sensor
 
 
 def memory_estimate(spec: StarTrackSpec) -> int:
@@ -149,9 +183,11 @@ def draw_sequence(spec: StarTrackSpec, case_id: int) -> dict:
 
     Returns dict: t (T,) s; A_true (T, 3, 3); omega (T, 3) rad/s true body rate; events (T,) int8
     (``scene.attitude_trajectory.EVENT_NAMES``); gyro (T, 3) rad/s or None; motion str; rate_deg_s (peak rate);
-    noise_seeds (T,) uint64 per-frame sensor seeds.  Draw order: 3 Euler angles, motion choice, axis (3 normals),
+    noise_seeds (T,) uint64 per-frame sensor seeds; crossing_frame (C,), crossing_xy (C, 2) px (true camera),
+    crossing_radec_deg (C, 2): the bright crossing objects (``scene.attitude_trajectory.crossing_paths``; a frame
+    keeps another event it has, and then shows no object).  Draw order: 3 Euler angles, motion choice, axis (3 normals),
     rate or slew angle and start, jitter phases (the sinusoid's, then the PSD's ``PSD_BINS`` per axis when
-    set), gyro bias and noise, event frames, noise seeds.
+    set), gyro bias and noise, event frames, noise seeds, crossings (when set).
     """
     seq = spec.sequence
     rng = np.random.default_rng([spec.seed, int(case_id)])
@@ -190,8 +226,14 @@ def draw_sequence(spec: StarTrackSpec, case_id: int) -> dict:
         where = rng.choice(np.arange(1, T), size=n_ev, replace=False)
         events[where] = np.repeat(np.array([BLANK, BLINDED, DROPPED], np.int8), [seq.blank, seq.blinded, seq.dropped])
     noise = rng.integers(0, 2**63 - 1, size=T, dtype=np.int64).astype(np.uint64)
+    cam = truth_camera(spec)
+    cf, cxy, _ = crossing_paths(T, seq.bright_crossings, seq.crossing_frames, cam.width, cam.height, rng)
+    u = np.einsum("cji,cj->ci", A[cf], cam.backproject(cxy)) if cf.size else np.zeros((0, 3))   # A^T: to ICRS
+    ra, dec = unit_to_radec(u) if cf.size else (np.zeros(0), np.zeros(0))
+    events[cf[events[cf] == NORMAL]] = CROSSING
     return {"t": t, "A_true": A, "omega": omega, "events": events, "gyro": gyro, "motion": motion,
-            "rate_deg_s": float(rate), "noise_seeds": noise}
+            "rate_deg_s": float(rate), "noise_seeds": noise, "crossing_frame": cf, "crossing_xy": cxy,
+            "crossing_radec_deg": np.degrees(np.stack([ra, dec], axis=1)) if cf.size else np.zeros((0, 2))}
 
 
 def _take(f: FieldStars, idx: np.ndarray) -> FieldStars:
@@ -202,8 +244,11 @@ def render_sequence(spec: StarTrackSpec, ctx: star.StarContext, draw: dict) -> d
     """Render and detect every delivered frame of one sequence (the star job's ``render_and_detect``), in groups of
     at most ``batch_size`` frames of one event kind and one true body rate (the smear).
 
+    Frames are rendered with :func:`truth_camera` and :func:`frame_sensor`.  On a frame with bright objects the
+    blobs larger than any star's (``ctx.star_blob_limit``, :func:`make_context`) are dropped before tracking.
     Returns dict: xy (K, 2), sigma_px (K,) or None, offsets (T + 1,), n_generated (T,), digest (T,) int64 (0 for
-    dropped frames), t_render_ns, t_detect_ns (T,) int64 (the group's time shared equally; -1 where none).
+    dropped frames), t_render_ns, t_detect_ns (T,) int64 (the group's time shared equally; -1 where none),
+    n_excluded (T,) int32 blobs dropped as no star's.
     """
     sp, seq = spec.star, spec.sequence
     cat = ctx.catalog
@@ -213,27 +258,32 @@ def render_sequence(spec: StarTrackSpec, ctx: star.StarContext, draw: dict) -> d
     s_max = dataclasses.replace(sp.sensor, rate_deg_s=tuple(float(v) for v in rates[np.argmax(
         np.linalg.norm(rates, axis=1))])) if seq.smear else sp.sensor
     flux = flux_from_magnitude(cat.vmag.astype(np.float64), sp.sensor)
-    field = stars_in_field(draw["A_true"], cat.unit, flux, sp.camera, star.psf_margin_px(s_max, sp.camera, ctx.psf))
+    cam = truth_camera(spec)
+    field = stars_in_field(draw["A_true"], cat.unit, flux, cam, star.psf_margin_px(s_max, cam, ctx.psf))
     blank = ev == BLANK
     field = dataclasses.replace(field, valid=field.valid & ~blank[:, None]) if blank.any() else field
     per_frame = [None] * T
     sig_frame = [None] * T
     digest = np.zeros(T, np.int64)
     t_r, t_d = np.full(T, -1, np.int64), np.full(T, -1, np.int64)
-    keys = np.concatenate([ev[:, None].astype(np.float64), rates], axis=1)
+    alone = np.where(ev == CROSSING, np.arange(T), -1)          # a crossing frame is rendered alone (its objects)
+    keys = np.concatenate([ev[:, None].astype(np.float64), rates, alone[:, None]], axis=1)
     todo = np.flatnonzero(ev != DROPPED)
     _, group = np.unique(keys[todo], axis=0, return_inverse=True)
     has_sigma = False
+    n_excl = np.zeros(T, np.int32)
     for g in range(int(group.max()) + 1 if todo.size else 0):
         frames = todo[group.reshape(-1) == g]
-        sensor = dataclasses.replace(sp.sensor, rate_deg_s=tuple(float(v) for v in rates[frames[0]]))
-        if ev[frames[0]] == BLINDED:            # the Sun or the Earth in the field: the background saturates
-            sensor = dataclasses.replace(sensor, sky_background_e=2.0 * sensor.full_well_e)
+        sensor = frame_sensor(spec, draw, int(frames[0]), rates)
         for s in range(0, len(frames), sp.batch_size):
             fr = frames[s: s + sp.batch_size]
-            r = star.render_and_detect(_take(field, fr), draw["noise_seeds"][fr], sp.camera, sensor, sp.detect,
+            r = star.render_and_detect(_take(field, fr), draw["noise_seeds"][fr], cam, sensor, sp.detect,
                                        attitude=draw["A_true"][fr], detector=sp.detector, psf=ctx.psf)
             det = r.detections
+            if ctx.star_blob_limit is not None and sensor.bright_objects:   # blobs no star can make: out
+                det = _without(det, excluded_blobs(det.npix, ctx.star_blob_limit))
+                n_excl[fr] = np.asarray(r.detections.offsets[1:] - r.detections.offsets[:-1]
+                                        - (det.offsets[1:] - det.offsets[:-1]), np.int32)
             t_r[fr] = r.t_render_ns // len(fr)
             if r.t_detect_ns is not None:
                 t_d[fr] = r.t_detect_ns // len(fr)
@@ -254,7 +304,20 @@ def render_sequence(spec: StarTrackSpec, ctx: star.StarContext, draw: dict) -> d
         # the star job's weights: the detector's Cramér-Rao bound with a 0.02 px floor for the PSF model's error
         sigma = np.sqrt(sigma ** 2 + 0.02 ** 2)
     return {"xy": xy, "sigma_px": sigma, "offsets": off, "n_generated": np.asarray(field.n_generated, np.int32),
-            "digest": digest, "t_render_ns": t_r, "t_detect_ns": t_d}
+            "digest": digest, "t_render_ns": t_r, "t_detect_ns": t_d, "n_excluded": n_excl}
+
+
+def _without(det, drop: np.ndarray):
+    """``det`` (``kernels.detect.Detections``) without the blobs ``drop`` (K,) bool, its ragged layout kept."""
+    keep = ~np.asarray(drop, bool)
+    if keep.all():
+        return det
+    per = {f.name: (getattr(det, f.name)[keep] if f.name in ("case", "x", "y", "flux", "npix", "sigma_px",
+                                                             "saturated") and getattr(det, f.name) is not None
+                    else getattr(det, f.name)) for f in dataclasses.fields(det)}
+    B = len(det.offsets) - 1
+    per["offsets"] = np.concatenate([[0], np.cumsum(np.bincount(det.case[keep], minlength=B))]).astype(np.int64)
+    return dataclasses.replace(det, **per)
 
 
 def compute_sequence(spec: StarTrackSpec, ctx: star.StarContext, case_id: int) -> dict:

@@ -23,7 +23,7 @@ from dualsight.kernels.digest import to_int64
 from dualsight.kernels.sensor_config import flux_from_magnitude
 from dualsight.nav.sequence import MODE_NAMES, NO_FIX
 from dualsight.nav.tracking import predict, propagate
-from dualsight.scene.attitude_trajectory import BLANK, BLINDED, DROPPED
+from dualsight.scene.attitude_trajectory import BLANK, DROPPED
 from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
 from dualsight.warehouse.lake import Lake
 
@@ -32,10 +32,12 @@ __all__ = ["replay_track_case", "frame_images", "predicted_windows"]
 
 def frame_images(spec, ctx, draw: dict) -> dict[int, tuple[np.ndarray, int]]:
     """{frame: (image (H, W) float32, digest int64)} of every delivered frame of a sequence, rendered one frame at
-    a time with the sensor of ``jobs/kinds/star_track.render_sequence`` (the frame's own true rate for the smear,
-    the background at twice the full well on a blinded frame, no star on a blank one).  The caller checks each
+    a time with the camera and sensor of ``jobs/kinds/star_track.render_sequence`` (``truth_camera``,
+    ``frame_sensor``: the frame's own true rate for the smear, the background at twice the full well on a blinded
+    frame, the bright objects of a crossing frame; no star on a blank one).  The caller checks each
     digest against the row: the run rendered in groups, and the counter-based noise makes a frame the same alone."""
     from dualsight.jobs.kinds import star                     # Taichi
+    from dualsight.jobs.kinds.star_track import frame_sensor, truth_camera      # pyarrow
 
     sp, seq = spec.star, spec.sequence
     ev = draw["events"]
@@ -44,16 +46,14 @@ def frame_images(spec, ctx, draw: dict) -> dict[int, tuple[np.ndarray, int]]:
     s_max = dataclasses.replace(sp.sensor, rate_deg_s=tuple(float(v) for v in rates[np.argmax(
         np.linalg.norm(rates, axis=1))])) if seq.smear else sp.sensor
     flux = flux_from_magnitude(ctx.catalog.vmag.astype(np.float64), sp.sensor)
-    field = stars_in_field(draw["A_true"], ctx.catalog.unit, flux, sp.camera,
-                           star.psf_margin_px(s_max, sp.camera, ctx.psf))
+    cam = truth_camera(spec)
+    field = stars_in_field(draw["A_true"], ctx.catalog.unit, flux, cam, star.psf_margin_px(s_max, cam, ctx.psf))
     field = dataclasses.replace(field, valid=field.valid & (ev != BLANK)[:, None])
     out = {}
     for k in np.flatnonzero(ev != DROPPED):
-        sensor = dataclasses.replace(sp.sensor, rate_deg_s=tuple(float(v) for v in rates[k]))
-        if ev[k] == BLINDED:
-            sensor = dataclasses.replace(sensor, sky_background_e=2.0 * sensor.full_well_e)
+        sensor = frame_sensor(spec, draw, int(k), rates)
         one = FieldStars(*(getattr(field, f.name)[k: k + 1] for f in dataclasses.fields(FieldStars)))
-        r = star.render_and_detect(one, draw["noise_seeds"][k: k + 1], sp.camera, sensor, sp.detect,
+        r = star.render_and_detect(one, draw["noise_seeds"][k: k + 1], cam, sensor, sp.detect,
                                    keep_images=True, attitude=draw["A_true"][k: k + 1], detector=sp.detector,
                                    psf=ctx.psf)
         out[int(k)] = (r.images[0], int(to_int64(r.digest)[0]))
@@ -128,7 +128,7 @@ def replay_track_case(lake: Lake, run_id: str, case_id: int, output: Path | None
         if len(p.rows) != frames[k]["n_predicted"]:
             raise InputError(f"replay of case {case_id}: frame {k}: {len(p.rows)} predicted windows rebuilt, "
                              f"n_predicted is {frames[k]['n_predicted']} in the lake", source=f"run {run_id}")
-    hip, unit, cam = ctx.catalog.hip, ctx.catalog.unit, spec.star.camera
+    hip, unit, cam = ctx.catalog.hip, ctx.catalog.unit, star_track.truth_camera(spec)
     output = Path(output or f"{run_id}-case{case_id}.rrd")
     own = rec is None
     rec = open_recording(output) if own else rec
