@@ -169,7 +169,7 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                  camera, cat_unit: np.ndarray, index, voting, cfg: TrackingConfig, *,
                  available: np.ndarray | None = None, gyro: np.ndarray | None = None, gyro_sigma_rad_s: float = 0.0,
                  cat_vmag: np.ndarray | None = None, max_coast_frames: int = 10, lis_min_stars: int = 3,
-                 shadow_lis: bool = False, engine: str = "taichi") -> SequenceResult:
+                 shadow_lis: bool = False, engine: str = "taichi", focal=None) -> SequenceResult:
     """Run one sequence through the state machine of the module docstring.
 
     times : (T,) s, increasing.  det_xy : (K, 2) centroids (px) of every frame, frame k's in
@@ -181,7 +181,8 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
     camera frame) or None; gyro_sigma_rad_s : their 1-sigma error per axis.  cat_vmag : (N,) for the blend test.
     max_coast_frames : a fix older than this many frames is no prior.  lis_min_stars : fewest accepted stars of a
     verified lost-in-space fix.  shadow_lis : also run lost-in-space on every frame (comparison only).
-    engine : the voting's engine, ``"taichi"`` or ``"numpy"``.
+    engine : the voting's engine, ``"taichi"`` or ``"numpy"``.  focal : a ``nav.focal_refine.FocalFuser`` or None:
+    after every fix it refines the focal length, and the next frames use its camera.
     """
     t = np.asarray(times, np.float64)
     T = t.size
@@ -292,6 +293,8 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                         out["rate_pairs"][k] = len(ip)
             out["t_rate_ns"][k] = clock() - c0
             fix = (A, P, k)
+            if focal is not None:                 # the focal length refined from this fix (nav/focal_refine.py)
+                camera = focal.update(k, xy, sg, rows, A, cat_unit, camera)
         out["t_total_ns"][k] = clock() - c_start
     return SequenceResult(**out, det_row=det_row, shadow_rows=shadow_rows, shadow_verified=shadow_ok,
                           t_shadow_ns=t_shadow)
