@@ -62,6 +62,7 @@ from dualsight.nav.target_bearing import (attitude_covariance, bearing_error, in
                                           sphere_phase_correction)
 from dualsight.scene.attitude import quat_to_dcm, quaternions_from_uniforms
 from dualsight.scene.camera import Camera
+from dualsight.scene.motion import place_body
 from dualsight.scene.relative_orbit import CircularOrbit, hill_to_icrs, propagate
 from dualsight.scene.rotation_vector import frame_rotation
 from dualsight.scene.satellite import load_satellite
@@ -445,7 +446,6 @@ def measure_prox(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
     the bearing through the chaser's star-tracker attitude (truth + ``attitude_err``).  Returns (measurements,
     images (T, H, W) or None)."""
     from dualsight.kernels.points import render              # Taichi
-    from dualsight.scene.motion import place_body
 
     c = spec.cfg
     cam = spec.camera

@@ -1,0 +1,194 @@
+"""The rendezvous job kind (issue 23, point 5): truth against the closed-form Clohessy-Wiltshire solution, rows that
+reproduce from the seed, the report's numbers against numpy over the rows, one-line refusals of bad specs."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from dualsight.jobs.kinds import rendezvous as rz
+from dualsight.jobs.reports import rendezvous as report
+from dualsight.nav import relative_filter as rf
+from dualsight.scene.relative_orbit import CircularOrbit, hill_to_icrs
+from dualsight.warehouse.lake import Lake
+
+FAR_SMALL = {"rendezvous": {"duration_s": 6600.0, "frame_interval_s": 600.0, "manoeuvre_times_s": [600.0]}}
+"""The far preset over 12 frames 600 s apart, the burn at frame 1: the frame one orbit later (t = 6277 s) is 10."""
+CLOSE_SMALL = {"preset": "close", "rendezvous": {"duration_s": 690.0, "frame_interval_s": 30.0,
+                                                 "manoeuvre_times_s": [30.0]}}
+"""The close preset over 24 frames 30 s apart (frames >= 20 exist: point 6 d's window)."""
+
+
+def _spec(config):
+    d, _ = rz.resolve_spec(None, config)
+    return rz.spec_from_dict(d)
+
+
+def _cw_closed_form(n, t, x0):
+    """Curtis Eqs. 7.53 written out (s = sin nt, c = cos nt): the state at t from x0 with no manoeuvre."""
+    x, y, z, vx, vy, vz = x0
+    s, c = math.sin(n * t), math.cos(n * t)
+    return np.array([
+        (4 - 3 * c) * x + s / n * vx + 2 * (1 - c) / n * vy,
+        6 * (s - n * t) * x + y - 2 * (1 - c) / n * vx + (4 * s - 3 * n * t) / n * vy,
+        c * z + s / n * vz,
+        3 * n * s * x + c * vx + 2 * s * vy,
+        -6 * n * (1 - c) * x - 2 * s * vx + (4 * c - 3) * vy,
+        -n * s * z + c * vz])
+
+
+def test_truth_is_the_closed_form_cw_solution_with_the_executed_burn():
+    spec = _spec(None)                                       # far preset: 64 frames, one burn at frame 6
+    draw = rz.draw_case(spec, 3)
+    truth = rz.truth_trajectory(spec, draw)
+    n = CircularOrbit(500e3).mean_motion
+    tb = spec.cfg.manoeuvre_times_s[0]
+    x_b = _cw_closed_form(n, tb, draw["x0"])
+    x_b[3:] += draw["dv_exec"][0]
+    for k, t in enumerate(spec.times):
+        want = _cw_closed_form(n, t, draw["x0"]) if t < tb else _cw_closed_form(n, t - tb, x_b)
+        np.testing.assert_allclose(truth[k], want, rtol=1e-9, atol=1e-9)
+    # the executed burn differs from the nominal by its drawn error (0.3 % of |dv| per axis)
+    assert 0 < np.linalg.norm(draw["dv_exec"] - draw["dv_nominal"]) < 0.05 * np.linalg.norm(draw["dv_nominal"])
+
+
+def test_the_presets_v_bar_hop_ends_at_its_range_one_orbit_later():
+    for preset, start, end in (("far", 2000.0, 200.0), ("close", 50.0, 2.0)):
+        spec = _spec({"preset": preset})
+        c = spec.cfg
+        n = spec.orbit.mean_motion
+        x = np.array(list(c.position_m) + list(c.velocity_m_s))
+        assert x[1] == -start
+        tb = c.manoeuvre_times_s[0]
+        x = _cw_closed_form(n, tb, x)
+        x[3:] += np.asarray(c.manoeuvre_dv_m_s[0])
+        x = _cw_closed_form(n, 2 * math.pi / n, x)
+        np.testing.assert_allclose(x[:3], [0.0, -end, 0.0], atol=1e-6)
+        _, k = rz.burn_frames(spec)
+        assert abs(spec.times[k] - tb - 2 * math.pi / n) <= 0.5 * c.frame_interval_s
+
+
+def test_look_at_puts_the_boresight_on_the_line_of_sight():
+    rng = np.random.default_rng(5)
+    los = rng.normal(size=(20, 3))
+    los /= np.linalg.norm(los, axis=1, keepdims=True)
+    up = rng.normal(size=(20, 3))
+    up[0] = los[0]                                            # degenerate: the fallback axis
+    A = rz.look_at(los, up)
+    np.testing.assert_allclose(A @ np.swapaxes(A, 1, 2), np.broadcast_to(np.eye(3), A.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(A), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("tij,tj->ti", A, los), np.tile([0.0, 0.0, 1.0], (20, 1)), atol=1e-12)
+
+
+def test_filter_adjust_hook_sees_the_predicted_state():
+    orbit = CircularOrbit(500e3)
+    n = orbit.mean_motion
+    times = np.array([0.0, 50.0, 100.0])
+    x0 = np.array([[0.0, -500.0, 0.0, 0.0, 0.0, 0.0]])
+    P0 = np.diag([10.0, 10.0, 10.0, 0.01, 0.01, 0.01])[None] ** 2
+    u = -np.einsum("tij,j->ti", hill_to_icrs(orbit, times), x0[0, :3] / 500.0)[None]
+    C = rf.isotropic_bearing_cov(u[0], 1e-5)[None]
+    seen = []
+    cfg = rf.FilterConfig()
+    xs, Ps = rf.run(x0, P0, times, orbit, cfg, bearings=u, bearing_cov=C,
+                    adjust=lambda k, x, P, b, c: (seen.append((k, x.copy())), (b, c))[1])
+    xs0, _ = rf.run(x0, P0, times, orbit, cfg, bearings=u, bearing_cov=C)
+    np.testing.assert_array_equal(xs, xs0)                    # an identity hook changes nothing
+    xp, _ = rf.predict(xs[:, 0], Ps[:, 0], 50.0, n, cfg)
+    assert [k for k, _ in seen] == [0, 1, 2]
+    np.testing.assert_allclose(seen[1][1], xp)                # frame 1's hook got frame 0's estimate predicted
+
+
+@pytest.fixture(scope="module")
+def small_runs(tmp_path_factory):
+    lake = Lake(tmp_path_factory.mktemp("rdv") / "lake")
+    runs = {}
+    for name, cfg, n in (("far", FAR_SMALL, 4), ("close", CLOSE_SMALL, 3)):
+        plan = rz.plan_run(None, cfg, cases=n, run_id=f"rdv-{name}")
+        rz.start_run(plan, lake, workers=1, progress=False)
+        runs[name] = plan
+    return lake, runs
+
+
+def _rows(lake, run, dataset):
+    t = pq.read_table(lake.root / dataset / f"run={run}")
+    return {k: np.array([np.nan if v is None else v for v in t.column(k).to_pylist()])
+            if t.schema.field(k).type.num_fields == 0 and str(t.schema.field(k).type) != "string"
+            else t.column(k).to_pylist() for k in t.column_names}
+
+
+def test_a_case_reproduces_its_rows_from_its_seed(small_runs):
+    lake, runs = small_runs
+    plan = runs["far"]
+    spec = rz.spec_from_dict(plan.spec)
+    ctx = rz.make_context(spec)
+    stored = pq.read_table(lake.root / "rendezvous_frames" / f"run={plan.run_id}")
+    drop = ["t_render_ns", "t_nav_ns"]
+    for case in (0, 2):
+        got = rz.compute_case(spec, ctx, case)["frames"].drop(drop)
+        want = stored.filter(np.asarray(stored.column("case_id").to_pylist()) == case).sort_by("frame")
+        want = want.select(got.column_names)
+        assert got.equals(want.cast(got.schema)), f"case {case} differs from its stored rows"
+
+
+def test_report_numbers_equal_numpy_over_the_rows(small_runs):
+    lake, runs = small_runs
+    for name in ("far", "close"):
+        run = runs[name].run_id
+        f = _rows(lake, run, "rendezvous_frames")
+        j = report.build(lake, run)["json"]
+        used = f["bearing_used"].astype(bool)
+        assert j["approaches"] == len(set(f["case_id"]))
+        assert j["availability"] == pytest.approx(used.mean())
+        be = f["bearing_err_arcsec"][used]
+        assert j["bearing_err_rms_arcsec"] == pytest.approx(np.sqrt(np.mean(be ** 2)))
+        frames = f["frame"].astype(int)
+        for r in j["per_frame"]:
+            sel = frames == r["frame"]
+            assert r["mean_nees"] == pytest.approx(f["nees"][sel].mean())
+            assert r["pos_err_rms_m"] == pytest.approx(np.sqrt(np.mean(f["pos_err_m"][sel] ** 2)))
+        lo, hi = rf.chi2_mean_bounds(6, j["approaches"])
+        conv = rz.spec_from_dict(runs[name].spec).cfg.converged_after_frames
+        inside = [lo <= f["nees"][frames == k].mean() <= hi for k in range(conv, frames.max() + 1)]
+        assert j["nees_frames_inside"] == sum(inside) and j["nees_frames_checked"] == len(inside)
+        if name == "far":
+            o = f["orbit_after_burn"].astype(bool)
+            assert o.sum() == j["approaches"] and set(frames[o]) == {10}
+            pct = f["pos_err_m"][o] / f["range_m"][o]
+            assert j["orbit_pos_err_rms_pct"] == pytest.approx(100 * np.sqrt(np.mean(pct ** 2)))
+        else:
+            late = frames >= report.AFTER_FRAMES
+            lr = late & f["range_used"].astype(bool)
+            assert lr.sum() > 0
+            assert j["late_vel_err_rms_m_s"] == pytest.approx(np.sqrt(np.mean(f["vel_err_m_s"][late] ** 2)))
+            assert j["filtered_range_err_rms_m"] == pytest.approx(np.sqrt(np.mean(f["range_err_m"][lr] ** 2)))
+            e = f["range_meas_m"][lr] - f["range_m"][lr]
+            assert j["blobber_range_err_rms_m"] == pytest.approx(np.sqrt(np.mean(e ** 2)))
+            # the filter's range error is the estimate's, not the measurement's
+            est = np.sqrt(f["est_x"] ** 2 + f["est_y"] ** 2 + f["est_z"] ** 2)
+            np.testing.assert_allclose(f["range_err_m"], est - f["range_m"], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("body,field,allowed", [
+    ("[rendezvous]\naltitude_km = 10.0\n", "rendezvous.altitude_km", "150"),
+    ("[rendezvous]\nmanoeuvre_times_s = [99999.0]\nmanoeuvre_dv_m_s = [[0.0, 0.1, 0.0]]\n",
+     "rendezvous.manoeuvre_times_s[0]", "(0, "),
+    ("[rendezvous]\ndispersion_position_m = [1.0, -5.0, 1.0]\n", "rendezvous.dispersion_position_m.1",
+     "greater than or equal to 0"),
+])
+def test_a_hostile_spec_value_is_one_line_naming_file_field_and_range(tmp_path, body, field, allowed):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(body)
+    p = subprocess.run([sys.executable, "-m", "dualsight.jobs.cli.main", "rendezvous", "run", "--config", str(cfg),
+                        "--cases", "1", "--lake", str(tmp_path / "lake")], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 2
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in p.stderr
+    assert str(cfg) in lines[0] and field in lines[0] and allowed in lines[0], lines[0]
+    assert not (tmp_path / "lake" / "rendezvous_cases").exists()
