@@ -156,6 +156,7 @@ def test_report_numbers_equal_numpy_over_the_rows(small_runs):
         conv = rz.spec_from_dict(runs[name].spec).cfg.converged_after_frames
         inside = [lo <= f["nees"][frames == k].mean() <= hi for k in range(conv, frames.max() + 1)]
         assert j["nees_frames_inside"] == sum(inside) and j["nees_frames_checked"] == len(inside)
+        assert j["nees_first_frames_inside"] == sum(inside)       # fewer than 100 approaches: the same ones
         if name == "far":
             o = f["orbit_after_burn"].astype(bool)
             assert o.sum() == j["approaches"] and set(frames[o]) == {10}

@@ -1,7 +1,10 @@
 -- Rendezvous filter consistency per frame (issue 23, point 6 c) and the error against range with the filter's
 -- stated sigma (point 5's figure): over the approaches of one run ($run), at each frame.
--- m, m/s; nees: 6 dof, nees_pos: 3 dof.
+-- m, m/s; nees: 6 dof, nees_pos: 3 dof; *_first: over the approaches with case_id < $first only (point 6 c states
+-- its bound for 100 approaches).
 SELECT frame, avg(t_s) AS t_s, count(*) AS approaches, avg(nees) AS mean_nees, avg(nees_pos) AS mean_nees_pos,
+       count(*) FILTER (WHERE case_id < $first) AS approaches_first,
+       avg(nees) FILTER (WHERE case_id < $first) AS mean_nees_first,
        avg(range_m) AS range_mean_m, sqrt(avg(pos_err_m * pos_err_m)) AS pos_err_rms_m,
        sqrt(avg(sigma_pos_m * sigma_pos_m)) AS sigma_pos_rms_m, sqrt(avg(range_err_m * range_err_m)) AS range_err_rms_m,
        sqrt(avg(vel_err_m_s * vel_err_m_s)) AS vel_err_rms_m_s, avg(bearing_used::INT) AS availability
