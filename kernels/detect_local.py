@@ -82,11 +82,12 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
    device optical position estimators", JOSA A 3, 1809).  Background-limited and well sampled it is
    sigma_px = sqrt(8 pi) s^2 sigma / Fs = sqrt(2) s / SNR; photon-limited, s / sqrt(N_photons).  With
    ``fit_engine`` "taichi" (the default) the fits run as one compiled kernel (:mod:`dualsight.kernels.detect_psf_fit`:
-   3-5x faster, positions equal to the numpy fit's within ~1e-12 px, not bit for bit; with the tiles' last window
-   summed in float64 by :mod:`dualsight.kernels.detect_passes`, the detections within ~1e-7 px of the numpy path's:
-   the engine is a setting of the run, never chosen by what the process happens to run); "numpy" starts no kernels (Taichi's start and the
-   two fit kernels cost ~1.1 s once per process, which a one-image ``hil star`` pays: the price of the default's
-   ~3 ms less per frame on every further frame; tests/test_detect_psf_fit.py).  The fit
+   3-5x faster, positions equal to the numpy fit's within ~1e-12 px, not bit for bit), and so do the tiles' last
+   clipping window and the candidates' components (:mod:`dualsight.kernels.detect_passes`; float64 sums: the
+   detections within ~1e-7 px of the numpy path's).  The engine is a setting of the run, never chosen by what the
+   process happens to run; "numpy" starts no kernels (Taichi's start and the detector's kernels cost ~1.1 s once
+   per process, which a one-image ``hil star`` pays: the price of the default's ~4 ms less on every further
+   frame; tests/test_detect_psf_fit.py).  The fit
    is the maximum-likelihood estimate under that model, which reaches the bound at moderate SNR
    (measured: tests/test_detect_real.py).  A fit that does not converge falls back to the 3 x 3
    intensity-weighted centroid with sigma_px = sqrt(2) s / Z.

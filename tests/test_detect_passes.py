@@ -64,3 +64,30 @@ def test_tile_background_engines_agree_on_a_star_frame():
     centre = sky.reshape(6, 32, 8, 32).mean((1, 3))
     assert np.abs(b[0] - centre).max() < 0.1 * 2.0 * 3      # tiles with stars: within a few tenths of sigma
     assert np.median(np.abs(b[0] - centre)) < 0.1 * 2.0
+
+
+@pytest.mark.parametrize("connectivity", [8, 4])
+def test_foreground_components_are_opencvs_and_the_maxima_a_dilations(connectivity):
+    """The compiled pass's components are OpenCV's partition of the foreground (Z > threshold), numbered in the
+    order of their first pixel in raster order; its peaks are the foreground pixels with Z >= the 3 x 3 grey
+    dilation of Z (edge pixels replicated: outside the frame ignored).  Frames of blobs touching every edge."""
+    import cv2
+
+    from dualsight.kernels.detect_passes import foreground_components
+
+    rng = np.random.default_rng([24, connectivity])
+    for H, W in ((1, 7), (9, 1), (37, 53), (64, 48)):
+        Z = (3 * cv2.GaussianBlur(rng.normal(0, 1, (H, W)).astype(np.float32), (0, 0), 1.0)).astype(np.float32)
+        Z[rng.random((H, W)) < 0.02] = 9.0          # plateaus of equal maxima
+        fg = Z > 0.4
+        f = np.flatnonzero(fg)
+        lab, peak = foreground_components(f, Z, connectivity)
+        n, cvlab = cv2.connectedComponents(fg.astype(np.uint8), connectivity=connectivity, ltype=cv2.CV_32S)
+        ref = cvlab.ravel()[f] - 1
+        assert lab.max(initial=-1) + 1 == n - 1
+        pairs = set(zip(lab.tolist(), ref.tolist()))
+        assert len(pairs) == n - 1                   # one-to-one: the same partition
+        first = np.unique(lab, return_index=True)[1]
+        np.testing.assert_array_equal(lab[np.sort(first)], np.arange(n - 1))     # raster order of first pixels
+        dil = cv2.dilate(Z, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+        np.testing.assert_array_equal(peak, (Z >= dil).ravel()[f])
