@@ -44,6 +44,7 @@ from dualsight.jobs.kinds.star_track_tables import FRAMES_SCHEMA, SEQUENCES_SCHE
 from dualsight.kernels.digest import to_int64
 from dualsight.kernels.sensor_config import flux_from_magnitude
 from dualsight.nav.errors import axis_errors, total_error_angle
+from dualsight.nav.focal_refine import FocalFuser
 from dualsight.nav.sequence import NO_FIX, run_sequence
 from dualsight.scene.attitude import euler123_to_dcm
 from dualsight.nav.resolved_blobs import excluded_blobs
@@ -322,7 +323,8 @@ def _without(det, drop: np.ndarray):
 
 def compute_sequence(spec: StarTrackSpec, ctx: star.StarContext, case_id: int) -> dict:
     """Draw, render, track and score one sequence; returns dict(draw, rendered, result, err (T, 3) rad,
-    total_err (T,) rad, valid (T,), within (T,), t_sample_ns, frames table, sequence row)."""
+    total_err (T,) rad, valid (T,), within (T,), t_sample_ns, focal (the ``nav.focal_refine.FocalFuser`` with
+    ``refine_focal``, else None), frames table, sequence row)."""
     seq, sp = spec.sequence, spec.star
     c0 = time.perf_counter_ns()
     draw = draw_sequence(spec, case_id)
@@ -330,11 +332,12 @@ def compute_sequence(spec: StarTrackSpec, ctx: star.StarContext, case_id: int) -
     r = render_sequence(spec, ctx, draw)
     cat = ctx.catalog
     voting = sp.robust if sp.robust is not None else sp.voting
+    focal = FocalFuser(sp.camera, seq.frames) if seq.refine_focal else None
     res = run_sequence(draw["t"], r["xy"], r["sigma_px"], r["offsets"], sp.camera, cat.unit, ctx.index, voting,
                        spec.tracking, available=draw["events"] != DROPPED, gyro=draw["gyro"],
                        gyro_sigma_rad_s=math.hypot(seq.gyro_noise_deg_s, seq.gyro_bias_deg_s) * DEG,
                        cat_vmag=cat.vmag, max_coast_frames=seq.max_coast_frames, lis_min_stars=seq.lis_min_stars,
-                       shadow_lis=seq.shadow_lost_in_space)
+                       shadow_lis=seq.shadow_lost_in_space, focal=focal)
     err = axis_errors(res.A, draw["A_true"], frame=sp.error_frame)
     tot = total_error_angle(res.A, draw["A_true"])
     valid = res.mode != NO_FIX
@@ -342,7 +345,7 @@ def compute_sequence(spec: StarTrackSpec, ctx: star.StarContext, case_id: int) -
     with np.errstate(invalid="ignore"):
         within = valid & np.all(np.abs(err) <= lim, axis=1) & (tot <= math.sqrt(3.0) * lim)
     out = {"draw": draw, "rendered": r, "result": res, "err": err, "total_err": tot, "valid": valid,
-           "within": within, "t_sample_ns": t_sample}
+           "within": within, "t_sample_ns": t_sample, "focal": focal}
     out["frames"] = frames_table(case_id, spec, out)
     out["sequence"] = sequence_row(case_id, spec, out)
     return out

@@ -21,6 +21,7 @@ from dualsight.errors import InputError
 from dualsight.jobs.replay.cases import recording_path, refuse_mismatch, stored_rows
 from dualsight.kernels.digest import to_int64
 from dualsight.kernels.sensor_config import flux_from_magnitude
+from dualsight.nav.focal_refine import scaled_camera
 from dualsight.nav.sequence import MODE_NAMES, NO_FIX
 from dualsight.nav.tracking import predict, propagate
 from dualsight.scene.attitude_trajectory import BLANK, DROPPED
@@ -60,11 +61,12 @@ def frame_images(spec, ctx, draw: dict) -> dict[int, tuple[np.ndarray, int]]:
     return out
 
 
-def predicted_windows(spec, ctx, draw: dict, res) -> dict[int, object]:
+def predicted_windows(spec, ctx, draw: dict, res, focal=None) -> dict[int, object]:
     """{frame: ``nav.tracking.Prediction``} of every frame on which tracking ran, rebuilt from the sequence's
     answers by the rules of ``nav.sequence.run_sequence``: the last fix (either mode) propagated by the gyro's mean
     rate over the interval, else the last rate from two fixes, else no rate with ``rate_sigma_rad_s``; a fix older
-    than ``max_coast_frames`` is none.  A loop over the frames (tens), not over stars."""
+    than ``max_coast_frames`` is none; with ``focal`` (the sequence's ``nav.focal_refine.FocalFuser``) the camera's
+    focal length is the one fused up to the previous frames.  A loop over the frames (tens), not over stars."""
     seq, cfg = spec.sequence, spec.tracking
     t, gyro = draw["t"], draw["gyro"]
     gyro_c = np.eye(3) * 0.5 * (math.hypot(seq.gyro_noise_deg_s, seq.gyro_bias_deg_s) * math.pi / 180) ** 2
@@ -83,7 +85,10 @@ def predicted_windows(spec, ctx, draw: dict, res) -> dict[int, object]:
             else:
                 om, C = np.zeros(3), np.eye(3) * cfg.rate_sigma_rad_s ** 2
             Ap, Pp = propagate(res.A[fix], res.cov[fix], om, C, t[k] - t[fix])
-            out[k] = predict(Ap, Pp, ctx.catalog.unit, spec.star.camera, cfg)
+            cam = spec.star.camera
+            if focal is not None and np.isfinite(focal.f_fused[:k]).any():    # the refined focal length then
+                cam = scaled_camera(cam, focal.f_fused[:k][np.isfinite(focal.f_fused[:k])][-1] / cam.fx)
+            out[k] = predict(Ap, Pp, ctx.catalog.unit, cam, cfg)
         if res.mode[k] != NO_FIX:
             if fix is not None:
                 rate = (res.rate_att[k], res.rate_att_cov[k])
@@ -123,7 +128,7 @@ def replay_track_case(lake: Lake, run_id: str, case_id: int, output: Path | None
             raise InputError(f"replay of case {case_id}: frame {k}: column image_digest is {frames[k]['image_digest']} "
                              f"in the lake, {dig} for the frame re-rendered alone", source=f"run {run_id}")
     res, draw, rnd = out["result"], out["draw"], out["rendered"]
-    windows = predicted_windows(spec, ctx, draw, res)
+    windows = predicted_windows(spec, ctx, draw, res, out["focal"])
     for k, p in windows.items():
         if len(p.rows) != frames[k]["n_predicted"]:
             raise InputError(f"replay of case {case_id}: frame {k}: {len(p.rows)} predicted windows rebuilt, "
