@@ -112,11 +112,14 @@ def splat_star(buf: ti.template(), b, base, pitch, pr0, pc0, flat: ti.template()
                 buf[b, r, c] = buf[b, r, c] + v
 
 
-def _build_splat(_dtype=None):
+def _build_splat(_dtype=None, spans: bool = False):
+    """The splat kernel; ``spans=True``: the variant that also widens each row's span of written columns,
+    ``span[b, r] = (min c0, max c1)`` over the windows covering row r (the caller sets it to (W, 0) first)."""
     @ti.kernel
     def splat(x: ti.types.ndarray(dtype=ti.f64, ndim=2), y: ti.types.ndarray(dtype=ti.f64, ndim=2),
               flux: ti.types.ndarray(dtype=ti.f64, ndim=2), ok: ti.types.ndarray(dtype=ti.u8, ndim=2),
-              buf: ti.types.ndarray(dtype=ti.f32, ndim=3), sigma: ti.f64, wsig: ti.f64):
+              buf: ti.types.ndarray(dtype=ti.f32, ndim=3), sigma: ti.f64, wsig: ti.f64,
+              span: ti.types.ndarray(dtype=ti.i32, ndim=3)):
         W = buf.shape[2]
         H = buf.shape[1]
         for b in range(x.shape[0]):  # parallel over cases; stars of a case in order (deterministic sums)
@@ -125,18 +128,29 @@ def _build_splat(_dtype=None):
                                              sigma, wsig, W, H)
                 if c1 > c0:
                     splat_star(buf, b, 0, 0, 0, 0, False, x[b, s], y[b, s], flux[b, s], sigma, c0, c1, r0, r1)
+                    if ti.static(spans):    # one thread per case: no other thread touches span[b]
+                        for r in range(r0, r1):
+                            span[b, r, 0] = ti.min(span[b, r, 0], c0)
+                            span[b, r, 1] = ti.max(span[b, r, 1], c1)
     return splat
 
 
-_KERNELS.builders.update({"splat": _build_splat})
+_KERNELS.builders.update({"splat": _build_splat, "splat_spans": lambda dtype: _build_splat(dtype, spans=True)})
 
 
-def splat_stars(x, y, flux, ok, buf, sigma_px: float, window_sigma: float) -> None:
+def splat_stars(x, y, flux, ok, buf, sigma_px: float, window_sigma: float, spans: np.ndarray | None = None) -> None:
     """Add the pixel-integrated Gaussian PSFs of B cases' stars to ``buf`` (in place).
 
     x, y : (B, S) float64 star positions (px, continuous coordinates from the image corner).
     flux : (B, S) float64 electrons per star.  ok : (B, S) uint8, 0 = skip the star.
     buf : (B, H, W) float32 signal (e-), C-contiguous.
     sigma_px : PSF standard deviation (px); window_sigma : window half-width in sigma (+1 px).
+    spans : optional (B, H, 2) int32, C-contiguous: each row's columns [spans[b, r, 0], spans[b, r, 1]) are
+        widened to cover every window written in that row (set them to (W, 0), empty, before the call): outside
+        its span a row of ``buf`` is left as it was, so the sensor stage need not read it there.
     """
-    _KERNELS.get("splat")(x, y, flux, ok, buf, float(sigma_px), float(window_sigma))
+    if spans is None:
+        _KERNELS.get("splat")(x, y, flux, ok, buf, float(sigma_px), float(window_sigma),
+                              np.zeros((1, 1, 2), np.int32))
+    else:
+        _KERNELS.get("splat_spans")(x, y, flux, ok, buf, float(sigma_px), float(window_sigma), spans)

@@ -53,7 +53,6 @@ from dualsight.jobs.engine.specs import preset_and_config
 from dualsight.kernels import detect as kdetect
 from dualsight.kernels import starfield as kstar
 from dualsight.kernels.detect import DetectConfig
-from dualsight.kernels.digest import frame_digest_taichi
 from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
 from dualsight.nav.attitude import solve_identified
 from dualsight.nav.errors import STATUS_NAMES
@@ -499,10 +498,10 @@ def render_and_detect(field_: FieldStars, noise_seeds: np.ndarray, camera: Camer
         det, digest = kdetect.render_and_detect_ideal(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
                                                       camera.height, sensor, detect_cfg, noise_seeds, digest=True)
         return Rendered(det, None, time.perf_counter_ns() - t0, None, digest)
-    images = kstar.render_star_fields(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
-                                      camera.height, sensor, noise_seeds, camera=camera, attitude=attitude,
-                                      psf=psf)
-    digest = frame_digest_taichi(images, np.asarray(sensor.empty_pixel_adu()).astype(images.dtype))  # Taichi runs
+    # the frames' digests are summed inside the render pass (no second pass over the frames)
+    images, digest = kstar.render_star_fields(field_.x, field_.y, field_.flux_e, field_.valid, camera.width,
+                                              camera.height, sensor, noise_seeds, camera=camera, attitude=attitude,
+                                              psf=psf, digest=True)
     t1 = time.perf_counter_ns()
     if detector == "local":
         from dualsight.kernels.detect_local import detect_real
