@@ -41,7 +41,8 @@ from dualsight.scene.rotation_vector import frame_rotation
 from dualsight.scene.starfield_geometry import field_half_angle
 
 __all__ = ["LOCK_REASONS", "LOCKED", "NO_PRIOR", "TOO_FEW_MATCHES", "DEGENERATE", "RESIDUAL", "P_CHANCE", "DEGRADED",
-           "Prediction", "TrackResult", "propagate", "predict", "match", "tracking_chance", "max_sigma", "track"]
+           "Prediction", "TrackResult", "propagate", "pixel_jacobian", "predict", "match", "tracking_chance",
+           "solve_pairs", "max_sigma", "track"]
 
 LOCK_REASONS = ("locked", "no_prior", "too_few_matches", "degenerate", "residual", "p_chance", "degraded")
 """Names of :attr:`TrackResult.reason` (index = code): lock held, or why it was lost; ``degraded`` is set by the
@@ -118,7 +119,7 @@ def propagate(A_prev: np.ndarray, cov_prev: np.ndarray, omega: np.ndarray, cov_o
     return A, 0.5 * (P + P.T)
 
 
-def _pixel_jacobian(v: np.ndarray, camera) -> np.ndarray:
+def pixel_jacobian(v: np.ndarray, camera) -> np.ndarray:
     """(P, 2, 3) d(pixel) / d(theta) of camera-frame vectors ``v`` (P, 3) under a small frame rotation theta
     (``v -> v - theta x v``).
 
@@ -163,7 +164,7 @@ def predict(A: np.ndarray, cov: np.ndarray, cat_unit: np.ndarray, camera, cfg: T
     keep = np.flatnonzero(inside)[: cfg.max_predicted]
     rows, v, px = cand[keep], v[keep], px[keep]
     cov = np.asarray(cov, np.float64)
-    G = _pixel_jacobian(v, camera)
+    G = pixel_jacobian(v, camera)
     GP = G @ cov                                                       # (P, 2, 3)
     a = np.sum(GP[:, 0] * G[:, 0], axis=1)                             # S = G P G^T, its three entries
     b = np.sum(GP[:, 0] * G[:, 1], axis=1)
@@ -186,16 +187,16 @@ def match(pred_xy: np.ndarray, radius_px: np.ndarray, det_xy: np.ndarray) -> tup
     P, D = len(pred_xy), len(det_xy)
     if P == 0 or D == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), 0
-    d2 = np.sum((pred_xy[:, None, :] - det_xy[None, :, :]) ** 2, axis=-1)      # (P, D)
-    with np.errstate(invalid="ignore"):
-        inside = d2 <= (np.asarray(radius_px, np.float64) ** 2)[:, None]
-    n_in = inside.sum(axis=1)
+    dx = pred_xy[:, 0, None] - det_xy[None, :, 0]                                # (P, D)
+    dy = pred_xy[:, 1, None] - det_xy[None, :, 1]
+    r = np.asarray(radius_px, np.float64)
+    inside = dx * dx + dy * dy <= (r * r)[:, None]          # NaN compares False (no warning for <=)
+    n_in = np.count_nonzero(inside, axis=1)
     one = n_in == 1
     det = np.argmax(inside, axis=1)
     claims = np.bincount(det[one], minlength=D)
-    ok = one & (claims[det] == 1)
-    star = np.flatnonzero(ok)
-    return star.astype(np.int64), det[star].astype(np.int64), int(np.count_nonzero(n_in >= 2))
+    star = np.flatnonzero(one & (claims[det] == 1))
+    return star, det[star], int(np.count_nonzero(n_in >= 2))
 
 
 def tracking_chance(n_used: int, n_predicted: int, n_detections: int, radius_px: float, area_px: float) -> float:
@@ -232,7 +233,7 @@ def tracking_chance(n_used: int, n_predicted: int, n_detections: int, radius_px:
     return min(1.0, total)
 
 
-def _solve(b: np.ndarray, r: np.ndarray, w: np.ndarray):
+def solve_pairs(b: np.ndarray, r: np.ndarray, w: np.ndarray):
     """Weighted SVD attitude of one frame's pairs (Markley 1988; the math of ``nav.attitude.svd_attitude`` for
     one case, without the batch's padding and checks, which cost more than the 3 x 3 factorisation on a tracked
     frame).  b, r : (M, 3) observed / catalog unit vectors; w : (M,) rad^-2.  Returns (A (3, 3), ok, cov (3, 3)
@@ -256,9 +257,22 @@ def _solve(b: np.ndarray, r: np.ndarray, w: np.ndarray):
 def max_sigma(cov: np.ndarray) -> float:
     """Largest principal 1-sigma (rad) of a (3, 3) attitude error covariance (rad^2): the frame-free measure of
     :attr:`TrackingConfig.max_sigma_rad`'s rule (NaN -> NaN)."""
-    if not np.all(np.isfinite(cov)):
+    (a, b, c), (_, d, e), (_, _, f) = np.asarray(cov, np.float64).tolist()
+    if not all(map(math.isfinite, (a, b, c, d, e, f))):
         return float("nan")
-    return float(np.sqrt(max(0.0, float(np.linalg.eigvalsh(cov)[-1]))))
+    # the largest eigenvalue of a symmetric 3 x 3 in closed form (Smith, "Eigenvalues of a symmetric 3 x 3
+    # matrix", Comm. ACM 4(4), 1961): m = tr / 3, B = (C - m I) / p, lambda = m + 2 p cos(acos(det B / 2) / 3)
+    m = (a + d + f) / 3.0
+    q = b * b + c * c + e * e
+    p2 = ((a - m) ** 2 + (d - m) ** 2 + (f - m) ** 2 + 2.0 * q) / 6.0
+    if p2 <= 0.0:
+        return math.sqrt(max(0.0, m))
+    p = math.sqrt(p2)
+    a1, d1, f1 = (a - m) / p, (d - m) / p, (f - m) / p
+    b1, c1, e1 = b / p, c / p, e / p
+    h = 0.5 * (a1 * (d1 * f1 - e1 * e1) - b1 * (b1 * f1 - e1 * c1) + c1 * (b1 * e1 - d1 * c1))
+    lam = m + 2.0 * p * math.cos(math.acos(min(1.0, max(-1.0, h))) / 3.0)
+    return math.sqrt(max(0.0, lam))
 
 
 def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None, cat_unit: np.ndarray, camera,
@@ -303,7 +317,7 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
     r = cat_unit[pred.rows[star]]
     sig_rad = sig / f
     w = 1.0 / (sig_rad * sig_rad)
-    A, ok, cov = _solve(b, r, w)
+    A, ok, cov = solve_pairs(b, r, w)
     if not ok:
         return lost(DEGENERATE, n_matched)
     # residual angle: the chord |A r - b| (the angle to 1e-16 rad below 1e-5 rad, the arcsec regime; a larger
@@ -314,7 +328,7 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
     if n_used < n_matched:                              # drop the outliers, solve once more
         if n_used < need:
             return lost(RESIDUAL, n_used)
-        A, ok, cov = _solve(b[use], r[use], w[use])
+        A, ok, cov = solve_pairs(b[use], r[use], w[use])
         if not ok:
             return lost(DEGENERATE, n_used)
         nres = np.sqrt(np.sum((r @ A.T - b) ** 2, axis=1)) / sig_rad
