@@ -394,7 +394,10 @@ def effective_bit_depth(pixels: np.ndarray) -> tuple[int | None, int]:
         return bits, 0
     top = np.iinfo(a.dtype).max
     flat = a.ravel()
-    flat = flat[flat != top].view(np.dtype(f"u{a.dtype.itemsize}"))
+    if a.max() < top:          # no saturated sample (the usual frame): OR every sample, without a filtered copy
+        flat = flat.view(np.dtype(f"u{a.dtype.itemsize}"))
+    else:
+        flat = flat[flat != top].view(np.dtype(f"u{a.dtype.itemsize}"))
     ored = int(np.bitwise_or.reduce(flat)) if flat.size else 0
     if ored == 0:
         return bits, 0
