@@ -20,13 +20,13 @@ import math
 import numpy as np
 
 from dualsight.kernels.detect_psf import AS_A, AS_P, fit_outcome, fit_psf
-from dualsight.kernels.taichi_runtime import KernelCache
+from dualsight.kernels.taichi_runtime import TASK_ITEMS, KernelCache
 
 MAX_STAMP = 31
 """Largest stamp side (px) of the compiled fit (its per-axis profiles live in registers)."""
 
 
-def _build_fit(dtype, fit_sigma: bool = False):
+def _build_fit(dtype, fit_sigma: bool = False, serial: bool = False):
     import taichi as ti   # here, not at import: the CLI imports this module without any kernel to run
 
     f64 = ti.f64
@@ -153,6 +153,7 @@ def _build_fit(dtype, fit_sigma: bool = False):
             gain: f64, iters: ti.i32, tol: f64,
             out: ti.types.ndarray(dtype=f64, ndim=2), fisher: ti.types.ndarray(dtype=f64, ndim=3)):
         n = st.shape[1]
+        ti.loop_config(serialize=serial)
         for k in range(st.shape[0]):                     # one star per thread, its whole fit in registers
             nv = noise[k] * noise[k]
             rk = ti.cast(r0[k], ti.i32)
@@ -204,8 +205,8 @@ def _build_fit(dtype, fit_sigma: bool = False):
     return fit
 
 
-def _build_fit5(dtype):
-    return _build_fit(dtype, fit_sigma=True)
+def _build_fit5(dtype, serial: bool = False):
+    return _build_fit(dtype, fit_sigma=True, serial=serial)
 
 
 _KERNELS = KernelCache({"fit4": _build_fit, "fit5": _build_fit5})    # each built on first use
@@ -224,7 +225,9 @@ def fit_psf_compiled(stamp, w0, r0, c0, x, y, s, noise, gain, fit_sigma=False, i
     start = np.ascontiguousarray(np.stack([x, y, s], axis=1), np.float64)
     out = np.zeros((K, 5))
     fisher = np.zeros((K, 4, 4))
-    kern = _KERNELS.get("fit5" if fit_sigma else "fit4", np.float64)
+    # under 2 TASK_ITEMS stars Taichi runs the loop on one thread anyway: the serial variant skips the thread pool's
+    # round trip (~0.1 ms per launch; taichi_runtime.KernelCache); the stars are independent, the results the same
+    kern = _KERNELS.get("fit5" if fit_sigma else "fit4", np.float64, serial=K < 2 * TASK_ITEMS)
     kern(st, w, r0, c0, start, np.ascontiguousarray(noise, np.float64), float(gain or 0.0), int(iters),
          float(tol_px), out, fisher)
     s_out = out[:, 4].copy() if fit_sigma else np.asarray(s, np.float64).copy()
