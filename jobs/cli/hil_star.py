@@ -29,8 +29,18 @@ identified star); with ``--overlay-dir`` it draws the reference's Figure 11 per 
     truth_stars_found, truth_ids_agree, truth_ids_disagree, altaz_ra_deg, altaz_dec_deg, altaz_error_deg,
     runtime_ms, overlay, alt {method, identified, T, stars_identified, boresight_error_arcsec,
     residual_median_arcsec}, stars [{hip, vmag, x_px, y_px, pred_x_px, pred_y_px, error_arcsec,
-    truth_error_arcsec, truth_match, truth_id_agrees}]
-(null where not applicable; definitions in nav/hil_score.py).
+    truth_error_arcsec, truth_match, truth_id_agrees}],
+    zp_mag, zp_scatter_mag, zp_stars (photometric zero point: V = zp_mag - 2.5 log10(flux ADU), from the identified
+    unsaturated stars), unknown_mag_limit, unknown_faint (unknown but fainter: counted), unknown_objects
+    [{ra_deg, dec_deg, sigma_arcsec, x_px, y_px, pixels, mag, flux_adu, saturated, nearest_hip, nearest_vmag,
+    nearest_sep_px, is_target}] (detections no catalog star to V 12 explains, at least unknown_mag_limit bright;
+    nav/unknown_objects.py)
+(null where not applicable; definitions in nav/hil_score.py).  Lake dataset ``hil_star_objects``: the unknown objects.
+
+``--target SAT.toml`` adds per image: target (its name), target_kind ("resolved", "point" or null),
+target_reason (why it is null), target_ra_deg, target_dec_deg, target_sigma_arcsec (1 sigma per axis, centroid and
+attitude), target_pixels, target_x_px, target_y_px, target_mag, and for a resolved target target_range_m,
+target_range_min_m, target_range_max_m (nav/field_target.py: the rule).
 
 ``--track`` treats the images as one ordered sequence (issue 22, point 4; jobs/kinds/hil_star_track.py): each
 image's time from ``--times FILE`` (CSV with the header ``image,utc``), else FITS ``DATE-OBS``, EXIF
@@ -119,6 +129,17 @@ def add_star_parser(hsub) -> argparse.ArgumentParser:
     t.add_argument("--times", type=Path, default=None, metavar="FILE.csv",
                    help="with --track: each image's UTC time, a CSV with the header image,utc (default: FITS "
                         "DATE-OBS, EXIF DateTimeOriginal, or a YYYY-MM-DDTHHMMSS in the file name)")
+    t.add_argument("--tracking", type=Path, default=None, metavar="FILE.toml",
+                   help="with --track: the tracker's settings, a [tracking] table (window_k_sigma, rate_sigma_arcsec_s, "
+                        "...) and max_coast_frames, lis_min_stars (jobs/kinds/hil_star_track.tracking_settings)")
+    tg = p.add_argument_group("unknown objects and the target spacecraft (jobs/kinds/hil_star_objects.py)")
+    tg.add_argument("--target", type=Path, default=None, metavar="SAT.toml",
+                    help="a satellite file (examples/satellites/cubesat_3u.toml): report per image the target's "
+                         "RA/Dec, pixels and 1-sigma, and where it is resolved its range (Eq. 1 with the file's "
+                         "projected-area table); the target is the resolved blob, else the brightest unknown object")
+    tg.add_argument("--target-near", default=None, metavar="RA,DEC[,RADIUS]",
+                    help="with --target: the unknown object nearest this ICRS direction (deg) within RADIUS "
+                         "(deg, default 1) is the point-like target")
     o = p.add_argument_group("output")
     o.add_argument("--json", action="store_true", help="print one JSON list, one object per image")
     o.add_argument("--overlay-dir", type=Path, default=None,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -20,6 +21,7 @@ from dualsight.jobs.kinds import hil_star as hs
 from dualsight.jobs.kinds import hil_star_sweep as sw
 from dualsight.jobs.kinds.hil_common import SkipNotes, expand_inputs, n_cases
 from dualsight.jobs.kinds.hil_star_spec import spec_from_dict
+from dualsight.jobs.kinds.hil_star_track import tracking_settings
 from dualsight.jobs.kinds.hil_truth import Site, resolve_star_truths
 from dualsight.jobs.reports import fit_distortion as fd_report
 from dualsight.jobs.reports import hil_star as hil_report
@@ -49,6 +51,8 @@ def star_spec_from_args(args):
     track = None
     if getattr(args, "times", None) is not None and not getattr(args, "track", False):
         raise InputError("goes with --track (the images as one ordered sequence)", source="--times")
+    if getattr(args, "tracking", None) is not None and not getattr(args, "track", False):
+        raise InputError("goes with --track (the images as one ordered sequence)", source="--tracking")
     if getattr(args, "track", False):
         if args.sweep or args.fit_distortion:
             raise InputError("solves one sequence with one set of settings; drop --sweep and --fit-distortion",
@@ -57,6 +61,8 @@ def star_spec_from_args(args):
         order = time_order(times)
         paths, times = [paths[i] for i in order], [times[i] for i in order]
         track = {"times_utc": [t.iso for t in times], "time_sources": [t.source for t in times]}
+        if getattr(args, "tracking", None) is not None:
+            track.update(tracking_settings(args.tracking))
     epoch = args.epoch if args.epoch is not None else (observation_epoch(paths, args.time) or 2000.0)
     settings = settings_from_args(args, config, epoch)
     truth_file = load_truth_json(args.truth) if args.truth is not None else None
@@ -71,9 +77,46 @@ def star_spec_from_args(args):
     d = hs.build_spec(paths, camera, settings, resolve_star_truths(paths, truth_file, site))
     if track is not None:
         d["track"] = track
+    d.update(target_from_args(args))
     spec = spec_from_dict(d, source="hil star")
     hs.check_pair_catalog(spec, source=str(args.camera))     # a pair catalog too large to build: one line, now
     return spec
+
+
+def parse_target_near(text: str) -> list[float]:
+    """``--target-near RA,DEC[,RADIUS]`` (deg) -> [ra in [0, 360), dec in [-90, 90], radius in (0, 180]] (default
+    radius 1 deg); InputError naming the option and the allowed ranges otherwise."""
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        vals = [float(p) for p in parts]
+    except ValueError:
+        vals = []
+    if len(vals) not in (2, 3) or not all(math.isfinite(v) for v in vals):
+        raise InputError(f"must be RA,DEC or RA,DEC,RADIUS in degrees (e.g. 83.6,22.0,0.5), got {text!r}",
+                         source="--target-near")
+    ra, dec, rad = vals[0] % 360.0, vals[1], vals[2] if len(vals) == 3 else 1.0
+    if not -90.0 <= dec <= 90.0 or not 0.0 < rad <= 180.0:
+        raise InputError(f"needs DEC in [-90, 90] and RADIUS in (0, 180] deg, got {text!r}", source="--target-near")
+    return [ra, dec, rad]
+
+
+def target_from_args(args) -> dict:
+    """The spec's ``target`` (the satellite file's name and components; its one-line errors name the file) and
+    ``target_near`` of ``--target`` / ``--target-near``; empty without them."""
+    from dualsight.jobs.kinds.hil_prox import target_spec          # pyarrow (the shapes' check)
+
+    target = getattr(args, "target", None)
+    near = getattr(args, "target_near", None)
+    if target is None:
+        if near is not None:
+            raise InputError("goes with --target SAT.toml (the target's satellite file)", source="--target-near")
+        return {}
+    if args.sweep or args.fit_distortion:
+        raise InputError("reports the target of one run; drop --sweep and --fit-distortion", source="--target")
+    out = {"target": target_spec(target)}
+    if near is not None:
+        out["target_near"] = parse_target_near(near)
+    return out
 
 
 def run(args) -> int:
@@ -95,9 +138,11 @@ def run(args) -> int:
         run_id = manifest["run_id"]
         con = connect(lake)
         rows, stars = hil_report.fetch(con, run_id)
+        objects = hil_report.fetch_objects(con, run_id)
         overlays = (hil_report.write_overlays(spec, rows, stars, args.overlay_dir, credit=args.credit)
                     if args.overlay_dir is not None else {})
-        docs = [hil_report.to_json(r, stars.get(r["case_id"], []), overlays.get(r["case_id"])) for r in rows]
+        docs = [hil_report.to_json(r, stars.get(r["case_id"], []), overlays.get(r["case_id"]),
+                                   objects.get(r["case_id"], [])) for r in rows]
         skipped = SkipNotes()
         nonfinite = SkipNotes(outcome="ignored", rest="more images with NaN or infinite pixels")
         for r, j in zip(rows, docs):

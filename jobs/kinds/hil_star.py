@@ -70,6 +70,8 @@ from dualsight.jobs.engine.specs import check_memory
 from dualsight.jobs.kinds.hil_common import ImageEntry, check_unchanged, rows_table, spec_base
 from dualsight.jobs.kinds.hil_star_spec import MAX_VOTE_CELLS, HilStarSpec, StarSettings, StarTruth
 from dualsight.jobs.kinds import hil_star_spec
+from dualsight.jobs.kinds.hil_star_objects import OBJECT_COLUMNS, OBJECTS_SCHEMA, ObjectContext, frame_objects, \
+    object_context
 from dualsight.jobs.kinds.hil_star_track import track_columns
 from dualsight.jobs.kinds.star import catalog_bytes, pair_angle
 from dualsight.kernels.detect import DetectConfig, detect_stars
@@ -144,17 +146,28 @@ class Context:
     catalog: object
     pairs: object
     index: object
+    objects: ObjectContext | None = None
+    """Unknown objects and the target (jobs/kinds/hil_star_objects.py); None: not computed."""
 
 
 def make_context(spec: HilStarSpec) -> Context:
-    return context_of(runtime(spec))
+    ctx = context_of(runtime(spec), with_objects=False)
+    target = None
+    if spec.target is not None:                      # --target: the satellite's projected-area table
+        from dualsight.jobs.kinds.hil_prox import ProxSettings, make_target     # pyarrow (the area table)
+
+        target = make_target(spec.target, ProxSettings())
+    ctx.objects = object_context(spec.settings, target, spec.target_near)
+    return ctx
 
 
-def context_of(rt: Runtime) -> Context:
-    """The per-process state of stage configs ``rt``: the star catalog and its pair catalog (from the cache)."""
+def context_of(rt: Runtime, with_objects: bool = True) -> Context:
+    """The per-process state of stage configs ``rt``: the star catalog and its pair catalog (from the cache), and
+    with ``with_objects`` the unknown objects' context (no target)."""
     cat = load_star_catalog(rt.catalog)
     pairs = load_pair_catalog(cat, pair_angle(rt.camera))
-    return Context(rt, cat, pairs, VotingIndex.load_or_build(pairs))
+    return Context(rt, cat, pairs, VotingIndex.load_or_build(pairs),
+                   object_context(rt.settings) if with_objects else None)
 
 
 def check_pair_catalog(spec: HilStarSpec, source: str | None = None):
@@ -217,6 +230,8 @@ class ImageResult:
     stars: list[StarRow] = field(default_factory=list)
     detections: tuple | None = None
     """(xy (D, 2) px brightest first, sigma_px (D,) or None) of the frame's detections, for ``--track``."""
+    objects: list[dict] = field(default_factory=list)
+    """``hil_star_objects`` rows: the listed unknown objects and the target (jobs/kinds/hil_star_objects.py)."""
 
 
 def read_frame(entry: ImageEntry, camera: Camera) -> tuple[np.ndarray, object]:
@@ -382,8 +397,10 @@ def solve_frames(frames: np.ndarray, results: list[ImageResult], truths: list[St
     rt = ctx.rt
     B = len(results)
     t0 = time.perf_counter_ns()
-    _, bg, det = detect_frames(np.asarray(frames), rt.settings, rt.detect,
-                               saturation_adu=float(2 ** rt.camera.bit_depth - 1), residual=False)
+    octx = ctx.objects
+    need_residual = octx is not None and octx.target is not None       # a resolved target is measured on it
+    resid, bg, det = detect_frames(np.asarray(frames), rt.settings, rt.detect,
+                                   saturation_adu=float(2 ** rt.camera.bit_depth - 1), residual=need_residual)
     t1 = time.perf_counter_ns()
     cat_unit = ctx.catalog.unit
     obs = observations(det, B, rt.camera, max_obs=rt.settings.max_obs)
@@ -409,6 +426,10 @@ def solve_frames(frames: np.ndarray, results: list[ImageResult], truths: list[St
         sig = (np.hypot(det.sigma_px[s0:s1], floor) if det.sigma_px is not None and floor is not None else None)
         res.detections = (np.stack([det.x[s0:s1], det.y[s0:s1]], axis=1), sig)     # the attitude's weights
         _fill(res, b, det, obs, ident, sol, alt, truths[b], ctx)
+        if octx is not None:
+            res.objects = frame_objects(res, b, det, obs, ident, sol, cat_unit, rt.camera, rt.settings, octx,
+                                        residual=resid[b] if resid is not None else None,
+                                        frame=frames[b] if resid is not None else None)
     return results
 
 
@@ -537,6 +558,8 @@ IMAGES_SCHEMA = pa.schema([
     ("time_utc", pa.string()), ("time_source", pa.string()), ("track_mode", pa.string()),
     ("track_reason", pa.string()), ("track_stars", pa.int32()), ("track_A", _MAT9),
     ("rate_rad_s", pa.list_(pa.float64(), 3)), ("rate_cov", _MAT9), ("rate_source", pa.string()),
+    # unknown objects and --target (jobs/kinds/hil_star_objects.py)
+    *OBJECT_COLUMNS,
 ])
 
 STARS_SCHEMA = pa.schema([
@@ -549,16 +572,17 @@ STARS_SCHEMA = pa.schema([
     ("truth_match", pa.bool_()), ("truth_id_agrees", pa.bool_()), ("method", pa.string()),
 ])
 
-SCHEMAS = {"hil_star": IMAGES_SCHEMA, "hil_star_stars": STARS_SCHEMA}
+SCHEMAS = {"hil_star": IMAGES_SCHEMA, "hil_star_stars": STARS_SCHEMA, "hil_star_objects": OBJECTS_SCHEMA}
 TIMING_COLUMNS = ("t_read_ns", "t_detect_ns", "t_identify_ns", "t_attitude_ns", "t_alt_ns", "t_total_ns")
 
 
 def tables(results: list[ImageResult]) -> dict[str, pa.Table]:
-    """The ``hil_star`` and ``hil_star_stars`` tables of some images."""
+    """The ``hil_star``, ``hil_star_stars`` and ``hil_star_objects`` tables of some images."""
     stars = [{**vars(s), "case_id": r.row["case_id"], "image": r.row["image"], "method": r.row["method"]}
              for r in results for s in r.stars]
     return {"hil_star": rows_table([r.row for r in results], IMAGES_SCHEMA),
-            "hil_star_stars": rows_table(stars, STARS_SCHEMA)}
+            "hil_star_stars": rows_table(stars, STARS_SCHEMA),
+            "hil_star_objects": rows_table([o for r in results for o in r.objects], OBJECTS_SCHEMA)}
 
 
 def shard_summary(tbls: dict[str, pa.Table]) -> dict[str, int]:

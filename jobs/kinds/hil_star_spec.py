@@ -8,7 +8,7 @@ Layout and defaults: jobs/kinds/hil_star.py.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
@@ -18,9 +18,11 @@ from dualsight.catalogs.stars import StarCatalogConfig
 from dualsight.errors import ConfigError
 from dualsight.config import dataclass_from_table, dataclass_to_table, validate
 from dualsight.jobs.kinds.hil_common import Frozen, ImageEntry, fixed_point
+from dualsight.jobs.kinds.hil_prox import TargetSpec
 from dualsight.jobs.kinds.hil_star_track import TrackSpec
 from dualsight.kernels.detect import DetectConfig
 from dualsight.kernels.detect_local import LocalDetectConfig
+from dualsight.nav.unknown_objects import UnknownConfig
 from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.camera import Camera
 from dualsight.scene.units import ARCSEC
@@ -59,6 +61,7 @@ class StarSettings(Frozen):
     max_obs: int = Field(default=100, ge=2, le=1000)
     batch_size: int = Field(default=16, ge=1, le=1024)
     limit_arcsec: float | None = Field(default=None, gt=0)
+    unknown: dict[str, Any] = Field(default_factory=dict)             # UnknownConfig (nav/unknown_objects.py)
 
     @field_validator("background_block_px")
     @classmethod
@@ -138,12 +141,18 @@ class HilStarSpec(Frozen):
     images: tuple[ImageEntry, ...] = Field(min_length=1, max_length=10_000_000)
     truths: tuple[StarTruth, ...] = ()
     track: TrackSpec | None = None          # hil star --track (jobs/kinds/hil_star_track.py); absent: no tracking
+    target: TargetSpec | None = None        # hil star --target (jobs/kinds/hil_star_objects.py): the satellite's shape
+    target_near: tuple[Annotated[float, Field(ge=0.0, lt=360.0)], Annotated[float, Field(ge=-90.0, le=90.0)],
+                       Annotated[float, Field(gt=0.0, le=180.0)]] | None = None
+    """--target-near RA,DEC,RADIUS (deg): the target is the unknown object nearest that direction within RADIUS."""
 
     def to_dict(self) -> dict:
-        """Canonical dict; ``track`` only when set (runs without ``--track`` keep their canonical form)."""
+        """Canonical dict; ``track``, ``target`` and ``target_near`` only when set (runs without them keep their
+        canonical form)."""
         d = super().to_dict()
-        if d["track"] is None:
-            del d["track"]
+        for k in ("track", "target", "target_near"):
+            if d[k] is None:
+                del d[k]
         return d
 
     def truth(self, k: int) -> StarTruth:
@@ -201,7 +210,9 @@ def normalise_settings(s: StarSettings, *, source: str, section: str | None = No
         alt = dataclass_to_table(dataclass_from_table(VotingConfig, s.alt_voting, source=source,
                                                       section=sec("alt_voting"), base=alt_base))
     catalog = {**dataclass_to_table(catalog), **({"mag_limit": "auto"} if deferred else {})}
+    unknown = dataclass_from_table(UnknownConfig, s.unknown, source=source, section=sec("unknown"))
     return s.model_copy(update={"catalog": catalog, "detect": dataclass_to_table(detect),
+                                "unknown": dataclass_to_table(unknown),
                                 "detect_local": dataclass_to_table(detect_local),
                                 "voting": dataclass_to_table(voting), "alt_voting": alt})
 
@@ -231,6 +242,8 @@ def spec_from_dict(d: dict, source: str = "spec") -> HilStarSpec:
     if m.truths and len(m.truths) != len(m.images):
         raise ConfigError(f"must be empty or have one entry per image ({len(m.images)}), got {len(m.truths)}",
                           source=source, field="truths")
+    if m.target_near is not None and m.target is None:
+        raise ConfigError("goes with a target (--target SAT.toml)", source=source, field="target_near")
     if m.track is not None and len(m.track.times_utc) != len(m.images):
         raise ConfigError(f"must have one time per image ({len(m.images)}), got {len(m.track.times_utc)}",
                           source=source, field="track.times_utc")

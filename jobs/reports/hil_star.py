@@ -27,7 +27,7 @@ from dualsight.scene.pointing import roll_deg
 from dualsight.scene.starfield_geometry import catalog_in_image
 from dualsight.scene.units import ARCSEC
 
-__all__ = ["fetch", "to_json", "track_json", "summary_line", "table6_text", "text_report", "write_overlays", "licence_credit"]
+__all__ = ["fetch", "fetch_objects", "objects_json", "target_json", "to_json", "track_json", "summary_line", "table6_text", "text_report", "write_overlays", "licence_credit"]
 
 
 def fetch(con, run_id: str) -> tuple[list[dict], dict[int, list[dict]]]:
@@ -44,6 +44,54 @@ def fetch(con, run_id: str) -> tuple[list[dict], dict[int, list[dict]]]:
     return images, stars
 
 
+def fetch_objects(con, run_id: str) -> dict[int, list[dict]]:
+    """{case_id: ``hil_star_objects`` rows, brightest first} of one run (``warehouse/sql/hil_star_object_rows.sql``);
+    empty for a run made before the dataset existed."""
+    from dualsight.warehouse.query import run_report
+
+    try:
+        cols, rows = run_report(con, "hil_star_object_rows", run=run_id)
+    except Exception as e:                      # noqa: BLE001 -- no such view: a run without the dataset
+        if "hil_star_objects" not in str(e):
+            raise
+        return {}
+    out: dict[int, list[dict]] = {}
+    for r in rows:
+        d = dict(zip(cols, r))
+        out.setdefault(d["case_id"], []).append(d)
+    for v in out.values():
+        v.sort(key=lambda d: -(d["flux"] or 0.0))
+    return out
+
+
+def objects_json(objects: list[dict]) -> list[dict]:
+    """The ``unknown_objects`` list of one image's JSON: ICRS RA/Dec (deg), its 1-sigma (arcsec), pixel position,
+    pixels, magnitude, the nearest catalog star (HIP, V, distance px) and whether it is the target."""
+    return [{"ra_deg": _deg(o["ra_rad"]), "dec_deg": _deg(o["dec_rad"]), "sigma_arcsec": _as(o["sigma_rad"]),
+             "x_px": round(o["x_px"], 3), "y_px": round(o["y_px"], 3), "pixels": o["npix"],
+             "mag": None if o["mag"] is None else round(o["mag"], 2), "flux_adu": round(o["flux"], 1),
+             "saturated": o["saturated"], "nearest_hip": o["nearest_hip"],
+             "nearest_vmag": None if o["nearest_vmag"] is None else round(o["nearest_vmag"], 2),
+             "nearest_sep_px": None if o["nearest_sep_px"] is None else round(o["nearest_sep_px"], 2),
+             "is_target": o["is_target"]} for o in objects]
+
+
+def target_json(r: dict) -> dict:
+    """The ``--target`` keys of one image row: RA/Dec (deg), pixels, 1-sigma (arcsec), magnitude, and for a resolved
+    target its range with min and max (m); null with ``target_reason`` when no target was found."""
+    def m(k):
+        v = r.get(k)
+        return None if v is None else round(float(v), 3)
+
+    return {"target": r.get("target"), "target_kind": r.get("target_kind"), "target_reason": r.get("target_reason"),
+            "target_ra_deg": _deg(r.get("target_ra_rad")), "target_dec_deg": _deg(r.get("target_dec_rad")),
+            "target_sigma_arcsec": _as(r.get("target_sigma_rad"), nd=3), "target_pixels": r.get("target_pixels"),
+            "target_x_px": m("target_x_px"), "target_y_px": m("target_y_px"),
+            "target_mag": None if r.get("target_mag") is None else round(r["target_mag"], 2),
+            "target_range_m": m("target_range_m"), "target_range_min_m": m("target_range_min_m"),
+            "target_range_max_m": m("target_range_max_m")}
+
+
 def _as(v, scale=1.0 / ARCSEC, nd=2):
     return None if v is None else round(float(v) * scale, nd)
 
@@ -52,8 +100,9 @@ def _deg(v, nd=6):
     return None if v is None else round(math.degrees(float(v)), nd)
 
 
-def to_json(r: dict, stars: list[dict], overlay: str | None = None) -> dict:
-    """One image (a ``hil_star`` row and its ``hil_star_stars`` rows) as the CLI's JSON object."""
+def to_json(r: dict, stars: list[dict], overlay: str | None = None, objects: list[dict] | None = None) -> dict:
+    """One image (a ``hil_star`` row, its ``hil_star_stars`` rows and, when given, its ``hil_star_objects`` rows)
+    as the CLI's JSON object."""
     out = {
         "image": r["image"], "path": r["path"], "error": r["error"], "status": r["status"],
         "identified": bool(r["identified"]), "method": r["method"],
@@ -89,6 +138,17 @@ def to_json(r: dict, stars: list[dict], overlay: str | None = None) -> dict:
         out["truth_note"] = r["truth_note"]
     if r.get("time_utc") is not None:                   # hil star --track
         out.update(track_json(r))
+    if objects is not None:                              # unknown objects (jobs/kinds/hil_star_objects.py)
+        out.update(zp_mag=None if r.get("zp_mag") is None else round(r["zp_mag"], 3),
+                   zp_scatter_mag=None if r.get("zp_scatter_mag") is None else round(r["zp_scatter_mag"], 3),
+                   zp_stars=r.get("zp_stars"), unknown_mag_limit=r.get("unknown_mag_limit"),
+                   unknown_faint=r.get("unknown_faint"),
+                   unknown_objects=(None if r.get("unknown_objects") is None else
+                                    objects_json([o for o in objects if not o["is_target"] or
+                                                  o["mag"] is None or r.get("unknown_mag_limit") is None or
+                                                  o["mag"] <= r["unknown_mag_limit"]])))
+    if r.get("target") is not None:                      # hil star --target
+        out.update(target_json(r))
     out["stars"] = [{"hip": s["hip"], "vmag": round(s["vmag"], 2), "x_px": round(s["x_px"], 3),
                      "y_px": round(s["y_px"], 3), "pred_x_px": round(s["pred_x_px"], 3),
                      "pred_y_px": round(s["pred_y_px"], 3), "error_arcsec": _as(s["residual_rad"]),
