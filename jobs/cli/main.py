@@ -358,6 +358,9 @@ def cmd_runs(args) -> int:
         return 0
     print(format_table(["run", "kind", "cases", "shards", "status", "seed", "spec hash"], rows) if rows
           else f"no runs in {lake.root}")
+    lean = [d["run_id"] for d in docs if d.get("kind") == "star" and not star_output.kept(d)]
+    if lean:
+        print(f"star runs without per-star rows ({star_output.DATASET} not kept): {', '.join(lean)}")
     return 0
 
 
