@@ -225,3 +225,10 @@ def test_bad_values_one_line_exit_2(tmp_path, capsys):
     with pytest.raises(ConfigError, match=r"output\.detections"):
         star.spec_from_dict({"camera": {"width": 64, "height": 64, "pixel_pitch_um": 5.0, "focal_length_mm": 10.0},
                              "output": {"detections": True}})
+
+
+def test_runs_lists_the_runs_without_per_star_rows(lake, capsys):
+    root, _ = lake
+    assert main(["runs", "--lake", str(root)]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "not kept" in ln]
+    assert len(lines) == 1 and lines[0].endswith(": auto")
