@@ -4,7 +4,8 @@ point 4).
 
 The spec's ``track`` table (:class:`TrackSpec`) holds every image's UTC time and its source
 (``scene/frame_times.py``; the command sorts the images by time before the spec is made, so case i is the i-th
-frame in time), the tracker's settings (``TrackingConfig``'s table, ``max_coast_frames``).  After the shard's
+frame in time), the tracker's settings (``TrackingConfig``'s table, ``max_coast_frames``, ``lis_min_stars``: from
+``--tracking FILE.toml``, :func:`tracking_settings`; the defaults without it).  After the shard's
 frames are detected (``jobs/kinds/hil_star.py``: the same detections as the lost-in-space rows), the frames run
 through :func:`dualsight.nav.sequence.run_sequence` in case order; the command makes the whole run one shard, so
 the sequence is every image.  Frames whose time is not after the previous frame's (a set taken at one instant)
@@ -20,16 +21,19 @@ camera, row-major), ``rate_rad_s`` (3,) and ``rate_cov`` (9,) (rad/s, (rad/s)^2,
 
 from __future__ import annotations
 
+import math
 from datetime import datetime, timedelta
 
 import numpy as np
 from pydantic import Field
 
-from dualsight.config import TrackingConfig, validate
+from dualsight.config import TrackingConfig, dataclass_from_table, dataclass_to_table, validate
+from dualsight.errors import ConfigError
 from dualsight.jobs.kinds.hil_common import Frozen
 from dualsight.nav.sequence import MODE_NAMES, REASON_NAMES, run_sequence
+from dualsight.scene.camera import read_toml
 
-__all__ = ["TrackSpec", "track_columns", "segments"]
+__all__ = ["TrackSpec", "track_columns", "segments", "tracking_settings"]
 
 
 class TrackSpec(Frozen):
@@ -40,6 +44,57 @@ class TrackSpec(Frozen):
     tracking: dict = Field(default_factory=dict)
     max_coast_frames: int = Field(default=10, ge=0, le=10_000)
     lis_min_stars: int = Field(default=3, ge=3, le=100)
+
+
+_RATE_SUFFIXES = {"_deg_s": "_rad_s", "_arcsec_s": "_rad_s"}
+"""Rate keys of a ``--tracking`` file: ``<name>_deg_s`` / ``<name>_arcsec_s`` fill the field ``<name>_rad_s``."""
+
+
+def tracking_settings(path) -> dict:
+    """The tracker's settings of ``hil star --track --tracking FILE.toml``: a ``[tracking]`` table
+    (``dualsight.config.TrackingConfig``'s keys, ``<name>_deg`` / ``<name>_arcsec`` for a ``<name>_rad`` field and
+    ``<name>_deg_s`` / ``<name>_arcsec_s`` for a ``<name>_rad_s`` one) and the top-level keys ``max_coast_frames``
+    (integer in [0, 10000]) and ``lis_min_stars`` (integer in [3, 100]).  Validated now; an error names the file
+    and the key (ConfigError).  Returns the spec's ``track`` keys: tracking (the canonical table, every field),
+    max_coast_frames, lis_min_stars (those given).
+
+    The default prior of a frame after a first fix has no rate, so its windows are sized by ``rate_sigma_rad_s``
+    (0.5 deg/s: 15 deg over 30 s, capped at ``window_max_px``) and the chance-match test refuses them: tracking
+    starts at the third frame.  A camera known to turn slowly says so and tracks from the second frame: e.g. a
+    ground camera (the sidereal rate, 15 arcsec/s) of 40 arcsec pixels with frames 30 s apart tracks from the second
+    frame with ``rate_sigma_arcsec_s = 6`` (windows ~22 px, the true rate at 2.5 sigma), not with 30 (windows at
+    the 50 px cap; tests/test_hil_track_settings.py)."""
+    src = str(path)
+    d = read_toml(path)
+    top = {k: v for k, v in d.items() if k != "tracking"}
+    bad = sorted(set(top) - {"max_coast_frames", "lis_min_stars"})
+    if bad:
+        raise ConfigError("unknown key; allowed: [tracking], max_coast_frames, lis_min_stars", source=src,
+                          field=bad[0])
+    table = d.get("tracking", {})
+    if not isinstance(table, dict):
+        raise ConfigError("must be a table", source=src, field="tracking")
+    conv, written = {}, {}
+    for key, value in table.items():
+        for suffix, to in _RATE_SUFFIXES.items():
+            name = key[: -len(suffix)] + to
+            if key.endswith(suffix) and name in TrackingConfig.__dataclass_fields__:
+                if isinstance(value, bool) or not isinstance(value, (int, float)):
+                    raise ConfigError(f"must be a number, got {value!r}", source=src, field=f"tracking.{key}")
+                written[name] = (key, value)
+                key, value = name, value * (math.pi / 180.0 if suffix == "_deg_s" else math.pi / 648000.0)
+                break
+        conv[key] = value
+    try:
+        cfg = dataclass_from_table(TrackingConfig, conv, source=src, section="tracking")
+    except ConfigError as e:                 # name a rate key and its value as written
+        name = (e.field or "").removeprefix("tracking.")
+        if name not in written:
+            raise
+        key, value = written[name]
+        raise ConfigError(f"must be in (0, 30 deg/s], got {value!r}", source=src, field=f"tracking.{key}") from None
+    validate(TrackSpec, {"times_utc": ["-"], **top}, source=src)
+    return {"tracking": dataclass_to_table(cfg), **top}
 
 
 def _seconds(times_utc) -> np.ndarray:
