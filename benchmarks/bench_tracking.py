@@ -12,7 +12,7 @@ rendering, so only the two algorithms are timed, on the same detections.
 * lost-in-space, every frame: back-projection, robust geometric voting (``nav/star_solution.identify``, Taichi
   engine, one frame per call as a flight tracker sees them) and the weighted SVD attitude;
 * tracking, every frame after a fix: propagate with the rate from the last two fixes of either mode
-  (``nav/angular_rate``; zero with the config's rate sigma before there are two), predict, match, solve, verify
+  (``nav/angular_rate.rate_between``; zero with the config's rate sigma before there are two), predict, match, solve, verify
   (``nav/tracking``); lost-in-space answers frame 0 and the frame after a lost lock.  The tracking times are those
   of the frames that followed a fix (the ones tracking ran on).
 
@@ -33,7 +33,7 @@ import numpy as np  # noqa: E402
 
 from dualsight.config import TrackingConfig  # noqa: E402
 from dualsight.jobs.kinds import star  # noqa: E402
-from dualsight.nav.angular_rate import rate_from_attitudes  # noqa: E402
+from dualsight.nav.angular_rate import rate_between  # noqa: E402
 from dualsight.nav.attitude import solve_identified  # noqa: E402
 from dualsight.nav.errors import axis_errors  # noqa: E402
 from dualsight.nav.observations import Observations  # noqa: E402
@@ -114,8 +114,7 @@ def main() -> int:
             res = track(predict(Ap, Pp, cat.unit, cam, cfg), xy, None, cat.unit, cam, cfg)
             res_ok, rows, A, P = res.locked, res.det_row, res.A, res.cov
         if res_ok and A_prev is not None:                             # rate from the last two fixes, any mode
-            om, C = rate_from_attitudes(A_prev[None], A[None], (k - k_prev) * dt, P_prev[None], P[None])
-            omega, C_om = om[0], C[0]
+            omega, C_om = rate_between(A_prev, A, (k - k_prev) * dt, P_prev, P)
         dt_k = time.perf_counter() - t0
         if A_prev is not None and k - k_prev == 1:
             t_trk.append(dt_k)

@@ -17,17 +17,23 @@ Two estimates of the body rate ``omega`` (rad/s, camera frame, ``dA/dt = -[omega
   ``1 / (sigma_{k-1}^2 + sigma_k^2)`` (rad^-2): both directions are noisy.  Then ``omega = log(Phi) / dt`` and
   ``cov = P_Phi / dt^2``.
 
-Vectorised over a leading batch axis; padded stars carry weight 0.
+Vectorised over a leading batch axis; padded stars carry weight 0.  A tracker's frame step (one pair of attitudes,
+one frame's stars) has its one-case forms, :func:`rate_between` and :func:`rate_from_star_pairs`: the same formulas
+in scalars and 3 x 3 products (the batched forms' array set-up costs more than the arithmetic on one case).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from dualsight.nav.attitude import svd_attitude
+from dualsight.nav.tracking import solve_pairs
 from dualsight.scene.rotation_vector import frame_rotation_vector
 
-__all__ = ["rate_from_attitudes", "rate_from_stars", "pair_by_identity"]
+__all__ = ["rate_from_attitudes", "rate_from_stars", "pair_by_identity", "log_rotation", "rate_between",
+           "rate_from_star_pairs"]
 
 
 def rate_from_attitudes(A_prev: np.ndarray, A_next: np.ndarray, dt, cov_prev: np.ndarray | None = None,
@@ -83,3 +89,39 @@ def pair_by_identity(rows_prev: np.ndarray, rows_next: np.ndarray) -> tuple[np.n
     gp, gn = np.flatnonzero(rp >= 0), np.flatnonzero(rn >= 0)
     _, ip, jn = np.intersect1d(rp[gp], rn[gn], assume_unique=False, return_indices=True)
     return gp[ip], gn[jn]
+
+
+def log_rotation(R: np.ndarray) -> np.ndarray:
+    """(3,) rotation vector ``phi`` with ``exp(-[phi x]) = R`` of one (3, 3) rotation matrix: the logarithm map of
+    ``scene.rotation_vector.frame_rotation_vector`` in scalars (``t = atan2(|s|, (trace R - 1) / 2)``, ``s`` the
+    axial vector of ``(R^T - R) / 2``, ``phi = t s / |s|``; the series ``s (1 + |s|^2 / 6)`` below |s| = 1e-6),
+    handing angles within 1e-3 rad of pi (the axis from the symmetric part) to that function."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    sx, sy, sz = 0.5 * (r12 - r21), 0.5 * (r20 - r02), 0.5 * (r01 - r10)
+    sn = math.sqrt(sx * sx + sy * sy + sz * sz)
+    c = min(1.0, max(-1.0, 0.5 * (r00 + r11 + r22 - 1.0)))
+    t = math.atan2(sn, c)
+    if math.pi - t < 1e-3:
+        return frame_rotation_vector(R)
+    k = 1.0 + sn * sn / 6.0 if (sn < 1e-6 and c > 0) else t / sn
+    return np.array([sx * k, sy * k, sz * k])
+
+
+def rate_between(A_prev: np.ndarray, A_next: np.ndarray, dt: float, cov_prev: np.ndarray, cov_next: np.ndarray):
+    """:func:`rate_from_attitudes` of one pair: A_prev, A_next (3, 3), dt s, cov_prev, cov_next (3, 3) rad^2.
+    Returns omega (3,) rad/s and cov (3, 3) (rad/s)^2 (``(P_k + Phi P_{k-1} Phi^T) / dt^2``)."""
+    Phi = A_next @ A_prev.T
+    inv = 1.0 / (float(dt) * float(dt))
+    return log_rotation(Phi) / float(dt), (cov_next + Phi @ cov_prev @ Phi.T) * inv
+
+
+def rate_from_star_pairs(b_prev: np.ndarray, b_next: np.ndarray, var_prev: np.ndarray, var_next: np.ndarray,
+                         dt: float):
+    """:func:`rate_from_stars` of one frame pair: b_prev, b_next (S, 3) unit vectors of the same stars row by row,
+    var_prev, var_next (S,) rad^2 (finite, > 0).  Returns (omega (3,) rad/s, cov (3, 3) (rad/s)^2, ok); the
+    SVD by ``nav.tracking.solve_pairs`` (Markley 1988, one case)."""
+    Phi, ok, P = solve_pairs(b_next, b_prev, 1.0 / (var_prev + var_next))
+    if not ok:
+        return np.full(3, np.nan), np.full((3, 3), np.nan), False
+    inv = 1.0 / (float(dt) * float(dt))
+    return log_rotation(Phi) / float(dt), P * inv, True

@@ -7,7 +7,7 @@ Per frame ``k`` (in time order), with the last fix (attitude ``A_f``, covariance
 2. a prior exists (a fix at most ``max_coast_frames`` frames old): **tracking** (``nav/tracking.py``): propagate
    ``A_f`` over ``t_k - t_f`` with the rate (the gyro's when given: the mean of its two samples at ``f`` and ``k``,
    covariance ``gyro_sigma^2 I / 2``; else the rate from the last two fixes of either mode,
-   ``nav/angular_rate.rate_from_attitudes``, with its covariance; else zero with ``cfg.rate_sigma_rad_s``), predict,
+   ``nav/angular_rate.rate_between``, with its covariance; else zero with ``cfg.rate_sigma_rad_s``), predict,
    match in windows, solve with the centroid weights, verify.  Lock held: mode ``tracking``.
    A lock whose stated covariance (scaled by the fit's variance factor) has a principal 1-sigma above
    ``cfg.max_sigma_rad`` is *degraded* (a two-star or short-baseline roll): mode ``none``, reason ``degraded``, no
@@ -18,8 +18,8 @@ Per frame ``k`` (in time order), with the last fix (attitude ``A_f``, covariance
    ``lis_min_stars`` accepted stars, the match threshold ``T > 0`` and the chance-match probability is at most
    ``cfg.max_p_chance`` (when the voting states it).  Verified: mode ``lost_in_space`` (degraded as in 2: ``none``);
    else ``none``.
-4. with a fix at ``k``: the rate from the two attitudes (``rate_from_attitudes``, over ``t_k - t_f``) and from the
-   displacements of the stars identified in both frames (``rate_from_stars``, Crassidis 2002), each with its
+4. with a fix at ``k``: the rate from the two attitudes (``rate_between``, over ``t_k - t_f``) and from the
+   displacements of the stars identified in both frames (``rate_from_star_pairs``, Crassidis 2002), each with its
    covariance; the fix becomes the prior.
 
 The loop runs over frames (a sequence is causal); every step inside is vectorised over stars.  Latency per stage
@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dualsight.config import TrackingConfig
-from dualsight.nav.angular_rate import pair_by_identity, rate_from_attitudes, rate_from_stars
+from dualsight.nav.angular_rate import pair_by_identity, rate_between, rate_from_star_pairs
 from dualsight.nav.attitude import solve_identified
 from dualsight.nav.observations import MAX_OBS, Observations
 from dualsight.nav.star_solution import identify
@@ -278,18 +278,18 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
             c0 = clock()
             if fix is not None:
                 dt = t[k] - t[fix[2]]
-                om, C = rate_from_attitudes(fix[0][None], A[None], dt, fix[1][None], P[None])
-                out["rate_att"][k], out["rate_att_cov"][k] = om[0], C[0]
-                rate = (om[0], C[0])
+                om, C = rate_between(fix[0], A, dt, fix[1], P)
+                out["rate_att"][k], out["rate_att_cov"][k] = om, C
+                rate = (om, C)
                 sp = slice(int(off[fix[2]]), int(off[fix[2] + 1]))
                 ip, jn = pair_by_identity(det_row[sp], rows)
                 if len(ip) >= 2:
-                    b0 = camera.backproject(xy_all[sp][ip])[None]
-                    b1 = camera.backproject(xy[jn])[None]
-                    w0, w1 = (sig_all[sp][ip] / f)[None] ** 2, (sg[jn] / f)[None] ** 2
-                    om_s, C_s, ok = rate_from_stars(b0, b1, w0, w1, dt)
-                    if ok[0]:
-                        out["rate_star"][k], out["rate_star_cov"][k] = om_s[0], C_s[0]
+                    b0 = camera.backproject(xy_all[sp][ip])
+                    b1 = camera.backproject(xy[jn])
+                    w0, w1 = (sig_all[sp][ip] / f) ** 2, (sg[jn] / f) ** 2
+                    om_s, C_s, ok = rate_from_star_pairs(b0, b1, w0, w1, dt)
+                    if ok:
+                        out["rate_star"][k], out["rate_star_cov"][k] = om_s, C_s
                         out["rate_pairs"][k] = len(ip)
             out["t_rate_ns"][k] = clock() - c0
             fix = (A, P, k)

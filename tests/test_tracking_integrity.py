@@ -19,6 +19,8 @@ import pytest
 
 from dualsight.config import TrackingConfig
 from dualsight.errors import ConfigError
+from dualsight.nav.angular_rate import (log_rotation, rate_between, rate_from_attitudes, rate_from_star_pairs,
+                                        rate_from_stars)
 from dualsight.nav.attitude import svd_attitude
 from dualsight.nav.errors import axis_errors
 from dualsight.nav.sequence import LOST_IN_SPACE, NO_FIX, REASON_NAMES, TRACKING, run_sequence
@@ -233,3 +235,38 @@ def test_max_sigma_refuses_bad_values_with_one_line():
         TrackingConfig(max_sigma_rad=1.0)
     assert TrackingConfig().max_sigma_rad == pytest.approx(math.radians(10.0))
     assert LOCKED == 0
+
+
+def test_one_pair_rates_equal_the_batched_ones_and_the_truth():
+    """rate_between / rate_from_star_pairs / log_rotation (a tracker's one-frame forms) against the batched
+    rate_from_attitudes / rate_from_stars (each checked against the truth in tests/test_tracking.py) to 1e-12, and
+    against the true rate of a Rodrigues rotation (helpers) at small, large and near-pi angles and exactly zero."""
+    rng = np.random.default_rng(17)
+    for ang in (0.0, 1e-9, 1e-6, 3e-6, 1e-3, 0.5, 2.0, math.pi - 2e-3, math.pi - 1e-4):
+        axis = unit(rng.normal(size=3))
+        R = rotation(axis, ang).T                                   # exp(-[phi x]) with phi = ang * axis
+        np.testing.assert_allclose(log_rotation(R), axis * ang, atol=1e-12)
+        A0 = euler123_to_dcm(random_euler123(rng, 1))[0]
+        A1 = R @ A0
+        P0, P1 = np.diag(rng.uniform(1, 2, 3)) * 1e-10, np.diag(rng.uniform(1, 2, 3)) * 1e-10
+        om, C = rate_between(A0, A1, 0.1, P0, P1)
+        omb, Cb = rate_from_attitudes(A0[None], A1[None], 0.1, P0[None], P1[None])
+        np.testing.assert_allclose(om, omb[0], atol=1e-11)
+        np.testing.assert_allclose(om, axis * ang / 0.1, atol=1e-10)
+        np.testing.assert_allclose(C, Cb[0], rtol=1e-12, atol=0)
+    cat = sphere_catalog(21, 3000)
+    for _ in range(20):
+        A0 = euler123_to_dcm(random_euler123(rng, 1))[0]
+        w = unit(rng.normal(size=3)) * math.radians(rng.uniform(0, 5))
+        A1 = rotation(w, np.linalg.norm(w) * 0.1).T @ A0
+        vis = cat[cat @ A0[2] > math.cos(math.radians(7))]
+        b0 = unit(vis @ A0.T + rng.normal(scale=1e-5, size=vis.shape))
+        b1 = unit(vis @ A1.T + rng.normal(scale=1e-5, size=vis.shape))
+        var = np.full(len(vis), 1e-10)
+        om, C, ok = rate_from_star_pairs(b0, b1, var, var, 0.1)
+        omb, Cb, okb = rate_from_stars(b0[None], b1[None], var[None], var[None], 0.1)
+        assert ok and okb[0]
+        np.testing.assert_allclose(om, omb[0], atol=1e-11)
+        np.testing.assert_allclose(C, Cb[0], rtol=1e-9, atol=1e-24)
+        assert np.all(np.abs(om - w) < 5 * np.sqrt(np.diag(C)) + 1e-9)
+    assert not rate_from_star_pairs(b0[:1].repeat(2, 0), b1[:1].repeat(2, 0), var[:2], var[:2], 0.1)[2]
