@@ -3,11 +3,13 @@ reproduce from the seed, the report's numbers against numpy over the rows, one-l
 
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 import sys
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -193,3 +195,49 @@ def test_a_hostile_spec_value_is_one_line_naming_file_field_and_range(tmp_path, 
     assert len(lines) == 1 and "Traceback" not in p.stderr
     assert str(cfg) in lines[0] and field in lines[0] and allowed in lines[0], lines[0]
     assert not (tmp_path / "lake" / "rendezvous_cases").exists()
+
+
+def test_replay_records_the_verified_approach_and_refuses_a_tampered_row(small_runs, tmp_path):
+    from test_replay import column, read_rrd                  # rerun's reader (skips without rerun.chunk)
+
+    from dualsight.jobs.cli.main import main
+
+    lake, runs = small_runs
+    run = runs["far"].run_id
+    out = tmp_path / "a.rrd"
+    assert main(["rendezvous", "replay", "--lake", str(lake.root), "--run", run, "--case", "2", "-o", str(out)]) == 0
+    rec = read_rrd(out)
+    f = _rows(lake, run, "rendezvous_frames")
+    k = f["case_id"] == 2
+    T = int(k.sum())
+    assert len(rec["/camera/image"]) == T
+    paths = column(rec["/hill/truth"], "LineStrips3D:strips")
+    assert len(paths) == T
+    last = np.asarray(paths[-1][0], np.float64)               # the whole true path at the last frame
+    order = np.argsort(f["frame"][k])
+    want = np.stack([f[f"true_{a}"][k][order] for a in "xyz"], -1)
+    np.testing.assert_allclose(last, want, rtol=1e-6, atol=1e-3)      # float32 in the recording
+    est = np.asarray(column(rec["/hill/estimate"], "LineStrips3D:strips")[-1][0], np.float64)
+    np.testing.assert_allclose(est, np.stack([f[f"est_{a}"][k][order] for a in "xyz"], -1), rtol=1e-6, atol=1e-3)
+    # a tampered row is refused, naming the column
+    bad = tmp_path / "lake"
+    import shutil
+
+    shutil.copytree(lake.root, bad)
+    part = sorted((bad / "rendezvous_frames" / f"run={run}").glob("*.parquet"))[0]
+    t = pq.read_table(part)
+    col = t.column("nees").to_pylist()
+    rows = np.flatnonzero((np.asarray(t.column("case_id").to_pylist()) == 2))
+    col[int(rows[3])] = col[int(rows[3])] + 1.0
+    t = t.set_column(t.schema.get_field_index("nees"), "nees", pa.array(col, pa.float64()))
+    pq.write_table(t, part)
+    journal = bad / "_manifests" / f"{run}.shards.jsonl"             # its byte count, so the lake serves it
+    entries = [json.loads(x) for x in journal.read_text().splitlines()]
+    for e in entries:
+        if e["case_start"] <= 2 < e["case_stop"]:
+            e["bytes"]["rendezvous_frames"] = part.stat().st_size
+    journal.write_text("".join(json.dumps(e) + "\n" for e in entries))
+    p = subprocess.run([sys.executable, "-m", "dualsight.jobs.cli.main", "rendezvous", "replay", "--lake", str(bad),
+                        "--run", run, "--case", "2", "-o", str(tmp_path / "b.rrd")], capture_output=True, text=True,
+                       timeout=300)
+    assert p.returncode == 2 and "column nees" in p.stderr and "frame 3" in p.stderr, p.stderr

@@ -75,6 +75,8 @@ NAME = "rendezvous"
 PRIMARY = "rendezvous_cases"
 SCHEMAS = {"rendezvous_cases": CASES_SCHEMA, "rendezvous_frames": FRAMES_SCHEMA}
 DEFAULT_CASES = 100
+STAR_CHUNK = 16
+"""Star-camera frames rendered per call (full frames: 16 x 1024 x 768)."""
 PROX_CHUNK = 8
 """Proximity frames rendered per call (8 x 1024 x 768 float32 image + coverage: ~50 MB)."""
 RANGE_FLOOR_FRAC = 0.005
@@ -356,7 +358,8 @@ def _empty_meas(T: int) -> dict:
             "bearing_used": np.zeros(T, bool), "bearing_err": nan.copy(), "bearing_sigma": nan.copy(),
             "range": nan.copy(), "range_min": nan.copy(), "range_max": nan.copy(), "range_used": np.zeros(T, bool),
             "range_sigma": nan.copy(), "digest": np.zeros(T, np.int64), "t_render_ns": np.zeros(T, np.int64),
-            "u_used": np.full((T, 3), np.nan), "C_used": np.zeros((T, 3, 3)), "bearing_raw_err": nan.copy()}
+            "u_used": np.full((T, 3), np.nan), "C_used": np.zeros((T, 3, 3)), "bearing_raw_err": nan.copy(),
+            "target_xy": np.full((T, 2), np.nan)}
 
 
 def measure_star(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: dict, keep_images: bool = False):
@@ -379,12 +382,14 @@ def measure_star(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
     voting = sp.robust if sp.robust is not None else sp.voting
     f = max(sp.camera.fx, sp.camera.fy)
     images = [] if keep_images else None
-    bs = sp.batch_size
+    bs = min(sp.batch_size, STAR_CHUNK)
     for s in range(0, T, bs):
         fr = np.arange(s, min(T, s + bs))
         sub = _take_field(render_field, fr)
+        # full frames always (keep_images=True): the sparse path renders windows sized for stars, which would cut
+        # the wings of a target brighter than any star (and the replay re-renders whole frames)
         r = star.render_and_detect(sub, draw["noise_seeds"][fr], sp.camera, sp.sensor, sp.detect,
-                                   keep_images=keep_images, attitude=A_true[fr], detector=sp.detector, psf=sc.psf)
+                                   keep_images=True, attitude=A_true[fr], detector=sp.detector, psf=sc.psf)
         if keep_images:
             images.append(r.images)
         m["t_render_ns"][fr] = (r.t_render_ns + (r.t_detect_ns or 0)) // len(fr)
@@ -416,6 +421,7 @@ def measure_star(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
         m["attitude"][fr] = np.where(att_ok, 1, 0)
         m["n_stars"][fr] = np.where(att_ok, n_used, 0)
         m["detected"][fr] = det_ok
+        m["target_xy"][fr] = np.where(det_ok[:, None], xy, np.nan)
         m["u"][fr] = np.where(use[:, None], u, np.nan)
         m["C"][fr] = np.where(use[:, None, None], C, 0.0)
         m["bearing_used"][fr] = use
@@ -479,6 +485,7 @@ def measure_prox(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
         m["detected"][fr] = found
         m["pixels"][fr] = np.where(found, np.nan_to_num(b.n_pixels), -1).astype(np.int64)
         xy = np.where(found[:, None], b.cob_px, 0.5 * np.array([cam.width, cam.height]))
+        m["target_xy"][fr] = np.where(found[:, None], xy, np.nan)
         sig_px = np.full(len(fr), star.CENTROID_FLOOR_PX)
         u, C = inertial_bearing(A_est[fr], np.broadcast_to(sa ** 2 * np.eye(3), (len(fr), 3, 3)), xy, sig_px, cam)
         m["u"][fr] = np.where(found[:, None], u, np.nan)
@@ -575,7 +582,8 @@ def compute_case(spec: RendezvousSpec, ctx: RendezvousContext, case_id: int, kee
     nees_pos = rf.nees(xs[:, :3], Ps[:, :3, :3], truth[:, :3])
     since, k = burn_frames(spec)
     t2 = time.perf_counter_ns()
-    out = {"draw": draw, "times": spec.times, "truth": truth, "geo": geo, "meas": m, "est": xs, "cov": Ps,
+    out = {"draw": draw, "camera": spec.camera, "times": spec.times, "truth": truth, "geo": geo, "meas": m, "est": xs,
+           "cov": Ps,
            "nees": nees, "nees_pos": nees_pos, "t_since_burn": since, "orbit_frame": k,
            "dv_nominal": draw["dv_nominal"], "dv_exec": draw["dv_exec"], "t_nav_ns": t2 - t1, "t_total_ns": t2 - t0,
            "images": images}

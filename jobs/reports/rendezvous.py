@@ -12,8 +12,13 @@ set against the issue's targets (point 6 c, d, e):
 
 from __future__ import annotations
 
+import shlex
+
+import numpy as np
+
 from dualsight.errors import InputError
 from dualsight.nav.relative_filter import chi2_mean_bounds
+from dualsight.viz import html_page as H
 from dualsight.warehouse.cells import percent
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import connect, format_table, run_report
@@ -149,3 +154,62 @@ def text(rep: dict) -> str:
                                f"NEES first {j['nees_first_approaches']}", "bearings"],
                               rows))
     return "\n".join(lines)
+
+
+DRAWN = 4
+"""Approaches drawn one by one in the HTML error figure (the largest final position error / range first)."""
+
+
+def html_sections(lake: Lake, con, m: dict, run_id: str) -> list[tuple[str, str]]:
+    """The rendezvous run's sections of ``dualsight report --html`` (``jobs/reports/html.py``): the targets table,
+    the campaign summary and the figures of ``viz/rendezvous_figures.py`` (error against range and time with the
+    3-sigma envelope; mean NEES against its bounds)."""
+    from dualsight.viz import rendezvous_figures as figs      # matplotlib
+    from dualsight.viz.figures import png_bytes
+
+    rep = build(lake, run_id)
+    j = rep["json"]
+    pf = j["per_frame"]
+    cols = ("t_s", "range_mean_m", "pos_err_rms_m", "sigma_pos_rms_m", "mean_nees", "mean_nees_first")
+    per_frame = {c: np.array([np.nan if r[c] is None else r[c] for r in pf], np.float64) for c in cols}
+    worst = con.execute("SELECT case_id FROM rendezvous_cases WHERE run = $run ORDER BY final_pos_err_pct DESC, "
+                        f"case_id LIMIT {DRAWN}", {"run": run_id}).fetchall()
+    ids = [int(r[0]) for r in worst]
+    cur = con.execute("SELECT case_id, t_s, range_m, pos_err_m, sigma_pos_m FROM rendezvous_frames WHERE run = $run "
+                      f"AND case_id IN ({','.join(map(str, ids)) or '-1'}) ORDER BY case_id, frame", {"run": run_id})
+    rows = np.array(cur.fetchall(), np.float64).reshape(-1, 5)
+    approaches = [{"case_id": i, **{k: rows[rows[:, 0] == i, c] for c, k in
+                                    enumerate(("case_id", "t_s", "range_m", "pos_err_m", "sigma_pos_m")) if c}}
+                  for i in ids]
+    lo, hi = j["nees_bounds_95"]
+    lo1, hi1 = j["nees_first_bounds_95"]
+    bounds = [("mean_nees", lo, hi, f"all {j['approaches']} approaches")]
+    if j["nees_first_approaches"] < j["approaches"]:
+        bounds.append(("mean_nees_first", lo1, hi1, f"first {j['nees_first_approaches']} approaches"))
+    summary = [("approaches x frames", f"{j['approaches']} x {j['frames_per_approach']}"), ("camera", j["camera"]),
+               ("availability (bearing used)", percent(j["availability"])),
+               ("target in the field / attitude / blobber range", f"{percent(j['in_field_share'])} / "
+                f"{percent(j['attitude_share'])} / {percent(j['range_share'])}"),
+               ("bearing error RMS / median / p95 (arcsec)", f"{_f(j['bearing_err_rms_arcsec'], '{:.2f}')} / "
+                f"{_f(j['bearing_err_p50_arcsec'], '{:.2f}')} / {_f(j['bearing_err_p95_arcsec'], '{:.2f}')}"),
+               ("bearing as measured, RMS (arcsec)", _f(j["bearing_raw_err_rms_arcsec"], "{:.2f}")),
+               ("bearing within 3 stated sigma", percent(j["bearing_within_3sigma"])),
+               ("final range mean (m) / position error RMS (m) / velocity error RMS (m/s)",
+                f"{_f(j['final_range_mean_m'], '{:.1f}')} / {_f(j['final_pos_err_rms_m'], '{:.3f}')} / "
+                f"{_f(j['final_vel_err_rms_m_s'], '{:.5f}')}"),
+               ("ms per approach", _f(j["ms_per_approach"], "{:.0f}"))]
+    replay = (f"<p>Replay an approach into rerun (image and 3-D trajectory on the <code>frame</code> time line): "
+              f"<code>dualsight rendezvous replay --lake {H.esc(shlex.quote(str(lake.root)))} --run "
+              f"{H.esc(shlex.quote(run_id))} --case N -o approachN.rrd</code></p>")
+    return [("Rendezvous: targets (issue 23, point 6)",
+             H.table(["metric", "run", "target", "verdict"], target_rows(rep))),
+            ("Rendezvous: campaign", H.table(["measure", "value"], summary)),
+            ("Rendezvous: error against range and time",
+             replay + H.figure(png_bytes(lambda p: figs.error_vs_range_figure(per_frame, approaches, p)),
+                               "rdv-error", "Relative-position error: RMS over all approaches (black) with 3 x the "
+                               "filter's RMS sigma (thick grey); the approaches with the largest final error / "
+                               "range, each with its own 3-sigma envelope (dashed)")),
+            ("Rendezvous: filter consistency",
+             H.figure(png_bytes(lambda p: figs.nees_figure(per_frame, bounds, j["converged_after_frames"], p)),
+                      "rdv-nees", "Mean NEES per frame against the two-sided 95 % chi-square bounds of its mean "
+                      "(dashed); grey: before convergence"))]
