@@ -10,6 +10,7 @@ from pathlib import Path
 from dualsight.errors import InputError
 from dualsight.jobs.replay.cases import recording_path, replay_generic_case, replay_star_case, select_cases
 from dualsight.jobs.replay.prox import replay_prox_case
+from dualsight.jobs.replay.rendezvous import replay_rendezvous_case
 from dualsight.jobs.replay.star_track import replay_track_case
 from dualsight.viz.recording import open_recording
 from dualsight.warehouse.lake import Lake
@@ -41,7 +42,7 @@ def replay_run(lake: Lake, run_id: str, *, case: int | None = None, where: str |
         recording_path(folder / f"{run_id}-case{c}.rrd")
     rec = open_recording(output) if single_file else None
     out = []
-    for c in cases:
+    for i, c in enumerate(cases):
         path = output if single_file else folder / f"{run_id}-case{c}.rrd"
         kind = manifest["kind"]
         if kind == "star":
@@ -49,7 +50,10 @@ def replay_run(lake: Lake, run_id: str, *, case: int | None = None, where: str |
         elif kind in ("prox_sweep", "prox_trajectory"):
             replay_prox_case(lake, run_id, c, path, rec=rec)
         elif kind == "star_track":
-            replay_track_case(lake, run_id, c, path, rec=rec)
+            replay_track_case(lake, run_id, c, path, rec=rec,       # sequences one after the other in one file
+                              frame_offset=i * int(manifest["spec"]["sequence"]["frames"]) if single_file else 0)
+        elif kind == "rendezvous":
+            replay_rendezvous_case(lake, run_id, c, path, rec=rec)
         else:
             replay_generic_case(lake, manifest, c, path, rec=rec)
         if path not in out:
