@@ -17,6 +17,7 @@ import numpy as np
 from dualsight.catalogs.areas import area_table
 from dualsight.errors import InputError
 from dualsight.jobs.reports import hil_prox as hil_prox_report
+from dualsight.jobs.reports import rendezvous as rendezvous_report
 from dualsight.jobs.reports import star as star_report
 from dualsight.jobs.reports import star_track as track_report
 from dualsight.jobs.reports.prox import build_report
@@ -356,7 +357,7 @@ def _cells(table: tuple) -> tuple:
 
 
 KINDS = {"star": _star, "prox_sweep": _prox, "prox_trajectory": _prox, "hil_star": _hil_star,
-         "hil_prox": _hil_prox, "star_track": _star_track}
+         "hil_prox": _hil_prox, "star_track": _star_track, "rendezvous": rendezvous_report.html_sections}
 
 
 def build_html(lake: Lake, run_id: str) -> str:
