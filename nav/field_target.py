@@ -7,9 +7,10 @@ The rule, in order:
    (``nav/resolved_blobs.star_blob_limit`` of :func:`brightest_star_npix`: the brightest catalog star, V -1.46,
    through this frame's zero point, PSF width and threshold).  Its centre of brightness is the bearing and its
    pixel count gives the range by Eq. 1 with the target file's projected-area table (min / estimate / max).
-2. **Point-like**: otherwise the brightest unknown object (``nav/unknown_objects.py``: a detection that no catalog
-   star explains), listed or not; with a direction ``near`` (ICRS unit vector) and radius, the unknown object
-   nearest that direction within the radius.
+2. **Point-like**: otherwise the brightest listed unknown object (``nav/unknown_objects.py``: a detection that no
+   catalog star explains, at least ``mag_limit`` bright: fainter ones are mostly stars the catalog lacks); with a
+   direction ``near`` (ICRS unit vector) and radius, the listed unknown object nearest that direction within the
+   radius.
 3. Otherwise none, with the reason.
 
 A resolved blob's range (Eq. 1, ``nav/range.range_eq1``) needs the silhouette's pixels, but the blob above the
@@ -82,7 +83,7 @@ def pick_point_target(unknown_u: np.ndarray, flux: np.ndarray, near_u: np.ndarra
     and radius_rad: choose the nearest within the radius instead of the brightest."""
     U = len(flux)
     if U == 0:
-        return -1, "no unknown object in the image (every detection is a catalog star)"
+        return -1, "no unknown object in the image"
     if near_u is None:
         return int(np.argmax(np.asarray(flux, np.float64))), None
     u = np.asarray(unknown_u, np.float64).reshape(U, 3)

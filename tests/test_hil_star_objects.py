@@ -288,3 +288,54 @@ def test_target_resolved_and_point_on_rendered_frames(tmp_path):
     assert r["target_range_min_m"] < r["target_range_m"] < r["target_range_max_m"]
     r = res["far.tiff"]
     assert r["target_range_m"] is None and abs(r["target_mag"] - far["vmag"]) < 0.3, (r["target_mag"], far["vmag"])
+
+
+# ============================================================================================ hostile input
+@pytest.mark.parametrize("flags, needle", [
+    (["--target", str(CAMERA)], "[body]"),                                     # a camera file, not a satellite file
+    (["--target", "/nonexistent/sat.toml"], "file not found"),
+    (["--target", str(ROOT / "README.md")], "not valid TOML"),
+    (["--target", str(ROOT / "examples")], "folder"),
+    (["--target-near", "10,20"], "goes with --target"),
+    (["--target", str(SAT), "--target-near", "10,95"], "DEC in [-90, 90]"),
+    (["--target", str(SAT), "--target-near", "ten,20"], "RA,DEC"),
+    (["--target", str(SAT), "--target-near", "10,20,0"], "RADIUS in (0, 180]"),
+])
+def test_bad_target_options_exit_2_with_one_line(tmp_path, flags, needle):
+    img = tmp_path / "x.tiff"
+    cv2.imwrite(str(img), np.zeros((768, 1024), np.uint16))
+    lake = tmp_path / "lake"
+    rc, out, err = run_cli(["hil", "star", img, "--camera", CAMERA, "--lake", lake, *flags])
+    assert rc == 2, (rc, err)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and needle in lines[0] and "Traceback" not in err, err
+    assert not lake.exists()
+
+
+@needs_esa
+def test_a_target_not_in_the_image_is_null_with_its_reason(tmp_path):
+    names = ["2019-07-29T204726_Alt40_Azi-45_Try1.tiff", "2019-07-29T204726_Alt60_Azi135_Try1.tiff"]
+    for n in names:
+        shutil.copy(ESA / n, tmp_path / n)
+    rc, out, err = run_cli(["hil", "star", *[tmp_path / n for n in names], "--camera", CAMERA, "--target", SAT,
+                            "--json", "--no-lake"])
+    assert rc == 0, err
+    r0, r1 = json.loads(out)
+    # no listed unknown object, no resolved blob: null with the reason
+    assert r0["identified"] and r0["target_kind"] is None and r0["target_ra_deg"] is None
+    assert "no unknown object" in r0["target_reason"] and r0["target_range_m"] is None
+    # listed unknown objects: the brightest is the point target (here the warm pixel pair on column 0)
+    assert r1["target_kind"] == "point" and r1["target_reason"] is None
+    assert sum(o["is_target"] for o in r1["unknown_objects"]) == 1
+    # --target-near a direction without any unknown object: null, the reason names the option
+    rc, out, err = run_cli(["hil", "star", tmp_path / names[1], "--camera", CAMERA, "--target", SAT,
+                            "--target-near", "10,-40,0.5", "--json", "--no-lake"])
+    assert rc == 0, err
+    r = json.loads(out)[0]
+    assert r["target_kind"] is None and "--target-near" in r["target_reason"], r["target_reason"]
+    # and near the second-brightest listed object: that one is the target
+    o = sorted(r["unknown_objects"], key=lambda o: -o["flux_adu"])[1]
+    rc, out, err = run_cli(["hil", "star", tmp_path / names[1], "--camera", CAMERA, "--target", SAT,
+                            "--target-near", f"{o['ra_deg']},{o['dec_deg']},0.05", "--json", "--no-lake"])
+    r = json.loads(out)[0]
+    assert r["target_kind"] == "point" and abs(r["target_ra_deg"] - o["ra_deg"]) < 1e-6

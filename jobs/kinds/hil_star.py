@@ -6,6 +6,7 @@
     -> back-project (nav.observations) -> lost-in-space geometric voting -> SVD attitude (nav.star_solution)
     -> boresight RA/Dec and roll (scene.pointing), per-star residuals (reference Table 6)
     -> errors against the truth (nav.hil_score) -> lake rows ``hil_star``, ``hil_star_stars``
+    -> zero point, unknown objects and the ``--target`` (jobs/kinds/hil_star_objects.py) -> ``hil_star_objects``
 
 No prior attitude is used: every frame is identified lost in space.  Detection, identification and
 attitude are the simulated chain's own stages; this module adds what a real frame needs before them

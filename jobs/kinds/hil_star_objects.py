@@ -221,13 +221,16 @@ def _choose_target(unk, flux, xy, sig, sat, npix, camera, row, zp, residual, fra
             s_px = CENTROID_SIZE_FRACTION * math.sqrt(max(float(l1 + l2) / 2, 0.0))
             return FieldTarget("resolved", xy=(float(blob.cob_px[0, 0]), float(blob.cob_px[0, 1])), pixels=n,
                                sigma_px=s_px, range_m=rng[1], range_min_m=rng[0], range_max_m=rng[2])
-    U = len(unk.index)
-    u = np.stack([np.cos(unk.dec_rad) * np.cos(unk.ra_rad), np.cos(unk.dec_rad) * np.sin(unk.ra_rad),
-                  np.sin(unk.dec_rad)], -1) if U else np.zeros((0, 3))
+    cand = np.flatnonzero(unk.listed)                # a point target is a listed unknown object
+    dec, ra = unk.dec_rad[cand], unk.ra_rad[cand]
+    u = np.stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)], -1)
     near_u, rad = octx.near if octx.near is not None else (None, None)
-    j, reason = pick_point_target(u, flux[unk.index], near_u, rad)
+    j, reason = pick_point_target(u, flux[unk.index[cand]], near_u, rad)
     if j < 0:
+        if octx.cfg.mag_limit is not None and reason is not None:
+            reason += f" at least V {octx.cfg.mag_limit:g} bright (settings unknown.mag_limit)"
         return FieldTarget(None, reason=reason)
+    j = int(cand[j])
     k = int(unk.index[j])
     s_px = float(sig[k])
     if sat is not None and sat[k]:          # a saturated point: fitted on its rim, its sigma understated

@@ -190,6 +190,18 @@ def summary_line(j: dict) -> str:
             head += f"; boresight error {j['boresight_error_arcsec']:.1f} arcsec vs {j['truth_source']} truth"
         if j["altaz_error_deg"] is not None and j["truth_source"] != "altaz":
             head += f"; alt/az pointing off by {j['altaz_error_deg']:.3f} deg"
+        if j.get("unknown_objects") is not None:
+            head += (f"; {len(j['unknown_objects'])} unknown objects at least V {j['unknown_mag_limit']:g} bright "
+                     f"({j['unknown_faint']} fainter)")
+        if j.get("target") is not None:
+            if j["target_kind"] is None:
+                head += f"; target: none ({j['target_reason']})"
+            else:
+                head += (f"; target ({j['target_kind']}) RA {j['target_ra_deg']:.5f} Dec {j['target_dec_deg']:+.5f} "
+                         f"deg +- {j['target_sigma_arcsec']:.1f} arcsec, {j['target_pixels']} px")
+                if j["target_range_m"] is not None:
+                    head += (f", range {j['target_range_m']:.2f} m [{j['target_range_min_m']:.2f}, "
+                             f"{j['target_range_max_m']:.2f}]")
     return head
 
 
