@@ -432,7 +432,7 @@ class Lake:
 
 
 # ============================================================================================ run
-RUN_KINDS = ("star", "star_track", "prox_sweep", "prox_trajectory", "selftest")
+RUN_KINDS = ("star", "star_track", "prox_sweep", "prox_trajectory", "selftest", "rendezvous")
 """Job kinds :func:`run` starts: the Monte Carlo jobs the command line starts from a preset, a config and a seed
 (``dualsight star run``, ``star track``, ``prox sweep``, ``prox trajectory``, ``selftest run``).  The hardware-in-the-loop kinds
 (hil_star, hil_prox, calibrate) take images, not cases: :func:`solve` covers one image, the command line a run."""
@@ -442,7 +442,7 @@ def _kind_functions(kind: str) -> tuple[Mapping, Callable, Callable]:
     """(presets, plan, start) of a job kind of :data:`RUN_KINDS`: the one table :func:`run` dispatches through,
     the kind module's own functions, which its command calls too (``plan(preset, config, seed=, cases=,
     run_id=)`` -> a plan with ``run_id``; ``start(plan, lake, workers=, scheduler=, shard_size=, progress=)``)."""
-    from dualsight.jobs.kinds import prox, selftest, star, star_track          # Taichi, pyarrow
+    from dualsight.jobs.kinds import prox, rendezvous, selftest, star, star_track          # Taichi, pyarrow
 
     table = {
         "star": (star.PRESETS, star.plan_run, star.start_run),
@@ -450,6 +450,7 @@ def _kind_functions(kind: str) -> tuple[Mapping, Callable, Callable]:
         "prox_sweep": (prox.PRESETS, functools.partial(prox.plan_run, job="sweep"), prox.start_run),
         "prox_trajectory": (prox.PRESETS, functools.partial(prox.plan_run, job="trajectory"), prox.start_run),
         "selftest": (selftest.PRESETS, selftest.plan_run, selftest.start_run),
+        "rendezvous": (rendezvous.PRESETS, rendezvous.plan_run, rendezvous.start_run),
     }
     return table[kind]
 
@@ -468,7 +469,9 @@ def run(kind: str, spec: str | os.PathLike | Mapping | None = None, *, cases: in
         - ``"star_track"``: star tracking over image sequences (one sequence a case), ``dualsight star track``;
         - ``"prox_sweep"``: the proximity range sweep (ranges x random orientations), ``dualsight prox sweep``;
         - ``"prox_trajectory"``: the proximity trajectory, frame by frame, ``dualsight prox trajectory``;
-        - ``"selftest"``: the engine's self-test job, ``dualsight selftest run``.
+        - ``"selftest"``: the engine's self-test job, ``dualsight selftest run``;
+        - ``"rendezvous"``: approaches to a target with relative navigation (presets "far", "close"),
+          ``dualsight rendezvous run``.
 
         Not the hardware-in-the-loop kinds (hil_star, hil_prox, calibrate): they take images, not cases
         (:func:`solve` identifies one image; a run over many is the command line's ``dualsight hil star``,
