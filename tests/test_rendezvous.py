@@ -241,3 +241,21 @@ def test_replay_records_the_verified_approach_and_refuses_a_tampered_row(small_r
                         "--run", run, "--case", "2", "-o", str(tmp_path / "b.rrd")], capture_output=True, text=True,
                        timeout=300)
     assert p.returncode == 2 and "column nees" in p.stderr and "frame 3" in p.stderr, p.stderr
+
+
+def test_api_run_is_the_command(tmp_path):
+    import dualsight
+
+    from dualsight.jobs.cli.main import main
+
+    cfg = tmp_path / "small.toml"
+    cfg.write_text("[rendezvous]\nduration_s = 1200.0\nframe_interval_s = 300.0\nmanoeuvre_times_s = [600.0]\n")
+    rid = dualsight.run("rendezvous", str(cfg), cases=2, seed=7, lake=tmp_path / "api", workers=1)
+    assert main(["rendezvous", "run", "--config", str(cfg), "--cases", "2", "--seed", "7", "--lake",
+                 str(tmp_path / "cli"), "--workers", "1", "--no-progress"]) == 0
+    a, c = Lake(tmp_path / "api"), Lake(tmp_path / "cli")
+    assert a.read_manifest(rid)["spec_hash"] == c.read_manifest(rid)["spec_hash"]
+    for ds in ("rendezvous_cases", "rendezvous_frames"):
+        ta, tc = (pq.read_table(x.root / ds / f"run={rid}") for x in (a, c))
+        keep = [n for n in ta.column_names if not n.startswith("t_") or n in ("t_s", "t_since_burn_s")]
+        assert ta.select(keep).equals(tc.select(keep)), ds
