@@ -344,8 +344,8 @@ def _measure(img, R, inv, Z, sig_f, s, cfg, sat, fit_sigma=False, cands=None, sp
         st_s, inside, _, _ = cut_stamps(img, None, r0, c0, h)
         sat_any = ((st_s >= sat) & (inside > 0)).reshape(K, -1).any(1)
     if sat_any.any():
-        nsat = np.array([(img[max(0, a - 3 * h):a + 3 * h + 1, max(0, b - 3 * h):b + 3 * h + 1] >= sat).sum()
-                         for a, b in zip(r0[sat_any], c0[sat_any])])   # one window per saturated star
+        win, win_in, _, _ = cut_stamps(img, None, r0[sat_any], c0[sat_any], 3 * h)   # (6h + 1)^2 around each
+        nsat = ((win >= sat) & (win_in > 0)).sum((1, 2))                                 # saturated star
         ext = nsat > math.pi * (6.0 * s) ** 2      # extended: no star's plateau is that wide (docstring, 6.)
         if ext.any():
             n_large += int(ext.sum())

@@ -42,13 +42,17 @@ def _phi(z):
 
 
 # ============================================================================ PSF helpers
+@functools.lru_cache(maxsize=256)
 def psf_kernel_1d(sigma: float) -> np.ndarray:
     """Normalised 1-D pixel-integrated Gaussian of ``sigma`` px, k_i = Phi((i + 1/2) / sigma) - Phi((i - 1/2) /
-    sigma), |i| <= h = max(1, ceil(3 sigma)): (2h + 1,) float64 summing to 1 (the matched filter's kernel)."""
+    sigma), |i| <= h = max(1, ceil(3 sigma)): (2h + 1,) float64 summing to 1 (the matched filter's kernel), read-only
+    (computed once per width: a frame asks for it up to five times)."""
     h = max(1, int(math.ceil(3.0 * sigma)))
     i = np.arange(-h, h + 1, dtype=np.float64)
     k = _Phi((i + 0.5) / sigma) - _Phi((i - 0.5) / sigma)
-    return k / k.sum()
+    k = k / k.sum()
+    k.flags.writeable = False
+    return k
 
 
 @functools.lru_cache(maxsize=256)
@@ -66,6 +70,7 @@ def sharpness_limit(sigma: float) -> float:
     return float((A0 / (N4 / 4.0)).max())
 
 
+@functools.lru_cache(maxsize=256)
 def flux_fraction_3x3(sigma: float) -> float:
     """Fraction of a pixel-integrated Gaussian star's flux (PSF sigma ``sigma`` px) in the 3 x 3 pixels centred on
     it, (Phi(1.5 / s) - Phi(-1.5 / s))^2: the flux of a fallback 3 x 3 centroid is its box sum over this."""
