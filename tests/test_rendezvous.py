@@ -259,3 +259,11 @@ def test_api_run_is_the_command(tmp_path):
         ta, tc = (pq.read_table(x.root / ds / f"run={rid}") for x in (a, c))
         keep = [n for n in ta.column_names if not n.startswith("t_") or n in ("t_s", "t_since_burn_s")]
         assert ta.select(keep).equals(tc.select(keep)), ds
+
+
+@pytest.mark.parametrize("name,preset", [("far", "far"), ("close", "close")])
+def test_the_examples_are_their_presets(name, preset):
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "rendezvous" / f"{name}.toml"
+    assert rz.resolve_spec(None, path) == rz.resolve_spec(preset, None)
