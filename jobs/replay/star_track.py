@@ -96,10 +96,13 @@ def predicted_windows(spec, ctx, draw: dict, res, focal=None) -> dict[int, objec
     return out
 
 
-def replay_track_case(lake: Lake, run_id: str, case_id: int, output: Path | None = None, rec=None) -> Path:
+def replay_track_case(lake: Lake, run_id: str, case_id: int, output: Path | None = None, rec=None,
+                      frame_offset: int = 0) -> Path:
     """Recompute sequence ``case_id`` of a ``star_track`` run, verify it against its rows (the sequence row, every
     frame row, every frame's image digest) and record its frames on the ``frame`` time line of ``rec`` (an open
-    recording) or of a new recording at ``output``."""
+    recording) or of a new recording at ``output``.  Frame k is recorded at ``frame_offset + k``: several sequences
+    in one recording get disjoint stretches of the time line (``jobs/replay/run.py`` passes the frames recorded
+    before), instead of overwriting each other at the same frame numbers."""
     from dualsight.jobs.kinds import star_track                # Taichi
     from dualsight.viz.recording import log_track_frame, open_recording
 
@@ -146,7 +149,8 @@ def replay_track_case(lake: Lake, run_id: str, case_id: int, output: Path | None
         p = windows.get(k)
         mode = MODE_NAMES[res.mode[k]]
         info = "\n".join([
-            f"# star-tracking sequence {case_id} of run `{run_id}`, frame {k} (t = {row['t_s']:.3f} s)", "",
+            f"# star-tracking sequence {case_id} of run `{run_id}`, frame {k} (t = {row['t_s']:.3f} s)"
+            + (f", at {int(frame_offset) + k} on the time line" if frame_offset else ""), "",
             f"- event: **{row['event']}**, mode: **{mode}**, lock reason: {row['lock_reason']}",
             f"- detections {row['n_detections']}, predicted {row['n_predicted']}, matched {row['n_matched']}, "
             f"used {row['n_used']}" + (" (two-star lock)" if row["two_star"] else ""),
@@ -163,7 +167,7 @@ def replay_track_case(lake: Lake, run_id: str, case_id: int, output: Path | None
             f"rate_{a}_deg_s": row[f"rate_att_{a}_deg_s"] for a in "xyz"} | {
             f"true_rate_{a}_deg_s": row[f"true_rate_{a}_deg_s"] for a in "xyz"} | {
             "n_matched": row["n_matched"], "n_used": row["n_used"], "valid": float(row["valid"])}
-        log_track_frame(rec, frame=k, image=images[k][0] if k in images else None,
+        log_track_frame(rec, frame=int(frame_offset) + k, image=images[k][0] if k in images else None,
                         det_xy=rnd["xy"][s], det_labels=[f"HIP {hip[i]}" if i >= 0 else "" for i in ids],
                         det_used=ids >= 0, windows_xy=None if p is None else p.xy,
                         windows_r=None if p is None else p.radius_px, truth_xy=px[inside],
