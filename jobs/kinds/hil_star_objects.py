@@ -134,7 +134,13 @@ def frame_objects(res, b: int, det, obs, ident, sol, cat_unit: np.ndarray, camer
     resid = np.where(acc, sol.residual[b], np.nan)[None]
     P = attitude_covariance(cov_unit, resid, acc.sum()[None], floor_rad=floor / f)[0] if ok[0] else np.zeros((3, 3))
     sigma_sys = float(r.get("residual_rms_rad") or 0.0) * f
-    cat_xy, rows = catalog_in_image(A, octx.deep.unit, camera)
+    # the deep catalog's stars in the image: a cone around the boresight first (117k stars projected cost ~70 ms)
+    corners = camera.backproject(np.array([[0.0, 0.0], [camera.width, 0.0], [0.0, camera.height],
+                                           [camera.width, camera.height]], np.float64))
+    cos_cone = math.cos(min(math.pi, float(np.arccos(np.clip(corners[:, 2], -1, 1)).max()) + 0.01))
+    cone = np.flatnonzero(octx.deep.unit @ A[2] >= cos_cone)
+    cat_xy, rows = catalog_in_image(A, octx.deep.unit[cone], camera)
+    rows = cone[rows]
     unk = unknown_objects(xy, flux, sig, identified, A, P, camera, cat_xy, octx.deep.vmag[rows],
                           zp.zp_mag if zp.n else float("nan"), sigma_sys, cfg, centroid_floor_px=floor)
     listed = unk.listed if cfg.enabled else np.zeros(len(unk.index), bool)
