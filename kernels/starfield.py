@@ -29,6 +29,11 @@ read noise + ADC (:func:`dualsight.kernels.sky_noise.sky_adu_table`, through a d
 transcendental call per pixel); one 64-bit hash serves 4 neighbouring pixels, 16 bits each, and a pixel whose
 2^-16 cell holds a CDF step draws 53 more bits (``rng.inverse_table_bits``: the same distribution as a 53-bit
 uniform; 7-10 % of the noisy preset's time per case, measured with benchmarks/bench_noise_path.py).
+Rows with the sky table, Gaussian stars and sparse (or no) hot pixels are drawn in two passes: every pixel as
+sky in a tight loop, then only the columns in the row's span of star windows (recorded by the splat) and the hot
+columns are redrawn through the per-effect samplers; every pixel's value is a function of (case seed, pixel
+index, its inputs) alone, so the frame is the one a single pass draws.  The frame digest
+(:mod:`dualsight.kernels.digest`) can be summed in the same pass (``render_star_fields(..., digest=True)``).
 Other pixels: shot noise is exact Poisson, by inversion of a tabulated CDF for pixels at the sky level,
 otherwise sequential inversion below 10 e- and PTRS rejection (Hörmann 1993) above; read noise is N(0, 1) by
 inversion (Wichura's AS241).  Without shot noise, dark current and sky background are their means only.
@@ -98,18 +103,24 @@ def _get(name: str, dtype=None):
 
 
 @ti.func
+def value_bits(v, is_float: ti.template()):
+    """A pixel value's unsigned bit pattern as u64 (the integer of a u16, the IEEE-754 pattern of an f32)."""
+    b = ti.u64(0)
+    if ti.static(is_float):
+        b = ti.cast(ti.bit_cast(v, ti.u32), ti.u64)
+    else:
+        b = ti.cast(v, ti.u64)
+    return b
+
+
+@ti.func
 def digest_term(v, idx, sky_bits, weights: ti.template(), is_float: ti.template()):
     """One pixel's term of the frame digest (:mod:`dualsight.kernels.digest`): (bits(v) - sky_bits) *
     splitmix64(idx) mod 2^64, v the pixel's value (u16, or f32 by its IEEE-754 pattern), idx (u64) its
     row-major index in the frame, splitmix64(idx) read from ``weights`` (:func:`digest_weights`: one load
     instead of the hash's two multiplications and three shifts; 0.2-0.4 ms instead of 0.8 per 1024 x 768 frame,
     one core)."""
-    b = ti.u64(0)
-    if ti.static(is_float):
-        b = ti.cast(ti.bit_cast(v, ti.u32), ti.u64)
-    else:
-        b = ti.cast(v, ti.u64)
-    return (b - sky_bits) * weights[ti.cast(idx, ti.i64)]
+    return (value_bits(v, is_float) - sky_bits) * weights[ti.cast(idx, ti.i64)]
 
 
 def _build_finalize(dtype, digest: bool = False):
@@ -190,12 +201,30 @@ def _build_finalize(dtype, digest: bool = False):
                 m_pair = ti.u64(0xFFFFFFFFFFFFFFFF)
                 if hot_log1m < ti.f64(0.0):
                     next_hot = _next_hot(-1, W, hot_log1m, rng.u01_key(k_geo, rkey))
-                for c in range(W):
-                    s = ti.f32(0.0)
-                    if c >= lo and c < hi:
-                        s = buf[p0 + c]
-                    if s != ti.f32(0.0):
-                        buf[p0 + c] = ti.f32(0.0)
+                # fast rows (the sky table, spans of star light, sparse or no hot pixels): pass 1 draws every pixel as sky in a tight
+                # loop; pass 2 visits only the columns in the row's span of star light and the hot columns and
+                # redraws those that are not sky (each pixel's value is a function of (seed, index) and its
+                # inputs alone: the same frame as one pass).  Other rows: one pass over every column.
+                fast = 0
+                if use_adu != 0 and use_span != 0 and (hot_log1m < ti.f64(0.0) or hot_frac <= ti.f64(0.0)):
+                    fast = 1
+                c = 0
+                if fast != 0:
+                    for c1 in range(W):
+                        idx = row0 + ti.cast(c1, ti.u64)
+                        m = idx >> ti.u64(2)
+                        if m != m_pair:
+                            m_pair = m
+                            h_pair = rng.hash_key(k_sky, m)
+                        sh = ti.u64(48) - ti.u64(16) * (idx & ti.u64(3))
+                        j = rng.inverse_table_bits((h_pair >> sh) & ti.u64(0xFFFF), 16, gshift, k_sky2, idx, acdf,
+                                                   aguide)
+                        v = ti.cast(adu0 + ti.cast(j, ti.f64), tdt)
+                        out[p0 + c1] = v
+                        if ti.static(digest):
+                            acc += digest_term(v, idx, sky_bits, wts, is_float)
+                    c = ti.min(lo, next_hot)
+                while c < W:
                     idx = row0 + ti.cast(c, ti.u64)
                     hot = 0
                     if hot_log1m < ti.f64(0.0):
@@ -206,71 +235,88 @@ def _build_finalize(dtype, digest: bool = False):
                     elif hot_frac > ti.f64(0.0):
                         if rng.u01_key(k_hot, idx) < hot_frac:
                             hot = 1
+                    nxt = c + 1                   # pass 2 of a fast row: the next span or hot column
+                    if fast != 0 and (nxt < lo or nxt >= hi):
+                        nxt = next_hot
+                        if c + 1 < lo:
+                            nxt = ti.min(lo, next_hot)
+                    s = ti.f32(0.0)
+                    if c >= lo and c < hi:
+                        s = buf[p0 + c]
+                    if s != ti.f32(0.0):
+                        buf[p0 + c] = ti.f32(0.0)
+                    prev = sky_bits               # the digest term this pixel holds already (pass 1's, fast rows)
                     j = -1
-                    if use_adu != 0 and s == ti.f32(0.0) and hot == 0:
-                        # a sky pixel (no star light, not hot; use_adu implies no stray light): its ADU value
-                        # by inversion of the tabulated CDF of shot + read noise + ADC (sky_adu_table)
-                        # one 64-bit hash per 4 pixels (frame index 4m .. 4m + 3), 16 bits each, high bits first
-                        # (rng.inverse_table_bits draws more bits in the rare cells a CDF step crosses)
-                        m = idx >> ti.u64(2)
-                        if m != m_pair:
-                            m_pair = m
-                            h_pair = rng.hash_key(k_sky, m)
-                        sh = ti.u64(48) - ti.u64(16) * (idx & ti.u64(3))
-                        h16 = (h_pair >> sh) & ti.u64(0xFFFF)
-                        j = rng.inverse_table_bits(h16, 16, gshift, k_sky2, idx, acdf, aguide)
+                    if s == ti.f32(0.0) and hot == 0:
+                        if fast != 0:
+                            j = -2                # a sky pixel: pass 1 drew it
+                        elif use_adu != 0:
+                            # a sky pixel (no star light, not hot; use_adu implies no stray light): its ADU value
+                            # by inversion of the tabulated CDF of shot + read noise + ADC (sky_adu_table)
+                            # one 64-bit hash per 4 pixels (frame index 4m .. 4m + 3), 16 bits each, high bits
+                            # first (rng.inverse_table_bits draws more bits in the rare cells a CDF step crosses)
+                            m = idx >> ti.u64(2)
+                            if m != m_pair:
+                                m_pair = m
+                                h_pair = rng.hash_key(k_sky, m)
+                            sh = ti.u64(48) - ti.u64(16) * (idx & ti.u64(3))
+                            h16 = (h_pair >> sh) & ti.u64(0xFFFF)
+                            j = rng.inverse_table_bits(h16, 16, gshift, k_sky2, idx, acdf, aguide)
+                    elif fast != 0 and ti.static(digest):
+                        prev = value_bits(out[p0 + c], is_float)
                     if j >= 0:
                         v = ti.cast(adu0 + ti.cast(j, ti.f64), tdt)
                         out[p0 + c] = v
                         if ti.static(digest):
                             acc += digest_term(v, idx, sky_bits, wts, is_float)
-                        continue
-                    e = ti.cast(s, ti.f64) + base_e
-                    st = ti.f64(0.0)
-                    sky_px = 0  # 1: only sky, dark current and stray light (for the stray tables)
-                    if s == ti.f32(0.0):
-                        sky_px = 1
-                    if stray != 0:
-                        st = ti.max(stray_row + stray_gx * (ti.cast(c, ti.f64) + stray_x0), ti.f64(0.0))
-                        e += st
-                    if hot != 0:
-                        e += hot_e
-                        sky_px = 0
-                    if shot != 0:
-                        k = ti.f64(-1.0)
-                        if use_table != 0 and e == base_e:  # the sky's lambda: tabulated CDF
-                            k = rng.poisson_table(rng.u01_key(k_shot0, idx), cdf, guide, 0, cdf.shape[0])
-                        if k < ti.f64(0.0) and stray != 0 and sky_px != 0 and ntab > 0:
-                            # stray light: Poisson(base + st) = Poisson(base + q step) (tabulated CDF of that
-                            # grid value, q = floor(st / step)) + Poisson(st - q step) (inversion, its own draw;
-                            # independent).  The remainder is < step (<= 1/16 e-): u <= 1 - d <= exp(-d) means 0
-                            # without computing exp(-d), the same result as the full inversion.
-                            q = ti.floor(st * tinv)
-                            ti_ = ti.cast(q, ti.i32) - tm0
-                            if ti_ >= 0 and ti_ < ntab:
-                                k = rng.poisson_table(rng.u01_key(k_shot0, idx), tcdf, tguide, toff[ti_], toff[ti_ + 1])
-                                d = st - q / tinv
-                                if k >= ti.f64(0.0) and d > ti.f64(0.0):
-                                    u2 = rng.u01_key(k_frac, idx)
-                                    if u2 > ti.f64(1.0) - d:
-                                        k += rng.poisson_inversion(d, ti.exp(-d), u2, 60)
-                        if k < ti.f64(0.0):
-                            if e != lam_c:
-                                lam_c = e
-                                cst = rng.poisson_consts(e)
-                            k = rng.poisson_keyed(e, cst, k_shot0, k_shot1, seed, rng.STREAM_SHOT, idx)
-                        e = k
-                    e = ti.min(e, full_well)
-                    if read_e > ti.f64(0.0):
-                        e += read_e * rng.normal_key(k_read, idx)
-                    adu = e / gain + bias
-                    if quantize != 0:
-                        adu = ti.floor(adu + ti.f64(QUANT_EPS_ADU))
-                    adu = ti.min(ti.max(adu, ti.f64(0.0)), max_adu)
-                    v = ti.cast(adu, tdt)
-                    out[p0 + c] = v
-                    if ti.static(digest):
-                        acc += digest_term(v, idx, sky_bits, wts, is_float)
+                    elif j == -1:
+                        e = ti.cast(s, ti.f64) + base_e
+                        st = ti.f64(0.0)
+                        sky_px = 0  # 1: only sky, dark current and stray light (for the stray tables)
+                        if s == ti.f32(0.0):
+                            sky_px = 1
+                        if stray != 0:
+                            st = ti.max(stray_row + stray_gx * (ti.cast(c, ti.f64) + stray_x0), ti.f64(0.0))
+                            e += st
+                        if hot != 0:
+                            e += hot_e
+                            sky_px = 0
+                        if shot != 0:
+                            k = ti.f64(-1.0)
+                            if use_table != 0 and e == base_e:  # the sky's lambda: tabulated CDF
+                                k = rng.poisson_table(rng.u01_key(k_shot0, idx), cdf, guide, 0, cdf.shape[0])
+                            if k < ti.f64(0.0) and stray != 0 and sky_px != 0 and ntab > 0:
+                                # stray light: Poisson(base + st) = Poisson(base + q step) (tabulated CDF of that
+                                # grid value, q = floor(st / step)) + Poisson(st - q step) (inversion, its own draw;
+                                # independent).  The remainder is < step (<= 1/16 e-): u <= 1 - d <= exp(-d) means 0
+                                # without computing exp(-d), the same result as the full inversion.
+                                q = ti.floor(st * tinv)
+                                ti_ = ti.cast(q, ti.i32) - tm0
+                                if ti_ >= 0 and ti_ < ntab:
+                                    k = rng.poisson_table(rng.u01_key(k_shot0, idx), tcdf, tguide, toff[ti_], toff[ti_ + 1])
+                                    d = st - q / tinv
+                                    if k >= ti.f64(0.0) and d > ti.f64(0.0):
+                                        u2 = rng.u01_key(k_frac, idx)
+                                        if u2 > ti.f64(1.0) - d:
+                                            k += rng.poisson_inversion(d, ti.exp(-d), u2, 60)
+                            if k < ti.f64(0.0):
+                                if e != lam_c:
+                                    lam_c = e
+                                    cst = rng.poisson_consts(e)
+                                k = rng.poisson_keyed(e, cst, k_shot0, k_shot1, seed, rng.STREAM_SHOT, idx)
+                            e = k
+                        e = ti.min(e, full_well)
+                        if read_e > ti.f64(0.0):
+                            e += read_e * rng.normal_key(k_read, idx)
+                        adu = e / gain + bias
+                        if quantize != 0:
+                            adu = ti.floor(adu + ti.f64(QUANT_EPS_ADU))
+                        adu = ti.min(ti.max(adu, ti.f64(0.0)), max_adu)
+                        v = ti.cast(adu, tdt)
+                        out[p0 + c] = v
+                        if ti.static(digest):
+                            acc += digest_term(v, idx, prev, wts, is_float)
+                    c = nxt
             if ti.static(digest):
                 dig[b * H + r] = acc
     return finalize
@@ -439,8 +485,8 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
     (images, (B,) uint64 digests).
 
     Cost: one serial-per-case splat of each star's window plus one (frame, row) pass over every pixel
-    (1024 x 768, one core: ~1 ms/frame noise-free, ~3-4 ms/frame with shot and read noise and hot pixels on
-    the tabulated sky path, ~18 ms/frame with continuous ADU (``quantize=False``: per-effect samplers)).  Another PSF
+    (1024 x 768, one core: ~1 ms/frame noise-free, ~1.9 ms/frame CPU with shot and read noise, hot pixels and
+    the digest on the two-pass tabulated sky path (noisy preset, 2-core VM under load 10-12), ~18 ms/frame with continuous ADU (``quantize=False``: per-effect samplers)).  Another PSF
     model or smear renders each star as several sub-sources (:mod:`dualsight.kernels.psf_models`), each
     within its own window: the defocus quadrature of the "realistic" preset (255 Gaussians per star) adds
     ~3 ms per frame of 13 stars, a smear multiplies that part by ~5 L (L px long).  Stray light is computed

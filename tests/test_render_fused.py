@@ -86,3 +86,78 @@ def test_rows_read_in_their_spans_hold_every_star_pixel():
     n = sky.size
     assert abs(sky.mean() - mean) < 5 * np.sqrt(var / n)
     assert abs(sky.var() / var - 1.0) < 5 * np.sqrt(2.0 / n)
+
+
+def _sky_reference(cfg, seed, H, W):
+    """Each pixel's value if it were sky, from the numpy twins of the counter-based hash (kernels/rng.py) and
+    ``np.searchsorted`` on the sky's tabulated ADU distribution: the smallest a with CDF(a) >= u, u from the
+    pixel's 16 bits of the 64-bit word of its group of 4 (frame index // 4) plus, where a CDF step falls in that
+    2^-16 cell, a further 53-bit uniform (a test's brute force: every pixel searched, no guide table)."""
+    from dualsight.kernels import rng as krng
+    from dualsight.kernels.sky_noise import sky_adu_table
+
+    cdf, _, a0 = sky_adu_table(cfg)
+    idx = np.arange(H * W, dtype=np.uint64)
+    word = krng.hash_np(np.uint64(seed), krng.STREAM_SKY_ADU, 0, idx >> np.uint64(2))
+    h16 = (word >> (np.uint64(48) - np.uint64(16) * (idx & np.uint64(3)))) & np.uint64(0xFFFF)
+    lo = h16.astype(np.float64) / 65536.0
+    k = np.searchsorted(cdf, lo, side="left")
+    step_inside = cdf[np.minimum(k, cdf.size - 1)] < lo + 1.0 / 65536.0
+    u = lo + krng.uniform_np(np.uint64(seed), krng.STREAM_SKY_ADU, 1, idx) / 65536.0
+    k = np.where(step_inside, np.searchsorted(cdf, u, side="left"), k)
+    return (a0 + k).reshape(H, W)
+
+
+def _hot_reference(seed, H, W, p):
+    """Hot columns of each row from the geometric gaps of their Bernoulli(p) process (kernels/starfield.py's
+    sparse hot pixels), in numpy: column c_(n+1) = c_n + 1 + floor(ln u_n / ln(1 - p)), u_n the row's n-th draw."""
+    from dualsight.kernels import rng as krng
+
+    key = krng.stream_key_np(np.uint64(seed), krng.STREAM_HOT, 1)
+    hot = np.zeros((H, W), bool)
+    for r in range(H):                # a test's loop over rows (a few dozen)
+        c, n = -1, 0
+        while True:
+            u = krng.u01_key_np(key, np.uint64((r << 32) | n))
+            c = c + 1 + int(np.floor(np.log(u) / np.log1p(-p)))
+            if c >= W:
+                break
+            hot[r, c] = True
+            n += 1
+    return hot
+
+
+def test_two_pass_rows_equal_the_pixel_model():
+    """Rows drawn sky-first then redrawn in their star spans and hot columns: every pixel outside the star
+    windows and not hot is its sky draw; every hot pixel is where the numpy geometric process puts it and holds
+    the hot charge; star windows hold the star light (the frame minus its sky draw sums to the stars' flux)."""
+    W, H, B = 96, 40, 3
+    cfg = dataclasses.replace(NOISY, hot_pixel_fraction=0.01, hot_pixel_e=20000.0, false_stars_per_frame=0)
+    rs = np.random.default_rng(5)
+    x = np.stack([rs.uniform(8.0, W - 8.0, 4) for _ in range(B)])
+    y = np.stack([rs.uniform(8.0, H - 8.0, 4) for _ in range(B)])
+    f = np.full((B, 4), 3.0e4)            # peak pixel ~6 ke-: below the full well
+    seeds = np.array([21, 22, 23], np.uint64)
+    img = render_star_fields(x, y, f, None, W, H, cfg, seeds).astype(np.int64)
+    R = int(np.ceil(cfg.psf_window_sigma * cfg.psf_sigma_px + 1.0))
+    c = np.arange(W)[None, :]
+    r = np.arange(H)[:, None]
+    for b in range(B):
+        win = np.zeros((H, W), bool)
+        light = np.zeros((H, W))
+        s = cfg.psf_sigma_px
+        for k in range(4):
+            wk = (np.abs(c - np.floor(x[b, k])) <= R) & (np.abs(r - np.floor(y[b, k])) <= R)
+            win |= wk
+            light += np.where(wk, f[b, k] * (PHI((c + 1 - x[b, k]) / s) - PHI((c - x[b, k]) / s))
+                              * (PHI((r + 1 - y[b, k]) / s) - PHI((r - y[b, k]) / s)), 0.0)
+        hot = _hot_reference(int(seeds[b]), H, W, cfg.hot_pixel_fraction)
+        sky = _sky_reference(cfg, int(seeds[b]), H, W)
+        plain = ~win & ~hot
+        np.testing.assert_array_equal(img[b][plain], sky[plain])
+        assert hot.sum() > 10 and (hot & ~win).any()
+        hot_adu = cfg.hot_pixel_e / cfg.gain_e_per_adu
+        assert np.all(img[b][hot & ~win] > sky[hot & ~win] + 0.8 * hot_adu)
+        excess = ((img[b] - sky) * cfg.gain_e_per_adu)[win & ~hot].sum()
+        truth = light[win & ~hot].sum()
+        assert abs(excess - truth) < 0.02 * truth
