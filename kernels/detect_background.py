@@ -4,13 +4,13 @@ sky's level and noise per frame from tiled, sigma-clipped statistics, median-fil
 sigma-clipped statistics themselves: of sorted rows (:func:`clipped_stats`, the tiles) and of one sample
 (:func:`robust_std`, the matched filter's noise measurement in :mod:`dualsight.kernels.detect_candidates`),
 with the exact :func:`median_1d`.  Pure numpy/OpenCV functions over arrays (ADU in, ADU out); the tiles' last
-clipping window optionally as one compiled pass (``engine`` "taichi": :mod:`dualsight.kernels.detect_passes`)."""
+clipping windows optionally as compiled passes (``engine`` "taichi": :mod:`dualsight.kernels.detect_passes`)."""
 
 import math
 
 import numpy as np
 
-from dualsight.kernels.detect_passes import pixel_dtype_supported, tile_window_sums
+from dualsight.kernels.detect_passes import pixel_dtype_supported, sorted_clipped_stats, tile_window_sums
 
 _SQRT2 = math.sqrt(2.0)
 
@@ -288,8 +288,10 @@ def tile_background(img: np.ndarray, tile: int = 32, clip: float = 3.0, iters: i
     """Level and noise sigma of every ``tile`` x ``tile`` square of one (H, W) frame (uint8, uint16 or float; ADU)
     (:mod:`dualsight.kernels.detect_local`, step 1): ``clip``-sigma clipping, ``iters`` windows, squares keeping
     under half of their pixels replaced by the frame's median square, a ``mesh`` x ``mesh`` median filter over
-    the grid (1 = off).  ``engine`` "taichi": the last window over all pixels in one compiled pass
-    (:func:`dualsight.kernels.detect_passes.tile_window_sums`, float64 sums), "numpy": ``_last_window`` (float32).
+    the grid (1 = off).  ``engine`` "taichi": the clipping of the sorted rows and the last window over all pixels
+    as compiled passes (:func:`dualsight.kernels.detect_passes.sorted_clipped_stats` and
+    :func:`~dualsight.kernels.detect_passes.tile_window_sums`, float64 sums), "numpy": :func:`clipped_stats` and
+    ``_last_window`` (float32 sums).
 
     Returns (level (ny, nx) float32, sigma (ny, nx) float32), ny = ceil(H / tile), nx = ceil(W / tile)."""
     import cv2
@@ -308,17 +310,22 @@ def tile_background(img: np.ndarray, tile: int = 32, clip: float = 3.0, iters: i
 
     def tiles():
         return np.ascontiguousarray(a.reshape(ny, tile, nx, tile).transpose(0, 2, 1, 3)).reshape(T, tile * tile)
+    compiled = engine == "taichi" and pixel_dtype_supported(a.dtype)
+    corr = 1.0 / math.sqrt(_clip_var_factor(clip))
+
+    def stats(rows, n_iter):        # sigma clipping of sorted rows: compiled (float64 sums) or numpy (float32)
+        return sorted_clipped_stats(rows, clip, n_iter, corr) if compiled else clipped_stats(rows, clip, n_iter)
     if iters >= 1 and tile % 2 == 0:    # the first windows on every other row and column, the last on every pixel
         h = tile // 2
         quarter = np.ascontiguousarray(a[::2, ::2].reshape(ny, h, nx, h).transpose(0, 2, 1, 3)).reshape(T, h * h)
-        level, sig, _ = clipped_stats(np.sort(quarter, axis=1, kind=kind), clip, iters - 1)
-        if engine == "taichi" and pixel_dtype_supported(a.dtype):
+        level, sig, _ = stats(np.sort(quarter, axis=1, kind=kind), iters - 1)
+        if compiled:
             level, sig, kept = window_stats(tile_window_sums(a, level, sig, clip, tile), level, sig, clip,
                                             tile * tile)
         else:
             level, sig, kept = _last_window(tiles(), level, sig, clip)
     else:
-        level, sig, kept = clipped_stats(np.sort(tiles(), axis=1, kind=kind), clip, iters)
+        level, sig, kept = stats(np.sort(tiles(), axis=1, kind=kind), iters)
     bad = kept < 0.5
     if bad.any() and not bad.all():
         level[bad] = np.median(level[~bad])

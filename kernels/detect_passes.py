@@ -6,6 +6,9 @@ with ``fit_engine`` "taichi", the default), reading the frame in its own dtype (
   count, sum and sum of squares of d = v - level over the pixels with |d| <= clip sigma, accumulated in float64, in
   one pass over the frame as it lies in memory (the numpy path, ``_last_window``: a tile-major copy of the frame and
   eight float32 passes over it; 1.06 ms against 0.43 ms on a 1024 x 768 16-bit frame, one core, 2026-11-27).
+* :func:`sorted_clipped_stats`: the tiles' median, MAD (or the 1-ADU lattice's quantiles) and first clipping
+  windows on their sorted quarter samples (:func:`dualsight.kernels.detect_background.clipped_stats`' rounds of
+  batched searches and reductions over all tiles): 0.28 ms against 0.85 ms on an ESA frame's 768 tiles.
 * :func:`foreground_components`: the candidates' connected components (union-find over the foreground pixels in
   raster order) and their 3 x 3 local maxima (step 3; the numpy path: :func:`~dualsight.kernels.detect_candidates.
   sparse_components`' rounds of gathers and pointer jumping, and 8 gathers for the maxima): ``find_candidates``
@@ -161,3 +164,90 @@ def foreground_components(f: np.ndarray, Z: np.ndarray, connectivity: int = 8):
         _KERNELS.get("components")(np.ascontiguousarray(f, np.int64), np.ascontiguousarray(Z, np.float32),
                                    int(connectivity == 8), np.empty(n, np.int32), lab, peak)
     return lab, peak.view(bool)
+
+
+def _build_clipped(dtype):
+    import taichi as ti
+
+    pt = getattr(ti, _PIXEL[np.dtype(dtype).str])
+    f64 = ti.f64
+
+    @ti.func
+    def below(s: ti.template(), r, N, med, t, strict):
+        """Count of the row's values v with v - med < t (``strict`` 0) or <= t (1): a binary search (sorted row)."""
+        lo, hi = 0, N
+        while lo < hi:
+            m = (lo + hi) // 2
+            d = ti.cast(s[r, m], f64) - med
+            if d < t or (strict != 0 and d == t):
+                lo = m + 1
+            else:
+                hi = m
+        return lo
+
+    @ti.func
+    def lattice(s: ti.template(), r, N, q):
+        """The row's quantile q on the 1-ADU lattice (detect_background.lattice_quantiles)."""
+        k = q * N
+        v = ti.cast(s[r, ti.min(ti.max(ti.cast(k, ti.i32), 0), N - 1)], f64)
+        n_lo = below(s, r, N, v, f64(0.0), 0)
+        n_eq = ti.max(below(s, r, N, v, f64(0.0), 1) - n_lo, 1)
+        return v - f64(0.5) + ti.min(ti.max((k - n_lo) / n_eq, f64(0.0)), f64(1.0))
+
+    @ti.kernel
+    def clipped(s: ti.types.ndarray(dtype=pt, ndim=2), clip: f64, iters: ti.i32, corr: f64,
+                out: ti.types.ndarray(dtype=f64, ndim=2)):
+        ti.loop_config(serialize=True)
+        for r in range(s.shape[0]):
+            N = s.shape[1]
+            m = (N - 1) // 2
+            med = f64(0.5) * (ti.cast(s[r, m], f64) + ti.cast(s[r, N // 2], f64))
+            sig = f64(0.0)
+            if N >= 4 and (s[r, m] == s[r, ti.max(m - 1, 0)] or s[r, m] == s[r, ti.min(m + 1, N - 1)]):
+                q25 = lattice(s, r, N, f64(0.25))         # a tied median: the lattice's quantiles
+                med = lattice(s, r, N, f64(0.5))
+                sig = (lattice(s, r, N, f64(0.75)) - q25) / f64(1.3489795)
+            else:                                        # 1.4826 MAD: the narrowest run of k sorted values
+                k = ti.max((N + 1) // 2, 1)
+                mad = f64(1e300)
+                for i in range(N - k + 1):
+                    mad = ti.min(mad, ti.max(med - ti.cast(s[r, i], f64), ti.cast(s[r, i + k - 1], f64) - med))
+                sig = f64(1.4826) * mad
+            centre = f64(0.0)
+            kept = N
+            for _ in range(iters):
+                lo = below(s, r, N, med, centre - clip * sig, 0)
+                hi = below(s, r, N, med, centre + clip * sig, 1)
+                kept = hi - lo
+                if hi > lo:
+                    s1, s2 = f64(0.0), f64(0.0)
+                    for i in range(lo, hi):
+                        d = ti.cast(s[r, i], f64) - med
+                        s1 += d
+                        s2 += d * d
+                    mean = s1 / (hi - lo)
+                    if sig > 0:
+                        sig = ti.sqrt(ti.max(s2 / (hi - lo) - mean * mean, f64(0.0))) * corr
+                    centre = mean
+            out[r, 0] = med + centre
+            out[r, 1] = sig
+            out[r, 2] = ti.cast(kept, f64) / N
+
+    return clipped
+
+
+_KERNELS.builders["clipped"] = _build_clipped
+
+
+def sorted_clipped_stats(s: np.ndarray, clip: float, iters: int, corr: float):
+    """:func:`dualsight.kernels.detect_background.clipped_stats` of the sorted rows ``s`` (T, N) (uint8, uint16 or
+    float32; ADU) in one serial pass, one row after the other: the median and 1.4826 MAD (a tied median: the 1-ADU
+    lattice's interpolated median and interquartile range / 1.34898, ``lattice_start``), then ``iters`` windows of
+    the values within ``clip`` sigma of the centre, each a contiguous run of the row found by binary search, its
+    mean and standard deviation x ``corr`` (the truncation correction) in float64.  Returns (level, sigma, kept
+    fraction) (T,) float64 each."""
+    T, N = s.shape
+    out = np.zeros((T, 3))
+    if T and N:
+        _KERNELS.get("clipped", s.dtype)(np.ascontiguousarray(s), float(clip), int(iters), float(corr), out)
+    return out[:, 0], out[:, 1], out[:, 2]

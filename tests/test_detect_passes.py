@@ -91,3 +91,49 @@ def test_foreground_components_are_opencvs_and_the_maxima_a_dilations(connectivi
         np.testing.assert_array_equal(lab[np.sort(first)], np.arange(n - 1))     # raster order of first pixels
         dil = cv2.dilate(Z, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
         np.testing.assert_array_equal(peak, (Z >= dil).ravel()[f])
+
+
+@pytest.mark.parametrize("kind", ["wide", "tied", "clamped", "float", "stars"])
+def test_sorted_clipped_stats_equal_the_numpy_clipping(kind):
+    """The compiled clipping of sorted rows gives numpy's clipped_stats (searchsorted / reduceat over all rows,
+    bisection for the MAD, lattice_start for tied medians) to float32 rounding, for 0, 2 and 3 windows: normal
+    16-bit rows, rows whose noise spans 1-2 ADU (tied medians), 8-bit rows clamped at 0, float rows, rows with a
+    bright tail; and a normal row's level and sigma are its mean and standard deviation within their errors."""
+    import math
+
+    from dualsight.kernels.detect_background import _clip_var_factor, clipped_stats
+    from dualsight.kernels.detect_passes import sorted_clipped_stats
+
+    rng = np.random.default_rng([24, len(kind)])
+    T, N = 300, 256
+    s = {"wide": lambda: rng.normal(1000, 20, (T, N)).round().astype(np.uint16),
+         "tied": lambda: np.clip(rng.normal(3, 1.2, (T, N)).round(), 0, None).astype(np.uint16),
+         "clamped": lambda: np.clip(rng.normal(0.3, 1.0, (T, N)).round(), 0, None).astype(np.uint8),
+         "float": lambda: rng.normal(50, 3, (T, N)).astype(np.float32),
+         "stars": lambda: np.concatenate([rng.normal(500, 5, (T, N - 26)), rng.uniform(500, 5000, (T, 26))],
+                                         1).round().astype(np.uint16)}[kind]()
+    s = np.sort(s, axis=1)
+    corr = 1.0 / math.sqrt(_clip_var_factor(3.0))
+    for iters in (0, 2, 3):
+        a = clipped_stats(s, 3.0, iters)
+        b = sorted_clipped_stats(s, 3.0, iters, corr)
+        scale = np.maximum(a[1], 1.0)
+        np.testing.assert_allclose(b[0], a[0], rtol=0, atol=1e-4 * scale.max())
+        np.testing.assert_allclose(b[1], a[1], rtol=1e-5, atol=1e-9)
+        np.testing.assert_array_equal(b[2], a[2])
+    if kind == "wide":         # mean 1000, sigma 20 (rounding adds 1/12 ADU^2): the level to ~3 x 20/sqrt(256)
+        assert np.abs(b[0] - 1000).max() < 5 * 20 / math.sqrt(N) and abs(np.median(b[1]) - 20.0) < 0.5
+
+
+def test_sorted_clipped_stats_mad_when_the_narrowest_run_is_the_last():
+    """1.4826 MAD of [0, 1, 2, 3, 10, 11, 11, 11, 11] (median 10): |v - 10| sorted 0, 1, 1, 1, 1, 7, ... -> MAD 1, the
+    run of the 5 largest values; written out, and numpy's."""
+    import math
+
+    from dualsight.kernels.detect_background import _clip_var_factor, clipped_stats
+    from dualsight.kernels.detect_passes import sorted_clipped_stats
+
+    s = np.array([[0, 1, 2, 3, 10, 11, 11, 11, 11]], np.uint16)
+    got = sorted_clipped_stats(s, 3.0, 0, 1.0 / math.sqrt(_clip_var_factor(3.0)))
+    assert got[0][0] == 10.0 and got[1][0] == pytest.approx(1.4826)
+    assert clipped_stats(s, 3.0, 0)[1][0] == pytest.approx(1.4826)
