@@ -130,14 +130,7 @@ def pixel_jacobian(v: np.ndarray, camera) -> np.ndarray:
     every star in one projection call.
     """
     if not camera.has_distortion:
-        x, y = v[:, 0] / v[:, 2], v[:, 1] / v[:, 2]
-        G = np.empty((len(v), 2, 3))
-        xy = x * y
-        G[:, 0, 0], G[:, 0, 1], G[:, 0, 2] = xy, -1.0 - x * x, y
-        G[:, 1, 0], G[:, 1, 1], G[:, 1, 2] = 1.0 + y * y, -xy, -x
-        G[:, 0] *= camera.fx
-        G[:, 1] *= camera.fy
-        return G
+        return _pinhole_jacobian(v[:, 0] / v[:, 2], v[:, 1] / v[:, 2], camera)
     x, y, z = v[:, 0] * _EPS_ROT, v[:, 1] * _EPS_ROT, v[:, 2] * _EPS_ROT
     d = np.zeros((3,) + v.shape)                     # d[i] = v x (eps e_i)
     d[0, :, 1], d[0, :, 2] = z, -y
@@ -145,6 +138,16 @@ def pixel_jacobian(v: np.ndarray, camera) -> np.ndarray:
     d[2, :, 0], d[2, :, 1] = y, -x
     px = camera.project(np.concatenate([v[None] + d, v[None] - d]))[0]                       # (6, P, 2)
     return np.moveaxis((px[:3] - px[3:]) / (2 * _EPS_ROT), 0, -1)
+
+
+def _pinhole_jacobian(x: np.ndarray, y: np.ndarray, camera) -> np.ndarray:
+    """(P, 2, 3) :func:`pixel_jacobian` of the pinhole at normalised coordinates x, y (P,)."""
+    G = np.empty((len(x), 2, 3))
+    xy = x * y
+    fx, fy = camera.fx, camera.fy
+    G[:, 0, 0], G[:, 0, 1], G[:, 0, 2] = fx * xy, -fx * (1.0 + x * x), fx * y
+    G[:, 1, 0], G[:, 1, 1], G[:, 1, 2] = fy * (1.0 + y * y), -fy * xy, -fy * x
+    return G
 
 
 def predict(A: np.ndarray, cov: np.ndarray, cat_unit: np.ndarray, camera, cfg: TrackingConfig) -> Prediction:
@@ -156,23 +159,40 @@ def predict(A: np.ndarray, cov: np.ndarray, cat_unit: np.ndarray, camera, cfg: T
     ``scene.camera.Camera``.  Keeps the ``cfg.max_predicted`` brightest stars inside the image.
     """
     A = np.asarray(A, np.float64)
-    cos_half = np.cos(field_half_angle(camera))
+    cos_half = _cos_half_angle(camera)
     cand = np.flatnonzero(cat_unit @ A[2] > cos_half)                 # cone test, then the camera model
     v = cat_unit[cand] @ A.T
-    px, front = camera.project(v)
-    inside = front & camera.in_image(px)      # inside the cone (< 90 deg): z > 0, px finite
-    keep = np.flatnonzero(inside)[: cfg.max_predicted]
-    rows, v, px = cand[keep], v[keep], px[keep]
+    if camera.has_distortion:
+        px, _ = camera.project(v)             # inside the cone (< 90 deg): z > 0, px finite
+        keep = np.flatnonzero(camera.in_image(px))[: cfg.max_predicted]
+        rows, v, px = cand[keep], v[keep], px[keep]
+        G = pixel_jacobian(v, camera).reshape(-1, 3)                  # rows u0, v0, u1, v1, ...
+    else:                                     # the pinhole (camera.project's formula) and its Jacobian in one pass
+        xn = v[:, :2] / v[:, 2:]
+        px = xn * (camera.fx, camera.fy) + (camera.cx, camera.cy)
+        keep = np.flatnonzero(camera.in_image(px))[: cfg.max_predicted]
+        rows, xn, px = cand[keep], xn[keep], px[keep]
+        G = _pinhole_jacobian(xn[:, 0], xn[:, 1], camera).reshape(-1, 3)
     cov = np.asarray(cov, np.float64)
-    G = pixel_jacobian(v, camera)
-    GP = G @ cov                                                       # (P, 2, 3)
-    a = np.sum(GP[:, 0] * G[:, 0], axis=1)                             # S = G P G^T, its three entries
-    b = np.sum(GP[:, 0] * G[:, 1], axis=1)
-    c = np.sum(GP[:, 1] * G[:, 1], axis=1)
-    lam = 0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b * b)          # largest eigenvalue of the 2 x 2
+    GP = G @ cov
+    ac = np.sum(GP * G, axis=1).reshape(-1, 2)                         # S = G P G^T: its diagonal (a, c) ...
+    b = np.sum(GP[0::2] * G[1::2], axis=1)                             # ... and off-diagonal entry
+    h = 0.5 * (ac[:, 0] - ac[:, 1])
+    lam = 0.5 * (ac[:, 0] + ac[:, 1]) + np.sqrt(h * h + b * b)         # largest eigenvalue of the 2 x 2
     sigma = np.sqrt(lam + cfg.centroid_sigma_px ** 2)
     radius = np.minimum(np.maximum(cfg.window_k_sigma * sigma, cfg.window_min_px), cfg.window_max_px)
-    return Prediction(A, cov, rows.astype(np.int64), px, sigma, radius)
+    return Prediction(A, cov, rows, px, sigma, radius)
+
+
+_CONE: list = [None, 0.0]
+"""The last camera of :func:`_cos_half_angle` and its cone's cosine (a tracker keeps one camera; hashing the camera
+for ``field_half_angle``'s memo costs more than the cone test)."""
+
+
+def _cos_half_angle(camera) -> float:
+    if _CONE[0] is not camera:
+        _CONE[0], _CONE[1] = camera, math.cos(field_half_angle(camera))
+    return _CONE[1]
 
 
 def match(pred_xy: np.ndarray, radius_px: np.ndarray, det_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -313,7 +333,12 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
         sig = np.asarray(det_sigma_px, np.float64)[det]
         sig = np.where(np.isfinite(sig) & (sig > 0), sig, cfg.centroid_sigma_px)
     f = 0.5 * (camera.fx + camera.fy)
-    b = camera.backproject(det_xy[det])
+    if camera.has_distortion:
+        b = camera.backproject(det_xy[det])
+    else:                                     # the pinhole's back-projection (camera.backproject's formula)
+        b = np.ones((n_matched, 3))
+        b[:, :2] = (det_xy[det] - (camera.cx, camera.cy)) / (camera.fx, camera.fy)
+        b /= np.sqrt(np.sum(b * b, axis=1))[:, None]
     r = cat_unit[pred.rows[star]]
     sig_rad = sig / f
     w = 1.0 / (sig_rad * sig_rad)
@@ -332,17 +357,20 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
         if not ok:
             return lost(DEGENERATE, n_used)
         nres = np.sqrt(np.sum((r @ A.T - b) ** 2, axis=1)) / sig_rad
-    nu = nres[use]
+        nu, det, star, sig = nres[use], det[use], star[use], sig[use]
+        worst = float(nu.max())
+    else:                                               # every residual already within residual_k_sigma
+        nu, worst = nres, 0.0
     dof = max(1, 2 * n_used - 3)
     rms = math.sqrt(float(nu @ nu) / dof)
     p = tracking_chance(n_used, P, D, r_max, camera.width * camera.height)
-    if rms > cfg.max_rms_sigma or float(nu.max()) > cfg.residual_k_sigma:
+    if rms > cfg.max_rms_sigma or worst > cfg.residual_k_sigma:
         return lost(RESIDUAL, n_used, rms, p)
     if p > cfg.max_p_chance:
         return lost(P_CHANCE, n_used, rms, p)
     if rms > 1.0:
         cov = cov * (rms * rms)
-    det_row[det[use]] = pred.rows[star[use]]
-    res_px[det[use]] = nu * sig[use]
+    det_row[det] = pred.rows[star]
+    res_px[det] = nu * sig
     return TrackResult(A, cov, True, LOCKED, det_row, res_px, P, n_matched, n_used, n_amb, n_used == 2, rms, p,
                        max_sigma(cov) > cfg.max_sigma_rad)
