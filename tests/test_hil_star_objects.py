@@ -87,6 +87,25 @@ def test_point_target_is_the_brightest_or_the_nearest_to_a_direction():
     assert j == -1 and "no unknown object" in why
 
 
+def test_the_cone_keeps_every_catalog_star_in_the_image():
+    """The deep catalog's stars in the image through the boresight cone = those of projecting every star (random
+    attitudes, the ESA camera and a 90 x 70 deg one with distortion)."""
+    from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
+    from dualsight.jobs.kinds.hil_star_objects import stars_in_image
+    from dualsight.scene.attitude import quat_to_dcm, random_quaternions
+    from dualsight.scene.camera import Camera
+    from dualsight.scene.starfield_geometry import catalog_in_image
+
+    cat = load_star_catalog(StarCatalogConfig(mag_limit=12.0, epoch_jyear=2019.6))
+    wide = Camera(width=640, height=480, pixel_pitch_m=5e-6, fx=320.0, fy=320.0, cx=320.0, cy=240.0,
+                  distortion=(-0.1, 0.01, 0.0, 0.0, 0.0))
+    for cam in (Camera.from_toml(CAMERA), wide):
+        for A in quat_to_dcm(random_quaternions(np.random.default_rng([23, 5]), 6)):
+            xy0, rows0 = catalog_in_image(A, cat.unit, cam)
+            xy, rows = stars_in_image(A, cat.unit, cam)
+            assert np.array_equal(rows, rows0) and np.array_equal(xy, xy0) and len(rows) > 0
+
+
 def test_unknown_config_errors_name_the_field():
     with pytest.raises(ValueError, match="mag_window"):
         UnknownConfig(mag_window=-1.0)

@@ -39,7 +39,7 @@ from dualsight.scene.attitude import radec_to_unit, unit_to_radec
 from dualsight.scene.starfield_geometry import catalog_in_image
 
 __all__ = ["OBJECT_COLUMNS", "OBJECTS_SCHEMA", "ObjectContext", "object_context", "frame_objects",
-           "unknown_config"]
+           "unknown_config", "stars_in_image"]
 
 OBJECT_COLUMNS = [
     ("zp_mag", pa.float64()), ("zp_scatter_mag", pa.float64()), ("zp_stars", pa.int32()),
@@ -94,6 +94,18 @@ def object_context(settings, target=None, near=None) -> ObjectContext:
     return ObjectContext(cfg, deep, target, nr)
 
 
+def stars_in_image(A: np.ndarray, cat_unit: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
+    """``scene.starfield_geometry.catalog_in_image`` (xy (M, 2) px, catalog rows (M,)) of the stars in a cone around
+    the boresight A[2] (the image's half-diagonal + 0.01 rad) only: projecting all 117k Hipparcos stars costs ~70 ms
+    a frame, the cone's dot products ~1 ms."""
+    corners = camera.backproject(np.array([[0.0, 0.0], [camera.width, 0.0], [0.0, camera.height],
+                                           [camera.width, camera.height]], np.float64))
+    cos_cone = math.cos(min(math.pi, float(np.arccos(np.clip(corners[:, 2], -1, 1)).max()) + 0.01))
+    cone = np.flatnonzero(cat_unit @ np.asarray(A, np.float64)[2] >= cos_cone)
+    xy, rows = catalog_in_image(A, cat_unit[cone], camera)
+    return xy, cone[rows]
+
+
 def _null_target(reason: str, name: str | None) -> dict:
     return {"target": name, "target_kind": None, "target_reason": reason}
 
@@ -134,13 +146,7 @@ def frame_objects(res, b: int, det, obs, ident, sol, cat_unit: np.ndarray, camer
     resid = np.where(acc, sol.residual[b], np.nan)[None]
     P = attitude_covariance(cov_unit, resid, acc.sum()[None], floor_rad=floor / f)[0] if ok[0] else np.zeros((3, 3))
     sigma_sys = float(r.get("residual_rms_rad") or 0.0) * f
-    # the deep catalog's stars in the image: a cone around the boresight first (117k stars projected cost ~70 ms)
-    corners = camera.backproject(np.array([[0.0, 0.0], [camera.width, 0.0], [0.0, camera.height],
-                                           [camera.width, camera.height]], np.float64))
-    cos_cone = math.cos(min(math.pi, float(np.arccos(np.clip(corners[:, 2], -1, 1)).max()) + 0.01))
-    cone = np.flatnonzero(octx.deep.unit @ A[2] >= cos_cone)
-    cat_xy, rows = catalog_in_image(A, octx.deep.unit[cone], camera)
-    rows = cone[rows]
+    cat_xy, rows = stars_in_image(A, octx.deep.unit, camera)
     unk = unknown_objects(xy, flux, sig, identified, A, P, camera, cat_xy, octx.deep.vmag[rows],
                           zp.zp_mag if zp.n else float("nan"), sigma_sys, cfg, centroid_floor_px=floor)
     listed = unk.listed if cfg.enabled else np.zeros(len(unk.index), bool)
