@@ -104,8 +104,11 @@ def _build_fit(dtype, fit_sigma: bool = False, serial: bool = False):
                                p[2] * (sy[i] * px[j] + py[i] * sx[j])], f64)
                 for a in ti.static(range(npar)):
                     g[a] += W * J[a] * r
-                    for b in ti.static(range(npar)):
+                    for b in ti.static(range(a, npar)):       # the upper triangle; mirrored below
                         H[a, b] += W * J[a] * J[b]
+        for a in ti.static(range(npar)):
+            for b in ti.static(range(a)):
+                H[a, b] = H[b, a]
         return H, g
 
     @ti.func
@@ -170,8 +173,17 @@ def _build_fit(dtype, fit_sigma: bool = False, serial: bool = False):
             p[2] = ti.max(num / ti.max(den, f64(1e-12)), f64(1e-3))     # A at b = 0
             chi = chi2(st, w0, k, rk, ck, p, n, nv, gain)
             lam = f64(1e-3)
+            Hc = ti.Matrix.zero(f64, 5, 5)     # the normal equations at p, kept while p is (a rejected step)
+            gc = ti.Vector.zero(f64, 5)
+            have = 0
             for it in range(iters):
-                H, g = normal(st, w0, k, rk, ck, p, n, nv, gain)
+                if have == 0:
+                    H0, g0 = normal(st, w0, k, rk, ck, p, n, nv, gain)
+                    Hc = H0
+                    gc = g0
+                    have = 1
+                H = Hc
+                g = gc
                 for a in ti.static(range(npar)):
                     H[a, a] += lam * ti.max(H[a, a], f64(1e-12))
                 step = solve(H, g)
@@ -191,16 +203,19 @@ def _build_fit(dtype, fit_sigma: bool = False, serial: bool = False):
                     p = pn
                     chi = chin
                     lam = ti.max(lam * f64(0.1), f64(1e-6))
+                    have = 0
                 else:
                     lam = lam * f64(10.0)
                 if small or lam >= f64(1e4):
                     break
             for a in ti.static(range(5)):
                 out[k, a] = p[a]
-            Hf, gf = normal(st, w0, k, rk, ck, p, n, nv, gain)    # the Fisher matrix of (x, y, A, b) at p
+            if have == 0:                                          # the Fisher matrix of (x, y, A, b) at p
+                H1, g1 = normal(st, w0, k, rk, ck, p, n, nv, gain)
+                Hc = H1
             for a in ti.static(range(4)):
                 for b in ti.static(range(4)):
-                    fisher[k, a, b] = Hf[a, b]
+                    fisher[k, a, b] = Hc[a, b]
 
     return fit
 
