@@ -15,7 +15,8 @@ with ``git worktree add`` into a temporary folder and runs the same measurement 
 PYTHONPATH), alternating the two ``--rounds`` times, so a ratio is measured under the same load.
 
 ``--taichi`` measures with ``LocalDetectConfig(fit_engine="taichi")`` where the tree has that setting (the PSF fits
-as one Taichi kernel, ``kernels/detect_psf_fit.py``; the kernels' start is outside the timed passes).
+as one Taichi kernel, ``kernels/detect_psf_fit.py``; the kernels' start is outside the timed passes); without it each
+tree runs its default (since 822a98b the default is "taichi": fits, tile statistics and components compiled).
 
 Usage:  python benchmarks/bench_detect_speed.py [--rounds 2] [--repeats 3] [--rendered 8] [--against 00d8bee] [--taichi]
         python benchmarks/bench_detect_speed.py --against none            # this tree only
@@ -65,7 +66,7 @@ for mod, name, label in stages:
     m = importlib.import_module("dualsight.kernels." + mod)
     if hasattr(m, name):
         T.wrap(m, name, label)
-out = {"package": os.path.dirname(dl.__file__)}
+out = {"package": os.path.dirname(dl.__file__), "engine": getattr(dl.LocalDetectConfig(), "fit_engine", "numpy")}
 for set_name, paths in sets.items():
     imgs = [cv2.imread(p, cv2.IMREAD_UNCHANGED) for p in paths]
     cfg = dl.LocalDetectConfig(fit_engine="taichi") if fit_taichi else dl.LocalDetectConfig()
@@ -141,7 +142,8 @@ def main() -> None:
                 results[tag].append(measure(tree, sets, a.repeats, a.core, a.taichi))
         print(f"detect_real CPU ms per frame, one core, median over frames x {a.repeats} repeats, "
               f"{a.rounds} alternated rounds (stage = own time of its functions)"
-              + ("; fit_engine 'taichi' where the tree has it" if a.taichi else "; numpy PSF fits"))
+              + ("; fit_engine 'taichi' where the tree has it" if a.taichi else "; default settings: fit_engine "
+                 + ", ".join(f"{tag} '{results[tag][0]['engine']}'" for tag, _ in trees)))
         for set_name in sets:
             print(set_name + ":")
             for i in range(a.rounds):

@@ -185,9 +185,11 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
         med = {s: 1e3 * statistics.median(per[s]) for s in order if s in per}
         total = 1e3 * statistics.median(per["total"])       # the median frame's sum (not the sum of medians)
         q1, q3 = (1e3 * q for q in statistics.quantiles(per["total"], n=4)[::2])
-        # the engine `hil star` itself picks for a short run: the global detector has started Taichi, the local
-        # one has not (jobs/kinds/hil_star.py voting_engine)
-        mark = " (hil star's own choice)" if (engine == "taichi") == (detector == "global") else ""
+        # the engine `hil star` itself picks for a short run: "taichi" when the detector has started Taichi (the
+        # global one; the local one with fit_engine "taichi", its default since 822a98b), else "numpy"
+        # (jobs/kinds/hil_star.py voting_engine)
+        local_ti = getattr(dl.LocalDetectConfig(), "fit_engine", "numpy") == "taichi"
+        mark = " (hil star's own choice)" if (engine == "taichi") == (detector == "global" or local_ti) else ""
         print(f"  detector {detector}, voting engine {engine}{mark}: "
               + ", ".join(f"{s} {v:.2f}" for s, v in med.items())
               + f" | end to end without decode {total:.2f} ms (quartiles {q1:.2f}-{q3:.2f}),"
