@@ -13,8 +13,10 @@ per case (median over ``--repeats`` passes over ``--batches`` batches of ``--bat
 
   sample      draw_cases + stars_in_field (attitudes, projection)
   render      render_star_fields with every random effect off (PSF splat + the ADC pass over every pixel)
-  noise       render_star_fields of the noisy sensor minus ``render`` (shot, read, hot pixels in the same pass)
-  digest      frame_digest_taichi of the frames (jobs/kinds/star.py: one Taichi pass, parallel over rows)
+  noise       render_star_fields of the noisy sensor minus ``render`` (shot, read, hot pixels in the same pass;
+              with the frame digest summed in that pass, ``digest=True``, where the code has it: issue 24.3)
+  digest      frame_digest_taichi of the frames: the job's separate pass before issue 24.3 (0 where the render
+              pass sums the digest itself)
   background  estimate_background (strided sample: median, MAD, clipped sigma)
   threshold   _levels + native_threshold (per-frame numbers)
   labelling   label_frames (run-length union-find: every pixel read once or twice)
@@ -95,6 +97,9 @@ def stage_times(batch: int, batches: int, repeats: int) -> dict:
     from dualsight.warehouse.lake import Lake
     from dualsight.warehouse.shards import ShardInfo
 
+    import inspect
+
+    fused = "digest" in inspect.signature(sf.render_star_fields).parameters   # the code after issue 24.3
     d, _ = load_spec(batch)
     spec = star.spec_from_dict(d)
     ctx = star.make_context(spec)
@@ -122,10 +127,14 @@ def stage_times(batch: int, batches: int, repeats: int) -> dict:
                 sf.render_star_fields(*args, quiet, draw["noise_seed"], psf=ctx.psf)
                 acc["render"] += _ms(t)
                 t = CLOCK()
-                img = sf.render_star_fields(*args, sen, draw["noise_seed"], psf=ctx.psf)
+                if fused:
+                    img, _ = sf.render_star_fields(*args, sen, draw["noise_seed"], psf=ctx.psf, digest=True)
+                else:
+                    img = sf.render_star_fields(*args, sen, draw["noise_seed"], psf=ctx.psf)
                 acc["noise"] += _ms(t)
                 t = CLOCK()
-                frame_digest(img, np.asarray(sen.empty_pixel_adu()).astype(img.dtype))
+                if not fused:
+                    frame_digest(img, np.asarray(sen.empty_pixel_adu()).astype(img.dtype))
                 acc["digest"] += _ms(t)
                 B = img.shape[0]
                 t = CLOCK()

@@ -144,6 +144,7 @@ def _build_finalize(dtype, digest: bool = False):
                  tcdf: ti.types.ndarray(dtype=ti.f64, ndim=1), tguide: ti.types.ndarray(dtype=ti.i32, ndim=1),
                  toff: ti.types.ndarray(dtype=ti.i64, ndim=1), tm0: ti.i32, tinv: ti.f64,
                  acdf: ti.types.ndarray(dtype=ti.f64, ndim=1), aguide: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                 avalue: ti.types.ndarray(dtype=ti.i32, ndim=1),
                  use_adu: ti.i32, adu0: ti.f64, hot_log1m: ti.f64):
         # flat (B*H*W,) arrays: 3-D external-array stores cost ~2x more in Taichi 1.7 CPU code
         for b, r in ti.ndrange(B, H):  # (frame, row) outer loop, columns serial
@@ -217,9 +218,12 @@ def _build_finalize(dtype, digest: bool = False):
                             m_pair = m
                             h_pair = rng.hash_key(k_sky, m)
                         sh = ti.u64(48) - ti.u64(16) * (idx & ti.u64(3))
-                        j = rng.inverse_table_bits((h_pair >> sh) & ti.u64(0xFFFF), 16, gshift, k_sky2, idx, acdf,
-                                                   aguide)
-                        v = ti.cast(adu0 + ti.cast(j, ti.f64), tdt)
+                        h16 = (h_pair >> sh) & ti.u64(0xFFFF)
+                        g = avalue[ti.cast(h16 >> ti.cast(gshift, ti.u64), ti.i32)]   # the ADU value, one load
+                        v = ti.cast(g, tdt)
+                        if g < 0:                     # a guide cell a CDF step crosses: search
+                            j = rng.inverse_table_bits(h16, 16, gshift, k_sky2, idx, acdf, aguide)
+                            v = ti.cast(adu0 + ti.cast(j, ti.f64), tdt)
                         out[p0 + c1] = v
                         if ti.static(digest):
                             acc += digest_term(v, idx, sky_bits, wts, is_float)
@@ -523,6 +527,8 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
     p_hot = cfg.hot_pixel_fraction
     hot_log1m = math.log1p(-p_hot) if 0.0 < p_hot <= HOT_GEOMETRIC_MAX else 0.0
     acdf, aguide, adu0 = sky if sky is not None else (np.ones(1), np.zeros(1, np.int32), 0.0)
+    # the guide's resolved cells as ADU values (adu0 + entry: integers, quantised ADU), -1 where a step crosses
+    avalue = np.ascontiguousarray(np.where(aguide >= 0, aguide + int(adu0), -1).astype(np.int32))
     src = None
     if cfg.psf_model != "gaussian" or cfg.needs_camera:  # sub-sources (psf_models); else the plain Gaussian splat
         src = psf_models.prepare_sources(x, y, f, ok, cfg, camera, attitude, psf)
@@ -549,7 +555,7 @@ def render_star_fields(x, y, flux_e, valid, width: int, height: int, cfg: Sensor
                     int(hot_seed is not None), float(cfg.base_e), float(cfg.full_well_e), float(cfg.gain_e_per_adu),
                     float(cfg.bias_adu), float(cfg.max_adu), int(cfg.quantize), int(cfg.shot_noise),
                     float(cfg.read_noise_e), float(cfg.hot_pixel_fraction), float(cfg.hot_pixel_e), cdf, guide,
-                    int(use_table), *stray, tcdf, tguide, toff, tm0, tinv, acdf, aguide, int(sky is not None),
+                    int(use_table), *stray, tcdf, tguide, toff, tm0, tinv, acdf, aguide, avalue, int(sky is not None),
                     float(adu0), hot_log1m)
                 if digest:
                     with np.errstate(over="ignore"):
