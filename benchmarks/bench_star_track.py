@@ -49,18 +49,23 @@ def main() -> int:
     ap.add_argument("--lake", type=Path, default=None, help="lake folder (default: a new temporary folder)")
     ap.add_argument("--run", default=None)
     ap.add_argument("--shard-size", type=int, default=None, help="sequences per shard (default: the engine's)")
+    ap.add_argument("--max-sigma-arcsec", type=float, default=25.0,
+                    help="tracking.max_sigma_rad in arcsec: withhold attitudes whose stated 1-sigma exceeds it "
+                         "(examples/star/track.toml's 25; 36000 = off)")
     args = ap.parse_args()
     lake = Lake(args.lake or Path(tempfile.mkdtemp(prefix="bench_star_track_")))
     config = {"sequence": {"frames": args.frames, "fps": args.fps, "exposure_s": min(0.1, 1.0 / args.fps),
                            "motion": "constant", "rate_max_deg_s": args.rate_max, "blinded": 1, "dropped": 1,
-                           "shadow_lost_in_space": True}}
+                           "shadow_lost_in_space": True},
+              "tracking": {"max_sigma_arcsec": args.max_sigma_arcsec}}
     plan = star_track.plan_run("realistic", config, seed=args.seed, cases=args.cases, run_id=args.run)
     t0 = time.perf_counter()
     m = star_track.start_run(plan, lake, workers=args.workers, shard_size=args.shard_size)
     wall = time.perf_counter() - t0
     print(f"conditions: {args.cases} sequences x {args.frames} frames at {args.fps:g} fps, realistic preset (paper "
           f"camera, realistic sensor, local detector), constant rates uniform in [0, {args.rate_max:g}] deg/s, "
-          f"smear on, 1 blinded + 1 dropped frame per sequence, {args.workers} workers on "
+          f"smear on, 1 blinded + 1 dropped frame per sequence, attitudes withheld above "
+          f"{args.max_sigma_arcsec:g} arcsec stated 1-sigma, {args.workers} workers on "
           f"{len(os.sched_getaffinity(0))} cores, load average {os.getloadavg()[0]:.1f}; run {plan.run_id} "
           f"({m['status']}) in {lake.root}, {wall:.0f} s wall")
     print(report.text(report.build(lake, plan.run_id)))
