@@ -23,8 +23,9 @@ Scores per method and condition:
                 detector's detections: success / confident-wrong rates and the attitude error
 Methods:
   local         detect_real(frames, LocalDetectConfig(psf_sigma_px=<sensor's>, gain_e_per_adu=<sensor's>))
-  local-auto    the same with the PSF width measured per frame (psf_sigma_px None), as in HIL; and with
-                fit_engine "taichi" (the PSF fits as one Taichi kernel, kernels/detect_psf_fit.py)
+  local-auto    the same with the PSF width measured per frame (psf_sigma_px None), as in HIL; both with the
+                default fit_engine "taichi" (PSF fits, tile statistics and components compiled:
+                kernels/detect_psf_fit.py, kernels/detect_passes.py), and local-auto with fit_engine "numpy"
   global        detect_stars(frames, the spec's DetectConfig) (k 5, min_pixels 3)
   sep           sep.Background (32 px meshes, 3 x 3 filter) + sep.extract(matched filter = the pixel-
                 integrated PSF, err = the background rms map, minarea 1) + sep.winpos (windowed centroid,
@@ -152,11 +153,12 @@ def per_frame(det):
 
 
 # ============================================================================ methods
-def run_local(images, sensor, auto=False, fit_engine="numpy"):
+def run_local(images, sensor, auto=False, fit_engine=None):
     from dualsight.kernels.detect_local import LocalDetectConfig, detect_real
 
+    engine = {} if fit_engine is None else {"fit_engine": fit_engine}       # None: the default ("taichi")
     cfg = LocalDetectConfig(psf_sigma_px=None if auto else sensor.psf_sigma_px, gain_e_per_adu=sensor.gain_e_per_adu,
-                            fit_engine=fit_engine)
+                            **engine)
     sat = min(sensor.full_well_e / sensor.gain_e_per_adu + sensor.bias_adu, sensor.max_adu) - 3 * (
         sensor.read_noise_e / sensor.gain_e_per_adu)
     det = detect_real(images, cfg, saturation_adu=sat)
@@ -248,9 +250,9 @@ def bench(condition, frames, repeats, out=print, sil=True):
     (ax, ay), adet = run_local(images, sensor, auto=True)
     rows.append(["local-auto", score(ax, ay, truth, snr),
                  best_time(lambda: run_local(images, sensor, auto=True), repeats)])
-    (tx, ty), _ = run_local(images, sensor, auto=True, fit_engine="taichi")      # the kernels built: untimed
-    rows.append(["local-auto, Taichi fits", score(tx, ty, truth, snr),
-                 best_time(lambda: run_local(images, sensor, auto=True, fit_engine="taichi"), repeats)])
+    (tx, ty), _ = run_local(images, sensor, auto=True, fit_engine="numpy")
+    rows.append(["local-auto, numpy engine", score(tx, ty, truth, snr),
+                 best_time(lambda: run_local(images, sensor, auto=True, fit_engine="numpy"), repeats)])
     (gx, gy), gdet = run_global(images, spec.detect)
     rows.append([f"global (k {spec.detect.k_sigma:g}, min_px {spec.detect.min_pixels})", score(gx, gy, truth, snr),
                  best_time(lambda: run_global(images, spec.detect), repeats)])

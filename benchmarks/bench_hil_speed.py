@@ -25,7 +25,10 @@
            rusage), which a loaded machine does not inflate.  ``--hil-args`` adds options to both runs (e.g. "--detector global
            --no-compare", the throughput settings).  Target: >= 100 frames/s on 2 cores.
 
+``--against COMMIT [--rounds N]`` runs the same command in a worktree of COMMIT too, alternating (this tree first).
+
 Usage:  python benchmarks/bench_hil_speed.py [frame|process|batch|all] [--repeats 5] [--images 600] [--hil-args '...']
+        python benchmarks/bench_hil_speed.py batch --workers 2 --against 0fd2b06 --rounds 2
         python benchmarks/bench_hil_speed.py frame --rendered 20 --detectors global     # the issue's frame
 Prints the machine's cores and load average (``uptime``) with the numbers.
 """
@@ -336,6 +339,28 @@ def bench_batch(n_images: int, workers_list=(1, 2), extra: tuple[str, ...] = ())
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+def against(a, argv: list[str]) -> None:
+    """Run this benchmark with ``argv`` (its own options but ``--against``/``--rounds``) in this tree and in a
+    worktree of ``a.against``, alternating ``a.rounds`` times (each run a fresh process with the tree's package
+    first on PYTHONPATH, started in the tree: ``python -m dualsight`` is that tree's too), so a ratio is measured
+    under the same load; prints each run's output."""
+    tmp = Path(tempfile.mkdtemp(prefix="bench-hil-old-"))
+    old = tmp / "tree"
+    subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(old), a.against], check=True,
+                   capture_output=True)
+    try:
+        for i in range(a.rounds):
+            for tag, tree in (("this", ROOT), (a.against[:7], old)):
+                env = dict(os.environ, PYTHONPATH=str(tree))
+                r = subprocess.run([PY, str(Path(__file__).resolve()), *argv], capture_output=True, text=True,
+                                   env=env, cwd=str(tree))
+                print(f"=== round {i + 1}, {tag} ({tree})")
+                print(r.stdout.strip() + (f"\nFAILED: {r.stderr.strip()[-800:]}" if r.returncode else ""))
+    finally:
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old)], capture_output=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("what", nargs="?", default="all", choices=["frame", "process", "batch", "all"])
@@ -349,9 +374,26 @@ def main() -> None:
                     help="frame: N rendered 1024 x 1024 frames instead of the ESA frames (1..1000)")
     ap.add_argument("--render-mag-limit", type=float, default=5.5, help="faintest rendered star, V (default 5.5)")
     ap.add_argument("--mag-limit", type=float, default=6.0, help="catalog of the rendered frames' solve, V (default 6.0)")
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="batch: worker counts (default 1 2)")
+    ap.add_argument("--against", default=None, metavar="COMMIT",
+                    help="also run in a worktree of COMMIT, alternating --rounds times (ratios under the same load)")
+    ap.add_argument("--rounds", type=int, default=2, help="alternations with --against (default 2)")
     a = ap.parse_args()
     if a.rendered is not None and not 1 <= a.rendered <= 1000:
         ap.error("--rendered must be in [1, 1000]")
+    if not 1 <= a.rounds <= 20 or not all(1 <= w <= 64 for w in a.workers):
+        ap.error("--rounds in [1, 20], --workers in [1, 64]")
+    if a.against:
+        argv, skip = [], False
+        for x in sys.argv[1:]:
+            if skip:
+                skip = False
+            elif x in ("--against", "--rounds"):
+                skip = True
+            elif not x.startswith(("--against=", "--rounds=")):
+                argv.append(x)
+        against(a, argv)
+        return
     print(conditions())
     if a.what in ("frame", "all"):
         if a.rendered:
@@ -365,7 +407,7 @@ def main() -> None:
     if a.what in ("process", "all"):
         bench_process(a.repeats)
     if a.what in ("batch", "all"):
-        bench_batch(a.images, extra=tuple(a.hil_args.split()))
+        bench_batch(a.images, workers_list=tuple(a.workers), extra=tuple(a.hil_args.split()))
     print(conditions())
 
 
