@@ -39,7 +39,8 @@ identified star); with ``--overlay-dir`` it draws the reference's Figure 11 per 
 
 ``--target SAT.toml`` adds per image: target (its name), target_kind ("resolved", "point" or null),
 target_reason (why it is null), target_ra_deg, target_dec_deg, target_sigma_arcsec (1 sigma per axis, centroid and
-attitude), target_pixels, target_x_px, target_y_px, target_mag, and for a resolved target target_range_m,
+attitude), target_pixels, target_x_px, target_y_px, target_mag (a point target; null for a resolved one, whose
+flux saturates), and for a resolved target target_range_m,
 target_range_min_m, target_range_max_m (nav/field_target.py: the rule).
 
 ``--track`` treats the images as one ordered sequence (issue 22, point 4; jobs/kinds/hil_star_track.py): each

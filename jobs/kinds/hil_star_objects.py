@@ -157,7 +157,7 @@ def frame_objects(res, b: int, det, obs, ident, sol, cat_unit: np.ndarray, camer
         tgt = _choose_target(unk, flux, xy, sig, sat, np.asarray(det.npix[s0:s1]), camera, r, zp, residual, frame,
                              settings, octx)
         t_row = tgt.index
-        r.update(_target_columns(tgt, A, P, camera, floor, zp, name, unk, det.npix[s0:s1], flux))
+        r.update(_target_columns(tgt, A, P, camera, floor, name, unk, det.npix[s0:s1]))
     out = []
     for j in np.flatnonzero(listed | (np.arange(len(unk.index)) == t_row)):
         k = int(unk.index[j])
@@ -250,7 +250,7 @@ def _choose_target(unk, flux, xy, sig, sat, npix, camera, row, zp, residual, fra
     return FieldTarget("point", xy=(float(xy[k, 0]), float(xy[k, 1])), pixels=None, sigma_px=s_px, index=j)
 
 
-def _target_columns(tgt: FieldTarget, A, P, camera, floor: float, zp, name, unk, det_npix, flux) -> dict:
+def _target_columns(tgt: FieldTarget, A, P, camera, floor: float, name, unk, det_npix) -> dict:
     """The ``target_*`` columns of a chosen target (its bearing through ``inertial_bearing``)."""
     if tgt.kind is None:
         return _null_target(tgt.reason, name)
