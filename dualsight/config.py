@@ -641,10 +641,12 @@ class RendezvousConfig:
     sun_icrs: unit vector towards the Sun (ICRS, norm 1 +- 1e-3); absent = the reference orbit's normal.
     range_source: "blobber" (a range from every resolved blob: ``nav/blobber.py``, its [min, max] the
         uncertainty) or "none" (bearings only).
-    phase_correction: move each bearing from the centre of brightness to the centre by the Lambertian sphere of
-        the target's mean projected area at the predicted range and the measured phase angle (default True).
-    cob_sigma_frac: 1-sigma of the centre of brightness about the body's centre after that correction, as a
-        fraction of the bounding sphere's diameter, at the predicted range (in [0, 1], default 0.1).
+    phase_correction: move each bearing from the centre of brightness to the centre by the target's mean
+        photocentre offset over random attitudes at the measured phase angle, at the predicted range, and add its
+        spread over attitudes to the bearing's covariance (``jobs/kinds/rendezvous.photocentre_table``; default
+        True).
+    cob_sigma_frac: a further 1-sigma of the centre of brightness about the body's centre, as a fraction of the
+        bounding sphere's diameter, at the predicted range (in [0, 1], default 0.1).
     Filter (``nav/relative_filter.py``): prior_position_m 3 values in (0, 1e5] m and prior_velocity_m_s 3 values in
         (0, 100] m/s (1-sigma per Hill axis about the nominal state; defaults: the dispersion's), accel_psd in
         [0, 1e-3] m^2/s^3 (default 1e-12), iterations in [1, 20] (default 3).
