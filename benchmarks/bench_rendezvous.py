@@ -52,7 +52,7 @@ def main() -> None:
         b = time.perf_counter()
         m, _ = measure(spec, ctx, draw, geo)
         c = time.perf_counter()
-        rz.run_filter(spec, ctx.shape, draw, m)
+        rz.run_filter(spec, ctx, draw, m)
         e = time.perf_counter()
         if i:                                           # the first approach compiles Taichi's kernels
             rows.append((b - a, c - b, e - c))

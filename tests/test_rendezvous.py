@@ -267,3 +267,36 @@ def test_the_examples_are_their_presets(name, preset):
 
     path = Path(__file__).resolve().parents[1] / "examples" / "rendezvous" / f"{name}.toml"
     assert rz.resolve_spec(None, path) == rz.resolve_spec(preset, None)
+
+
+def test_photocentre_table_of_a_sphere_is_the_lit_sphere_and_the_correction_moves_away_from_the_sun():
+    from dualsight.scene.target_photometry import TargetShape
+
+    R = 0.5
+    sphere = TargetShape(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros((1, 3)),
+                         np.array([R]), np.array([0.3]), R)
+    a, mean, spread = rz.photocentre_table(sphere, n=50)
+    inner = (a > 0) & (a < np.radians(179))
+    ai = a[inner]
+    # Lambertian sphere's centre of brightness towards the Sun: (3 pi / 16) R sin a (1 + cos a) / (sin a + (pi - a)
+    # cos a) (e.g. Lester, McCall & Tatum 1979), written out here
+    want = 3 * np.pi / 16 * R * np.sin(ai) * (1 + np.cos(ai)) / (np.sin(ai) + (np.pi - ai) * np.cos(ai))
+    np.testing.assert_allclose(mean[inner], want, rtol=1e-9)
+    np.testing.assert_allclose(spread[inner], 0.0, atol=1e-9)     # a sphere looks the same in every attitude
+    # the adjust hook moves the bearing by the table's offset / predicted range, away from the Sun
+    spec = _spec(None)
+    ctx = rz.RendezvousContext(None, sphere, (a, mean, spread))
+    s = rz.sun_icrs(spec)
+    e = np.cross(s, [0.0, 0.0, 1.0])
+    e /= np.linalg.norm(e)
+    al = np.radians(60.0)
+    u = -np.cos(al) * s + np.sin(al) * e                        # chaser -> target; Sun-target-chaser angle 60 deg
+    m = {"u_used": np.zeros((1, 3)), "C_used": np.zeros((1, 3, 3))}
+    adj = rz.bearing_adjuster(spec, ctx, m)
+    x = np.array([[0.0, -1000.0, 0.0, 0.0, 0.0, 0.0]])
+    u2, C2 = adj(0, x, np.eye(6)[None], u[None], np.zeros((1, 3, 3)))
+    s_perp = (s - np.dot(s, u) * u) / np.linalg.norm(s - np.dot(s, u) * u)
+    off = 3 * np.pi / 16 * R * np.sin(al) * (1 + np.cos(al)) / (np.sin(al) + (np.pi - al) * np.cos(al))
+    assert np.dot(u2[0] - u, s_perp) == pytest.approx(-off / 1000.0, rel=1e-4)   # grid: 60 deg is on it
+    extra = spec.cfg.cob_sigma_frac * 2 * R / 1000.0
+    assert np.trace(C2[0]) / 2 == pytest.approx(extra ** 2, rel=1e-6)   # no spread for a sphere
