@@ -107,7 +107,7 @@ def target_rows(rep: dict) -> list[list[str]]:
                      "-" if v is None else f"{100 * v:.3f} cm/s (p95 {100 * j['late_vel_err_p95_m_s']:.3f}, max "
                      f"{100 * j['late_vel_err_max_m_s']:.3f})", "<= 1 cm/s",
                      _verdict(None if v is None else v <= TARGETS["vel_err_m_s"])])
-    if j["orbit_frames"]:
+    if j["orbit_frames"] and not j["range_share"]:              # point 6 (e) is about bearings alone
         p = j["orbit_pos_err_rms_pct"]
         rows.append(["(e) position error / range one orbit after the burn, RMS over approaches",
                      f"{p:.3f} % at {j['orbit_range_mean_m']:.0f} m (p95 {j['orbit_pos_err_p95_pct']:.3f} %, filter "
