@@ -103,6 +103,20 @@ def _get(name: str, dtype=None):
 
 
 @ti.func
+def sky_value(h16, idx, gshift, key, cdf: ti.template(), guide: ti.template(), value: ti.template(), adu0,
+              tdt: ti.template()):
+    """A sky pixel's ADU value (``tdt``) from its 16 random bits h16 (u64): the guide cell's value (``value``:
+    adu0 + the guide's entry, -1 where a CDF step crosses the cell) in one load, else the inversion of
+    :func:`dualsight.kernels.rng.inverse_table_bits` (more bits from ``key`` and the pixel index ``idx``)."""
+    g = value[ti.cast(h16 >> ti.cast(gshift, ti.u64), ti.i32)]
+    v = ti.cast(g, tdt)
+    if g < 0:
+        j = rng.inverse_table_bits(h16, 16, gshift, key, idx, cdf, guide)
+        v = ti.cast(adu0 + ti.cast(j, ti.f64), tdt)
+    return v
+
+
+@ti.func
 def value_bits(v, is_float: ti.template()):
     """A pixel value's unsigned bit pattern as u64 (the integer of a u16, the IEEE-754 pattern of an f32)."""
     b = ti.u64(0)
@@ -211,22 +225,30 @@ def _build_finalize(dtype, digest: bool = False):
                     fast = 1
                 c = 0
                 if fast != 0:
-                    for c1 in range(W):
-                        idx = row0 + ti.cast(c1, ti.u64)
-                        m = idx >> ti.u64(2)
-                        if m != m_pair:
-                            m_pair = m
-                            h_pair = rng.hash_key(k_sky, m)
-                        sh = ti.u64(48) - ti.u64(16) * (idx & ti.u64(3))
-                        h16 = (h_pair >> sh) & ti.u64(0xFFFF)
-                        g = avalue[ti.cast(h16 >> ti.cast(gshift, ti.u64), ti.i32)]   # the ADU value, one load
-                        v = ti.cast(g, tdt)
-                        if g < 0:                     # a guide cell a CDF step crosses: search
-                            j = rng.inverse_table_bits(h16, 16, gshift, k_sky2, idx, acdf, aguide)
-                            v = ti.cast(adu0 + ti.cast(j, ti.f64), tdt)
-                        out[p0 + c1] = v
-                        if ti.static(digest):
-                            acc += digest_term(v, idx, sky_bits, wts, is_float)
+                    if W % 4 == 0:                # rows start on a word's first pixel: one word per 4 pixels
+                        for m4 in range(W // 4):
+                            idx0 = row0 + ti.cast(4 * m4, ti.u64)
+                            hw = rng.hash_key(k_sky, idx0 >> ti.u64(2))
+                            for q in ti.static(range(4)):
+                                idx = idx0 + ti.u64(q)
+                                v = sky_value((hw >> ti.u64(48 - 16 * q)) & ti.u64(0xFFFF), idx, gshift, k_sky2,
+                                              acdf, aguide, avalue, adu0, tdt)
+                                out[p0 + 4 * m4 + q] = v
+                                if ti.static(digest):
+                                    acc += digest_term(v, idx, sky_bits, wts, is_float)
+                    else:
+                        for c1 in range(W):
+                            idx = row0 + ti.cast(c1, ti.u64)
+                            m = idx >> ti.u64(2)
+                            if m != m_pair:
+                                m_pair = m
+                                h_pair = rng.hash_key(k_sky, m)
+                            sh = ti.u64(48) - ti.u64(16) * (idx & ti.u64(3))
+                            v = sky_value((h_pair >> sh) & ti.u64(0xFFFF), idx, gshift, k_sky2, acdf, aguide, avalue,
+                                          adu0, tdt)
+                            out[p0 + c1] = v
+                            if ti.static(digest):
+                                acc += digest_term(v, idx, sky_bits, wts, is_float)
                     c = ti.min(lo, next_hot)
                 while c < W:
                     idx = row0 + ti.cast(c, ti.u64)
