@@ -53,12 +53,15 @@ print(json.dumps(res[1:]))
 """
 
 
-def job(tree: str | None, workers: int | None, sizes: list[int]) -> list[tuple[int, float, float]]:
+def job(tree: str | None, workers: int | None, sizes: list[int], one_thread: bool = False
+        ) -> list[tuple[int, float, float]]:
     """[(cases, wall s, CPU s of all the job's processes)] in one fresh process importing dualsight from ``tree``
-    (None: the installed package)."""
+    (None: the installed package); ``one_thread``: every thread pool of the process at one thread."""
     names = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "DUALSIGHT_TI_THREADS",
              "OPENCV_FOR_THREADS_NUM")
     env = {k: v for k, v in os.environ.items() if k not in names and k != "PYTHONPATH"}
+    if one_thread:
+        env.update(dict.fromkeys(names, "1"))
     if tree:
         env["PYTHONPATH"] = tree
     code = _JOB.format(cfg=NOISY, sizes=list(sizes), workers=workers)
@@ -71,6 +74,10 @@ def job(tree: str | None, workers: int | None, sizes: list[int]) -> list[tuple[i
     return [tuple(r) for r in json.loads(p.stdout.strip().splitlines()[-1])]
 
 
+def label(w: str) -> str:
+    return {"0": "default", "1t": "1 (1 thread)"}.get(w, w)
+
+
 def load() -> str:
     return " ".join(f"{v:.2f}" for v in os.getloadavg())
 
@@ -78,8 +85,9 @@ def load() -> str:
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", type=int, nargs=2, default=[1000, 3000], metavar=("N1", "N2"))
-    ap.add_argument("--workers", type=int, nargs="+", default=[0, 1],
-                    help="worker counts to measure (0: the default, one per core)")
+    ap.add_argument("--workers", nargs="+", default=["0", "1", "1t"], choices=["0", "1", "2", "1t"],
+                    help="what to measure: 0 the default workers (one per core), 1 one worker (in this process, "
+                         "Taichi's default threads), 1t one worker with one thread (one core: the unit of scaling)")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--old", default=None, help="also measure dualsight imported from this folder, alternated")
     ap.add_argument("--new", default=None,
@@ -95,24 +103,25 @@ def main():
         order = list(trees.items()) if rep % 2 == 0 else list(trees.items())[::-1]
         for name, tree in order:
             for w in args.workers:
-                (a, ta, ca), (b, tb, cb) = job(tree, w or None, [n1, n2])
+                (a, ta, ca), (b, tb, cb) = job(tree, int(w.rstrip("t")) or None, [n1, n2], w.endswith("t"))
                 r, cpu_ms = (b - a) / (tb - ta), 1e3 * (cb - ca) / (b - a)
                 key = (name, w)
                 rates.setdefault(key, []).append((r, cpu_ms))
-                print(f"  {name} workers {w or 'default'}: {n1} cases {ta:.1f} s, {n2} cases {tb:.1f} s -> "
+                print(f"  {name} workers {label(w)}: {n1} cases {ta:.1f} s, {n2} cases {tb:.1f} s -> "
                       f"{r:6.1f} cases/s, CPU {cpu_ms:.2f} ms/case (load {load()})", flush=True)
     print(f"\nsteady state, median [min-max] of {args.repeats}:")
     med = {}
     for (name, w), v in rates.items():
         med[(name, w)] = statistics.median(x[0] for x in v)
-        print(f"  {name} workers {w or 'default':>7}: {med[(name, w)]:7.1f} cases/s [{min(x[0] for x in v):.1f}-"
+        print(f"  {name} workers {label(w):>10}: {med[(name, w)]:7.1f} cases/s [{min(x[0] for x in v):.1f}-"
               f"{max(x[0] for x in v):.1f}], CPU {statistics.median(x[1] for x in v):.2f} ms/case")
     for name in trees:
-        if (name, 0) in med and (name, 1) in med:
-            print(f"  {name}: default workers / one worker = {med[(name, 0)] / med[(name, 1)]:.2f}x")
+        for one in ("1", "1t"):
+            if (name, "0") in med and (name, one) in med:
+                print(f"  {name}: default workers / {label(one)} = {med[(name, '0')] / med[(name, one)]:.2f}x")
     if args.old:
         for w in args.workers:
-            print(f"  workers {w or 'default'}: new / old = {med[('new', w)] / med[('old', w)]:.2f}x")
+            print(f"  workers {label(w)}: new / old = {med[('new', w)] / med[('old', w)]:.2f}x")
     print(f"load average after: {load()}")
     if args.json:
         with open(args.json, "w") as fh:
