@@ -183,3 +183,43 @@ def test_bad_sequence_value_is_one_line_naming_the_field(tmp_path):
     cfg.write_text("[sequence]\nframes = 10\nexposure_s = 0.5\n")
     rc, out, err = run_cli(["star", "track", "--config", cfg, "--lake", tmp_path / "lake", "--cases", "2"])
     assert rc == 2 and "sequence.exposure_s" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_degraded_frames_and_blinded_judgement_against_the_rows(tmp_path):
+    """tracking.max_sigma_arcsec = 60 on the paper preset (its assumed 0.3 px centroids give stated sigmas of
+    ~40-95 arcsec): the report's degraded counts, normal frames without an answer and the blinded frames it can
+    judge, against numpy over the star_frames rows; a degraded frame is never valid nor a false lock, and its
+    stated sigma is above the limit while every valid one is within it."""
+    cfg = tmp_path / "deg.toml"
+    cfg.write_text(TOML + "\n[tracking]\nmax_sigma_arcsec = 60.0\n")
+    lake = tmp_path / "lake"
+    rc, out, err = run_cli(["star", "track", "--config", cfg, "--lake", lake, "--run", "t", *ARGS])
+    assert rc == 0, err
+    f = frames(lake)
+    rep = report(lake)
+    deg, valid, event = (np.array(f[k]) for k in ("degraded", "valid", "event"))
+    smax = np.array([np.nan if v is None else v for v in f["sigma_max_arcsec"]], float)
+    assert 0 < deg.sum() < len(deg) and not np.any(deg & valid) and not np.any(deg & np.array(f["false_lock"]))
+    assert np.all(smax[deg] > 60.0) and np.all(smax[valid] <= 60.0)
+    # the stated sigma per axis is kept on degraded frames too: each diagonal sigma <= the largest principal one
+    sig = np.array([[np.nan if v is None else v for v in f[f"sigma_{a}_arcsec"]] for a in "xyz"], float).T
+    has = deg | valid
+    assert np.all(np.isfinite(sig[has])) and np.all(np.isnan(sig[~has]))
+    assert np.all(sig[has].max(axis=1) <= smax[has] * (1 + 1e-9))
+    assert np.all(np.array(f["mode"])[deg] == "none")
+    assert rep["degraded_frames"] == int(deg.sum())
+    assert rep["degraded_normal_frames"] == int(np.sum(deg & (event == "normal")))
+    assert rep["normal_frames_without_answer"] == int(np.sum((event == "normal") & ~valid & ~deg))
+    err_max = np.array([np.nan if v is None else v for v in f["degraded_err_max_arcsec"]], float)
+    assert np.all(np.isfinite(err_max[deg])) and np.all(np.isnan(err_max[~deg]))
+    assert rep["degraded_beyond_limit"] == int(np.sum(err_max[deg] > LIMIT))
+    case, frame = np.array(f["case_id"]), np.array(f["frame"])
+    judged, ok = 0, 0
+    for k in np.flatnonzero(event == "blinded"):
+        same = case == case[k]
+        later = np.flatnonzero(same & (frame > frame[k]) & valid)
+        if later.size or frame[same].max() - frame[k] >= 2:
+            judged += 1
+            ok += int(later.size > 0 and frame[later[0]] - frame[k] <= 2)
+    assert rep["blinded_frames_judged"] == judged
+    assert rep["blinded_reacquired_within_2"] == (pytest.approx(ok / judged) if judged else None)

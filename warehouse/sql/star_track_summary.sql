@@ -4,9 +4,12 @@
 -- Full scan of star_frames and star_sequences of one run ($run); rates in deg/s, errors in arcsec.
 WITH f AS (SELECT * FROM star_frames WHERE run = $run),
 s AS (SELECT * FROM star_sequences WHERE run = $run),
-blind AS (    -- frames from each blinded frame to the next valid attitude of its sequence (null: none followed)
-    SELECT b.case_id, b.frame, min(v.frame) - b.frame AS reacq
-    FROM f b LEFT JOIN f v ON v.case_id = b.case_id AND v.frame > b.frame AND v.valid
+last AS (SELECT case_id, max(frame) AS last_frame FROM f GROUP BY case_id),
+blind AS (    -- frames from each blinded frame to the next valid attitude of its sequence (null: none followed), and
+              -- whether it can be judged: re-acquired, or at least 2 frames left after it (else the sequence ended)
+    SELECT b.case_id, b.frame, min(v.frame) - b.frame AS reacq,
+           (min(v.frame) IS NOT NULL OR any_value(l.last_frame) - b.frame >= 2) AS judged
+    FROM f b JOIN last l ON l.case_id = b.case_id LEFT JOIN f v ON v.case_id = b.case_id AND v.frame > b.frame AND v.valid
     WHERE b.event = 'blinded' GROUP BY b.case_id, b.frame
 ),
 re AS (SELECT unnest(reacquisition_frames) AS n FROM s),
@@ -49,7 +52,9 @@ SELECT
     (SELECT max(n) FROM re)                                                     AS max_reacquisition_frames,
     (SELECT sum(unrecovered_losses) FROM s)                                     AS unrecovered_losses,
     (SELECT count(*) FROM blind)                                                AS blinded_frames,
-    (SELECT avg((reacq <= 2)::INT) FROM blind)                                  AS blinded_reacquired_within_2,
+    (SELECT count(*) FILTER (WHERE judged) FROM blind)                          AS blinded_frames_judged,
+    (SELECT avg(coalesce(reacq <= 2, false)::INT) FILTER (WHERE judged) FROM blind)
+                                                                                AS blinded_reacquired_within_2,
     (SELECT max(reacq) FROM blind)                                              AS blinded_max_reacquisition_frames,
     (SELECT count(*) FROM rate)                                                 AS rate_frames,
     (SELECT sqrt(avg(ex * ex + ey * ey + ez * ez)) FROM rate)                   AS rate_att_err_rms_deg_s,
