@@ -300,3 +300,25 @@ def test_photocentre_table_of_a_sphere_is_the_lit_sphere_and_the_correction_move
     assert np.dot(u2[0] - u, s_perp) == pytest.approx(-off / 1000.0, rel=1e-4)   # grid: 60 deg is on it
     extra = spec.cfg.cob_sigma_frac * 2 * R / 1000.0
     assert np.trace(C2[0]) / 2 == pytest.approx(extra ** 2, rel=1e-6)   # no spread for a sphere
+
+
+def test_resume_keeps_shards_and_another_spec_under_the_id_is_refused(tmp_path):
+    from dualsight.jobs.cli.main import main
+
+    cfg = tmp_path / "small.toml"
+    cfg.write_text("[rendezvous]\nduration_s = 600.0\nframe_interval_s = 300.0\nmanoeuvre_times_s = [300.0]\n")
+    args = ["rendezvous", "run", "--config", str(cfg), "--cases", "4", "--lake", str(tmp_path / "lake"), "--run", "r",
+            "--workers", "1", "--shard-size", "2", "--no-progress"]
+    assert main(args) == 0
+    lost = tmp_path / "lake" / "rendezvous_frames" / "run=r" / "part-000001.parquet"
+    kept = tmp_path / "lake" / "rendezvous_frames" / "run=r" / "part-000000.parquet"
+    before = kept.stat().st_mtime_ns
+    lost.unlink()
+    assert main(args) == 0
+    m = Lake(tmp_path / "lake").read_manifest("r")
+    assert lost.exists() and kept.stat().st_mtime_ns == before
+    assert m["executions"][-1]["cases_run"] == 2 and m["status"] == "complete"
+    cfg.write_text("[rendezvous]\nduration_s = 600.0\nframe_interval_s = 200.0\nmanoeuvre_times_s = [400.0]\n")
+    p = subprocess.run([sys.executable, "-m", "dualsight.jobs.cli.main", *args], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1 and "other settings" in p.stderr, p.stderr
