@@ -5,7 +5,8 @@ Star tracker: ``sensor_config`` (the sensor model) -> ``star_psf`` / ``psf_model
 ``psf_image``) -> ``starfield`` (render, with ``sky_noise``'s tables) -> ``detect`` (global threshold; smooth
 background: ``background``) or ``detect_local`` (real sensors: ``detect_background`` -> ``detect_candidates`` ->
 ``detect_psf``; compiled passes ``detect_passes``) -> ``voting``, ``voting_select``.  Proximity: ``points`` ->
-``prox_*``; ``blobs``.  Shared: ``labelling`` (the one labeller), ``rng``, ``digest``, ``taichi_runtime`` (lazy Taichi start, KernelCache).
+``prox_*``; ``blobs``.  Shared: ``labelling`` (the one labeller), ``rng``, ``digest``, ``taichi_runtime`` (lazy
+Taichi start, KernelCache).
 
 Imports allowed: numpy, taichi, OpenCV, pydantic (the configs' field bounds) and, of the project, only the root
 utilities ``dualsight.errors``, ``dualsight.config``, ``dualsight.version`` and ``dualsight.allocator``.
