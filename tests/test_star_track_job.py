@@ -221,5 +221,14 @@ def test_degraded_frames_and_blinded_judgement_against_the_rows(tmp_path):
         if later.size or frame[same].max() - frame[k] >= 2:
             judged += 1
             ok += int(later.size > 0 and frame[later[0]] - frame[k] <= 2)
+    # by rate: the normal frames' availability and degraded share per 0.2 deg/s bin
+    within = np.array(f["within_limit"])
+    rate = np.linalg.norm(np.array([f[f"true_rate_{a}_deg_s"] for a in "xyz"], float).T, axis=1)
+    rows = rep["by_rate"]
+    assert sum(r["frames"] for r in rows) == int(np.sum(event == "normal"))
+    for r in rows:
+        m = (event == "normal") & np.isclose(np.floor(rate / 0.2) * 0.2, r["rate_from_deg_s"], rtol=0, atol=1e-9)
+        assert r["frames"] == int(m.sum())
+        assert r["availability"] == pytest.approx(within[m].mean()) and r["degraded_share"] == pytest.approx(deg[m].mean())
     assert rep["blinded_frames_judged"] == judged
     assert rep["blinded_reacquired_within_2"] == (pytest.approx(ok / judged) if judged else None)

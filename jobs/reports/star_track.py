@@ -7,7 +7,9 @@ against the issue's targets (point 6).
   rate error and its consistency with the stated sigmas, identities against lost-in-space on the same frames;
 * ``star_track_modes``: per mode, error per axis, stars used, latency per frame and by stage;
 * ``star_track_reasons``: lock reasons by frame event;
-* ``star_track_error_vs_time``: error per axis and availability at each frame (JSON only).
+* ``star_track_error_vs_time``: error per axis and availability at each frame (JSON only);
+* ``star_track_by_rate``: the normal frames by true rate (0.2 deg/s bins): availability, degraded and unanswered
+  shares, stated sigma and post-fit RMS.
 """
 
 from __future__ import annotations
@@ -17,7 +19,8 @@ from dualsight.warehouse.cells import percent
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import connect, format_table, run_report
 
-QUERIES = ("star_track_summary", "star_track_modes", "star_track_reasons", "star_track_error_vs_time")
+QUERIES = ("star_track_summary", "star_track_modes", "star_track_reasons", "star_track_error_vs_time",
+           "star_track_by_rate")
 
 TARGETS = {"availability": 0.999,    # of the normal frames: an event frame has no stars to see
            "blinded_reacquired_within_2": 1.0, "false_locks_per_frame": 0.0,
@@ -58,6 +61,7 @@ def build(lake: Lake, run_id: str) -> dict:
         "reasons": [dict(zip(tables["star_track_reasons"][0], r)) for r in tables["star_track_reasons"][1]],
         "error_vs_time": [dict(zip(tables["star_track_error_vs_time"][0], r))
                           for r in tables["star_track_error_vs_time"][1]],
+        "by_rate": [dict(zip(tables["star_track_by_rate"][0], r)) for r in tables["star_track_by_rate"][1]],
         "targets": TARGETS,
     }
     return {"tables": tables, "summary": s, "json": js}
@@ -130,5 +134,7 @@ def text(rep: dict) -> str:
     lines += ["", "Per mode: error per axis (RMS, arcsec) and latency per frame (ms)",
               format_table(*rep["tables"]["star_track_modes"], floatfmt="{:.3g}"),
               "", "Lock reasons by frame event",
-              format_table(*rep["tables"]["star_track_reasons"])]
+              format_table(*rep["tables"]["star_track_reasons"]),
+              "", "Normal frames by true rate (deg/s bins): availability, withheld (degraded), unanswered",
+              format_table(*rep["tables"]["star_track_by_rate"], floatfmt="{:.3g}")]
     return "\n".join(lines)
