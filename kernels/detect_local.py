@@ -112,14 +112,16 @@ the frame with a bright sky, which has fewer than 3 stars above SNR 30, is measu
 instead of keeping the initial 1.0; from the binned first pass, 2026-11-27: within 0.015 px of those.)
 
 Centroids use the continuous pixel convention (pixel (r, c) has its centre at (c + 0.5, r + 0.5)).
-Cost (one core, ``benchmarks/bench_detect_speed.py``, 2026-11-27, load 3.8-3.9 on the 2-core machine, CPU time):
-~12 ms per ESA frame (1024 x 768, 90-520 detections, width measured) — background ~3.3, matched filter ~1.6
-(binned width pass and final pass, noise samples included), candidates ~1.0, hot-pixel test and PSF fits ~5.2
-(width pass included), other ~0.8; ~11 ms per rendered 1024 x 1024 sensor-noise frame (20-50 stars):
-background ~3.9, filter ~2.3, candidates ~0.85, fits ~2.5, other ~1.0.  The code of 00d8bee in the same runs:
-16.0-16.2 and 14.2-14.7 ms (a full-resolution width pass, OpenCV's full-frame labelling, the noise map and its
-inverse as (H, W) maps).  Earlier: ~38-43 ms with every tile and noise-sample value sorted / partitioned, a
-dilation for the maxima and fits run to 1e-4 px.
+Cost (one core, ``benchmarks/bench_detect_speed.py``, CPU time), the default (fit_engine "taichi"), 2026-11-27 on
+the 2-core machine at load 14-16 (CPU times there run ~1.2x those at load ~4, from 0fd2b06's): ~9.7 ms per ESA frame
+(1024 x 768, 90-520 detections, width measured) — background ~2.7, matched filter ~2.0 (binned width pass and final
+pass, noise samples included), candidates ~1.0, hot-pixel test and PSF fits ~3.1 (width pass included), other ~1.2;
+~9.5 ms per rendered 1024 x 1024 sensor-noise frame (20-50 stars): background ~2.6, filter ~2.7, candidates ~0.8,
+fits ~1.7, other ~1.5.  The code of 0fd2b06 (the numpy path, today's fit_engine "numpy") in the same runs: 14.5 and
+12.7 ms (ratios 0.67 and 0.75).  Earlier (load 3.8-3.9): 0fd2b06's path ~12 and ~11 ms; 00d8bee 16.0-16.2 and
+14.2-14.7 ms (a full-resolution width pass, OpenCV's full-frame labelling, the noise map and its inverse as (H, W)
+maps); before that ~38-43 ms with every tile and noise-sample value sorted / partitioned, a dilation for the maxima
+and fits run to 1e-4 px.
 """
 
 from __future__ import annotations
