@@ -114,9 +114,8 @@ def propagate(A_prev: np.ndarray, cov_prev: np.ndarray, omega: np.ndarray, cov_o
     """
     dt = float(dt)
     Phi = frame_rotation(np.asarray(omega, np.float64) * dt)
-    A = Phi @ np.asarray(A_prev, np.float64)
-    P = Phi @ np.asarray(cov_prev, np.float64) @ Phi.T + dt * dt * np.asarray(cov_omega, np.float64)
-    return A, 0.5 * (P + P.T)
+    P = Phi @ cov_prev @ Phi.T + (dt * dt) * np.asarray(cov_omega, np.float64)
+    return Phi @ A_prev, 0.5 * (P + P.T)
 
 
 def pixel_jacobian(v: np.ndarray, camera) -> np.ndarray:
@@ -160,23 +159,23 @@ def predict(A: np.ndarray, cov: np.ndarray, cat_unit: np.ndarray, camera, cfg: T
     """
     A = np.asarray(A, np.float64)
     cos_half = _cos_half_angle(camera)
-    cand = np.flatnonzero(cat_unit @ A[2] > cos_half)                 # cone test, then the camera model
+    cand = (cat_unit @ A[2] > cos_half).nonzero()[0]                  # cone test, then the camera model
     v = cat_unit[cand] @ A.T
     if camera.has_distortion:
         px, _ = camera.project(v)             # inside the cone (< 90 deg): z > 0, px finite
-        keep = np.flatnonzero(camera.in_image(px))[: cfg.max_predicted]
+        keep = camera.in_image(px).nonzero()[0][: cfg.max_predicted]
         rows, v, px = cand[keep], v[keep], px[keep]
         G = pixel_jacobian(v, camera).reshape(-1, 3)                  # rows u0, v0, u1, v1, ...
     else:                                     # the pinhole (camera.project's formula) and its Jacobian in one pass
         xn = v[:, :2] / v[:, 2:]
         px = xn * (camera.fx, camera.fy) + (camera.cx, camera.cy)
-        keep = np.flatnonzero(camera.in_image(px))[: cfg.max_predicted]
+        keep = ((px >= 0.0) & (px < (camera.width, camera.height))).all(axis=1).nonzero()[0][: cfg.max_predicted]
         rows, xn, px = cand[keep], xn[keep], px[keep]
         G = _pinhole_jacobian(xn[:, 0], xn[:, 1], camera).reshape(-1, 3)
     cov = np.asarray(cov, np.float64)
     GP = G @ cov
-    ac = np.sum(GP * G, axis=1).reshape(-1, 2)                         # S = G P G^T: its diagonal (a, c) ...
-    b = np.sum(GP[0::2] * G[1::2], axis=1)                             # ... and off-diagonal entry
+    ac = (GP * G).sum(axis=1).reshape(-1, 2)                         # S = G P G^T: its diagonal (a, c) ...
+    b = (GP[0::2] * G[1::2]).sum(axis=1)                               # ... and off-diagonal entry
     h = 0.5 * (ac[:, 0] - ac[:, 1])
     lam = 0.5 * (ac[:, 0] + ac[:, 1]) + np.sqrt(h * h + b * b)         # largest eigenvalue of the 2 x 2
     sigma = np.sqrt(lam + cfg.centroid_sigma_px ** 2)
@@ -211,12 +210,12 @@ def match(pred_xy: np.ndarray, radius_px: np.ndarray, det_xy: np.ndarray) -> tup
     dy = pred_xy[:, 1, None] - det_xy[None, :, 1]
     r = np.asarray(radius_px, np.float64)
     inside = dx * dx + dy * dy <= (r * r)[:, None]          # NaN compares False (no warning for <=)
-    n_in = np.count_nonzero(inside, axis=1)
+    n_in = inside.sum(axis=1)
     one = n_in == 1
-    det = np.argmax(inside, axis=1)
+    det = inside.argmax(axis=1)
     claims = np.bincount(det[one], minlength=D)
-    star = np.flatnonzero(one & (claims[det] == 1))
-    return star, det[star], int(np.count_nonzero(n_in >= 2))
+    star = (one & (claims[det] == 1)).nonzero()[0]
+    return star, det[star], int((n_in >= 2).sum())
 
 
 def tracking_chance(n_used: int, n_predicted: int, n_detections: int, radius_px: float, area_px: float) -> float:
@@ -338,7 +337,7 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
     else:                                     # the pinhole's back-projection (camera.backproject's formula)
         b = np.ones((n_matched, 3))
         b[:, :2] = (det_xy[det] - (camera.cx, camera.cy)) / (camera.fx, camera.fy)
-        b /= np.sqrt(np.sum(b * b, axis=1))[:, None]
+        b /= np.sqrt((b * b).sum(axis=1))[:, None]
     r = cat_unit[pred.rows[star]]
     sig_rad = sig / f
     w = 1.0 / (sig_rad * sig_rad)
@@ -347,16 +346,18 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
         return lost(DEGENERATE, n_matched)
     # residual angle: the chord |A r - b| (the angle to 1e-16 rad below 1e-5 rad, the arcsec regime; a larger
     # chord is an outlier whatever its exact angle)
-    nres = np.sqrt(np.sum((r @ A.T - b) ** 2, axis=1)) / sig_rad
+    e = r @ A.T - b
+    nres = np.sqrt((e * e).sum(axis=1)) / sig_rad
     use = nres <= cfg.residual_k_sigma
-    n_used = int(np.count_nonzero(use))
+    n_used = int(use.sum())
     if n_used < n_matched:                              # drop the outliers, solve once more
         if n_used < need:
             return lost(RESIDUAL, n_used)
         A, ok, cov = solve_pairs(b[use], r[use], w[use])
         if not ok:
             return lost(DEGENERATE, n_used)
-        nres = np.sqrt(np.sum((r @ A.T - b) ** 2, axis=1)) / sig_rad
+        e = r @ A.T - b
+        nres = np.sqrt((e * e).sum(axis=1)) / sig_rad
         nu, det, star, sig = nres[use], det[use], star[use], sig[use]
         worst = float(nu.max())
     else:                                               # every residual already within residual_k_sigma
