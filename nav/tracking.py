@@ -8,18 +8,22 @@ A star tracker in tracking mode knows its last attitude and its rate, so it need
    (first order; ``Phi`` the same rotation).  The brightest catalog stars that the predicted attitude puts in the
    image are projected with the camera model (``scene/camera.py``, distortion included); each predicted position
    has a 2 x 2 covariance ``G P G^T + sigma_c^2 I`` with ``G`` (P, 2, 3) the pixel derivatives with respect to a
-   small attitude error (central differences through the camera model) and ``sigma_c`` the centroid noise.  The
+   small attitude error (:func:`pixel_jacobian`: closed form for the pinhole, central differences through the camera
+   model with distortion) and ``sigma_c`` the centroid noise.  The
    match window of a star is ``k`` times the largest principal sigma, clipped to [min, max] px.
 2. :func:`match`: each predicted star takes the detection inside its window; a window holding two or more
    detections is ambiguous and dropped, and so is every star of a detection claimed by two windows (one
    detection per star, one star per detection).  A (P, D) distance table, no loop over stars.
 3. :func:`track`: SVD attitude of the matched pairs with the centroid weights ``w = 1 / sigma_rad^2`` (Markley 1988,
-   ``nav/attitude.py``, which also gives the attitude covariance), the residual test (a star beyond
+   :func:`solve_pairs`, the math of ``nav/attitude.py`` for one case, with the attitude covariance, scaled by the
+   fit's a posteriori variance factor ``max(1, rms^2)``), the residual test (a star beyond
    ``residual_k_sigma`` is dropped and the attitude solved again once; then the RMS per degree of freedom must stay
    below ``max_rms_sigma``) and the chance-match test (:func:`tracking_chance` over ``nav/chance.py``'s binomial
    tail).  Lock is lost by rule, one code of :data:`LOCK_REASONS`: too few matches (``min_stars``, or
    ``min_stars_tight`` when every window is tight), a degenerate geometry, the residual test, the chance-match
-   probability.  The caller then falls back to lost-in-space (``nav/star_solution.py`` identify + solve).
+   probability.  The caller then falls back to lost-in-space (``nav/star_solution.py`` identify + solve).  A lock
+   whose stated covariance has a principal 1-sigma above ``max_sigma_rad`` is flagged *degraded* (a two-star or
+   short-baseline roll, smeared centroids): the caller withholds it (issue 22, point 6: no false lock).
 
 This follows what tetra3rs 0.5.1 (MIT) describes for its tracking mode (previous attitude as a hint with an
 uncertainty cone, nearest detections, SVD solve, the same false-match test, 3 stars instead of 4) with the cone
