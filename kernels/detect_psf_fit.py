@@ -76,9 +76,8 @@ def _build_fit(dtype, fit_sigma: bool = False, serial: bool = False):
         return out
 
     @ti.func
-    def chi2(st: ti.template(), w0: ti.template(), k, r0, c0, p, n, nv, gain):
-        px, dx, sx = profiles(c0, p[0], p[4], n)
-        py, dy, sy = profiles(r0, p[1], p[4], n)
+    def chi2(st: ti.template(), w0: ti.template(), k, p, n, nv, gain, px, py):
+        """chi^2 at p, whose profiles are px, py."""
         chi = f64(0.0)
         for i in range(n):
             for j in range(n):
@@ -88,10 +87,9 @@ def _build_fit(dtype, fit_sigma: bool = False, serial: bool = False):
         return chi
 
     @ti.func
-    def normal(st: ti.template(), w0: ti.template(), k, r0, c0, p, n, nv, gain):
-        """H (5 x 5), g (5) of the weighted least squares at p (the first npar rows used)."""
-        px, dpx, sx = profiles(c0, p[0], p[4], n)
-        py, dpy, sy = profiles(r0, p[1], p[4], n)
+    def normal(st: ti.template(), w0: ti.template(), k, p, n, nv, gain, px, dpx, sx, py, dpy, sy):
+        """H (5 x 5), g (5) of the weighted least squares at p (the first npar rows used), whose profiles and their
+        derivatives are px, dpx, sx (columns) and py, dpy, sy (rows)."""
         H = ti.Matrix.zero(f64, 5, 5)
         g = ti.Vector.zero(f64, 5)
         for i in range(n):
@@ -162,8 +160,9 @@ def _build_fit(dtype, fit_sigma: bool = False, serial: bool = False):
             rk = ti.cast(r0[k], ti.i32)
             ck = ti.cast(c0[k], ti.i32)
             p = ti.Vector([start[k, 0], start[k, 1], f64(1.0), f64(0.0), start[k, 2]], f64)
-            px, dx0, sx0 = profiles(ck, p[0], p[4], n)
-            py, dy0, sy0 = profiles(rk, p[1], p[4], n)
+            # the profiles at p, evaluated once per position (a step's trial profiles become p's when it is taken)
+            px, dpx, sx = profiles(ck, p[0], p[4], n)
+            py, dpy, sy = profiles(rk, p[1], p[4], n)
             num, den = f64(0.0), f64(0.0)
             for i in range(n):
                 for j in range(n):
@@ -171,14 +170,14 @@ def _build_fit(dtype, fit_sigma: bool = False, serial: bool = False):
                     num += w0[k, i, j] * st[k, i, j] * P
                     den += w0[k, i, j] * P * P
             p[2] = ti.max(num / ti.max(den, f64(1e-12)), f64(1e-3))     # A at b = 0
-            chi = chi2(st, w0, k, rk, ck, p, n, nv, gain)
+            chi = chi2(st, w0, k, p, n, nv, gain, px, py)
             lam = f64(1e-3)
             Hc = ti.Matrix.zero(f64, 5, 5)     # the normal equations at p, kept while p is (a rejected step)
             gc = ti.Vector.zero(f64, 5)
             have = 0
             for it in range(iters):
                 if have == 0:
-                    H0, g0 = normal(st, w0, k, rk, ck, p, n, nv, gain)
+                    H0, g0 = normal(st, w0, k, p, n, nv, gain, px, dpx, sx, py, dpy, sy)
                     Hc = H0
                     gc = g0
                     have = 1
@@ -197,10 +196,13 @@ def _build_fit(dtype, fit_sigma: bool = False, serial: bool = False):
                     pn[4] = ti.min(ti.max(p[4] + ds, f64(0.2)), f64(20.0))
                 else:
                     pn[4] = p[4]
-                chin = chi2(st, w0, k, rk, ck, pn, n, nv, gain)
+                qx, dqx, sqx = profiles(ck, pn[0], pn[4], n)
+                qy, dqy, sqy = profiles(rk, pn[1], pn[4], n)
+                chin = chi2(st, w0, k, pn, n, nv, gain, qx, qy)
                 better = (chin == chin) and ti.abs(chin) < f64(1e300) and chin <= chi
                 if better:
                     p = pn
+                    px, dpx, sx, py, dpy, sy = qx, dqx, sqx, qy, dqy, sqy
                     chi = chin
                     lam = ti.max(lam * f64(0.1), f64(1e-6))
                     have = 0
@@ -211,7 +213,7 @@ def _build_fit(dtype, fit_sigma: bool = False, serial: bool = False):
             for a in ti.static(range(5)):
                 out[k, a] = p[a]
             if have == 0:                                          # the Fisher matrix of (x, y, A, b) at p
-                H1, g1 = normal(st, w0, k, rk, ck, p, n, nv, gain)
+                H1, g1 = normal(st, w0, k, p, n, nv, gain, px, dpx, sx, py, dpy, sy)
                 Hc = H1
             for a in ti.static(range(4)):
                 for b in ti.static(range(4)):
