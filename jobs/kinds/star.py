@@ -424,11 +424,12 @@ def memory_estimate(spec: StarSpec) -> int:
     """Peak bytes one worker needs for this spec, estimated before anything is allocated.
 
     Frames: ``batch_size`` x width x height float32 images (three planes) when the dense path runs (noise-free
-    frames take the sparse path: windows around stars only); plus :func:`catalog_bytes` for the magnitude
-    limit and the field diagonal.
+    frames take the sparse path: windows around stars only), and there the digest's weight table (8 bytes per
+    pixel, ``kernels/starfield.digest_weights``); plus :func:`catalog_bytes` for the magnitude limit and the
+    field diagonal.
     """
     w, h = spec.camera.width, spec.camera.height
-    frames = 3 * 4 * w * h * spec.batch_size if not spec.sensor.is_ideal else 0
+    frames = (3 * 4 * spec.batch_size + 8) * w * h if not spec.sensor.is_ideal else 0
     return frames + catalog_bytes(spec.catalog.mag_limit, pair_angle(spec.camera))
 
 
