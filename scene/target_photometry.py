@@ -24,6 +24,15 @@ checks it against a fine quadrature of the sphere)::
 
     delta(alpha) = (3 pi / 16) R sin(alpha) (1 + cos(alpha)) / (sin(alpha) + (pi - alpha) cos(alpha))
 
+Phase-angle correction (issue 23, point 3): the centre of brightness is moved back to the body origin by
+
+* :func:`sphere_photocentre_offset` for a sphere (the formula above: no attitude needed);
+* :func:`photocentre_offset` for a target of KNOWN attitude and Sun direction: the exact Lambertian photocentre of
+  its lit, visible facets (a flat facet's light comes from its centre, weighted by its flux ``facet_flux_ratio``;
+  exact for one convex body, e.g. a cuboid, where no facet shadows or hides another);
+* :func:`photocentre_table` for an UNKNOWN attitude: the mean offset towards the Sun over attitudes uniform on
+  SO(3) per phase angle, and its spread (what the correction cannot remove).
+
 Ignored (stated): mutual shadowing and occlusion between components (exact for one convex component), the specular
 term (``k_s``), Earth shine and the target's thermal glow; the Sun's colour equals a V-band star's.
 Units: metres, radians; vectors in one common frame (the camera frame in the star job).
@@ -35,11 +44,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dualsight.scene.attitude import quat_to_dcm, quaternions_from_uniforms
 from dualsight.scene.motion import euler_deg_to_local_to_parent
 
 __all__ = ["M_SUN_V", "SOLAR_IRRADIANCE_W_M2", "CYLINDER_STRIPS", "lambert_sphere_phase", "sphere_flux_ratio",
            "sphere_photocentre_offset", "facet_flux_ratio", "magnitude_from_ratio", "electrons_per_s",
-           "TargetShape", "target_shape", "TargetBrightness", "apparent_brightness"]
+           "TargetShape", "target_shape", "TargetBrightness", "apparent_brightness", "photocentre_offset",
+           "PHASE_GRID_DEG", "PHOTOCENTRE_SAMPLES", "photocentre_table"]
 
 M_SUN_V = -26.74
 """Apparent V magnitude of the Sun at 1 au (Allen's Astrophysical Quantities, 4th ed., Table 14.7: -26.74)."""
@@ -207,3 +218,53 @@ def apparent_brightness(shape: TargetShape, R_body, pos, sun, zero_mag_rate_e_pe
     vmag = magnitude_from_ratio(total)
     return TargetBrightness(total, total * SOLAR_IRRADIANCE_W_M2, vmag, electrons_per_s(vmag, zero_mag_rate_e_per_s),
                             phase, cob, area)
+
+
+def photocentre_offset(shape: TargetShape, R_body, sun, obs) -> np.ndarray:
+    """(B, 3) offset (m) of a target's centre of brightness from its body origin, seen from far along ``obs``.
+
+    R_body : (B, 3, 3) body -> frame rotation (the target's KNOWN attitude); sun, obs : (B, 3) unit vectors from
+    the target towards the Sun and towards the camera, same frame.  Each lit (n.s > 0), visible (n.o > 0) flat
+    facet shines from its centre with weight ``facet_flux_ratio`` (uniform radiance of a flat Lambertian facet
+    under a distant Sun and camera), each sphere from its centre moved by :func:`sphere_photocentre_offset`
+    towards the Sun in the plane of the sky; the offset is the flux-weighted mean minus the origin, projected on
+    the plane of the sky (normal ``obs``).  Exact for one convex component (no mutual shadowing or occlusion).
+    Zero where nothing lit faces the camera."""
+    obs = np.asarray(obs, np.float64)
+    d = 1e6                                              # far: the direction to every facet is obs
+    pos = -d * obs
+    br = apparent_brightness(shape, R_body, pos, sun, 1.0)
+    off = br.cob_cam - pos
+    return off - np.einsum("bk,bk->b", off, obs)[:, None] * obs
+
+
+PHASE_GRID_DEG = np.arange(0.0, 180.1, 5.0)
+"""Phase angles (deg) of :func:`photocentre_table`."""
+PHOTOCENTRE_SAMPLES = 4000
+"""Random attitudes per phase angle of :func:`photocentre_table`."""
+
+
+def photocentre_table(shape: TargetShape, n: int = PHOTOCENTRE_SAMPLES, seed: int = 0
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The target's centre of brightness about its body origin over ``n`` attitudes uniform on SO(3) (drawn from
+    ``default_rng([seed, 23, 5])``, the same for every run), at each phase angle of :data:`PHASE_GRID_DEG`, seen
+    from far (:func:`apparent_brightness`: Lambertian facets and spheres): (alpha (A,) rad, mean offset towards
+    the Sun in the plane of the sky (A,) m, spread (A,) m = sqrt of the mean of the two variances across the line
+    of sight).  The correction for an unknown attitude (the mean) and what it leaves (the spread).  Where no
+    attitude is lit (alpha -> 180 deg) the mean is 0 and the spread the bounding radius."""
+    rng = np.random.default_rng([seed, 23, 5])
+    u = rng.random((3, n))
+    R = quat_to_dcm(quaternions_from_uniforms(u[0], u[1], u[2]))
+    d = 1e4
+    pos = np.tile([0.0, 0.0, d], (n, 1))
+    alpha = np.radians(PHASE_GRID_DEG)
+    mean, spread = np.zeros(alpha.size), np.full(alpha.size, float(shape.bounding_radius))
+    for i, a in enumerate(alpha):                     # a few dozen angles, each over all attitudes at once
+        sun = np.tile([np.sin(a), 0.0, -np.cos(a)], (n, 1))              # observer at -z from the target
+        br = apparent_brightness(shape, R, pos, sun, 1.0)
+        lit = br.ratio > 0
+        if lit.sum() > 1:
+            off = br.cob_cam[lit] - pos[lit]
+            mean[i] = float(np.mean(off[:, 0]))
+            spread[i] = float(np.sqrt(0.5 * (np.var(off[:, 0]) + np.var(off[:, 1]))))
+    return alpha, mean, spread

@@ -68,7 +68,7 @@ from dualsight.scene.rotation_vector import frame_rotation
 from dualsight.scene.satellite import load_satellite
 from dualsight.scene.starfield_geometry import stars_in_field
 from dualsight.scene.target_in_field import TargetCases, diameter_px, target_frames, with_target
-from dualsight.scene.target_photometry import apparent_brightness, target_shape
+from dualsight.scene.target_photometry import apparent_brightness, photocentre_table, target_shape
 from dualsight.scene.units import ARCSEC, DEG
 
 NAME = "rendezvous"
@@ -512,37 +512,6 @@ def filter_config(cfg: RendezvousConfig) -> rf.FilterConfig:
     """The EKF's settings of a spec."""
     return rf.FilterConfig(accel_psd=cfg.accel_psd, dv_sigma_frac=cfg.dv_error_frac, dv_sigma_m_s=cfg.dv_error_m_s,
                            iterations=cfg.iterations)
-
-
-PHASE_GRID_DEG = np.arange(0.0, 180.1, 5.0)
-"""Phase angles (deg) of :func:`photocentre_table`."""
-PHOTOCENTRE_SAMPLES = 4000
-"""Random attitudes per phase angle of :func:`photocentre_table`."""
-
-
-def photocentre_table(shape, n: int = PHOTOCENTRE_SAMPLES, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The target's centre of brightness about its body origin over ``n`` attitudes uniform on SO(3) (drawn from
-    ``default_rng([seed, 23, 5])``, the same for every run), at each phase angle of :data:`PHASE_GRID_DEG`, seen
-    from far (``scene/target_photometry.apparent_brightness``: Lambertian facets and spheres): (alpha (A,) rad,
-    mean offset towards the Sun in the plane of the sky (A,) m, spread (A,) m = sqrt of the mean of the two
-    variances across the line of sight).  Where no attitude is lit (alpha -> 180 deg) the mean is 0 and the spread
-    the bounding radius."""
-    rng = np.random.default_rng([seed, 23, 5])
-    u = rng.random((3, n))
-    R = quat_to_dcm(quaternions_from_uniforms(u[0], u[1], u[2]))
-    d = 1e4
-    pos = np.tile([0.0, 0.0, d], (n, 1))
-    alpha = np.radians(PHASE_GRID_DEG)
-    mean, spread = np.zeros(alpha.size), np.full(alpha.size, float(shape.bounding_radius))
-    for i, a in enumerate(alpha):                     # a few dozen angles, each over all attitudes at once
-        sun = np.tile([math.sin(a), 0.0, -math.cos(a)], (n, 1))          # observer at -z from the target
-        br = apparent_brightness(shape, R, pos, sun, 1.0)
-        lit = br.ratio > 0
-        if lit.sum() > 1:
-            off = br.cob_cam[lit] - pos[lit]
-            mean[i] = float(np.mean(off[:, 0]))
-            spread[i] = math.sqrt(0.5 * (np.var(off[:, 0]) + np.var(off[:, 1])))
-    return alpha, mean, spread
 
 
 def bearing_adjuster(spec: RendezvousSpec, ctx: RendezvousContext, m: dict):
