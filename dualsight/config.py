@@ -410,6 +410,10 @@ class TargetConfig:
     probability : chance that a case has the target in its field, in [0, 1] (default 1).
     exclude_resolved : keep blobs larger than any star can make (the resolved target) out of star
         identification (``nav/resolved_blobs.py``; default True).
+    phase_correction : with the Sun's direction known, also correct the measured centre of brightness for the
+        phase angle (``scene/target_photometry.photocentre_table``: the target's mean photocentre over random
+        attitudes at the range of the case, and ``photocentre_offset`` for its known attitude) and write the
+        corrected bearings' errors against the body origin (``target_bearing_pc_*`` columns; default False).
     """
 
     satellite: typing.Annotated[str, pydantic.Field(min_length=1, max_length=4096)]
@@ -424,6 +428,7 @@ class TargetConfig:
     sun_keepout_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=180.0)] = 30.0
     probability: typing.Annotated[float, pydantic.Field(ge=0.0, le=1.0)] = 1.0
     exclude_resolved: bool = True
+    phase_correction: bool = False
 
     def __post_init__(self):
         check_fields(self, lambda name, msg: ConfigError(msg, field=f"target.{name}"), _TARGET_UNITS)
