@@ -190,7 +190,7 @@ def chi2_mean_bounds(dof: int, runs: int, prob: float = 0.95) -> tuple[float, fl
 
 
 def run(x0, P0, times, orbit: CircularOrbit, cfg: FilterConfig, *, bearings=None, bearing_cov=None,
-        ranges=None, range_sig=None, dv_times=(), dv=None, adjust=None):
+        ranges=None, range_sig=None, dv_times=(), dv=None, adjust=None, select=None):
     """The filter over a sequence of frames, batched over B runs.
 
     x0 (B, 6), P0 (B, 6, 6) at ``times[0]``; times (T,) s increasing; bearings (B, T, 3) ICRS lines of sight with
@@ -199,8 +199,12 @@ def run(x0, P0, times, orbit: CircularOrbit, cfg: FilterConfig, *, bearings=None
     frame's time is applied before that frame's measurements); adjust: optional ``adjust(k, x, P, u, C) -> (u, C)``
     called at frame k after the prediction with the predicted states x (K, 6), covariances P (K, 6, 6), bearings
     u (K, 3) and covariances C (K, 3, 3) of the K runs that have a bearing there, returning the bearings and
-    covariances to update with (e.g. a centre-of-brightness correction at the predicted range).  Returns the
-    updated states (B, T, 6) and covariances (B, T, 6, 6) at every frame."""
+    covariances to update with (e.g. a centre-of-brightness correction at the predicted range); select: optional
+    ``select(k, x, P, R_k) -> (u (B, 3), C (B, 3, 3))`` called at frame k after the prediction with every run's
+    predicted state and covariance and the Hill-to-ICRS rotation, returning the bearing to update with (NaN rows:
+    none), in place of ``bearings``/``adjust`` (the flight way to pick the target among candidates and gate
+    outliers by the innovation: ``nav/target_finding.py``).  Returns the updated states (B, T, 6) and
+    covariances (B, T, 6, 6) at every frame."""
     times = np.asarray(times, np.float64)
     n = orbit.mean_motion
     x, P = np.array(x0, np.float64), np.array(P0, np.float64)
@@ -224,7 +228,12 @@ def run(x0, P0, times, orbit: CircularOrbit, cfg: FilterConfig, *, bearings=None
         if times[k] > t_now:
             x, P = predict(x, P, times[k] - t_now, n, cfg)
             t_now = times[k]
-        if bearings is not None:
+        if select is not None:
+            b, bc = select(k, x, P, R[k])
+            ok = np.all(np.isfinite(b), axis=-1)
+            if ok.any():
+                x[ok], P[ok] = bearing_update(x[ok], P[ok], b[ok], np.asarray(bc)[ok], R[k], cfg.iterations)
+        elif bearings is not None:
             b = np.asarray(bearings[:, k], np.float64)
             ok = np.all(np.isfinite(b), axis=-1)
             if ok.any():

@@ -283,7 +283,7 @@ def test_photocentre_table_of_a_sphere_is_the_lit_sphere_and_the_correction_move
     want = 3 * np.pi / 16 * R * np.sin(ai) * (1 + np.cos(ai)) / (np.sin(ai) + (np.pi - ai) * np.cos(ai))
     np.testing.assert_allclose(mean[inner], want, rtol=1e-9)
     np.testing.assert_allclose(spread[inner], 0.0, atol=1e-9)     # a sphere looks the same in every attitude
-    # the adjust hook moves the bearing by the table's offset / predicted range, away from the Sun
+    # the select hook moves the bearing by the table's offset / predicted range, away from the Sun
     spec = _spec(None)
     ctx = rz.RendezvousContext(None, sphere, (a, mean, spread))
     s = rz.sun_icrs(spec)
@@ -291,10 +291,19 @@ def test_photocentre_table_of_a_sphere_is_the_lit_sphere_and_the_correction_move
     e /= np.linalg.norm(e)
     al = np.radians(60.0)
     u = -np.cos(al) * s + np.sin(al) * e                        # chaser -> target; Sun-target-chaser angle 60 deg
-    m = {"u_used": np.zeros((1, 3)), "C_used": np.zeros((1, 3, 3))}
-    adj = rz.bearing_adjuster(spec, ctx, m)
+    m = {"u": np.full((1, 3), np.nan), "C": np.zeros((1, 3, 3)), "u_used": np.full((1, 3), np.nan),
+         "C_used": np.zeros((1, 3, 3)), "target_xy": np.full((1, 2), np.nan), "bearing_used": np.zeros(1, bool),
+         "found_by": np.zeros(1, np.int8), "found_true": np.zeros(1, bool)}
+    m["cand"] = {"frame": np.array([0]), "u": u[None], "C": np.zeros((1, 3, 3)), "xy": np.zeros((1, 2)),
+                 "true": np.array([True])}
+    sel = rz.target_selector(spec, ctx, m)
     x = np.array([[0.0, -1000.0, 0.0, 0.0, 0.0, 0.0]])
-    u2, C2 = adj(0, x, np.eye(6)[None], u[None], np.zeros((1, 3, 3)))
+    # a Hill -> ICRS rotation whose along-track axis is u: rho = -1000 m along-track, so the predicted line of
+    # sight -R rho^ is u itself
+    R_k = np.stack([np.cross(u, s) / np.linalg.norm(np.cross(u, s)), u, s], axis=1)
+    R_k[:, 2] = np.cross(R_k[:, 0], R_k[:, 1])
+    u2, C2 = sel(0, x, np.eye(6)[None], R_k)
+    assert m["bearing_used"][0] and m["found_by"][0] in (1, 3)      # gate (star) or resolved_blob (prox)
     s_perp = (s - np.dot(s, u) * u) / np.linalg.norm(s - np.dot(s, u) * u)
     off = 3 * np.pi / 16 * R * np.sin(al) * (1 + np.cos(al)) / (np.sin(al) + (np.pi - al) * np.cos(al))
     assert np.dot(u2[0] - u, s_perp) == pytest.approx(-off / 1000.0, rel=1e-4)   # grid: 60 deg is on it

@@ -17,9 +17,13 @@ One case is one approach of a chaser to a target near a circular orbit::
     -> the EKF over the frames (nav/relative_filter.run: CW prediction, the known manoeuvres with their nominal
        delta-v and execution error, bearing and range updates) -> Arrow rows (jobs/kinds/rendezvous_tables.py)
 
-Simplifications (stated, not hidden): the target's detection in a star frame is the one nearest its true centre of
-brightness (``jobs/kinds/star.target_detection``, as the star job scores it), not found by its motion against the
-stars; no Earth shadow and no Earth or Moon in the field; the Sun is fixed in ICRS; the proximity renderer uses the
+Target finding (``nav/target_finding.py``, issue 23.3): in a star frame every detection that matches no catalog
+star through the frame's attitude, is not fixed on the sky (recurs in ICRS) nor on the detector (recurs on a pixel),
+is a candidate; the filter takes the one nearest its predicted bearing inside a chi-square(2) gate (no bearing when
+none is inside: identification or attitude failures stay out).  A proximity frame's candidate is the blobber's
+resolved blob, gated the same way.  The truth only scores the pick afterwards (``target_found_true``).
+
+Simplifications (stated, not hidden): no Earth shadow and no Earth or Moon in the field; the Sun is fixed in ICRS; the proximity renderer uses the
 satellite file's ambient and directional light (``I_a``, ``I_l``) as the prox job does.
 
 Spec (TOML)::
@@ -58,6 +62,8 @@ from dualsight.nav.blobber import BlobberConfig, run_blobber
 from dualsight.nav.observations import observations
 from dualsight.nav.resolved_blobs import excluded_blobs, without_excluded
 from dualsight.nav.star_solution import centroid_weights, identify, solve
+from dualsight.nav.target_finding import (FOUND_BY, chi2_gate_2dof, innovation_d2, pick, predicted_bearing,
+                                          repeats, unmatched)
 from dualsight.nav.target_bearing import (attitude_covariance, bearing_error, inertial_bearing,
                                           sphere_phase_correction)
 from dualsight.scene.attitude import quat_to_dcm, quaternions_from_uniforms
@@ -79,6 +85,16 @@ STAR_CHUNK = 16
 """Star-camera frames rendered per call (full frames: 16 x 1024 x 768)."""
 PROX_CHUNK = 8
 """Proximity frames rendered per call (8 x 1024 x 768 float32 image + coverage: ~50 MB)."""
+GATE_PROB = 0.999
+"""Probability of the chi-square(2) validation gate on the bearing innovation (``nav/target_finding.py``): a
+bearing farther from the filter's prediction than this (wrong identification or attitude, a false detection) is
+not used."""
+MATCH_TOL_PX = 2.0
+"""A detection within this many pixels' angle of a catalog star (through the frame's attitude) is that star."""
+FIXED_SKY_TOL_PX = 2.0
+"""An unmatched detection recurring within this many pixels' angle in ICRS in another frame is fixed on the sky."""
+FIXED_PIXEL_TOL_PX = 1.5
+"""An unmatched detection recurring within this many pixels in two other frames is fixed on the detector."""
 RANGE_FLOOR_FRAC = 0.005
 """Smallest 1-sigma of a blobber range given to the filter, as a fraction of the range (a [min, max] of zero width
 would be an exact range)."""
@@ -365,7 +381,16 @@ def _empty_meas(T: int) -> dict:
             "range": nan.copy(), "range_min": nan.copy(), "range_max": nan.copy(), "range_used": np.zeros(T, bool),
             "range_sigma": nan.copy(), "digest": np.zeros(T, np.int64), "t_render_ns": np.zeros(T, np.int64),
             "u_used": np.full((T, 3), np.nan), "C_used": np.zeros((T, 3, 3)), "bearing_raw_err": nan.copy(),
-            "target_xy": np.full((T, 2), np.nan)}
+            "target_xy": np.full((T, 2), np.nan), "found_by": np.zeros(T, np.int8), "found_true": np.zeros(T, bool),
+            "cand": None}
+
+
+def _candidates(frame, u, C, xy, true) -> dict:
+    """The target candidates of a sequence: frame (K,), ICRS lines of sight u (K, 3) and covariances C (K, 3, 3),
+    pixel positions xy (K, 2), and whether each is the true target's detection (``true`` (K,), for scoring only)."""
+    return {"frame": np.asarray(frame, np.int64), "u": np.asarray(u, np.float64).reshape(-1, 3),
+            "C": np.asarray(C, np.float64).reshape(-1, 3, 3), "xy": np.asarray(xy, np.float64).reshape(-1, 2),
+            "true": np.asarray(true, bool)}
 
 
 def measure_star(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: dict, keep_images: bool = False):
@@ -388,6 +413,8 @@ def measure_star(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
     voting = sp.robust if sp.robust is not None else sp.voting
     f = max(sp.camera.fx, sp.camera.fy)
     images = [] if keep_images else None
+    parts = []
+    A_all = np.tile(np.eye(3), (T, 1, 1))
     bs = min(sp.batch_size, STAR_CHUNK)
     for s in range(0, T, bs):
         fr = np.arange(s, min(T, s + bs))
@@ -412,25 +439,29 @@ def measure_star(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
         s2 = attitude_covariance(np.ones((len(fr), 1, 1)), sol.residual, n_used,
                                  floor_rad=star.CENTROID_FLOOR_PX / f)[:, 0, 0]
         P_att = np.where(att_ok[:, None, None], cov_unit, 0.0) * s2[:, None, None]
-        sub_tf = _take_tf(tf, fr)
-        kt = star.target_detection(det, sub_tf)
-        det_ok = kt >= 0
-        sig_px = np.sqrt(s2) * f                 # the stars' own centroid scatter (px)
+        # every detection of a frame with an attitude is a candidate until the catalog and its motion say
+        # otherwise (nav/target_finding.py); the truth only scores the pick afterwards (target_detection)
+        kt = star.target_detection(det, _take_tf(tf, fr))
+        case = np.asarray(det.case, np.int64)
+        kk = np.flatnonzero(att_ok[case])
+        cl = case[kk]
+        sig_px = np.sqrt(s2)[cl] * f                 # the stars' own centroid scatter (px)
         if det.sigma_px is not None:
-            sig_px = np.where(det_ok, np.hypot(np.asarray(det.sigma_px)[np.maximum(kt, 0)], star.CENTROID_FLOOR_PX),
-                              sig_px)
-        use = det_ok & att_ok
-        A_est = np.where(use[:, None, None], sol.A_est, np.eye(3))
-        xy = (np.stack([det.x[np.maximum(kt, 0)], det.y[np.maximum(kt, 0)]], -1) if len(det.x)
-              else np.zeros((len(fr), 2)))
-        u, C = inertial_bearing(A_est, np.where(use[:, None, None], P_att, 0.0), xy, sig_px, sp.camera)
+            sig_px = np.hypot(np.asarray(det.sigma_px)[kk], star.CENTROID_FLOOR_PX)
+        xy = np.stack([det.x[kk], det.y[kk]], -1)
+        u, C = inertial_bearing(sol.A_est[cl], P_att[cl], xy, sig_px, sp.camera)
+        parts.append((fr[cl], u, C, xy, kk == kt[cl]))
+        A_all[fr[att_ok]] = sol.A_est[att_ok]
         m["attitude"][fr] = np.where(att_ok, 1, 0)
         m["n_stars"][fr] = np.where(att_ok, n_used, 0)
-        m["detected"][fr] = det_ok
-        m["target_xy"][fr] = np.where(det_ok[:, None], xy, np.nan)
-        m["u"][fr] = np.where(use[:, None], u, np.nan)
-        m["C"][fr] = np.where(use[:, None, None], C, 0.0)
-        m["bearing_used"][fr] = use
+        m["detected"][fr] = kt >= 0
+    cand = _candidates(*(np.concatenate([p[i] for p in parts]) for i in range(5)))
+    pix = 1.0 / f
+    keep = unmatched(cand["frame"], cand["u"], A_all[:, 2, :], cat.unit, MATCH_TOL_PX * pix,
+                     0.5 * sp.camera.fov_rad[2])
+    keep &= ~repeats(cand["frame"], cand["u"], FIXED_SKY_TOL_PX * pix, min_frames=2)
+    keep &= ~repeats(cand["frame"], cand["xy"], FIXED_PIXEL_TOL_PX, min_frames=3)
+    m["cand"] = {k: v[keep] for k, v in cand.items()}
     return m, (np.concatenate(images) if keep_images else None)
 
 
@@ -494,13 +525,15 @@ def measure_prox(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
         m["target_xy"][fr] = np.where(found[:, None], xy, np.nan)
         sig_px = np.full(len(fr), star.CENTROID_FLOOR_PX)
         u, C = inertial_bearing(A_est[fr], np.broadcast_to(sa ** 2 * np.eye(3), (len(fr), 3, 3)), xy, sig_px, cam)
-        m["u"][fr] = np.where(found[:, None], u, np.nan)
+        m["u"][fr] = np.where(found[:, None], u, np.nan)        # the candidates (the one blob), picked by the gate
         m["C"][fr] = np.where(found[:, None, None], C, 0.0)
-        m["bearing_used"][fr] = found
         rok = found & m["resolved"][fr] & np.isfinite(b.range_est) & (b.range_est > 0)
         m["range"][fr] = np.where(rok, b.range_est, np.nan)
         m["range_min"][fr] = np.where(rok, b.range_min, np.nan)
         m["range_max"][fr] = np.where(rok, b.range_max, np.nan)
+    k = np.flatnonzero(m["detected"])
+    m["cand"] = _candidates(k, m["u"][k], m["C"][k], m["target_xy"][k], np.ones(len(k), bool))
+    m["u"][:], m["C"][:] = np.nan, 0.0
     rok = np.isfinite(m["range"]) & (c.range_source == "blobber")
     m["range_used"] = rok
     m["range_sigma"] = np.where(rok, np.maximum(rf.range_sigma(m["range_min"], m["range_max"]),
@@ -514,44 +547,65 @@ def filter_config(cfg: RendezvousConfig) -> rf.FilterConfig:
                            iterations=cfg.iterations)
 
 
-def bearing_adjuster(spec: RendezvousSpec, ctx: RendezvousContext, m: dict):
-    """The filter's ``adjust`` hook (``nav/relative_filter.run``): at the predicted range r = |rho_pred| and the
-    phase angle between the Sun and the measured line of sight, with ``phase_correction`` the measured bearing is
-    moved from the centre of brightness towards the centre by the target's mean photocentre offset over attitudes
-    (:func:`photocentre_table`, ``nav/target_bearing.sphere_phase_correction`` moves by offset / r away from the
-    Sun) and its spread over attitudes joins the covariance across it; ``(cob_sigma_frac x 2 bounding_radius /
-    r)^2`` is added in any case.  Records the bearings and covariances used in ``m`` (``u_used``, ``C_used``)."""
+def target_selector(spec: RendezvousSpec, ctx: RendezvousContext, m: dict):
+    """The filter's ``select`` hook (``nav/relative_filter.run``): at frame k, each of the frame's candidates
+    (``m["cand"]``: the moving unmatched detections of a star frame, the resolved blob of a proximity frame) is
+    corrected for the centre of brightness at the predicted range r = |rho_pred| (with ``phase_correction``: moved
+    towards the body's centre by the target's mean photocentre offset over attitudes at the phase angle between the
+    Sun and its line of sight, :func:`photocentre_table` / ``nav/target_bearing.sphere_phase_correction``, and the
+    spread over attitudes joins its covariance; ``(cob_sigma_frac x 2 bounding_radius / r)^2`` in any case), then
+    the one nearest the predicted bearing inside the chi-square(2) gate of probability :data:`GATE_PROB` is the
+    target (``nav/target_finding.py``).  Records per frame the raw and used bearing and covariance (``u``, ``C``,
+    ``u_used``, ``C_used``), ``bearing_used``, ``found_by`` (``FOUND_BY`` code) and ``found_true`` (the pick is the
+    true target's detection: scored after the pick)."""
     c = spec.cfg
     extra = c.cob_sigma_frac * 2.0 * ctx.shape.bounding_radius
     s = sun_icrs(spec)
     grid, mean, spread = ctx.photocentre
+    cand = m["cand"]
+    gate = chi2_gate_2dof(GATE_PROB)
+    hit_code = 1 if spec.is_star else FOUND_BY.index("resolved_blob")
 
-    def adjust(k, x, P, u, C):
-        r = np.linalg.norm(x[:, :3], axis=1)
-        var = np.full(len(r), extra ** 2)
+    def select(k, x, P, R_k):
+        u_out, C_out = np.full((1, 3), np.nan), np.zeros((1, 3, 3))
+        idx = np.flatnonzero(cand["frame"] == k)
+        if idx.size == 0:
+            return u_out, C_out
+        u, C = cand["u"][idx], cand["C"][idx]
+        r = float(np.linalg.norm(x[0, :3]))
+        var = np.full(len(u), extra ** 2)
+        v = u
         if c.phase_correction:
             alpha = np.arccos(np.clip(-(u @ s), -1.0, 1.0))          # Sun - target - chaser
-            u = sphere_phase_correction(u, np.broadcast_to(s, u.shape), np.interp(alpha, grid, mean), r)
+            v = sphere_phase_correction(u, np.broadcast_to(s, u.shape), np.interp(alpha, grid, mean), r)
             var = var + np.interp(alpha, grid, spread) ** 2
-        C = C + rf.isotropic_bearing_cov(u, np.sqrt(var) / r)
-        m["u_used"][k], m["C_used"][k] = u[0], C[0]
-        return u, C
+        Cv = C + rf.isotropic_bearing_cov(v, np.sqrt(var) / r)
+        up, Cp = predicted_bearing(x[:1], P[:1], R_k)
+        j, code = pick(innovation_d2(v, Cv, up[0], Cp[0]), gate)
+        m["found_by"][k] = hit_code if code == 1 else code
+        if j < 0:
+            return u_out, C_out
+        m["u"][k], m["C"][k], m["u_used"][k], m["C_used"][k] = u[j], C[j], v[j], Cv[j]
+        m["target_xy"][k] = cand["xy"][idx[j]]
+        m["bearing_used"][k] = True
+        m["found_true"][k] = cand["true"][idx[j]]
+        return v[j:j + 1], Cv[j:j + 1]
 
-    return adjust
+    return select
 
 
 def run_filter(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, m: dict) -> tuple[np.ndarray, np.ndarray]:
     """(T, 6) estimates and (T, 6, 6) covariances of the EKF (one approach) from the nominal initial state and the
-    spec's prior, with the measurements ``m`` (bearings adjusted by :func:`bearing_adjuster`) and the nominal
+    spec's prior, with the measurements ``m`` (the target picked and its bearing corrected by
+    :func:`target_selector`) and the nominal
     manoeuvres."""
     c = spec.cfg
     P0 = np.diag(np.array(list(c.prior_position_m) + list(c.prior_velocity_m_s)) ** 2)
     rng = np.where(m["range_used"], m["range"], np.nan)
-    xs, Ps = rf.run(draw["x0_nominal"][None], P0[None], spec.times, spec.orbit, filter_config(c),
-                    bearings=m["u"][None], bearing_cov=m["C"][None], ranges=rng[None],
+    xs, Ps = rf.run(draw["x0_nominal"][None], P0[None], spec.times, spec.orbit, filter_config(c), ranges=rng[None],
                     range_sig=np.nan_to_num(m["range_sigma"], nan=1.0)[None],
                     dv_times=np.asarray(c.manoeuvre_times_s), dv=draw["dv_nominal"] if len(c.manoeuvre_times_s)
-                    else None, adjust=bearing_adjuster(spec, ctx, m))
+                    else None, select=target_selector(spec, ctx, m))
     return xs[0], Ps[0]
 
 

@@ -14,6 +14,7 @@ import math
 import numpy as np
 import pyarrow as pa
 
+from dualsight.nav.target_finding import FOUND_BY
 from dualsight.scene.units import ARCSEC
 
 __all__ = ["FRAMES_SCHEMA", "CASES_SCHEMA", "ATTITUDE_NAMES", "frames_table", "case_row"]
@@ -33,7 +34,7 @@ FRAMES_SCHEMA = pa.schema(
        ("sigma_pos_m", _F), ("nees", _F), ("nees_pos", _F),
        ("attitude", pa.string()), ("n_stars", _I), ("target_in_field", _B), ("target_detected", _B),
        ("target_resolved", _B), ("target_pixels", _I), ("target_vmag", _F), ("phase_deg", _F),
-       ("bearing_used", _B), ("bearing_raw_err_arcsec", _F), ("bearing_err_arcsec", _F),
+       ("target_found_by", pa.string()), ("target_found_true", _B), ("bearing_used", _B), ("bearing_raw_err_arcsec", _F), ("bearing_err_arcsec", _F),
        ("bearing_sigma_arcsec", _F),
        ("range_meas_m", _F), ("range_min_m", _F), ("range_max_m", _F), ("range_used", _B),
        ("image_digest", _L), ("t_render_ns", _L), ("t_nav_ns", _L)])
@@ -46,7 +47,10 @@ nearest one orbital period after the first manoeuvre; ``attitude``: :data:`ATTIT
 the line of sight the filter used (after its centre-of-brightness correction) against the true direction to the
 target's body origin (``bearing_raw_err_arcsec``: the measured one, before it); ``bearing_sigma_arcsec``: its stated
 1-sigma per axis (sqrt(trace C / 2)); ``range_meas_m`` with ``range_min_m``/``range_max_m``: the blobber's
-single-frame range where the target was resolved; ``*_used``: the measurement entered the filter."""
+single-frame range where the target was resolved; ``*_used``: the measurement entered the filter;
+``target_detected``: a detection of the true target exists (scored by the truth); ``target_found_by``: how the
+filter found it (``nav/target_finding.FOUND_BY``: none, gate, gated_out, resolved_blob) and
+``target_found_true``: the detection it picked is the true target's (scored after the pick)."""
 
 CASES_SCHEMA = pa.schema([
     ("case_id", _L), ("seed", _L), ("camera", pa.string()), ("frames", _I), ("frames_bearing", _I),
@@ -95,6 +99,7 @@ def frames_table(case_id: int, out: dict) -> pa.Table:
         "target_in_field": m["in_field"], "target_detected": m["detected"], "target_resolved": m["resolved"],
         "target_pixels": pa.array(m["pixels"].astype(np.int32), _I, mask=m["pixels"] < 0),
         "target_vmag": _nullable(m["vmag"]), "phase_deg": np.degrees(m["phase"]),
+        "target_found_by": np.asarray(FOUND_BY, object)[m["found_by"]], "target_found_true": m["found_true"],
         "bearing_used": bear,
         "bearing_raw_err_arcsec": _nullable(np.where(bear, m["bearing_raw_err"], np.nan) / ARCSEC),
         "bearing_err_arcsec": _nullable(np.where(bear, m["bearing_err"], np.nan) / ARCSEC),
