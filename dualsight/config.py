@@ -24,6 +24,7 @@ kernels), scene, catalogs, nav and jobs.
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import functools
 import json
 import math
@@ -38,7 +39,7 @@ from dualsight.errors import ConfigError
 
 __all__ = ["check_fields", "allowed_range", "validate", "plain_tree", "printable_key", "friendly_key", "MAX_DEPTH",
            "ANGLE_KEY_SUFFIXES", "dataclass_from_table", "dataclass_to_table", "check_range", "TrackingConfig",
-           "TargetConfig", "SequenceConfig", "OutputConfig"]
+           "TargetConfig", "SequenceConfig", "OutputConfig", "EnvironmentConfig"]
 
 
 @functools.lru_cache(maxsize=None)
@@ -414,6 +415,9 @@ class TargetConfig:
         phase angle (``scene/target_photometry.photocentre_table``: the target's mean photocentre over random
         attitudes at the range of the case, and ``photocentre_offset`` for its known attitude) and write the
         corrected bearings' errors against the body origin (``target_bearing_pc_*`` columns; default False).
+    environment : ``[target.environment]`` (:class:`EnvironmentConfig`): an epoch and an orbit per case; the Sun
+        then comes from the epoch (``sun_icrs`` and ``phase_deg`` unused) and each row gets the Earth, Moon and
+        shadow columns; absent = the Sun as above and those columns null.
     """
 
     satellite: typing.Annotated[str, pydantic.Field(min_length=1, max_length=4096)]
@@ -429,6 +433,7 @@ class TargetConfig:
     probability: typing.Annotated[float, pydantic.Field(ge=0.0, le=1.0)] = 1.0
     exclude_resolved: bool = True
     phase_correction: bool = False
+    environment: EnvironmentConfig | None = None
 
     def __post_init__(self):
         check_fields(self, lambda name, msg: ConfigError(msg, field=f"target.{name}"), _TARGET_UNITS)
@@ -719,3 +724,64 @@ class RendezvousConfig:
     def frames(self) -> int:
         """Frames per approach: t = 0, dt, ... <= duration_s."""
         return int(math.floor(self.duration_s / self.frame_interval_s + 1e-9)) + 1
+
+
+# ============================================================================================ Sun, Earth, Moon (issue 23, point 1)
+_ENV_EPOCH_MIN, _ENV_EPOCH_MAX = "1950-01-01T00:00:00", "2050-01-01T00:00:00"
+_ENV_UNITS = {"altitude_km": "km", "inclination_deg": "deg", "earth_keepout_deg": "deg", "moon_keepout_deg": "deg"}
+_EnvTime = typing.Annotated[str, pydantic.Field(min_length=10, max_length=40)]
+
+
+def _utc_seconds(text: str) -> float | None:
+    """POSIX seconds of an ISO UTC time ("2025-03-01T12:00:00", "Z" or "+00:00" allowed), None if malformed."""
+    try:
+        t = datetime.datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        return None
+    return (t if t.tzinfo is not None else t.replace(tzinfo=datetime.timezone.utc)).timestamp()
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvironmentConfig:
+    """Where and when each case of a star run with a target is (``[target.environment]``; issue 23, point 1;
+    ``scene/case_environment.py``): an epoch and a position on a circular orbit per case, from which the Sun,
+    Earth and Moon directions, their keep-out flags and the Earth's shadow follow (``scene/ephemeris.py``,
+    ``scene/keepout.py``).  Every field's range is part of its type, checked when the dataclass is built
+    (ConfigError naming ``target.environment.<field>``, the value and the range) and when a TOML table is validated.
+
+    epoch_utc : [first, last] ISO UTC times ("2025-01-01T00:00:00"), first <= last, both within 1950-2050 (the
+        low-precision ephemeris' span); each case's epoch uniform between them (default the year 2025).
+    altitude_km : circular orbit altitude in [150, 40000] km (default 500); inclination_deg in [0, 180] (default
+        97.4, Sun-synchronous at 500 km); each case a uniform right ascension of the node and argument of latitude.
+    earth_keepout_deg : half-angle (deg) of the cone about the boresight that the Earth's limb must stay out of, in
+        [0, 90] (default 20); moon_keepout_deg : the Moon's, in [0, 90] (default 10).  The Sun's is
+        ``target.sun_keepout_deg``.  Defaults chosen as the usual order of small star trackers' exclusion angles,
+        not a particular data sheet's.
+    """
+
+    epoch_utc: typing.Annotated[tuple[_EnvTime, _EnvTime], pydantic.Field(min_length=2, max_length=2)] = \
+        ("2025-01-01T00:00:00", "2026-01-01T00:00:00")
+    altitude_km: typing.Annotated[float, pydantic.Field(ge=150.0, le=40000.0)] = 500.0
+    inclination_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=180.0)] = 97.4
+    earth_keepout_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=90.0)] = 20.0
+    moon_keepout_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=90.0)] = 10.0
+    __pydantic_config__ = pydantic.ConfigDict(extra="forbid")      # a nested table: unknown keys refused too
+
+    def __post_init__(self):
+        check_fields(self, lambda name, msg: ConfigError(msg, field=f"target.environment.{name}"), _ENV_UNITS)
+        lo, hi = _utc_seconds(_ENV_EPOCH_MIN), _utc_seconds(_ENV_EPOCH_MAX)
+        sec = []
+        for i, text in enumerate(self.epoch_utc):
+            t = _utc_seconds(text)
+            if t is None or not lo <= t <= hi:
+                raise ConfigError(f"must be an ISO UTC time (YYYY-MM-DDTHH:MM:SS) within [{_ENV_EPOCH_MIN}, "
+                                  f"{_ENV_EPOCH_MAX}], got {text!r}", field=f"target.environment.epoch_utc[{i}]")
+            sec.append(t)
+        if sec[0] > sec[1]:
+            raise ConfigError(f"must be [first, last] with first <= last, got {list(self.epoch_utc)!r}",
+                              field="target.environment.epoch_utc")
+
+    @property
+    def epoch_unix_s(self) -> tuple[float, float]:
+        """(first, last) epochs as POSIX seconds (UTC)."""
+        return _utc_seconds(self.epoch_utc[0]), _utc_seconds(self.epoch_utc[1])
