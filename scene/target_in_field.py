@@ -68,10 +68,12 @@ class TargetCases:
     phase_rad: np.ndarray
 
 
-def draw_targets(cfg: TargetConfig, seed: int, case_ids: np.ndarray, A_true: np.ndarray, camera) -> TargetCases:
+def draw_targets(cfg: TargetConfig, seed: int, case_ids: np.ndarray, A_true: np.ndarray, camera,
+                 sun_icrs: np.ndarray | None = None) -> TargetCases:
     """The target of each case from ``default_rng([seed, case_id])`` (its draws after :data:`STAR_JOB_DRAWS`).
 
-    A_true : (B, 3, 3) inertial -> camera attitudes of the cases; camera : ``scene.camera.Camera``.
+    A_true : (B, 3, 3) inertial -> camera attitudes of the cases; camera : ``scene.camera.Camera``; sun_icrs :
+    (B, 3) unit vectors towards each case's Sun (ICRS; ``scene/case_environment.py``), before ``cfg.sun_icrs``.
     Every case takes the same nine draws whatever the options, in this order: presence, range, x, y, three for
     the target's attitude, phase, azimuth."""
     rng = case_streams(seed, np.asarray(case_ids, np.int64))
@@ -91,7 +93,10 @@ def draw_targets(cfg: TargetConfig, seed: int, case_ids: np.ndarray, A_true: np.
         u = camera.backproject(px)
     A_true = np.asarray(A_true, np.float64)
     o = -u                                                   # target -> camera
-    if cfg.sun_icrs is not None:
+    if sun_icrs is not None:                                # each case's own Sun (its epoch)
+        s_case = np.asarray(sun_icrs, np.float64)
+        s_cam = np.einsum("bij,bj->bi", A_true, s_case / np.linalg.norm(s_case, axis=-1, keepdims=True))
+    elif cfg.sun_icrs is not None:
         s_icrs = np.asarray(cfg.sun_icrs, np.float64)
         s_cam = np.einsum("bij,j->bi", A_true, s_icrs / np.linalg.norm(s_icrs))
     else:
