@@ -37,6 +37,7 @@ import time
 
 import numpy as np
 
+from dualsight.config import FilterConfig
 from dualsight.nav import relative_filter as rf
 from dualsight.scene import relative_orbit as ro
 from dualsight.scene.units import ARCSEC
@@ -73,7 +74,7 @@ def simulate(args, manoeuvre: bool):
     u = (u + e) / np.linalg.norm(u + e, axis=-1, keepdims=True)
     cov = rf.isotropic_bearing_cov(u.reshape(-1, 3), sig).reshape(B, -1, 3, 3)
     x0 = truth0 + rng.normal(size=(B, 6)) @ np.linalg.cholesky(P0).T
-    cfg = rf.FilterConfig(accel_psd=args.q, dv_sigma_frac=args.dv_frac, iterations=args.iterations)
+    cfg = FilterConfig(accel_psd=args.q, dv_sigma_frac=args.dv_frac, iterations=args.iterations)
     t0 = time.perf_counter()
     xs, Ps = rf.run(x0, np.broadcast_to(P0, (B, 6, 6)), times, orbit, cfg, bearings=u, bearing_cov=cov,
                     dv_times=[t_dv] if manoeuvre else (), dv=dv_nom[None] if manoeuvre else None)

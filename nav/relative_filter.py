@@ -35,31 +35,15 @@ never over runs.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from statistics import NormalDist
 
 import numpy as np
 
+from dualsight.config import FilterConfig
 from dualsight.scene.relative_orbit import CircularOrbit, cw_stm, hill_to_icrs
 
-__all__ = ["FilterConfig", "process_noise", "predict", "apply_manoeuvre", "tangent_basis", "isotropic_bearing_cov",
-           "bearing_update", "range_sigma", "range_update", "nees", "chi2_mean_bounds", "run"]
-
-
-@dataclass(frozen=True)
-class FilterConfig:
-    """Noise settings of the relative-navigation EKF.
-
-    accel_psd : white acceleration noise spectral density per Hill axis (m^2/s^3; 1e-12 ~ 1 um/s^2 over 1 s).
-    dv_sigma_frac : 1-sigma execution error of a manoeuvre per axis, as a fraction of |dv|.
-    dv_sigma_m_s : 1-sigma execution error of a manoeuvre per axis (m/s), added in quadrature.
-    iterations : linearisations per measurement update (1: the EKF; more: the iterated EKF, which stays consistent
-    when the first bearings meet a prior whose error across the line of sight is a large angle)."""
-
-    accel_psd: float = 1e-12
-    dv_sigma_frac: float = 0.0
-    dv_sigma_m_s: float = 0.0
-    iterations: int = 1
+__all__ = ["process_noise", "predict", "apply_manoeuvre", "tangent_basis", "isotropic_bearing_cov", "bearing_update",
+           "range_sigma", "range_update", "nees", "chi2_mean_bounds", "run"]
 
 
 def process_noise(n: float, dt: float, q: float) -> np.ndarray:

@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 
+from dualsight.config import FilterConfig
 from dualsight.nav import relative_filter as rf
 from dualsight.scene import relative_orbit as ro
 
@@ -89,7 +90,7 @@ def test_perfect_range_and_bearings_converge_to_truth():
     x0 = truth0 + np.array([[8.0, -20.0, -5.0, 0.01, -0.02, 0.01]])
     P0 = np.diag([30.0 ** 2] * 3 + [0.05 ** 2] * 3)[None]
     # iterated EKF: the prior is 22 m off at 150 m (8 deg), too far for one linearisation against 1 nrad bearings
-    cfg = rf.FilterConfig(accel_psd=1e-16, iterations=3)
+    cfg = FilterConfig(accel_psd=1e-16, iterations=3)
     xs, Ps = rf.run(x0, P0, times, ORBIT, cfg, bearings=u, bearing_cov=cov, ranges=rng_m,
                     range_sig=np.full_like(rng_m, 1e-4))
     err = xs[0] - truth[0]
@@ -115,7 +116,7 @@ def bearings_only(dv_times, dv, seed):
     cov = rf.isotropic_bearing_cov(u.reshape(-1, 3), 1e-5).reshape(1, -1, 3, 3)
     x0 = truth0 * 0.8                            # 20 % short in range, on the right line of sight
     P0 = np.diag([400.0 ** 2] * 3 + [0.05 ** 2] * 3)[None]
-    xs, Ps = rf.run(x0, P0, times, ORBIT, rf.FilterConfig(accel_psd=1e-16), bearings=u, bearing_cov=cov,
+    xs, Ps = rf.run(x0, P0, times, ORBIT, FilterConfig(accel_psd=1e-16), bearings=u, bearing_cov=cov,
                     dv_times=dv_times, dv=dv)
     return truth[0], xs[0], Ps[0]
 
@@ -157,7 +158,7 @@ def test_nees_over_100_runs_within_chi2_bounds():
     rmax = rmin + w
     rng_m = 0.5 * (rmin + rmax)
     xs, Ps = rf.run(np.broadcast_to(nominal, (runs, 6)), np.broadcast_to(P0, (runs, 6, 6)), times, ORBIT,
-                    rf.FilterConfig(accel_psd=q, iterations=3), bearings=u, bearing_cov=cov, ranges=rng_m,
+                    FilterConfig(accel_psd=q, iterations=3), bearings=u, bearing_cov=cov, ranges=rng_m,
                     range_sig=rf.range_sigma(rmin, rmax))
     mean_nees = rf.nees(xs, Ps, truth).mean(0)    # (T,)
     lo, hi = rf.chi2_mean_bounds(6, runs, 0.95)
@@ -191,3 +192,16 @@ def test_chi2_mean_bounds_against_exact_distribution():
     P = np.array([[4.0, 1.0], [1.0, 2.0]])
     e = rng.normal(size=(200000, 2)) @ np.linalg.cholesky(P).T
     assert abs(rf.nees(e, np.broadcast_to(P, (200000, 2, 2)), np.zeros(2)).mean() - 2.0) < 0.02
+
+
+def test_filter_config_refuses_values_out_of_range():
+    """FilterConfig (dualsight/config.py): one ConfigError naming the field and its range."""
+    import pytest
+
+    from dualsight.errors import ConfigError
+
+    for kw, text in [({"accel_psd": -1e-12}, "filter.accel_psd"), ({"iterations": 0}, "filter.iterations"),
+                     ({"dv_sigma_frac": 1.5}, "filter.dv_sigma_frac"), ({"dv_sigma_m_s": float("nan")}, "dv_sigma_m_s")]:
+        with pytest.raises(ConfigError, match=text.replace(".", r"\.")):
+            FilterConfig(**kw)
+    assert FilterConfig(accel_psd=0.0, iterations=20).iterations == 20

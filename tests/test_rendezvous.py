@@ -13,6 +13,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from dualsight.config import FilterConfig
 from dualsight.jobs.kinds import rendezvous as rz
 from dualsight.jobs.reports import rendezvous as report
 from dualsight.nav import relative_filter as rf
@@ -96,7 +97,7 @@ def test_filter_adjust_hook_sees_the_predicted_state():
     u = -np.einsum("tij,j->ti", hill_to_icrs(orbit, times), x0[0, :3] / 500.0)[None]
     C = rf.isotropic_bearing_cov(u[0], 1e-5)[None]
     seen = []
-    cfg = rf.FilterConfig()
+    cfg = FilterConfig()
     xs, Ps = rf.run(x0, P0, times, orbit, cfg, bearings=u, bearing_cov=C,
                     adjust=lambda k, x, P, b, c: (seen.append((k, x.copy())), (b, c))[1])
     xs0, _ = rf.run(x0, P0, times, orbit, cfg, bearings=u, bearing_cov=C)

@@ -23,8 +23,8 @@ is a candidate; the filter takes the one nearest its predicted bearing inside a 
 none is inside: identification or attitude failures stay out).  A proximity frame's candidate is the blobber's
 resolved blob, gated the same way.  The truth only scores the pick afterwards (``target_found_true``).
 
-Simplifications (stated, not hidden): no Earth shadow and no Earth or Moon in the field; the Sun is fixed in ICRS; the proximity renderer uses the
-satellite file's ambient and directional light (``I_a``, ``I_l``) as the prox job does.
+Simplifications (stated, not hidden): no Earth shadow and no Earth or Moon in the field; the Sun is fixed in
+ICRS; the proximity renderer uses the satellite file's ambient and directional light (``I_a``, ``I_l``) as the prox job does.
 
 Spec (TOML)::
 
@@ -48,7 +48,7 @@ import numpy as np
 import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field
 
-from dualsight.config import RendezvousConfig, TargetConfig, dataclass_from_table, dataclass_to_table, validate
+from dualsight.config import FilterConfig, RendezvousConfig, TargetConfig, dataclass_from_table, dataclass_to_table, validate
 from dualsight.errors import ConfigError, InputError
 from dualsight.jobs.engine.runner import prepare, run_job
 from dualsight.jobs.engine.specs import preset_and_config
@@ -541,9 +541,9 @@ def measure_prox(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
     return m, (np.concatenate(images) if keep_images else None)
 
 
-def filter_config(cfg: RendezvousConfig) -> rf.FilterConfig:
+def filter_config(cfg: RendezvousConfig) -> FilterConfig:
     """The EKF's settings of a spec."""
-    return rf.FilterConfig(accel_psd=cfg.accel_psd, dv_sigma_frac=cfg.dv_error_frac, dv_sigma_m_s=cfg.dv_error_m_s,
+    return FilterConfig(accel_psd=cfg.accel_psd, dv_sigma_frac=cfg.dv_error_frac, dv_sigma_m_s=cfg.dv_error_m_s,
                            iterations=cfg.iterations)
 
 

@@ -127,6 +127,10 @@ def text(rep: dict) -> str:
         f"availability (a bearing entered the filter): {percent(j['availability'])} of frames; target in the "
         f"field {percent(j['in_field_share'])}, attitude {percent(j['attitude_share'])}, blobber range "
         f"{percent(j['range_share'])}",
+        f"target found without the truth (its motion against the stars, the filter's gate): "
+        f"{'-' if j['target_found_rate'] is None else percent(j['target_found_rate'])} of the frames with a "
+        f"detection of it ({'-' if j['target_detected_share'] is None else percent(j['target_detected_share'])} of "
+        f"frames); {j['target_false_picks']} picks not the target, {j['target_gated_out']} frames gated out",
         "bearing error (used, after the centre-of-brightness correction): RMS "
         f"{_f(j['bearing_err_rms_arcsec'], '{:.2f}')} arcsec, median {_f(j['bearing_err_p50_arcsec'], '{:.2f}')}, "
         f"p95 {_f(j['bearing_err_p95_arcsec'], '{:.2f}')}"
@@ -194,6 +198,9 @@ def html_sections(lake: Lake, con, m: dict, run_id: str) -> list[tuple[str, str]
                 f"{_f(j['bearing_err_p50_arcsec'], '{:.2f}')} / {_f(j['bearing_err_p95_arcsec'], '{:.2f}')}"),
                ("bearing as measured, RMS (arcsec)", _f(j["bearing_raw_err_rms_arcsec"], "{:.2f}")),
                ("bearing within 3 stated sigma", percent(j["bearing_within_3sigma"])),
+               ("target found (of frames with its detection) / false picks / gated out",
+                f"{'-' if j['target_found_rate'] is None else percent(j['target_found_rate'])} / "
+                f"{j['target_false_picks']} / {j['target_gated_out']}"),
                ("final range mean (m) / position error RMS (m) / velocity error RMS (m/s)",
                 f"{_f(j['final_range_mean_m'], '{:.1f}')} / {_f(j['final_pos_err_rms_m'], '{:.3f}')} / "
                 f"{_f(j['final_vel_err_rms_m_s'], '{:.5f}')}"),

@@ -1,6 +1,8 @@
 -- Rendezvous campaign (issue 23, points 5-6): availability, bearing error and its stated sigma, the close-range
 -- filtered range error against the single-frame blobber error and the velocity error from frame $after on (6 d),
--- the far-range position error as % of range one orbit after the first manoeuvre (6 e).
+-- the far-range position error as % of range one orbit after the first manoeuvre (6 e); the target found without
+-- the truth (point 3): the share of frames with a detection of the true target where the filter picked it, the
+-- picks that were not the target, the frames gated out.
 -- Full scan of rendezvous_frames and rendezvous_cases of one run ($run); m, m/s, arcsec.
 WITH f AS (SELECT * FROM rendezvous_frames WHERE run = $run),
 c AS (SELECT * FROM rendezvous_cases WHERE run = $run),
@@ -18,6 +20,11 @@ SELECT
     (SELECT avg((attitude <> 'none')::INT) FROM f)                               AS attitude_share,
     (SELECT avg(range_used::INT) FROM f)                                         AS range_share,
     (SELECT count(*) FROM b)                                                     AS bearings,
+    (SELECT avg(target_detected::INT) FROM f)                                    AS target_detected_share,
+    (SELECT avg((bearing_used AND target_found_true)::INT) FROM f WHERE target_detected)
+                                                                                 AS target_found_rate,
+    (SELECT count(*) FROM b WHERE NOT target_found_true)                         AS target_false_picks,
+    (SELECT count(*) FROM f WHERE target_found_by = 'gated_out')                 AS target_gated_out,
     (SELECT sqrt(avg(bearing_err_arcsec * bearing_err_arcsec)) FROM b)           AS bearing_err_rms_arcsec,
     (SELECT quantile_cont(bearing_err_arcsec, 0.5) FROM b)                       AS bearing_err_p50_arcsec,
     (SELECT quantile_cont(bearing_err_arcsec, 0.95) FROM b)                      AS bearing_err_p95_arcsec,
