@@ -18,6 +18,19 @@ the offset is ``delta(alpha)`` of ``scene/target_photometry.sphere_photocentre_o
 of the sky (Basilisk corrects its heading the same way); :func:`sphere_phase_correction` moves the line of sight
 back by delta / d away from the Sun.
 
+Centroid sigma of the target's blob (:func:`blob_centroid_sigma`): the point-source centroid sigma (the detector's
+Cramer-Rao bound, or the stars' a-posteriori scatter) describes a faint, unsaturated star.  The target is neither: a
+point-like target at 1-10 km is brighter than any star and saturates, so its profile is flattened and its
+intensity-weighted centroid or PSF fit moves with the plateau's pixel sampling; a resolved one is partly lit and
+saturated, so its blob's centroid is pulled from the photometric centre of brightness towards the centroid of its
+lit silhouette (for a lit sphere at 90 deg phase the two are (3 pi/16) R = 0.589 R and 4 R / (3 pi) = 0.424 R from
+its centre: 0.165 R apart, 0.33 of the lit half-disc's RMS radius R / 2).  Both errors scale with the blob's size, so the blob adds ``k r_rms`` per axis, r_rms =
+sqrt(npix / (2 pi)) the RMS radius of a uniform disc of the blob's npix pixels, with k :data:`BLOB_SIGMA_FRAC_POINT`
+for a blob a star could make and :data:`BLOB_SIGMA_FRAC_RESOLVED` for one larger than any star
+(``nav/resolved_blobs.star_blob_limit``).  The fractions are empirical: chosen on the star job's seed-1 runs of the
+paper and realistic presets (3U CubeSat, 100 m - 10 km, phase 0-90 deg) as the smallest that put >= 99.73 % of the
+2-dof NEES under 11.83, and checked on other seeds (``benchmarks/bench_target_bearing_cov.py``).
+
 Units: radians, pixels; vectors (..., 3).  Pure numpy (flight algorithm: no storage, no drawing).
 """
 
@@ -26,7 +39,13 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["line_of_sight", "los_jacobian", "attitude_covariance", "inertial_bearing", "sphere_phase_correction",
-           "bearing_error", "bearing_nees", "skew"]
+           "bearing_error", "bearing_nees", "skew", "BLOB_SIGMA_FRAC_POINT", "BLOB_SIGMA_FRAC_RESOLVED",
+           "blob_centroid_sigma", "offset_correction"]
+
+BLOB_SIGMA_FRAC_POINT = 0.02
+"""1-sigma centroid error per axis of a target blob a star could make, in units of its RMS radius (module doc)."""
+BLOB_SIGMA_FRAC_RESOLVED = 0.25
+"""1-sigma centroid error per axis of a target blob larger than any star, in units of its RMS radius (module doc)."""
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -90,6 +109,31 @@ def sphere_phase_correction(u: np.ndarray, sun: np.ndarray, offset_m, range_m) -
     s_perp = np.divide(s_perp, n, out=np.zeros_like(s_perp), where=n > 0)
     ang = np.asarray(offset_m, np.float64) / np.asarray(range_m, np.float64)
     v = np.cos(ang)[..., None] * u - np.sin(ang)[..., None] * s_perp
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def blob_centroid_sigma(npix, sigma_px, resolved, frac_point: float = BLOB_SIGMA_FRAC_POINT,
+                        frac_resolved: float = BLOB_SIGMA_FRAC_RESOLVED) -> np.ndarray:
+    """(B,) 1-sigma centroid error per axis (px) of the target's blob: ``sqrt(sigma_px^2 + (k r_rms)^2)``.
+
+    npix : (B,) pixels of the blob; sigma_px : scalar or (B,) the point-source centroid sigma (detector's bound or
+    the stars' scatter, px); resolved : (B,) bool, the blob is larger than any star could make (then k is
+    ``frac_resolved``, else ``frac_point``); r_rms = sqrt(npix / (2 pi)) px (module doc)."""
+    r_rms = np.sqrt(np.asarray(npix, np.float64) / (2.0 * np.pi))
+    k = np.where(np.asarray(resolved, bool), frac_resolved, frac_point)
+    return np.hypot(np.asarray(sigma_px, np.float64), k * r_rms)
+
+
+def offset_correction(u: np.ndarray, offset: np.ndarray, range_m) -> np.ndarray:
+    """The line of sight to a target's body origin from the one to its centre of brightness: (B, 3) unit vectors
+    ``u - offset_perp / range_m`` normalised, with ``offset`` (B, 3) m the centre of brightness minus the body
+    origin (same frame as ``u``; e.g. ``scene/target_photometry.photocentre_offset`` for a known attitude) and
+    ``offset_perp`` its part across ``u`` (the part along u does not move the image).  Small-angle exact to
+    O((|offset| / range)^2)."""
+    u = np.asarray(u, np.float64)
+    o = np.asarray(offset, np.float64)
+    o_perp = o - np.einsum("bk,bk->b", o, u)[:, None] * u
+    v = u - o_perp / np.asarray(range_m, np.float64).reshape(-1, 1)
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
