@@ -47,10 +47,26 @@ TARGET_CASE_FIELDS = [
     ("target_bearing_cob_err_rad", pa.float64()),  # against the true direction of its centre of brightness
     ("target_bearing_sigma_rad", pa.float64()),    # stated 1-sigma per axis, sqrt(trace(cov) / 2)
     ("target_bearing_nees", pa.float64()),         # 2-dof NEES against the centre of brightness
+    # with [target] phase_correction (null without): the bearing corrected for the phase angle by the target's mean
+    # photocentre over random attitudes (pc: error against the body origin, stated 1-sigma with the photocentre's
+    # spread over attitudes, 2-dof NEES against the body origin) and by its known attitude's (pck: error)
+    ("target_bearing_pc_err_rad", pa.float64()), ("target_bearing_pc_sigma_rad", pa.float64()),
+    ("target_bearing_pc_nees", pa.float64()), ("target_bearing_pck_err_rad", pa.float64()),
 ]
 TARGET_DETECTION_FIELDS = [
     ("is_target", pa.bool_()),                 # the detection nearest the target's centre of brightness
     ("excluded", pa.bool_()),                  # kept out of identification (a blob larger than any star's)
+]
+ENVIRONMENT_CASE_FIELDS = [
+    # with [target.environment] (scene/case_environment.py; null without): the case's epoch, and along its boresight
+    # from its place in orbit (scene/keepout.py) the Earth's limb (negative: on the Earth's disk) and the Moon
+    # (parallax included), the Earth and Moon keep-out cones, a sunlit part of the Earth in the Earth cone, the
+    # Earth's shadow (eclipse: the umbra, no direct sunlight; penumbra: part of the Sun hidden).  sun_angle_rad and
+    # sun_keepout above are then from the epoch's Sun.
+    ("epoch_utc", pa.timestamp("us", tz="UTC")),
+    ("earth_limb_angle_rad", pa.float64()), ("moon_angle_rad", pa.float64()),
+    ("earth_keepout", pa.bool_()), ("moon_keepout", pa.bool_()), ("earth_lit_in_cone", pa.bool_()),
+    ("eclipse", pa.bool_()), ("penumbra", pa.bool_()),
 ]
 
 _F32 = pa.float32()
@@ -74,6 +90,7 @@ CASES_SCHEMA = pa.schema([
     # issue 23: a target in the field (null in every row of a run without [target]); appended, so every column
     # above keeps its place and meaning
     *TARGET_CASE_FIELDS,
+    *ENVIRONMENT_CASE_FIELDS,
 ])
 """One row per case, ~90 B per case on disk (issue 24 point 5; ``benchmarks/bench_lake_bytes.py``).  What a case
 needs and nothing it can recompute: the truth attitude is the case's seed (``default_rng([seed, case_id])``: the
@@ -103,9 +120,10 @@ DETECTIONS_SCHEMA = pa.schema([
 
 
 def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, alt=None, det_digest=None,
-                target: dict | None = None) -> pa.Table:
+                target: dict | None = None, environment: dict | None = None) -> pa.Table:
     """``star_cases`` rows of a batch; ``target``: the columns of :data:`TARGET_CASE_FIELDS` as (B,) arrays
-    (None: a run without a target, all null)."""
+    (None: a run without a target, all null); ``environment``: those of :data:`ENVIRONMENT_CASE_FIELDS` (None:
+    all null)."""
     B = len(case_ids)
     total = sum(v for v in t.values() if v is not None)
     status = np.asarray(STATUS_NAMES, dtype=object)[sol.status]
@@ -142,6 +160,8 @@ def cases_table(case_ids, spec, draw, field_, det, obs, ident, sol, truth, t, al
         "t_identify_ns": t["identify"], "t_attitude_ns": t["attitude"],
         "t_robust_ns": t["robust"] if t.get("robust") is not None else [None] * B, "t_total_ns": total,
         **{name: (target[name] if target is not None else pa.nulls(B, type=typ)) for name, typ in TARGET_CASE_FIELDS},
+        **{name: (environment[name] if environment is not None else pa.nulls(B, type=typ))
+           for name, typ in ENVIRONMENT_CASE_FIELDS},
     }
     return pa.table({k: pa.array(v, type=CASES_SCHEMA.field(k).type)
                      if not isinstance(v, pa.Array) else v
