@@ -69,6 +69,7 @@ from dualsight.scene.attitude import euler123_to_dcm, quat_to_dcm, quaternions_f
 from dualsight.scene.camera import Camera
 from dualsight.scene.case_rng import streams as case_streams
 from dualsight.scene.psf_file import sensor_psf, with_psf_digest
+from dualsight.scene.case_environment import CaseEnvironment, draw_environment
 from dualsight.scene.satellite import load_satellite
 from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
 from dualsight.scene.target_in_field import (MAX_WINDOW_PX, TargetFrame, diameter_px, draw_targets, target_frames,
@@ -532,9 +533,11 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
     flux = flux_from_magnitude(cat.vmag.astype(np.float64), spec.sensor)
     field_ = stars_in_field(draw["A_true"], cat.unit, flux, spec.camera,
                             psf_margin_px(spec.sensor, spec.camera, ctx.psf))
-    render_field, tcases, tf = field_, None, None
+    render_field, tcases, tf, env = field_, None, None, None
     if spec.target is not None:      # issue 23: the target's light joins the stars', the stars behind it dim
-        tcases = draw_targets(spec.target, spec.seed, case_ids, draw["A_true"], spec.camera)
+        env = case_environment(spec, case_ids, draw["A_true"])      # [target.environment] (issue 23), else None
+        tcases = draw_targets(spec.target, spec.seed, case_ids, draw["A_true"], spec.camera,
+                              sun_icrs=env.sun_dir if env is not None else None)
         tf = target_frames(spec.target, ctx.target_sat, ctx.target_shape, tcases, field_, spec.camera, spec.sensor)
         render_field, field_ = with_target(field_, tf)
     t["sample"] = time.perf_counter_ns() - t0
@@ -574,11 +577,33 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
                                                            cat.unit, draw["A_true"], ctx))
              if tf is not None else None)
     tables = {"star_cases": cases_table(case_ids, spec, draw, field_, r.detections, obs, ident, sol, truth, per_case,
-                                        alt, r.digest, target=tcols[0] if tcols else None),
+                                        alt, r.digest, target=tcols[0] if tcols else None,
+                                        environment=environment_columns(env)),
               "star_detections": detections_table(case_ids, r.detections, obs, ident, sol, truth, ctx.catalog,
                                                   target=tcols[1] if tcols else None)}
     return {"draw": draw, "field": field_, "rendered": r, "obs": obs, "ident": ident, "sol": sol, "alt": alt,
-            "truth": truth, "tables": tables, "target": tf, "target_cases": tcases, "excluded": excluded}
+            "truth": truth, "tables": tables, "target": tf, "target_cases": tcases, "excluded": excluded,
+            "environment": env}
+
+
+def case_environment(spec: StarSpec, case_ids: np.ndarray, A_true: np.ndarray) -> CaseEnvironment | None:
+    """Each case's epoch, place in orbit and view of the Sun, Earth and Moon with ``[target.environment]``
+    (``scene/case_environment.py``; the Sun's keep-out half-angle is ``[target] sun_keepout_deg``), else None."""
+    if spec.target is None or spec.target.environment is None:
+        return None
+    return draw_environment(spec.target.environment, spec.seed, case_ids, A_true,
+                            math.radians(spec.target.sun_keepout_deg))
+
+
+def environment_columns(env: CaseEnvironment | None) -> dict | None:
+    """The columns of ``star_cases`` of ``jobs/kinds/star_tables.ENVIRONMENT_CASE_FIELDS`` as (B,) arrays (None
+    without an environment: all null)."""
+    if env is None:
+        return None
+    v = env.view
+    return {"epoch_utc": np.round(env.epoch_unix_s * 1e6).astype(np.int64),       # microseconds, UTC
+            "earth_limb_angle_rad": v.earth_limb_angle_rad, "moon_angle_rad": v.moon_angle_rad,
+            "earth_keepout": v.earth_keepout, "moon_keepout": v.moon_keepout, "earth_lit_in_cone": v.earth_lit_in_cone, "eclipse": v.umbra, "penumbra": v.penumbra}
 
 
 def target_detection(det, tf: TargetFrame) -> np.ndarray:
