@@ -653,7 +653,7 @@ class RendezvousConfig:
         uncertainty) or "none" (bearings only).
     phase_correction: move each bearing from the centre of brightness to the centre by the target's mean
         photocentre offset over random attitudes at the measured phase angle, at the predicted range, and add its
-        spread over attitudes to the bearing's covariance (``jobs/kinds/rendezvous.photocentre_table``; default
+        spread over attitudes to the bearing's covariance (``scene/target_photometry.photocentre_table``; default
         True).
     cob_sigma_frac: a further 1-sigma of the centre of brightness about the body's centre, as a fraction of the
         bounding sphere's diameter, at the predicted range (in [0, 1], default 0.1).
