@@ -86,6 +86,10 @@ def test_rows_against_astropy(runs):
     umbra = sep < rho - 0.27
     clear = ~umbra & (np.abs(sep - rho) > 0.3)
     assert np.array_equal(np.array(rows["eclipse"])[clear | umbra], umbra[clear | umbra])
+    # a target in the umbra is dark: no light, no detection of it
+    ecl = np.array(rows["eclipse"])
+    assert ecl.any() and not np.array(rows["target_present"])[ecl].any()
+    assert np.array(rows["target_present"])[~ecl].mean() > 0.5
     # the target's Sun is the epoch's: its RA/Dec column is the Sun seen from the spacecraft
     s = np.stack([np.cos(rows["sun_dec_rad"]) * np.cos(rows["sun_ra_rad"]),
                   np.cos(rows["sun_dec_rad"]) * np.sin(rows["sun_ra_rad"]), np.sin(rows["sun_dec_rad"])], -1)

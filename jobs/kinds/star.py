@@ -31,6 +31,7 @@ Spec (TOML; every table optional, defaults = preset ``paper``)::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -538,6 +539,8 @@ def compute_batch(spec: StarSpec, ctx: StarContext, case_ids: np.ndarray, keep_i
         env = case_environment(spec, case_ids, draw["A_true"])      # [target.environment] (issue 23), else None
         tcases = draw_targets(spec.target, spec.seed, case_ids, draw["A_true"], spec.camera,
                               sun_icrs=env.sun_dir if env is not None else None)
+        if env is not None:     # a target in the Earth's umbra is dark (within 10 km it shares the camera's shadow)
+            tcases = dataclasses.replace(tcases, present=tcases.present & ~env.view.umbra)
         tf = target_frames(spec.target, ctx.target_sat, ctx.target_shape, tcases, field_, spec.camera, spec.sensor)
         render_field, field_ = with_target(field_, tf)
     t["sample"] = time.perf_counter_ns() - t0
@@ -603,7 +606,8 @@ def environment_columns(env: CaseEnvironment | None) -> dict | None:
     v = env.view
     return {"epoch_utc": np.round(env.epoch_unix_s * 1e6).astype(np.int64),       # microseconds, UTC
             "earth_limb_angle_rad": v.earth_limb_angle_rad, "moon_angle_rad": v.moon_angle_rad,
-            "earth_keepout": v.earth_keepout, "moon_keepout": v.moon_keepout, "earth_lit_in_cone": v.earth_lit_in_cone, "eclipse": v.umbra, "penumbra": v.penumbra}
+            "earth_keepout": v.earth_keepout, "moon_keepout": v.moon_keepout, "earth_lit_in_cone": v.earth_lit_in_cone,
+            "eclipse": v.umbra, "penumbra": v.penumbra}
 
 
 def target_detection(det, tf: TargetFrame) -> np.ndarray:
