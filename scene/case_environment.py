@@ -75,6 +75,7 @@ def draw_environment(cfg: EnvironmentConfig, seed: int, case_ids, A_true, sun_ke
     sun, moon = sun_position(jd), moon_position(jd)
     boresight = np.asarray(A_true, np.float64)[:, 2, :]
     view = keep_out(r, boresight, sun, moon, sun_half_rad=sun_keepout_rad,
-                    earth_half_rad=math.radians(cfg.earth_keepout_deg), moon_half_rad=math.radians(cfg.moon_keepout_deg))
+                    earth_half_rad=math.radians(cfg.earth_keepout_deg),
+                    moon_half_rad=math.radians(cfg.moon_keepout_deg))
     to_sun = sun - r
     return CaseEnvironment(epoch, r, sun, moon, to_sun / np.linalg.norm(to_sun, axis=-1, keepdims=True), view)
