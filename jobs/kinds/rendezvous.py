@@ -64,7 +64,7 @@ from dualsight.nav.resolved_blobs import excluded_blobs, without_excluded
 from dualsight.nav.star_solution import centroid_weights, identify, solve
 from dualsight.nav.target_finding import (FOUND_BY, chi2_gate_2dof, innovation_d2, pick, predicted_bearing,
                                           repeats, unmatched)
-from dualsight.nav.target_bearing import (attitude_covariance, bearing_error, inertial_bearing,
+from dualsight.nav.target_bearing import (attitude_covariance, bearing_error, blob_centroid_sigma, inertial_bearing,
                                           sphere_phase_correction)
 from dualsight.scene.attitude import quat_to_dcm, quaternions_from_uniforms
 from dualsight.scene.camera import Camera
@@ -448,6 +448,8 @@ def measure_star(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
         sig_px = np.sqrt(s2)[cl] * f                 # the stars' own centroid scatter (px)
         if det.sigma_px is not None:
             sig_px = np.hypot(np.asarray(det.sigma_px)[kk], star.CENTROID_FLOOR_PX)
+        npix = np.asarray(det.npix)[kk]
+        sig_px = blob_centroid_sigma(npix, sig_px, npix > sc.star_blob_limit)     # saturation, a partly lit body
         xy = np.stack([det.x[kk], det.y[kk]], -1)
         u, C = inertial_bearing(sol.A_est[cl], P_att[cl], xy, sig_px, sp.camera)
         parts.append((fr[cl], u, C, xy, kk == kt[cl]))
