@@ -62,8 +62,9 @@ from dualsight.nav.observations import observations, ragged_rank
 from dualsight.nav.pair_index import VotingIndex
 from dualsight.nav.star_solution import centroid_weights, identify, solve
 from dualsight.nav.relative_filter import isotropic_bearing_cov
-from dualsight.nav.target_bearing import (attitude_covariance, bearing_error, bearing_nees, blob_centroid_sigma,
-                                          inertial_bearing, offset_correction, sphere_phase_correction)
+from dualsight.nav.target_bearing import (BLOB_SIGMA_FRAC_BY_DETECTOR, attitude_covariance, bearing_error, bearing_nees,
+                                          blob_centroid_sigma, inertial_bearing, offset_correction,
+                                          sphere_phase_correction)
 from dualsight.nav.truth_match import match_truth
 from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.attitude import euler123_to_dcm, quat_to_dcm, quaternions_from_uniforms, unit_to_radec
@@ -644,7 +645,8 @@ def target_bearing_columns(spec: StarSpec, tf: TargetFrame, tcases, det, obs, id
     attitude or no detection of the target.
 
     The centroid's sigma is the blob's (``nav/target_bearing.blob_centroid_sigma``: the point-source sigma plus
-    a fraction of the blob's RMS radius, larger for a blob larger than any star, ``ctx.star_blob_limit``).  With
+    a fraction of the blob's RMS radius, larger for a blob larger than any star, ``ctx.star_blob_limit``, the
+    fractions of the spec's detector).  With
     ``[target] phase_correction`` (``ctx.target_photocentre``) the bearing is also corrected for the phase angle
     between the known Sun and the measured line of sight, at the case's range (what a filter's prediction gives;
     here the truth): ``target_bearing_pc_*`` by the target's mean photocentre over random attitudes (its spread
@@ -665,7 +667,7 @@ def target_bearing_columns(spec: StarSpec, tf: TargetFrame, tcases, det, obs, id
         sigma_px = np.where(kt >= 0, np.hypot(np.asarray(det.sigma_px)[kk], CENTROID_FLOOR_PX), sigma_px)
     npix = np.asarray(det.npix)[kk] if len(det.x) else np.zeros(B)
     limit = ctx.star_blob_limit if ctx is not None and ctx.star_blob_limit is not None else np.inf
-    sigma_px = blob_centroid_sigma(npix, sigma_px, npix > limit)
+    sigma_px = blob_centroid_sigma(npix, sigma_px, npix > limit, *BLOB_SIGMA_FRAC_BY_DETECTOR[spec.detector])
     use = (kt >= 0) & ok & sl.ok
     A = np.where(use[:, None, None], sl.A_est, np.eye(3))
     xy = np.stack([det.x[kk], det.y[kk]], -1) if len(det.x) else np.zeros((B, 2))
