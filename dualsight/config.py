@@ -39,7 +39,8 @@ from dualsight.errors import ConfigError
 
 __all__ = ["check_fields", "allowed_range", "validate", "plain_tree", "printable_key", "friendly_key", "MAX_DEPTH",
            "ANGLE_KEY_SUFFIXES", "dataclass_from_table", "dataclass_to_table", "check_range", "TrackingConfig",
-           "TargetConfig", "SequenceConfig", "OutputConfig", "EnvironmentConfig"]
+           "TargetConfig", "SequenceConfig", "OutputConfig", "EnvironmentConfig",
+           "ApproachEnvironmentConfig"]
 
 
 @functools.lru_cache(maxsize=None)
@@ -648,7 +649,10 @@ class RendezvousConfig:
     sensor: star sensor preset "ideal", "paper" (default) or "realistic" (``jobs/kinds/star.py``).
     satellite: the target's satellite file (1 to 4096 characters); it spins at target_rate_deg_s about an axis
         drawn per case (in [0, 30], default 1).
-    sun_icrs: unit vector towards the Sun (ICRS, norm 1 +- 1e-3); absent = the reference orbit's normal.
+    sun_icrs: unit vector towards the Sun (ICRS, norm 1 +- 1e-3); absent = the epoch's Sun with ``environment``,
+        else the reference orbit's normal.
+    environment: ``[rendezvous.environment]`` (:class:`ApproachEnvironmentConfig`): the approach's start epoch and
+        keep-out half-angles; each frame gets the Sun, Earth and Moon columns (absent: null).
     range_source: "blobber" (a range from every resolved blob: ``nav/blobber.py``, its [min, max] the
         uncertainty) or "none" (bearings only).
     phase_correction: move each bearing from the centre of brightness to the centre by the target's mean
@@ -702,6 +706,8 @@ class RendezvousConfig:
     accel_psd: typing.Annotated[float, pydantic.Field(ge=0.0, le=1e-3)] = 1e-12
     iterations: typing.Annotated[int, pydantic.Field(ge=1, le=20)] = 3
     converged_after_frames: typing.Annotated[int, pydantic.Field(ge=0, le=10_000)] = 10
+    environment: ApproachEnvironmentConfig | None = dataclasses.field(default=None,
+                                                                      metadata={"omit_if_default": True})
 
     def __post_init__(self):
         check_fields(self, lambda name, msg: ConfigError(msg, field=f"rendezvous.{name}"), _RDV_UNITS)
@@ -728,7 +734,8 @@ class RendezvousConfig:
 
 # ============================================================================================ Sun, Earth, Moon (issue 23, point 1)
 _ENV_EPOCH_MIN, _ENV_EPOCH_MAX = "1950-01-01T00:00:00", "2050-01-01T00:00:00"
-_ENV_UNITS = {"altitude_km": "km", "inclination_deg": "deg", "earth_keepout_deg": "deg", "moon_keepout_deg": "deg"}
+_ENV_UNITS = {"altitude_km": "km", "inclination_deg": "deg", "earth_keepout_deg": "deg", "moon_keepout_deg": "deg",
+              "sun_keepout_deg": "deg"}
 _EnvTime = typing.Annotated[str, pydantic.Field(min_length=10, max_length=40)]
 
 
@@ -811,3 +818,35 @@ class FilterConfig:
 
     def __post_init__(self):
         check_fields(self, lambda name, msg: ConfigError(msg, field=f"filter.{name}"), _FILTER_UNITS)
+
+
+@dataclasses.dataclass(frozen=True)
+class ApproachEnvironmentConfig:
+    """When a rendezvous approach happens and what its camera must not look at (``[rendezvous.environment]``;
+    issue 23, point 1; ``jobs/kinds/rendezvous.frame_view``): frame k is at ``epoch_utc`` + t_k on the reference
+    orbit, the chaser beside the target; the Sun, Earth and Moon seen along its boresight and the Earth's shadow
+    go into every frame's row (``scene/keepout.py``).
+
+    epoch_utc : ISO UTC time of the first frame, within 1950-2050 (default "2025-03-20T12:00:00").
+    sun_keepout_deg, earth_keepout_deg, moon_keepout_deg : half-angles (deg) of the keep-out cones about the
+        boresight (the Earth's from its limb), each in [0, 90] (defaults 30, 20, 10: chosen, the usual order of
+        small star trackers' exclusion angles, not a particular data sheet's).
+    """
+
+    epoch_utc: _EnvTime = "2025-03-20T12:00:00"
+    sun_keepout_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=90.0)] = 30.0
+    earth_keepout_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=90.0)] = 20.0
+    moon_keepout_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=90.0)] = 10.0
+    __pydantic_config__ = pydantic.ConfigDict(extra="forbid")      # a nested table: unknown keys refused too
+
+    def __post_init__(self):
+        check_fields(self, lambda name, msg: ConfigError(msg, field=f"rendezvous.environment.{name}"), _ENV_UNITS)
+        t = _utc_seconds(self.epoch_utc)
+        if t is None or not _utc_seconds(_ENV_EPOCH_MIN) <= t <= _utc_seconds(_ENV_EPOCH_MAX):
+            raise ConfigError(f"must be an ISO UTC time (YYYY-MM-DDTHH:MM:SS) within [{_ENV_EPOCH_MIN}, "
+                              f"{_ENV_EPOCH_MAX}], got {self.epoch_utc!r}", field="rendezvous.environment.epoch_utc")
+
+    @property
+    def epoch_unix_s(self) -> float:
+        """The first frame's epoch as POSIX seconds (UTC)."""
+        return _utc_seconds(self.epoch_utc)
