@@ -17,7 +17,7 @@ import pyarrow as pa
 from dualsight.nav.target_finding import FOUND_BY
 from dualsight.scene.units import ARCSEC
 
-__all__ = ["FRAMES_SCHEMA", "CASES_SCHEMA", "ATTITUDE_NAMES", "frames_table", "case_row"]
+__all__ = ["FRAMES_SCHEMA", "CASES_SCHEMA", "ATTITUDE_NAMES", "frames_table", "case_row", "view_columns"]
 
 _F, _I, _L, _B = pa.float64(), pa.int32(), pa.int64(), pa.bool_()
 _STATE = ("x", "y", "z", "vx", "vy", "vz")
@@ -37,7 +37,12 @@ FRAMES_SCHEMA = pa.schema(
        ("target_found_by", pa.string()), ("target_found_true", _B), ("bearing_used", _B), ("bearing_raw_err_arcsec", _F), ("bearing_err_arcsec", _F),
        ("bearing_sigma_arcsec", _F),
        ("range_meas_m", _F), ("range_min_m", _F), ("range_max_m", _F), ("range_used", _B),
-       ("image_digest", _L), ("t_render_ns", _L), ("t_nav_ns", _L)])
+       ("image_digest", _L), ("t_render_ns", _L), ("t_nav_ns", _L)]
+    # with [rendezvous.environment] (jobs/kinds/rendezvous.frame_view, scene/keepout.py; null without): along the
+    # boresight from the chaser, the Sun and Moon (parallax included) and the Earth's limb (negative: on its disk),
+    # the keep-out cones, a sunlit part of the Earth in the Earth cone, the Earth's shadow (eclipse: the umbra)
+    + [("sun_angle_deg", _F), ("earth_limb_angle_deg", _F), ("moon_angle_deg", _F), ("sun_keepout", _B),
+       ("earth_keepout", _B), ("moon_keepout", _B), ("earth_lit_in_cone", _B), ("eclipse", _B), ("penumbra", _B)])
 """One row per frame.  ``true_*``/``est_*``: the chaser's Hill state (truth, filter after this frame's updates);
 ``sigma_*``: the square roots of the covariance diagonal; ``range_m``: true |rho|; ``range_est_m``: |rho_est|;
 ``pos_err_m``/``vel_err_m_s``: norms of the estimate's errors; ``range_err_m``: range_est - range;
@@ -108,8 +113,21 @@ def frames_table(case_id: int, out: dict) -> pa.Table:
         "range_max_m": _nullable(m["range_max"]), "range_used": m["range_used"],
         "image_digest": m["digest"].astype(np.int64), "t_render_ns": m["t_render_ns"].astype(np.int64),
         "t_nav_ns": np.full(T, out["t_nav_ns"] // max(T, 1), np.int64)})
+    cols.update(view_columns(out.get("view"), T))
     return pa.table({k: v if isinstance(v, pa.Array) else pa.array(v, FRAMES_SCHEMA.field(k).type)
                      for k, v in cols.items()}, schema=FRAMES_SCHEMA)
+
+
+def view_columns(view, T: int) -> dict:
+    """The Sun / Earth / Moon columns of :data:`FRAMES_SCHEMA` from a ``scene/keepout.KeepOut`` over the T frames
+    (None: all null)."""
+    names = ("sun_angle_deg", "earth_limb_angle_deg", "moon_angle_deg", "sun_keepout", "earth_keepout",
+             "moon_keepout", "earth_lit_in_cone", "eclipse", "penumbra")
+    if view is None:
+        return {k: pa.nulls(T, FRAMES_SCHEMA.field(k).type) for k in names}
+    return dict(zip(names, (np.degrees(view.sun_angle_rad), np.degrees(view.earth_limb_angle_rad),
+                            np.degrees(view.moon_angle_rad), view.sun_keepout, view.earth_keepout, view.moon_keepout,
+                            view.earth_lit_in_cone, view.umbra, view.penumbra)))
 
 
 def case_row(case_id: int, seed: int, camera: str, conv: int, out: dict) -> dict:
