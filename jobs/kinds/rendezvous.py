@@ -69,6 +69,8 @@ from dualsight.nav.target_bearing import (attitude_covariance, bearing_error, bl
 from dualsight.scene.attitude import quat_to_dcm, quaternions_from_uniforms
 from dualsight.scene.camera import Camera
 from dualsight.scene.motion import place_body
+from dualsight.scene.ephemeris import jd_tt_from_unix, moon_position, sun_position
+from dualsight.scene.keepout import KeepOut, keep_out
 from dualsight.scene.relative_orbit import CircularOrbit, hill_to_icrs, propagate
 from dualsight.scene.rotation_vector import frame_rotation
 from dualsight.scene.satellite import load_satellite
@@ -318,9 +320,14 @@ def truth_trajectory(spec: RendezvousSpec, draw: dict) -> np.ndarray:
 
 
 def sun_icrs(spec: RendezvousSpec) -> np.ndarray:
-    """(3,) unit vector towards the Sun: the spec's, else the reference orbit's normal."""
+    """(3,) unit vector towards the Sun: the spec's, else the first frame's epoch's (``[rendezvous.environment]``,
+    ``scene/ephemeris.py``, from the Earth's centre: 10 arcsec from the chaser's), else the reference orbit's
+    normal."""
     if spec.cfg.sun_icrs is not None:
         s = np.asarray(spec.cfg.sun_icrs, np.float64)
+        return s / np.linalg.norm(s)
+    if spec.cfg.environment is not None:
+        s = sun_position(jd_tt_from_unix(spec.cfg.environment.epoch_unix_s))
         return s / np.linalg.norm(s)
     return hill_to_icrs(spec.orbit, [0.0])[0][:, 2]
 
@@ -370,6 +377,22 @@ def geometry(spec: RendezvousSpec, draw: dict, truth: np.ndarray) -> dict:
         (xy[:, 0] < spec.camera.width) & (xy[:, 1] >= 0) & (xy[:, 1] < spec.camera.height)
     tc = TargetCases(inside, rng_m, pos_cam, R_body, sun_cam, np.broadcast_to(s, (len(t), 3)).copy(), phase)
     return {"A_true": A, "R": R, "u_true": u_true, "targets": tc}
+
+
+def frame_view(spec: RendezvousSpec, geo: dict, truth: np.ndarray) -> KeepOut | None:
+    """Each frame's Sun, Earth and Moon along the true boresight (``geo["A_true"]`` row 2) with
+    ``[rendezvous.environment]`` (``scene/keepout.py``), else None.  Frame k at the epoch + t_k; the chaser at the
+    reference orbit's position plus its Hill offset ``truth[:, :3]`` (km, GCRS); the Sun and Moon of
+    ``scene/ephemeris.py`` at each frame's time."""
+    env = spec.cfg.environment
+    if env is None:
+        return None
+    jd = jd_tt_from_unix(env.epoch_unix_s + spec.times)
+    R = geo["R"]
+    r_km = (spec.orbit.radius_m * R[:, :, 0] + np.einsum("tij,tj->ti", R, truth[:, :3])) / 1e3
+    return keep_out(r_km, geo["A_true"][:, 2, :], sun_position(jd), moon_position(jd),
+                    sun_half_rad=math.radians(env.sun_keepout_deg), earth_half_rad=math.radians(env.earth_keepout_deg),
+                    moon_half_rad=math.radians(env.moon_keepout_deg))
 
 
 def _empty_meas(T: int) -> dict:
@@ -644,6 +667,7 @@ def compute_case(spec: RendezvousSpec, ctx: RendezvousContext, case_id: int, kee
            "nees": nees, "nees_pos": nees_pos, "t_since_burn": since, "orbit_frame": k,
            "dv_nominal": draw["dv_nominal"], "dv_exec": draw["dv_exec"], "t_nav_ns": t2 - t1, "t_total_ns": t2 - t0,
            "images": images}
+    out["view"] = frame_view(spec, geo, truth)          # [rendezvous.environment] (issue 23 point 1), else None
     out["frames"] = frames_table(case_id, out)
     out["case"] = case_row(case_id, spec.seed, "star" if spec.is_star else "proximity",
                            spec.cfg.converged_after_frames, out)
