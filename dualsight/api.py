@@ -208,7 +208,8 @@ def solve(image: str | os.PathLike | np.ndarray, camera: str | os.PathLike | Cam
     args, table = _settings_args(settings)
     epoch = args.epoch if args.epoch is not None else (
         observation_epoch([path] if path is not None else [], args.time) or 2000.0)
-    cam_table, st = normalise_run(cam.to_dict(), settings_from_args(args, table, epoch), source=_SOURCE)
+    cam_table, st = normalise_run(cam.to_dict(), settings_from_args(args, table, epoch), source=_SOURCE,
+                                  n_images=1)
     ctx = _context(cam_table, st)
     rt = ctx.rt
     t_read = None

@@ -166,7 +166,7 @@ def sparse_components(f: np.ndarray, H: int, W: int, connectivity: int = 8) -> n
 def find_candidates(Z, cfg):
     """Candidate stars of the matched-filtered SNR image Z ((H, W) float32, :func:`matched_filter`): the 3 x 3
     local maxima of Z > ``cfg.k_sigma``, grouped into foreground components (``cfg.connectivity``,
-    :func:`sparse_components` over the foreground pixels only; with ``cfg.fit_engine`` "taichi" components and
+    :func:`sparse_components` over the foreground pixels only; with ``cfg.engine`` "taichi" components and
     maxima in one compiled pass, :func:`dualsight.kernels.detect_passes.foreground_components`) and deblended
     (``cfg.deblend_min_sep_px``, ``cfg.deblend_contrast``); components over ``cfg.max_blob_pixels`` are counted,
     not searched.
@@ -183,7 +183,7 @@ def find_candidates(Z, cfg):
         e = np.zeros(0, np.int64)
         return e, e, e, 0
     fr, fc = np.divmod(f, W)
-    if cfg.fit_engine == "taichi":     # components and local maxima in one compiled pass over the foreground
+    if cfg.engine == "taichi":     # components and local maxima in one compiled pass over the foreground
         lab_f, peak = foreground_components(f, Z, cfg.connectivity)
     else:
         lab_f = sparse_components(f, H, W, cfg.connectivity)

@@ -4,7 +4,7 @@ handling, PSF-fit centroids with their Cramér-Rao uncertainty.
 :func:`detect_real` returns the same :class:`~dualsight.kernels.detect.Detections` as
 :func:`dualsight.kernels.detect.detect_stars` (as :class:`LocalDetections`, a subclass that adds per-frame
 counters), so identification and attitude take either.  Every frame is processed on its own (numpy and
-OpenCV; the PSF fits and the tiles' last clipping window in Taichi with ``fit_engine`` "taichi", the default, steps
+OpenCV; the PSF fits and the tiles' last clipping window in Taichi with ``fit_engine`` "taichi" or "auto", the default, steps
 1 and 5): its detections do not depend on the batch it is in, and a star's PSF fit does not depend on the other
 stars (each leaves the batched fit when it converges).
 
@@ -81,7 +81,7 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
    sqrt((C_xx + C_yy) / 2) (Winick 1986, "Cramér-Rao lower bounds on the performance of charge-coupled-
    device optical position estimators", JOSA A 3, 1809).  Background-limited and well sampled it is
    sigma_px = sqrt(8 pi) s^2 sigma / Fs = sqrt(2) s / SNR; photon-limited, s / sqrt(N_photons).  With
-   ``fit_engine`` "taichi" (the default) the fits run as one compiled kernel (:mod:`dualsight.kernels.detect_psf_fit`:
+   ``fit_engine`` "taichi" (or "auto", the default) the fits run as one compiled kernel (:mod:`dualsight.kernels.detect_psf_fit`:
    3-5x faster, positions equal to the numpy fit's within ~1e-12 px, not bit for bit), and so do the tiles' last
    clipping window and the candidates' components (:mod:`dualsight.kernels.detect_passes`; float64 sums: the
    detections within ~1e-7 px of the numpy path's).  The engine is a setting of the run, never chosen by what the
@@ -180,7 +180,11 @@ class LocalDetectConfig:
     deblend_min_sep_px : smallest separation of two stars in one component (px), in [0, 100].
     deblend_contrast : relative dip of Z between two maxima that makes them two stars, in [0, 1].
     connectivity : 8 or 4 (foreground components).
-    fit_engine : "taichi" (default) or "numpy", the PSF fits' implementation (module docstring, step 5).
+    fit_engine : "taichi", "numpy" or "auto" (default), the implementation of the PSF fits, the tiles' last clipping
+        window and the candidates' components (module docstring, step 5).  "auto" runs "taichi" here; a caller that
+        knows it will detect only a few frames in a fresh process resolves it to "numpy" before the call (starting
+        Taichi and building these kernels costs ~2 s per process against ~4 ms saved per frame: ``hil star``
+        does, ``jobs/kinds/hil_star_spec.resolve_fit_engine``), so that one image is solved in a fraction of a second.
     """
 
     k_sigma: Annotated[float, Field(ge=1.0, le=1000.0)] = 5.0
@@ -200,10 +204,15 @@ class LocalDetectConfig:
     deblend_min_sep_px: Annotated[float, Field(ge=0.0, le=100.0)] = 2.0
     deblend_contrast: Annotated[float, Field(ge=0.0, le=1.0)] = 0.2
     connectivity: Literal[4, 8] = 8
-    fit_engine: Literal["numpy", "taichi"] = "taichi"
+    fit_engine: Literal["auto", "numpy", "taichi"] = "auto"
 
     def __post_init__(self):
         check_fields(self, units=_UNITS)
+
+    @property
+    def engine(self) -> str:
+        """The implementation that runs: ``fit_engine`` with "auto" as "taichi"."""
+        return "numpy" if self.fit_engine == "numpy" else "taichi"
 
 
 @dataclass(frozen=True)
@@ -236,7 +245,7 @@ def subtract_local_background(images: np.ndarray, cfg: LocalDetectConfig = Local
     lev = np.zeros(B)
     for b in range(B):     # one frame at a time (bounded memory), as detect_real
         level, _ = tile_background(images[b], cfg.tile_px, cfg.clip_sigma, cfg.clip_iters, cfg.mesh_filter,
-                                   cfg.fit_engine)
+                                   cfg.engine)
         np.subtract(images[b], interpolate_tiles(level, cfg.tile_px, H, W), out=out[b], casting="unsafe")
         lev[b] = float(np.median(level))
     return out, lev
@@ -380,7 +389,7 @@ def _measure(img, R, inv, Z, sig_f, s, cfg, sat, fit_sigma=False, cands=None, sp
         x0 = c0[idx] + 0.5 + dxs
         y0 = r0[idx] + 0.5 + dys
         usable = w0.reshape(idx.size, -1).sum(1)
-        fit = fit_psf_compiled if cfg.fit_engine == "taichi" else fit_psf          # module docstring, step 5
+        fit = fit_psf_compiled if cfg.engine == "taichi" else fit_psf          # module docstring, step 5
         xf, yf, Af, _, sf_, cf, okf = fit(st, w0, rr0, cc0, x0, y0, np.full(idx.size, s), noise[idx],
                                           cfg.gain_e_per_adu, fit_sigma=fit_sigma)
         okf &= usable >= 6
@@ -437,7 +446,7 @@ def _measure_width(img, R, inv, s, cfg, sat, tail):
 
 def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
     H, W = img.shape
-    level, sig = tile_background(img, cfg.tile_px, cfg.clip_sigma, cfg.clip_iters, cfg.mesh_filter, cfg.fit_engine)
+    level, sig = tile_background(img, cfg.tile_px, cfg.clip_sigma, cfg.clip_iters, cfg.mesh_filter, cfg.engine)
     bg = interpolate_tiles(level, cfg.tile_px, H, W)
     floor = np.float32(max(cfg.noise_floor_adu, 1e-6))
     inv = interpolate_tiles(1.0 / np.maximum(sig, floor), cfg.tile_px, H, W)    # 1 / the pixel noise (harmonic)

@@ -628,8 +628,10 @@ def test_every_kind_runs_as_its_command(kind, tmp_path):
 
 @pytest.mark.parametrize("kwargs, kind, text", [
     ({"kind": "nope"}, InputError, "kind: unknown or unsupported job kind 'nope'; dualsight.run starts star, "
-                                   "star_track, prox_sweep, prox_trajectory, selftest (hil_star, hil_prox and calibrate take images"),
-    ({"kind": "hil_star"}, InputError, "dualsight.run starts star, star_track, prox_sweep, prox_trajectory, selftest"),
+                                   "star_track, prox_sweep, prox_trajectory, selftest, rendezvous (hil_star, hil_prox and calibrate "
+                                   "take images"),
+    ({"kind": "hil_star"}, InputError, "dualsight.run starts star, star_track, prox_sweep, prox_trajectory, selftest, "
+                                       "rendezvous"),
     ({"kind": "calibrate"}, InputError, "unknown or unsupported job kind 'calibrate'"),
     ({"kind": "prox_sweep", "cases": 10}, InputError, "cases: must be a multiple of the sweep's 11 ranges"),
     ({"kind": "prox_sweep", "spec": "noisy"}, ConfigError, "unknown preset 'noisy'; known presets: accurate, paper"),

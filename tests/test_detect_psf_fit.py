@@ -91,7 +91,7 @@ def test_large_stamps_go_to_the_numpy_fit():
 
 
 def test_the_fit_engine_is_a_setting_and_numpy_starts_no_taichi():
-    """fit_engine "numpy" starts no Taichi; "taichi" (the default) gives the same stars at positions within 1e-6 px,
+    """fit_engine "numpy" starts no Taichi; "auto" (the default, run as "taichi" by the kernel) gives the same stars at positions within 1e-6 px,
     fluxes within 1e-6 relative, the same measured PSF width to 1e-6 px (the fits agree to ~1e-12 px; the tiles'
     last clipping window sums in float64 there, float32 in numpy: levels differ at float32 rounding, positions by
     ~1e-7 px).  (In a fresh process: the test process may run Taichi already.)"""
@@ -111,7 +111,7 @@ def test_the_fit_engine_is_a_setting_and_numpy_starts_no_taichi():
         "a = detect_real(img, LocalDetectConfig(fit_engine='numpy'))\n"
         "started = is_initialised()\n"
         "b = detect_real(img, LocalDetectConfig())\n"
-        "print(started, is_initialised(), LocalDetectConfig().fit_engine, len(a), len(b), float(np.abs(a.x - b.x).max()),"
+        "print(started, is_initialised(), LocalDetectConfig().engine, len(a), len(b), float(np.abs(a.x - b.x).max()),"
         " float(np.abs(a.y - b.y).max()), float(np.abs(a.flux / b.flux - 1).max()), float(a.psf_sigma_px[0]),"
         " float(b.psf_sigma_px[0]))\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)

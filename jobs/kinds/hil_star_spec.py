@@ -28,7 +28,8 @@ from dualsight.scene.camera import Camera
 from dualsight.scene.units import ARCSEC
 
 __all__ = ["METHODS", "MAX_VOTE_CELLS", "StarSettings", "Matched", "StarTruth", "HilStarSpec", "normalise_settings",
-           "settings_from_table", "spec_from_dict", "normalise_run"]
+           "settings_from_table", "spec_from_dict", "normalise_run",
+           "COMPILED_DETECT_MIN_IMAGES", "resolve_fit_engine"]
 
 METHODS = ("robust", "paper")
 MAX_VOTE_CELLS = 4_000_000
@@ -247,14 +248,37 @@ def spec_from_dict(d: dict, source: str = "spec") -> HilStarSpec:
     if m.track is not None and len(m.track.times_utc) != len(m.images):
         raise ConfigError(f"must have one time per image ({len(m.images)}), got {len(m.track.times_utc)}",
                           source=source, field="track.times_utc")
-    cam, settings = normalise_run(m.camera, m.settings, source=source)
+    cam, settings = normalise_run(m.camera, m.settings, source=source, n_images=len(m.images))
     return m.model_copy(update={"camera": cam, "settings": settings})
 
 
-def normalise_run(camera: dict, settings: StarSettings, *, source: str = "spec") -> tuple[dict, StarSettings]:
+COMPILED_DETECT_MIN_IMAGES = 1024
+"""Images of a ``hil star`` run from which the local detector's "auto" engine is "taichi" (:func:`resolve_fit_engine`)."""
+
+
+def resolve_fit_engine(settings: StarSettings, n_images: int) -> StarSettings:
+    """``settings`` with the local detector's ``fit_engine`` "auto" resolved for a run of ``n_images`` images:
+    "taichi" from :data:`COMPILED_DETECT_MIN_IMAGES` images, else "numpy" (an engine the user chose stays).
+
+    The compiled passes save ~4 ms per ESA frame (10-11 instead of 15-16 ms end to end, one core) but starting
+    Taichi and building them costs ~2 s per process (one-image ``hil star`` 1.4 s with numpy, 3.4 s compiled;
+    ``benchmarks/bench_hil_speed.py``, 2026-11-27, load ~6), so they repay their start after ~500 frames per
+    process: 1,024 images over the default two workers.  The two engines agree to ~1e-6 px, not bit for bit, so
+    the choice is made here, once, and stored in the run's spec (its replay and resume run the same engine)."""
+    dl = settings.detect_local
+    if dl.get("fit_engine", "auto") != "auto":
+        return settings
+    engine = "taichi" if n_images >= COMPILED_DETECT_MIN_IMAGES else "numpy"
+    return settings.model_copy(update={"detect_local": {**dl, "fit_engine": engine}})
+
+
+def normalise_run(camera: dict, settings: StarSettings, *, source: str = "spec",
+                  n_images: int | None = None) -> tuple[dict, StarSettings]:
     """The canonical camera table and settings of a run, as :func:`spec_from_dict` stores them: the camera
     table at its fixed point through :class:`~dualsight.scene.camera.Camera`, the settings completed for that
-    camera (:func:`normalise_settings`).  ``dualsight.solve`` normalises a frame's camera and settings with it."""
+    camera (:func:`normalise_settings`) and, given the run's ``n_images``, the local detector's engine resolved
+    (:func:`resolve_fit_engine`).  ``dualsight.solve`` normalises a frame's camera and settings with it."""
     cam = fixed_point(lambda c: Camera.from_dict(c, source=source).to_dict(), dict(camera))
-    return cam, normalise_settings(settings, source=source, section="settings",
-                                   camera=Camera.from_dict(cam, source=source))
+    settings = normalise_settings(settings, source=source, section="settings",
+                                  camera=Camera.from_dict(cam, source=source))
+    return cam, settings if n_images is None else resolve_fit_engine(settings, n_images)
