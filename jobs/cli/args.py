@@ -58,9 +58,11 @@ def open_lake(args):
     return Lake(args.lake if args.lake is not None else default_lake())
 
 
-def add_run_args(p: argparse.ArgumentParser, *, cases: bool = True):
-    """Options shared by every Monte Carlo command."""
-    p.add_argument("--preset", default=None, help="named preset (default: paper)")
+def add_run_args(p: argparse.ArgumentParser, *, cases: bool = True, default_preset: str = "paper",
+                 presets: tuple[str, ...] = ()):
+    """Options shared by every Monte Carlo command (``default_preset`` and ``presets`` for ``--preset``'s help)."""
+    names = f"{', '.join(presets)}; " if presets else ""
+    p.add_argument("--preset", default=None, help=f"named preset ({names}default: {default_preset})")
     p.add_argument("--config", type=Path, default=None, help="TOML file overriding the preset")
     if cases:
         p.add_argument("--cases", type=positive_int(1, 10**9), default=None,

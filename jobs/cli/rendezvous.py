@@ -27,7 +27,7 @@ def register(sub) -> None:
                                           "blobber ranges, EKF; campaigns, reports, replay")
     rsub = g.add_subparsers(dest="action", metavar="ACTION")
     p = rsub.add_parser("run", help="run (or resume) a rendezvous campaign into the lake (presets: far, close)")
-    add_run_args(p)
+    add_run_args(p, default_preset="far", presets=("far", "close"))
     p.set_defaults(func=cmd_run)
     p = rsub.add_parser("report", help="NEES against its chi-square bounds, range and velocity errors, position "
                                        "error one orbit after the burn, bearing error, availability")
