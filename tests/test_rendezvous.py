@@ -332,3 +332,69 @@ def test_resume_keeps_shards_and_another_spec_under_the_id_is_refused(tmp_path):
     p = subprocess.run([sys.executable, "-m", "dualsight.jobs.cli.main", *args], capture_output=True, text=True,
                        timeout=120)
     assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1 and "other settings" in p.stderr, p.stderr
+
+
+def _with_planted(det, B, extra):
+    """Detections ``det`` of a batch of B frames plus ``extra`` = [(frame, x, y, flux, npix)], re-sorted by (frame,
+    flux descending) as kernels.detect.Detections are."""
+    import dataclasses
+
+    case = np.concatenate([np.asarray(det.case, np.int64), [e[0] for e in extra]])
+    x = np.concatenate([det.x, [e[1] for e in extra]])
+    y = np.concatenate([det.y, [e[2] for e in extra]])
+    flux = np.concatenate([det.flux, [e[3] for e in extra]])
+    npix = np.concatenate([det.npix, [e[4] for e in extra]]).astype(np.asarray(det.npix).dtype)
+    o = np.lexsort((-flux, case))
+    kw = {"case": case[o].astype(np.asarray(det.case).dtype), "x": x[o], "y": y[o], "flux": flux[o], "npix": npix[o],
+          "offsets": np.searchsorted(case[o], np.arange(B + 1)).astype(np.int64)}
+    if det.sigma_px is not None:
+        kw["sigma_px"] = np.concatenate([det.sigma_px, np.full(len(extra), 0.05)])[o]
+    if det.saturated is not None:
+        kw["saturated"] = np.concatenate([det.saturated, np.zeros(len(extra), bool)])[o]
+    return dataclasses.replace(det, **kw)
+
+
+def test_planted_fixed_false_detections_never_become_the_target(monkeypatch):
+    """The far chain (stars + target rendered, identified, the target found by nav/target_finding) with a hot pixel
+    (the same pixel in every frame) and an uncatalogued star (a fixed ICRS direction 0.7 deg from the target's
+    first line of sight, as bright as a V 3 star) planted into the detections: neither is ever a candidate nor
+    picked; the true target (known from the truth only to score) is picked in every frame where it was detected."""
+    spec = _spec(None)
+    spec = rz.spec_from_dict({**spec.to_dict(), "rendezvous": {**spec.to_dict()["rendezvous"],
+                                                             "duration_s": 7 * spec.cfg.frame_interval_s + 1.0}})
+    ctx = rz.make_context(spec)
+    draw = rz.draw_case(spec, 3)
+    truth = rz.truth_trajectory(spec, draw)
+    geo = rz.geometry(spec, draw, truth)
+    cam = spec.camera
+    star_dir = geo["u_true"][0] + 0.012 * np.cross(geo["u_true"][0], geo["R"][0][:, 2])
+    star_dir /= np.linalg.norm(star_dir)
+    hot = (100.25, 600.75)
+    real = rz.star.render_and_detect
+    seen = {"star": 0}
+
+    def planted(field_, seeds, camera, sensor, detect_cfg, keep_images=False, attitude=None, **kw):
+        r = real(field_, seeds, camera, sensor, detect_cfg, keep_images=keep_images, attitude=attitude, **kw)
+        B = len(seeds)
+        extra = [(b, hot[0], hot[1], 3e4, 9) for b in range(B)]
+        for b in range(B):
+            v = attitude[b] @ star_dir
+            p, _ = cam.project(v[None])
+            if v[2] > 0 and np.all(np.isfinite(p)) and cam.in_image(p)[0]:
+                extra.append((b, p[0, 0], p[0, 1], 2e4, 9))
+                seen["star"] += 1
+        return type(r)(**{**{k: getattr(r, k) for k in r.__dataclass_fields__},
+                          "detections": _with_planted(r.detections, B, extra)})
+
+    monkeypatch.setattr(rz.star, "render_and_detect", planted)
+    m, _ = rz.measure_star(spec, ctx, draw, geo)
+    xs, _ = rz.run_filter(spec, ctx, draw, m)
+    assert seen["star"] >= 2                                      # the planted star is in at least two frames
+    c = m["cand"]
+    assert not np.any(np.hypot(c["xy"][:, 0] - hot[0], c["xy"][:, 1] - hot[1]) < 0.5)
+    assert not np.any(c["u"] @ star_dir > math.cos(1e-4))
+    assert len(c["frame"]) <= spec.cfg.frames + 1                # the catalog stars are matched, not candidates
+    used = m["bearing_used"]
+    assert used.sum() >= spec.cfg.frames - 1
+    assert m["found_true"][used].all()
+    assert np.all(used[m["detected"]])
