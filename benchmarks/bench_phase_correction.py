@@ -54,6 +54,7 @@ def render_cob(sat, R_body, pos, sun, camera, segments: int) -> np.ndarray:
     img = img.astype(np.float64)
     ys, xs = np.arange(img.shape[1]) + 0.5, np.arange(img.shape[2]) + 0.5
     tot = img.sum((1, 2))
+    tot = np.where(tot > 0, tot, np.nan)                  # NaN: nothing lit faces the camera
     return np.stack([(img.sum(1) * xs).sum(1) / tot, (img.sum(2) * ys).sum(1) / tot], -1)
 
 
@@ -97,7 +98,7 @@ def main() -> None:
     hdr = (f"{'phase':>5} | {'sphere bias px':>14} {'/R':>6} {'after px':>9} {'removed':>8} | {'cuboid bias px':>14} "
            f"{'/R':>6} {'known px':>9} {'removed':>8} {'rms':>6} | {'table px':>9} {'removed':>8} {'rms':>6}")
     print(hdr)
-    rows = []
+    rows, dark = [], 0
     for deg in PHASES_DEG:
         al = math.radians(deg)
         psi = rng.uniform(0, 2 * np.pi, K)
@@ -112,8 +113,11 @@ def main() -> None:
         u = rng.random((3, K))
         R = quat_to_dcm(quaternions_from_uniforms(u[0], u[1], u[2]))
         cob_c = render_cob(cube, R, np.tile(pos1, (K, 1)), s, win, a.segments)
+        lit = np.isfinite(cob_c).all(1)                   # attitudes showing a lit face (all below 90 deg)
+        dark += int((~lit).sum())
+        R, s, s_img, cob_c = R[lit], s[lit], s_img[lit], cob_c[lit]
         c0 = cob_c - truth
-        off = photocentre_offset(shape, R, s, np.tile([0.0, 0.0, -1.0], (K, 1)))       # camera frame (m)
+        off = photocentre_offset(shape, R, s, np.tile([0.0, 0.0, -1.0], (len(R), 1)))  # camera frame (m)
         c1 = c0 - off[:, :2] / r * f
         c2 = c0 - (np.interp(al, grid, tmean) / r * f) * s_img
         # each case's error in the Sun's frame of the image (towards the Sun, across): the bias is its mean there
@@ -130,9 +134,10 @@ def main() -> None:
               f"{100 * rem(c0, c2):7.1f}% {rms(c2):6.3f}")
     rows = np.array(rows)
     judged = rows[:, 0] >= 10
-    print(f"phase 10-90 deg: smallest share removed: sphere {100 * np.nanmin(rows[judged, 1]):.1f} %, cuboid known "
-          f"attitude {100 * np.nanmin(rows[judged, 2]):.1f} %, cuboid unknown attitude (table) "
-          f"{100 * np.nanmin(rows[judged, 3]):.1f} % (target >= 90 %); {time.perf_counter() - t0:.0f} s, one process")
+    print(f"phase 10-90 deg: smallest share removed: sphere {100 * np.min(rows[judged, 1]):.1f} %, cuboid known "
+          f"attitude {100 * np.min(rows[judged, 2]):.1f} %, cuboid unknown attitude (table) "
+          f"{100 * np.min(rows[judged, 3]):.1f} % (target >= 90 %); {dark} dark cuboid cases left out (no lit face "
+          f"towards the camera); {time.perf_counter() - t0:.0f} s, one process")
 
 
 if __name__ == "__main__":
