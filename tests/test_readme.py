@@ -144,6 +144,22 @@ def test_figures_recordings_pages_and_video(readme_run):
     assert (work / "traj.rrd").read_bytes()[:4] == b"RRF2"
 
 
+def test_rendezvous_and_unknown_objects(readme_run):
+    work, _, _ = readme_run
+    lake = work / "lake"
+    # 4 approaches of the far preset, 64 frames each, every frame with a relative-state estimate
+    assert rows(lake, "SELECT count(*) FROM {rendezvous_cases} WHERE run = 'rdv-far'") == [(4,)]
+    assert rows(lake, "SELECT count(*), count(DISTINCT case_id) FROM {rendezvous_frames} WHERE run = 'rdv-far'") \
+        == [(4 * 64, 4)]
+    assert (work / "approach0.rrd").read_bytes()[:4] == b"RRF2"
+    rc, out, err, _ = result(readme_run, "dualsight rendezvous report --run rdv-far")
+    assert "NEES" in out and "(e)" in out
+    # the unknown objects the SQL prints are the lake's rows (the README: 0-3 per ESA frame)
+    (n,), = rows(lake, "SELECT count(*) FROM {hil_star_objects}")
+    rc, out, err, _ = result(readme_run, "dualsight sql \"SELECT image, round(mag, 2)")
+    assert rc == 0 and sum(1 for line in out.splitlines() if ".tif" in line) == n
+
+
 def test_runs_lake_check_and_nightly(readme_run):
     rc, out, err, _ = result(readme_run, "dualsight runs")
     assert re.search(r"^\s*big\s+star\s+10000\b", out, flags=re.M) and re.search(r"^\s*real\s+star\s+1000\b", out,
