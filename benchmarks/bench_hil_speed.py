@@ -41,6 +41,7 @@ for _v in ("DUALSIGHT_TI_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "M
     os.environ.setdefault(_v, "1")
 
 import argparse
+import dataclasses
 import shutil
 import statistics
 import subprocess
@@ -102,7 +103,7 @@ class Timers:
                 self._stack[-1][0] += dt
 
 
-def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "global"), paths=None,
+def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "local-compiled", "global"), paths=None,
                 camera=CAMERA, label="ESA 1024 x 768") -> dict:
     import cv2
     import numpy as np
@@ -151,10 +152,13 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
                 with T.stage("decode"):
                     px, _ = hs.read_frame(spec.images[k], cam)
                 with T.stage("detector other"):
-                    if detector == "local":
-                        det = dl.detect_real(px[None], validate(dl.LocalDetectConfig, rt.settings.detect_local,
-                                                                    source="spec", section="settings.detect_local"),
-                                             saturation_adu=sat)
+                    if detector.startswith("local"):   # "local": the run's own engine (numpy below 1,024
+                        #  images), "local-compiled": fit_engine "taichi" (what a run of >= 1,024 images uses)
+                        cfg = validate(dl.LocalDetectConfig, rt.settings.detect_local, source="spec",
+                                       section="settings.detect_local")
+                        if detector == "local-compiled":
+                            cfg = dataclasses.replace(cfg, fit_engine="taichi")
+                        det = dl.detect_real(px[None], cfg, saturation_adu=sat)
                     else:     # the HIL's global path: smooth background, one threshold, Taichi labelling
                         det = hs.detect_frames(px[None], settings_global, rt.detect, residual=False)[2]
                 with T.stage("observations"):
@@ -191,8 +195,8 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
         # the engine `hil star` itself picks for a short run: "taichi" when the detector has started Taichi (the
         # global one; the local one with fit_engine "taichi", its default since 822a98b), else "numpy"
         # (jobs/kinds/hil_star.py voting_engine)
-        local_ti = getattr(dl.LocalDetectConfig(), "fit_engine", "numpy") == "taichi"
-        mark = " (hil star's own choice)" if (engine == "taichi") == (detector == "global" or local_ti) else ""
+        # (a short run resolves the local detector's engine to numpy, hil_star_spec.resolve_fit_engine)
+        mark = " (hil star's own choice)" if (engine == "taichi") == (detector != "local") else ""
         print(f"  detector {detector}, voting engine {engine}{mark}: "
               + ", ".join(f"{s} {v:.2f}" for s, v in med.items())
               + f" | end to end without decode {total:.2f} ms (quartiles {q1:.2f}-{q3:.2f}),"
@@ -369,7 +373,8 @@ def main() -> None:
     ap.add_argument("--images", type=int, default=600)
     ap.add_argument("--hil-args", default="", help="extra `hil star` options for the frame and batch benches, e.g. "
                     "'--max-stars 12' (one string)")
-    ap.add_argument("--detectors", nargs="+", default=["local", "global"], choices=["local", "global"])
+    ap.add_argument("--detectors", nargs="+", default=["local", "local-compiled", "global"],
+                    choices=["local", "local-compiled", "global"])
     ap.add_argument("--rendered", type=int, default=None, metavar="N",
                     help="frame: N rendered 1024 x 1024 frames instead of the ESA frames (1..1000)")
     ap.add_argument("--render-mag-limit", type=float, default=5.5, help="faintest rendered star, V (default 5.5)")
