@@ -80,11 +80,27 @@ def sql_text(name: str) -> str:
         raise InputError(f"no report query named {name!r}") from None
 
 
+_MISSING_COLUMN = re.compile(r'Referenced column "([^"]+)" not found')
+
+
 def run_report(con: duckdb.DuckDBPyConnection, name: str, **params):
-    """Run a report query; returns (column names, rows as tuples)."""
+    """Run a report query; returns (column names, rows as tuples).
+
+    A column the query needs that the lake's files lack (every run of that dataset was written by an older
+    dualsight, before the column existed) is an :class:`InputError` naming the report, the column and the way
+    out, not DuckDB's binder error."""
     sql = sql_text(name)
     used = {k: v for k, v in params.items() if f"${k}" in sql}
-    cur = con.execute(sql, used) if used else con.execute(sql)
+    try:
+        cur = con.execute(sql, used) if used else con.execute(sql)
+    except duckdb.BinderException as e:
+        m = _MISSING_COLUMN.search(str(e))
+        if not m:
+            raise
+        run = f" of run {params['run']!r}" if "run" in params else ""
+        raise InputError(f"report {name}: the lake's rows{run} have no column {m.group(1)!r}: they were written by "
+                         "an older dualsight; run the job again with this version (under a new --run id) or report "
+                         "it with the version that wrote it", source="--run") from None
     cols = [d[0] for d in cur.description]
     return cols, cur.fetchall()
 
