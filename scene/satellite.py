@@ -61,6 +61,7 @@ from pydantic import Field
 from dualsight.errors import ConfigError
 from dualsight.scene import primitives as prim
 from dualsight.scene.camera import Camera, CameraTable, read_toml, validate_table
+from dualsight.scene.example_files import shipped_path
 from dualsight.scene.motion import frame_poses
 
 Vec3 = tuple[float, float, float]
@@ -457,22 +458,7 @@ def _check_camera_outside(cfg: SatelliteConfig, rd: _Reader):
                          "place the body in front of the camera (e.g. body.position = [0, 0, 1])")
 
 
-REPOSITORY = Path(__file__).resolve().parents[1]
-"""The folder that holds ``examples/`` beside the package's folders (a source checkout)."""
-
-
-def satellite_path(path: str | Path) -> Path:
-    """``path`` as given when it is absolute or exists from the working folder; else the repository's file of that
-    relative name when there is one (so the presets' ``examples/satellites/cubesat_3u.toml`` is found from any
-    folder); else ``path`` as given (reading it then names it as not found)."""
-    p = Path(path)
-    if p.is_absolute() or p.exists():
-        return p
-    q = REPOSITORY / p
-    return q if q.is_file() else p
-
-
 def load_satellite(path: str | Path) -> SatelliteConfig:
     """Read and validate a satellite configuration file (TOML; see the module docstring); a relative path
-    is looked up by :func:`satellite_path`.  Errors name the path as given."""
-    return satellite_from_dict(read_toml(satellite_path(path)), source=str(path))
+    is looked up by :func:`dualsight.scene.example_files.shipped_path`.  Errors name the path as given."""
+    return satellite_from_dict(read_toml(shipped_path(path)), source=str(path))

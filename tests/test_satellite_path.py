@@ -1,5 +1,5 @@
-"""A preset's relative satellite file (``examples/satellites/cubesat_3u.toml``) is found from any working folder
-(scene/satellite.satellite_path), a file of the working folder wins, and a missing one is named as given."""
+"""A preset's relative satellite or camera file (``examples/satellites/cubesat_3u.toml``) is found from any working folder
+(scene/example_files.shipped_path), a file of the working folder wins, and a missing one is named as given."""
 
 from __future__ import annotations
 
@@ -27,3 +27,12 @@ def test_the_working_folder_wins_and_a_missing_file_is_named_as_given(tmp_path, 
     with pytest.raises((ConfigError, InputError)) as e:
         load_satellite("examples/satellites/none.toml")
     assert "examples/satellites/none.toml" in str(e.value)
+
+
+def test_the_close_preset_runs_from_another_folder(tmp_path, monkeypatch):
+    """Its camera file ``examples/cameras/paper_prox.toml`` is a relative name too."""
+    from dualsight.jobs.kinds import rendezvous
+    monkeypatch.chdir(tmp_path)
+    spec_dict, n = rendezvous.resolve_spec("close", None, cases=1)
+    spec = rendezvous.spec_from_dict(spec_dict)
+    assert (spec.camera.width, spec.camera.height) == (1024, 768)           # the paper's Table 1 camera (6 mm)

@@ -73,6 +73,7 @@ from dualsight.scene.ephemeris import jd_tt_from_unix, moon_position, sun_positi
 from dualsight.scene.keepout import KeepOut, keep_out
 from dualsight.scene.relative_orbit import CircularOrbit, hill_to_icrs, propagate
 from dualsight.scene.rotation_vector import frame_rotation
+from dualsight.scene.example_files import shipped_path
 from dualsight.scene.satellite import load_satellite
 from dualsight.scene.starfield_geometry import stars_in_field
 from dualsight.scene.target_in_field import TargetCases, diameter_px, target_frames, with_target
@@ -209,10 +210,11 @@ def spec_from_dict(d: dict, source: str = "spec") -> RendezvousSpec:
     if top.camera_table is not None:
         camera = Camera.from_dict(top.camera_table, source=source)
     else:
-        if not Path(cfg.camera).is_file():
+        cam_path = shipped_path(cfg.camera)
+        if not cam_path.is_file():
             raise ConfigError(f"no such camera file: {cfg.camera} ('star' or a camera file)", source=source,
                               field="rendezvous.camera")
-        camera = Camera.from_toml(cfg.camera)
+        camera = Camera.from_toml(cam_path)
     return RendezvousSpec(int(top.seed), cfg, camera, None, source)
 
 
