@@ -21,20 +21,20 @@ AS_CAP = 3 * 2**30            # address space: DuckDB reserves more than it touc
 # the child writes its own peak resident memory (KiB, VmHWM) to $PEAK_FILE at exit (RUSAGE_CHILDREN would be the
 # largest child of the whole test session, and the child's own ru_maxrss carries the forking test process's
 # size across exec)
-DUALSIGHT = [sys.executable, "-c", "import atexit, os, sys\n"
+# The child caps its own address space ($AS_CAP_BYTES) before it imports anything: a preexec_fn would run
+# Python between fork and exec of this multi-threaded test process (Taichi's and DuckDB's pools of earlier
+# in-process tests), where a lock held by another thread at the fork can hang the child for good.
+DUALSIGHT = [sys.executable, "-c", "import atexit, os, resource, sys\n"
+             "cap = int(os.environ['AS_CAP_BYTES']); resource.setrlimit(resource.RLIMIT_AS, (cap, cap))\n"
              "atexit.register(lambda: open(os.environ['PEAK_FILE'], 'w').write(next(x.split()[1] for x in "
              "open('/proc/self/status') if x.startswith('VmHWM:'))))\n"
              "from dualsight.jobs.cli.main import main; sys.exit(main())"]
 
 
-def _cap(as_cap: int = AS_CAP):
-    resource.setrlimit(resource.RLIMIT_AS, (as_cap, as_cap))
-
-
 def start(args, lake, as_cap: int = AS_CAP):
-    env = dict(os.environ, PEAK_FILE=str(Path(lake).parent / "peak_kib"))
+    env = dict(os.environ, PEAK_FILE=str(Path(lake).parent / "peak_kib"), AS_CAP_BYTES=str(int(as_cap)))
     return subprocess.Popen(DUALSIGHT + ["sql", *args, "--lake", str(lake)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, preexec_fn=lambda: _cap(as_cap), env=env)
+                            stderr=subprocess.PIPE, env=env)
 
 
 def finish(p, timeout: float):
@@ -133,6 +133,8 @@ def test_refusal_names_statement(lake, stmt, name):
 
 
 API_CHECK = """
+import os, resource
+resource.setrlimit(resource.RLIMIT_AS, (int(os.environ['AS_CAP_BYTES']),) * 2)      # before any import
 import sys, time, dualsight, pytest
 from dualsight.warehouse.query import QueryTimeout
 L = dualsight.Lake(sys.argv[1])
@@ -149,7 +151,7 @@ print("ok")
 
 def test_lake_sql_timeout_and_memory_limit(lake):
     p = subprocess.Popen([sys.executable, "-c", API_CHECK, str(lake), ENDLESS], stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, preexec_fn=_cap)
+                         stderr=subprocess.PIPE, env=dict(os.environ, AS_CAP_BYTES=str(AS_CAP)))
     rc, out, err, _ = finish(p, 30)
     assert rc == 0 and out == "ok\n", err
 
