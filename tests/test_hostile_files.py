@@ -10,7 +10,6 @@ The files are generated here; the CLI runs in a subprocess with a timeout and an
 from __future__ import annotations
 
 import os
-import resource
 import socket
 import struct
 import subprocess
@@ -34,17 +33,17 @@ MEMORY_CAP = int(1.5 * 2**30)
 LIMITS = (f"{MAX_IMAGE_PIXELS / 1e6:.0f} Mpx", f"{MAX_IMAGE_BYTES // 2**20} MiB")
 
 
-def _cap_memory():
-    resource.setrlimit(resource.RLIMIT_AS, (MEMORY_CAP, MEMORY_CAP))
+CAPPED = ["prlimit", f"--as={MEMORY_CAP}"]
+"""Runs a command under the address-space cap: util-linux's prlimit sets it and execs, so no Python runs between
+fork and exec of this multi-threaded test process (a preexec_fn there can hang on a lock another thread held)."""
 
 
 def _dualsight(argv, cwd: Path, cap: bool = True) -> subprocess.CompletedProcess:
     """``dualsight <argv>`` in a subprocess: 20 s at most, 1.5 GB of address space (``cap``; a run that goes on
     to its DuckDB summary needs more address space than it uses: DuckDB reserves ahead)."""
     env = dict(os.environ, DUALSIGHT_LAKE=str(cwd / "lake"))
-    return subprocess.run([sys.executable, "-m", "dualsight", *map(str, argv)], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=TIMEOUT_S,
-                          preexec_fn=_cap_memory if cap else None)
+    return subprocess.run([*(CAPPED if cap else []), sys.executable, "-m", "dualsight", *map(str, argv)], cwd=cwd,
+                          env=env, capture_output=True, text=True, timeout=TIMEOUT_S)
 
 
 def _refused(argv, cwd: Path, *needles) -> str:
@@ -325,6 +324,5 @@ def test_libjpeg_warnings_of_a_readable_jpeg_stay_off_the_terminal(tmp_path):
     p = tmp_path / "x.jpg"
     p.write_bytes(ok[:len(ok) // 2] + bytes(50) + ok[len(ok) // 2 + 50:])
     code = f"from dualsight.scene.imageio import read_image; print(read_image({str(p)!r}).pixels.shape)"
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=TIMEOUT_S,
-                       preexec_fn=_cap_memory)
+    r = subprocess.run([*CAPPED, sys.executable, "-c", code], capture_output=True, text=True, timeout=TIMEOUT_S)
     assert r.returncode == 0 and r.stdout.strip() == "(64, 64)" and r.stderr == "", r.stderr
