@@ -30,7 +30,7 @@ import datetime as _dt
 import math
 import re
 
-__all__ = ["cell", "percent", "iso_utc", "row_cells", "table_cells"]
+__all__ = ["cell", "percent", "iso_utc", "row_cells", "table_cells", "formatted", "verdict"]
 
 
 def percent(fraction, nd: int = 1) -> str:
@@ -38,6 +38,16 @@ def percent(fraction, nd: int = 1) -> str:
     if fraction is None or (isinstance(fraction, float) and math.isnan(fraction)):
         return "-"
     return f"{100.0 * float(fraction):.{nd}f} %"
+
+
+def formatted(v, fmt: str = "{:.3f}") -> str:
+    """``v`` through ``fmt``; None -> ``-`` (a report's cell whose format the report chooses)."""
+    return "-" if v is None else fmt.format(v)
+
+
+def verdict(ok) -> str:
+    """A target's verdict cell: ``met``, ``NOT met``, or ``-`` when it could not be judged (None)."""
+    return "-" if ok is None else ("met" if ok else "NOT met")
 
 
 def iso_utc(seconds) -> str:

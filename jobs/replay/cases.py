@@ -85,6 +85,30 @@ def refuse_mismatch(stored: dict, fresh: dict, case_id: int, run_id: str, manife
                          f"run made with {manifest.get('code_version')}", source=f"run {run_id}")
 
 
+def sequence_rows(lake: Lake, run_id: str, case_id: int, kind: str, case_dataset: str,
+                  frame_dataset: str) -> tuple[dict, dict, list[dict]]:
+    """(manifest, the case's row of ``case_dataset``, its rows of ``frame_dataset`` by frame) of case ``case_id``
+    of a sequence kind's run (``star_track``, ``rendezvous``); InputError when the run is not of ``kind`` or the
+    case is out of range."""
+    manifest = lake.read_manifest(run_id)
+    if manifest is None or manifest.get("kind") != kind:
+        raise InputError(f"no {kind} run {run_id!r} in {lake.root}", source="--run")
+    if not 0 <= case_id < manifest["n_cases"]:
+        raise InputError(f"case must be in [0, {manifest['n_cases'] - 1}], got {case_id}", source="--case")
+    return (manifest, stored_rows(lake, case_dataset, run_id, case_id)[0],
+            stored_rows(lake, frame_dataset, run_id, case_id, order="frame"))
+
+
+def refuse_frame_mismatch(frames: list[dict], fresh: list[dict], case_id: int, run_id: str, manifest: dict):
+    """InputError when the recomputed frame rows of a sequence differ from the stored ones: their number, or the
+    first differing column of the first differing frame (:func:`refuse_mismatch`)."""
+    if len(fresh) != len(frames):
+        raise InputError(f"replay of case {case_id} does not reproduce the lake: {len(frames)} frame rows in the lake, "
+                         f"{len(fresh)} recomputed", source=f"run {run_id}")
+    for s, f in zip(frames, fresh):
+        refuse_mismatch(s, f, case_id, run_id, manifest, what=f"frame {s['frame']}: ")
+
+
 def recording_path(path) -> Path:
     """``path`` as the file a recording may be written to, checked before any case is recomputed: its folder
     exists and is a folder that takes a new file (a probe file is created and removed), and the path is not a

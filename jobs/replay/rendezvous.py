@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from dualsight.errors import InputError
-from dualsight.jobs.replay.cases import recording_path, refuse_mismatch, stored_rows
+from dualsight.jobs.replay.cases import recording_path, refuse_frame_mismatch, refuse_mismatch, sequence_rows
 from dualsight.warehouse.lake import Lake
 
 __all__ = ["replay_rendezvous_case", "verified_approach"]
@@ -29,23 +29,13 @@ def verified_approach(lake: Lake, run_id: str, case_id: int) -> tuple[dict, list
     the first column that differs."""
     from dualsight.jobs.kinds import rendezvous as rz         # Taichi
 
-    manifest = lake.read_manifest(run_id)
-    if manifest is None or manifest.get("kind") != "rendezvous":
-        raise InputError(f"no rendezvous run {run_id!r} in {lake.root}", source="--run")
-    if not 0 <= case_id < manifest["n_cases"]:
-        raise InputError(f"case must be in [0, {manifest['n_cases'] - 1}], got {case_id}", source="--case")
-    case_row = stored_rows(lake, "rendezvous_cases", run_id, case_id)[0]
-    frames = stored_rows(lake, "rendezvous_frames", run_id, case_id, order="frame")
+    manifest, case_row, frames = sequence_rows(lake, run_id, case_id, "rendezvous", "rendezvous_cases",
+                                               "rendezvous_frames")
     spec = rz.spec_from_dict(manifest["spec"], source=f"manifest of run {run_id}")
     ctx = rz.make_context(spec)
     out = rz.compute_case(spec, ctx, case_id)
     refuse_mismatch(case_row, out["case"], case_id, run_id, manifest)
-    fresh = out["frames"].to_pylist()
-    if len(fresh) != len(frames):
-        raise InputError(f"replay of case {case_id} does not reproduce the lake: {len(frames)} frame rows in the lake, "
-                         f"{len(fresh)} recomputed", source=f"run {run_id}")
-    for s, f in zip(frames, fresh):
-        refuse_mismatch(s, f, case_id, run_id, manifest, what=f"frame {s['frame']}: ")
+    refuse_frame_mismatch(frames, out["frames"].to_pylist(), case_id, run_id, manifest)
     m2, images = (rz.measure_star if spec.is_star else rz.measure_prox)(spec, ctx, out["draw"], out["geo"],
                                                                          keep_images=True)
     for k, row in enumerate(frames):

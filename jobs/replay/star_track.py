@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from dualsight.errors import InputError
-from dualsight.jobs.replay.cases import recording_path, refuse_mismatch, stored_rows
+from dualsight.jobs.replay.cases import recording_path, refuse_frame_mismatch, refuse_mismatch, sequence_rows
 from dualsight.kernels.digest import to_int64
 from dualsight.kernels.sensor_config import flux_from_magnitude
 from dualsight.nav.focal_refine import scaled_camera
@@ -108,23 +108,12 @@ def replay_track_case(lake: Lake, run_id: str, case_id: int, output: Path | None
 
     if rec is None:
         output = recording_path(output or f"{run_id}-case{case_id}.rrd")
-    manifest = lake.read_manifest(run_id)
-    if manifest is None or manifest.get("kind") != "star_track":
-        raise InputError(f"no star_track run {run_id!r} in {lake.root}", source="--run")
-    if not 0 <= case_id < manifest["n_cases"]:
-        raise InputError(f"case must be in [0, {manifest['n_cases'] - 1}], got {case_id}", source="--case")
-    seq_row = stored_rows(lake, "star_sequences", run_id, case_id)[0]
-    frames = stored_rows(lake, "star_frames", run_id, case_id, order="frame")
+    manifest, seq_row, frames = sequence_rows(lake, run_id, case_id, "star_track", "star_sequences", "star_frames")
     spec = star_track.spec_from_dict(manifest["spec"], source=f"manifest of run {run_id}")
     ctx = star_track.make_context(spec)
     out = star_track.compute_sequence(spec, ctx, case_id)
     refuse_mismatch(seq_row, out["sequence"], case_id, run_id, manifest)
-    fresh = out["frames"].to_pylist()
-    if len(fresh) != len(frames):
-        raise InputError(f"replay of case {case_id} does not reproduce the lake: {len(frames)} frame rows in the lake, "
-                         f"{len(fresh)} recomputed", source=f"run {run_id}")
-    for s, f in zip(frames, fresh):
-        refuse_mismatch(s, f, case_id, run_id, manifest, what=f"frame {s['frame']}: ")
+    refuse_frame_mismatch(frames, out["frames"].to_pylist(), case_id, run_id, manifest)
     images = frame_images(spec, ctx, out["draw"])
     for k, (_, dig) in images.items():
         if dig != frames[k]["image_digest"]:

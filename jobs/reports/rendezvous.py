@@ -19,7 +19,7 @@ import numpy as np
 from dualsight.errors import InputError
 from dualsight.nav.relative_filter import chi2_mean_bounds
 from dualsight.viz import html_page as H
-from dualsight.warehouse.cells import percent
+from dualsight.warehouse.cells import formatted, percent, verdict
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import connect, format_table, run_report
 
@@ -74,14 +74,6 @@ def build(lake: Lake, run_id: str) -> dict:
     return {"tables": tables, "summary": s, "json": js}
 
 
-def _f(v, fmt="{:.3f}") -> str:
-    return "-" if v is None else fmt.format(v)
-
-
-def _verdict(ok) -> str:
-    return "-" if ok is None else ("met" if ok else "NOT met")
-
-
 def target_rows(rep: dict) -> list[list[str]]:
     """The targets table (metric, run, target, verdict) of :func:`text`, as printed cells (the HTML report's too)."""
     j = rep["json"]
@@ -92,26 +84,26 @@ def target_rows(rep: dict) -> list[list[str]]:
              f"{j['converged_after_frames']}",
              "-" if share1 is None else f"{j['nees_first_frames_inside']} of {j['nees_frames_checked']} frames "
              f"(bounds {lo1:.2f}-{hi1:.2f})", "every frame",
-             _verdict(None if share1 is None else share1 >= TARGETS["nees_inside_share"])],
+             verdict(None if share1 is None else share1 >= TARGETS["nees_inside_share"])],
             [f"    the same over all {j['approaches']} approaches",
              "-" if share is None else f"{j['nees_frames_inside']} of {j['nees_frames_checked']} frames "
-             f"(bounds {lo:.2f}-{hi:.2f}, mean {_f(j['nees_mean_after_convergence'], '{:.2f}')})", "", ""]]
+             f"(bounds {lo:.2f}-{hi:.2f}, mean {formatted(j['nees_mean_after_convergence'], '{:.2f}')})", "", ""]]
     if j["late_range_frames"]:
         r = j["range_err_ratio"]
         rows.append([f"(d) filtered / single-frame blobber range error (RMS, frames >= {j['after_frames']} with a "
-                     "range)", "-" if r is None else f"{r:.3f} ({_f(j['filtered_range_err_rms_m'], '{:.4f}')} m vs "
-                     f"{_f(j['blobber_range_err_rms_m'], '{:.4f}')} m)", "<= 0.5",
-                     _verdict(None if r is None else r <= TARGETS["range_err_ratio"])])
+                     "range)", "-" if r is None else f"{r:.3f} ({formatted(j['filtered_range_err_rms_m'], '{:.4f}')} m vs "
+                     f"{formatted(j['blobber_range_err_rms_m'], '{:.4f}')} m)", "<= 0.5",
+                     verdict(None if r is None else r <= TARGETS["range_err_ratio"])])
         v = j["late_vel_err_rms_m_s"]
         rows.append([f"(d) velocity error RMS, frames >= {j['after_frames']}",
                      "-" if v is None else f"{100 * v:.3f} cm/s (p95 {100 * j['late_vel_err_p95_m_s']:.3f}, max "
                      f"{100 * j['late_vel_err_max_m_s']:.3f})", "<= 1 cm/s",
-                     _verdict(None if v is None else v <= TARGETS["vel_err_m_s"])])
+                     verdict(None if v is None else v <= TARGETS["vel_err_m_s"])])
     if j["orbit_frames"] and not j["range_share"]:              # point 6 (e) is about bearings alone
         p = j["orbit_pos_err_rms_pct"]
         rows.append(["(e) position error / range one orbit after the burn, RMS over approaches",
                      f"{p:.3f} % at {j['orbit_range_mean_m']:.0f} m (p95 {j['orbit_pos_err_p95_pct']:.3f} %, filter "
-                     f"{j['orbit_sigma_mean_pct']:.3f} %)", "<= 1 %", _verdict(p <= TARGETS["orbit_pos_err_pct"])])
+                     f"{j['orbit_sigma_mean_pct']:.3f} %)", "<= 1 %", verdict(p <= TARGETS["orbit_pos_err_pct"])])
     return rows
 
 
@@ -132,15 +124,15 @@ def text(rep: dict) -> str:
         f"detection of it ({'-' if j['target_detected_share'] is None else percent(j['target_detected_share'])} of "
         f"frames); {j['target_false_picks']} picks not the target, {j['target_gated_out']} frames gated out",
         "bearing error (used, after the centre-of-brightness correction): RMS "
-        f"{_f(j['bearing_err_rms_arcsec'], '{:.2f}')} arcsec, median {_f(j['bearing_err_p50_arcsec'], '{:.2f}')}, "
-        f"p95 {_f(j['bearing_err_p95_arcsec'], '{:.2f}')}"
-        f"; as measured {_f(j['bearing_raw_err_rms_arcsec'], '{:.2f}')}; stated 1-sigma per axis RMS "
-        f"{_f(j['bearing_sigma_rms_arcsec'], '{:.2f}')}; within 3 sigma (2-D: 3 sqrt 2 sigma) "
+        f"{formatted(j['bearing_err_rms_arcsec'], '{:.2f}')} arcsec, median {formatted(j['bearing_err_p50_arcsec'], '{:.2f}')}, "
+        f"p95 {formatted(j['bearing_err_p95_arcsec'], '{:.2f}')}"
+        f"; as measured {formatted(j['bearing_raw_err_rms_arcsec'], '{:.2f}')}; stated 1-sigma per axis RMS "
+        f"{formatted(j['bearing_sigma_rms_arcsec'], '{:.2f}')}; within 3 sigma (2-D: 3 sqrt 2 sigma) "
         f"{'-' if j['bearing_within_3sigma'] is None else percent(j['bearing_within_3sigma'])}",
-        f"final: range {_f(j['final_range_mean_m'], '{:.1f}')} m mean, position error RMS "
-        f"{_f(j['final_pos_err_rms_m'], '{:.3f}')} m, velocity error RMS "
-        f"{_f(j['final_vel_err_rms_m_s'], '{:.5f}')} m/s",
-        f"time: {_f(j['ms_per_approach'], '{:.0f}')} ms per approach (render {_f(j['render_ms_per_frame'], '{:.1f}')} "
+        f"final: range {formatted(j['final_range_mean_m'], '{:.1f}')} m mean, position error RMS "
+        f"{formatted(j['final_pos_err_rms_m'], '{:.3f}')} m, velocity error RMS "
+        f"{formatted(j['final_vel_err_rms_m_s'], '{:.5f}')} m/s",
+        f"time: {formatted(j['ms_per_approach'], '{:.0f}')} ms per approach (render {formatted(j['render_ms_per_frame'], '{:.1f}')} "
         "ms per frame)",
         "",
         "mean NEES per frame (every 5th; * outside the 95 % bounds after convergence)",
@@ -194,17 +186,17 @@ def html_sections(lake: Lake, con, m: dict, run_id: str) -> list[tuple[str, str]
                ("availability (bearing used)", percent(j["availability"])),
                ("target in the field / attitude / blobber range", f"{percent(j['in_field_share'])} / "
                 f"{percent(j['attitude_share'])} / {percent(j['range_share'])}"),
-               ("bearing error RMS / median / p95 (arcsec)", f"{_f(j['bearing_err_rms_arcsec'], '{:.2f}')} / "
-                f"{_f(j['bearing_err_p50_arcsec'], '{:.2f}')} / {_f(j['bearing_err_p95_arcsec'], '{:.2f}')}"),
-               ("bearing as measured, RMS (arcsec)", _f(j["bearing_raw_err_rms_arcsec"], "{:.2f}")),
+               ("bearing error RMS / median / p95 (arcsec)", f"{formatted(j['bearing_err_rms_arcsec'], '{:.2f}')} / "
+                f"{formatted(j['bearing_err_p50_arcsec'], '{:.2f}')} / {formatted(j['bearing_err_p95_arcsec'], '{:.2f}')}"),
+               ("bearing as measured, RMS (arcsec)", formatted(j["bearing_raw_err_rms_arcsec"], "{:.2f}")),
                ("bearing within 3 stated sigma", percent(j["bearing_within_3sigma"])),
                ("target found (of frames with its detection) / false picks / gated out",
                 f"{'-' if j['target_found_rate'] is None else percent(j['target_found_rate'])} / "
                 f"{j['target_false_picks']} / {j['target_gated_out']}"),
                ("final range mean (m) / position error RMS (m) / velocity error RMS (m/s)",
-                f"{_f(j['final_range_mean_m'], '{:.1f}')} / {_f(j['final_pos_err_rms_m'], '{:.3f}')} / "
-                f"{_f(j['final_vel_err_rms_m_s'], '{:.5f}')}"),
-               ("ms per approach", _f(j["ms_per_approach"], "{:.0f}"))]
+                f"{formatted(j['final_range_mean_m'], '{:.1f}')} / {formatted(j['final_pos_err_rms_m'], '{:.3f}')} / "
+                f"{formatted(j['final_vel_err_rms_m_s'], '{:.5f}')}"),
+               ("ms per approach", formatted(j["ms_per_approach"], "{:.0f}"))]
     replay = (f"<p>Replay an approach into rerun (image and 3-D trajectory on the <code>frame</code> time line): "
               f"<code>dualsight rendezvous replay --lake {H.esc(shlex.quote(str(lake.root)))} --run "
               f"{H.esc(shlex.quote(run_id))} --case N -o approachN.rrd</code></p>")

@@ -15,7 +15,7 @@ against the issue's targets (point 6).
 from __future__ import annotations
 
 from dualsight.errors import InputError
-from dualsight.warehouse.cells import percent
+from dualsight.warehouse.cells import formatted, percent, verdict
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import connect, format_table, run_report
 
@@ -67,14 +67,6 @@ def build(lake: Lake, run_id: str) -> dict:
     return {"tables": tables, "summary": s, "json": js}
 
 
-def _f(v, fmt="{:.3f}") -> str:
-    return "-" if v is None else fmt.format(v)
-
-
-def _verdict(ok) -> str:
-    return "-" if ok is None else ("met" if ok else "NOT met")
-
-
 def target_rows(rep: dict) -> list[list[str]]:
     """The targets table (metric, run, target, verdict) of :func:`text`, as printed cells (the HTML report's too)."""
     j = rep["json"]
@@ -83,25 +75,25 @@ def target_rows(rep: dict) -> list[list[str]]:
     return [
         ["availability (valid, within the limit), all frames", percent(j["availability"]), "", ""],
         ["availability, normal frames (no blank/blinded/dropped)", percent(j["availability_normal_frames"]),
-         ">= 99.9 %", _verdict(None if j["availability_normal_frames"] is None
+         ">= 99.9 %", verdict(None if j["availability_normal_frames"] is None
                                else j["availability_normal_frames"] >= TARGETS["availability"])],
         ["re-acquired within 2 frames of a blinded frame",
          "-" if j["blinded_reacquired_within_2"] is None else
          f"{percent(j['blinded_reacquired_within_2'])} of {j['blinded_frames_judged']} (of {j['blinded_frames']}: "
          f"the rest too near the end)", "100 %",
-         _verdict(None if j["blinded_reacquired_within_2"] is None else j["blinded_reacquired_within_2"] >= 1.0)],
+         verdict(None if j["blinded_reacquired_within_2"] is None else j["blinded_reacquired_within_2"] >= 1.0)],
         ["false locks", f"{j['false_locks']} in {j['frames']:,} frames", "0 in 10^5",
          "NOT met" if j["false_locks"] else ("met" if j["frames"] >= 100_000 else "too few frames")],
         ["rate (from attitudes) within 3 stated sigmas", "-" if r3 is None else percent(r3), ">= 99 %",
-         _verdict(None if r3 is None else r3 >= TARGETS["rate_within_3sigma"])],
+         verdict(None if r3 is None else r3 >= TARGETS["rate_within_3sigma"])],
         ["tracking speed-up on the same frames (mean ms; whole tracker incl. rates)",
-         "-" if sp is None else f"{sp:.1f}x", ">= 10x", _verdict(None if sp is None else sp >= TARGETS["tracking_speedup"])],
+         "-" if sp is None else f"{sp:.1f}x", ">= 10x", verdict(None if sp is None else sp >= TARGETS["tracking_speedup"])],
         ["  the same, predict + match + solve + verify only",
          "-" if spc is None else f"{spc:.1f}x", ">= 10x",
-         _verdict(None if spc is None else spc >= TARGETS["tracking_speedup"])],
+         verdict(None if spc is None else spc >= TARGETS["tracking_speedup"])],
     ] + ([["frames with a bright object crossing: availability, false locks",
            f"{percent(j['availability_crossing_frames'])}, {j['false_locks_crossing_frames']} in "
-           f"{j['frames_crossing']:,} frames", "0 false locks", _verdict(j["false_locks_crossing_frames"] == 0)]]
+           f"{j['frames_crossing']:,} frames", "0 false locks", verdict(j["false_locks_crossing_frames"] == 0)]]
          if j.get("frames_crossing") else [])
 
 
@@ -115,17 +107,17 @@ def text(rep: dict) -> str:
         "Targets (issue 22, point 6)",
         format_table(["metric", "run", "target", "verdict"], rows),
         "",
-        f"time to first fix: mean {_f(j['mean_time_to_first_fix_s'])} s, max {_f(j['max_time_to_first_fix_s'])} s; "
+        f"time to first fix: mean {formatted(j['mean_time_to_first_fix_s'])} s, max {formatted(j['max_time_to_first_fix_s'])} s; "
         f"sequences never fixed: {j['sequences_never_fixed']}",
-        f"re-acquisitions after a loss: {j['reacquisitions']} (mean {_f(j['mean_reacquisition_frames'], '{:.2f}')} "
+        f"re-acquisitions after a loss: {j['reacquisitions']} (mean {formatted(j['mean_reacquisition_frames'], '{:.2f}')} "
         f"frames, max {j['max_reacquisition_frames'] if j['max_reacquisition_frames'] is not None else '-'}); "
         f"losses not recovered before the sequence ended: {j['unrecovered_losses']}",
         f"tracking share {percent(j['tracking_share'])}, two-star locks {j['two_star_frames']}",
         f"degraded (verified, withheld: stated sigma above tracking.max_sigma_rad): {j['degraded_frames']} frames "
         f"({j['degraded_normal_frames']} normal), {j['degraded_beyond_limit']} of them beyond the error limit; "
         f"normal frames without any answer: {j['normal_frames_without_answer']}",
-        f"rate error RMS: from attitudes {_f(j['rate_att_err_rms_deg_s'], '{:.4f}')} deg/s, from stars "
-        f"{_f(j['rate_star_err_rms_deg_s'], '{:.4f}')} deg/s (within 3 sigma: "
+        f"rate error RMS: from attitudes {formatted(j['rate_att_err_rms_deg_s'], '{:.4f}')} deg/s, from stars "
+        f"{formatted(j['rate_star_err_rms_deg_s'], '{:.4f}')} deg/s (within 3 sigma: "
         f"{'-' if j['rate_star_within_3sigma'] is None else percent(j['rate_star_within_3sigma'])})",
     ]
     if j["ids_equal_to_lost_in_space"] is not None:
