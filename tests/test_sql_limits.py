@@ -21,10 +21,12 @@ AS_CAP = 3 * 2**30            # address space: DuckDB reserves more than it touc
 # the child writes its own peak resident memory (KiB, VmHWM) to $PEAK_FILE at exit (RUSAGE_CHILDREN would be the
 # largest child of the whole test session, and the child's own ru_maxrss carries the forking test process's
 # size across exec)
-# The child caps its own address space ($AS_CAP_BYTES) before it imports anything: a preexec_fn would run
-# Python between fork and exec of this multi-threaded test process (Taichi's and DuckDB's pools of earlier
-# in-process tests), where a lock held by another thread at the fork can hang the child for good.
-DUALSIGHT = [sys.executable, "-c", "import atexit, os, resource, sys\n"
+# The child caps its own address space ($AS_CAP_BYTES) before it imports anything (a preexec_fn would run Python
+# between fork and exec of this multi-threaded test process), and takes Ctrl-C as a command in a terminal's
+# foreground does: a suite started in the background by a non-interactive shell (`bash .ci/run &`) passes SIGINT
+# down ignored, and an ignored signal stays ignored across exec.
+DUALSIGHT = [sys.executable, "-c", "import atexit, os, resource, signal, sys\n"
+             "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
              "cap = int(os.environ['AS_CAP_BYTES']); resource.setrlimit(resource.RLIMIT_AS, (cap, cap))\n"
              "atexit.register(lambda: open(os.environ['PEAK_FILE'], 'w').write(next(x.split()[1] for x in "
              "open('/proc/self/status') if x.startswith('VmHWM:'))))\n"
