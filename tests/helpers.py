@@ -157,3 +157,26 @@ def star_fields(rng, cat, B, S=24, sigma=1.0 * ARCSEC, n_false=(0, 3), n_drop=(1
         o = rng.permutation(len(allv))[:S]
         obs[b, :len(o)], valid[b, :len(o)], truth[b, :len(o)] = allv[o], True, ids[o]
     return A, obs, valid, truth
+
+
+def orion_field(camera: Camera):
+    """The synthetic round trip's scene (tests/test_hil_star.py, test_api.py, test_hil_star_objects.py): ``camera``
+    pointed at RA 84, Dec -3 deg (Orion: many bright stars) with 30 deg roll; Hipparcos to V 7 at epoch 2019.6 (the
+    ESA tests' catalog); a noisy sensor (0.3 s, shot noise, 15 e- read noise, 300 e- sky, hot pixels).
+    Returns (A (3, 3) inertial -> camera, the catalog, the SensorConfig, the stars in the field)."""
+    from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
+    from dualsight.jobs.kinds.star import psf_margin_px
+    from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
+    from dualsight.scene.attitude import radec_to_unit, rot_axis
+    from dualsight.scene.starfield_geometry import stars_in_field
+
+    z = radec_to_unit(math.radians(84.0), math.radians(-3.0))
+    east = np.cross([0.0, 0.0, 1.0], z)
+    east /= np.linalg.norm(east)
+    north = np.cross(z, east)
+    A = rot_axis(3, math.radians(30.0))[0] @ np.stack([np.cross(-north, z), -north, z])
+    cat = load_star_catalog(StarCatalogConfig(mag_limit=7.0, epoch_jyear=2019.6))
+    sensor = SensorConfig(exposure_s=0.3, shot_noise=True, read_noise_e=15.0, sky_background_e=300.0,
+                          hot_pixel_fraction=2e-4, hot_pixel_e=3000.0, hot_pixel_seed=7, bias_adu=20.0)
+    field_ = stars_in_field(A[None], cat.unit, flux_from_magnitude(cat.vmag, sensor), camera, psf_margin_px(sensor))
+    return A, cat, sensor, field_

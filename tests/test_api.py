@@ -31,7 +31,7 @@ import tomli_w
 import dualsight
 from dualsight.errors import ConfigError, ImageError, InputError
 from dualsight.scene.camera import Camera
-from helpers import ROOT, lake_rows, run_cli, shared_real, snapshot
+from helpers import ROOT, lake_rows, orion_field, run_cli, shared_real, snapshot
 
 DOC = ROOT / "docs" / "api.md"
 CAMERA = ROOT / "examples" / "cameras" / "esa_tetra3.toml"
@@ -305,23 +305,10 @@ def rendered(tmp_path_factory):
     """A noisy frame rendered at a known attitude (tests/test_hil_star.py's round trip: sky gradient, shot and
     read noise, hot pixels), as 12-bit counts (uint16) and as a 16-bit TIFF holding them shifted by 4 like the
     ESA frames; with the attitude it was rendered at.  Needs no real data."""
-    from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
-    from dualsight.jobs.kinds.star import psf_margin_px
-    from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
     from dualsight.kernels.starfield import render_star_fields
-    from dualsight.scene.attitude import radec_to_unit, rot_axis
-    from dualsight.scene.starfield_geometry import stars_in_field
 
     cam = Camera.from_toml(CAMERA)
-    z = radec_to_unit(math.radians(84.0), math.radians(-3.0))
-    east = np.cross([0.0, 0.0, 1.0], z)
-    east /= np.linalg.norm(east)
-    north = np.cross(z, east)
-    A = rot_axis(3, math.radians(30.0))[0] @ np.stack([np.cross(-north, z), -north, z])
-    cat = load_star_catalog(StarCatalogConfig(mag_limit=7.0, epoch_jyear=2019.6))
-    sensor = SensorConfig(exposure_s=0.3, shot_noise=True, read_noise_e=15.0, sky_background_e=300.0,
-                          hot_pixel_fraction=2e-4, hot_pixel_e=3000.0, hot_pixel_seed=7, bias_adu=20.0)
-    f = stars_in_field(A[None], cat.unit, flux_from_magnitude(cat.vmag, sensor), cam, psf_margin_px(sensor))
+    A, cat, sensor, f = orion_field(cam)
     img = render_star_fields(f.x, f.y, f.flux_e, f.valid, cam.width, cam.height, sensor,
                              np.array([12345], np.uint64))[0].astype(np.float64)
     img += 40.0 * np.linspace(0, 1, cam.width)[None, :]

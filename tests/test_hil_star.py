@@ -31,7 +31,7 @@ from dualsight.scene.timescale import julian_year, observation_epoch
 from dualsight.scene.units import angle_between
 from dualsight.warehouse.lake import Lake
 from dualsight.warehouse.query import connect, run_report, run_sql
-from helpers import ROOT, esa_spec, hil_star_rows, run_cli, shared_real
+from helpers import ROOT, esa_spec, hil_star_rows, orion_field, run_cli, shared_real
 
 CAMERA = ROOT / "examples" / "cameras" / "esa_tetra3.toml"
 ARCSEC = math.pi / (180 * 3600)
@@ -421,23 +421,10 @@ def test_synthetic_frame_round_trip(tmp_path):
     """A noisy frame rendered at a known attitude (sky gradient, shot/read noise, hot pixels), written as
     a 12-bit-in-16-bit TIFF like the ESA frames, with a truth file of the same format: identified, and the
     boresight within a few arcsec of the attitude it was rendered with."""
-    from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
-    from dualsight.jobs.kinds.star import psf_margin_px
-    from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
     from dualsight.kernels.starfield import render_star_fields
-    from dualsight.scene.starfield_geometry import stars_in_field
 
     cam = Camera.from_toml(CAMERA)
-    ra0, dec0, roll = math.radians(84.0), math.radians(-3.0), math.radians(30.0)
-    z = radec_to_unit(ra0, dec0)
-    east = np.cross([0.0, 0.0, 1.0], z)
-    east /= np.linalg.norm(east)
-    north = np.cross(z, east)
-    A = rot_axis(3, roll)[0] @ np.stack([np.cross(-north, z), -north, z])
-    cat = load_star_catalog(StarCatalogConfig(mag_limit=7.0, epoch_jyear=2019.6))   # the ESA tests' catalog
-    sensor = SensorConfig(exposure_s=0.3, shot_noise=True, read_noise_e=15.0, sky_background_e=300.0,
-                          hot_pixel_fraction=2e-4, hot_pixel_e=3000.0, hot_pixel_seed=7, bias_adu=20.0)
-    f = stars_in_field(A[None], cat.unit, flux_from_magnitude(cat.vmag, sensor), cam, psf_margin_px(sensor))
+    A, cat, sensor, f = orion_field(cam)                 # Orion, 30 deg roll, V 7 catalog, noisy sensor
     img = render_star_fields(f.x, f.y, f.flux_e, f.valid, cam.width, cam.height, sensor,
                              np.array([12345], np.uint64))[0].astype(np.float64)
     img += 40.0 * np.linspace(0, 1, cam.width)[None, :]                     # vignetting-like gradient

@@ -22,7 +22,7 @@ import pytest
 from dualsight.nav.field_target import brightest_star_npix, pick_point_target
 from dualsight.nav.photometric_zero_point import zero_point
 from dualsight.nav.unknown_objects import UnknownConfig, explained_by_catalog
-from helpers import ROOT, run_cli, shared_real
+from helpers import ROOT, orion_field, run_cli, shared_real
 
 CAMERA = ROOT / "examples" / "cameras" / "esa_tetra3.toml"
 ESA = shared_real() / "esa_tetra3"
@@ -229,28 +229,16 @@ def _render_with_target(tmp_path, name: str, range_m: float, pix: tuple[float, f
     direction of pixel ``pix``, lit at ``phase_deg``, written as a 12-bit-in-16-bit TIFF; returns (path, truth):
     the centre of brightness's ICRS direction, the range, the target's V and whether it was rasterised.  ``rot``: the
     target's attitude, 1-2-3 angles (rad)."""
-    from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
     from dualsight.config import TargetConfig
-    from dualsight.jobs.kinds.star import psf_margin_px
-    from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
     from dualsight.kernels.starfield import render_star_fields
-    from dualsight.scene.attitude import radec_to_unit, rot_axis
+    from dualsight.scene.attitude import rot_axis
     from dualsight.scene.camera import Camera
     from dualsight.scene.satellite import load_satellite
-    from dualsight.scene.starfield_geometry import stars_in_field
     from dualsight.scene.target_in_field import TargetCases, target_frames, with_target
     from dualsight.scene.target_photometry import target_shape
 
     cam = Camera.from_toml(CAMERA)
-    z = radec_to_unit(math.radians(84.0), math.radians(-3.0))          # Orion: many bright stars
-    east = np.cross([0.0, 0.0, 1.0], z)
-    east /= np.linalg.norm(east)
-    north = np.cross(z, east)
-    A = rot_axis(3, math.radians(30.0))[0] @ np.stack([np.cross(-north, z), -north, z])
-    cat = load_star_catalog(StarCatalogConfig(mag_limit=7.0, epoch_jyear=2019.6))
-    sensor = SensorConfig(exposure_s=0.3, shot_noise=True, read_noise_e=15.0, sky_background_e=300.0,
-                          hot_pixel_fraction=2e-4, hot_pixel_e=3000.0, hot_pixel_seed=7, bias_adu=20.0)
-    field_ = stars_in_field(A[None], cat.unit, flux_from_magnitude(cat.vmag, sensor), cam, psf_margin_px(sensor))
+    A, cat, sensor, field_ = orion_field(cam)
     u = cam.backproject(np.array([pix], np.float64))                       # (1, 3) camera frame
     o = -u[0]
     e1 = np.cross(o, [1.0, 0.0, 0.0])
