@@ -44,8 +44,6 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 
@@ -54,6 +52,8 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 os.environ.setdefault("DUALSIGHT_TI_THREADS", "1")
 
 import numpy as np  # noqa: E402
+
+from bench_noisy_sil import job_script_rows  # noqa: E402  (this folder: the script's own)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 NOISY = os.path.join(ROOT, "examples", "star", "noisy_sensor.toml")
@@ -212,13 +212,7 @@ def job_time(workers: int, sizes: list[int], batch: int | None, ti_threads: str 
     code = _JOB.format(cfg=NOISY, batch=batch, sizes=list(sizes), workers=workers)
     if PYTHONPATH:
         env["PYTHONPATH"] = PYTHONPATH
-    for _attempt in range(4):  # others editing the tree change the code version under a running job: retry
-        p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, cwd="/tmp")
-        if p.returncode == 0 or "install the same code on every worker" not in p.stderr:
-            break
-    if p.returncode != 0:
-        raise SystemExit(f"job failed: {p.stderr[-3000:]}")
-    return [tuple(r) for r in json.loads(p.stdout.strip().splitlines()[-1])]
+    return job_script_rows(code, env)
 
 
 def load() -> str:

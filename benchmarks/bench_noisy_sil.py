@@ -65,7 +65,14 @@ def job(tree: str | None, workers: int | None, sizes: list[int], one_thread: boo
     if tree:
         env["PYTHONPATH"] = tree
     code = _JOB.format(cfg=NOISY, sizes=list(sizes), workers=workers)
-    for _attempt in range(4):  # others editing the tree change the code version under a running job: retry
+    return job_script_rows(code, env)
+
+
+def job_script_rows(code: str, env: dict) -> list[tuple]:
+    """The rows (tuples) a job script prints as JSON on its last line, run in a fresh ``python -c`` process with
+    ``env`` (also used by bench_noise_path.py); retried when another engineer's edit changed the code version
+    under the running job; SystemExit with its stderr when it fails."""
+    for _attempt in range(4):
         p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, cwd="/tmp")
         if p.returncode == 0 or "install the same code on every worker" not in p.stderr:
             break
