@@ -139,7 +139,8 @@ from dualsight.kernels.detect import Detections, as_frames
 from dualsight.kernels.detect_background import interpolate_tiles, tile_background
 from dualsight.kernels.detect_candidates import clamped, find_candidates, matched_filter
 from dualsight.kernels.detect_psf import cut_stamps, fit_psf, flux_fraction_3x3, psf_kernel_1d, sharpness_limit
-from dualsight.kernels.detect_psf_fit import fit_psf_compiled
+from dualsight.kernels.detect_passes import pixel_dtype_supported
+from dualsight.kernels.detect_psf_fit import MAX_STAMP, fit_frame_compiled, fit_psf_compiled
 from dualsight.kernels.sensor_config import MAX_ADU
 
 __all__ = ["LocalDetectConfig", "LocalDetections", "MIN_MEASURED_SIGMA_PX", "detect_real",
@@ -377,22 +378,33 @@ def _measure(img, R, inv, Z, sig_f, s, cfg, sat, fit_sigma=False, cands=None, sp
         idx = np.flatnonzero(sel)
         if idx.size == 0:
             continue
-        st, w0, rr0, cc0 = cut_stamps(R, None, r0[idx], c0[idx], hh, img=img, sat=sat)
-        if hot_px[idx].any():      # a kept star under a hot pixel: the spike gets weight 0
-            w0[hot_px[idx], hh, hh] = 0.0
-        # start: 3 x 3 intensity-weighted centroid of the positive residual
-        box = (slice(None), slice(hh - 1, hh + 2), slice(hh - 1, hh + 2))
-        cen = np.maximum(st[box].astype(np.float64), 0) * w0[box]
-        tot = cen.sum((1, 2))
-        dxs = np.where(tot > 0, (cen * np.array([-1, 0, 1])[None, None, :]).sum((1, 2)) / np.maximum(tot, 1e-12), 0)
-        dys = np.where(tot > 0, (cen * np.array([-1, 0, 1])[None, :, None]).sum((1, 2)) / np.maximum(tot, 1e-12), 0)
-        x0 = c0[idx] + 0.5 + dxs
-        y0 = r0[idx] + 0.5 + dys
-        usable = w0.reshape(idx.size, -1).sum(1)
-        fit = fit_psf_compiled if cfg.engine == "taichi" else fit_psf          # module docstring, step 5
-        xf, yf, Af, _, sf_, cf, okf = fit(st, w0, rr0, cc0, x0, y0, np.full(idx.size, s), noise[idx],
-                                          cfg.gain_e_per_adu, fit_sigma=fit_sigma)
-        okf &= usable >= 6
+        rr0, cc0 = r0[idx] - hh, c0[idx] - hh
+        if cfg.engine == "taichi" and 2 * hh + 1 <= MAX_STAMP and pixel_dtype_supported(img.dtype):
+            # stamps, start, fit and Cramér-Rao bound of all the group's stars in one kernel launch
+            f = fit_frame_compiled(R, img, r0[idx], c0[idx], hot_px[idx], hh, sat, s, noise[idx],
+                                   cfg.gain_e_per_adu, fit_sigma=fit_sigma)
+            xf, yf, Af, sf_, okf, x0, y0, tot = (f[k] for k in ("x", "y", "A", "s", "ok", "x0", "y0", "tot"))
+            cf = np.full((idx.size, 4, 4), np.nan)
+            cf[:, 0, 0], cf[:, 1, 1] = f["cxx"], f["cyy"]
+        else:
+            st, w0, rr0, cc0 = cut_stamps(R, None, r0[idx], c0[idx], hh, img=img, sat=sat)
+            if hot_px[idx].any():      # a kept star under a hot pixel: the spike gets weight 0
+                w0[hot_px[idx], hh, hh] = 0.0
+            # start: 3 x 3 intensity-weighted centroid of the positive residual
+            box = (slice(None), slice(hh - 1, hh + 2), slice(hh - 1, hh + 2))
+            cen = np.maximum(st[box].astype(np.float64), 0) * w0[box]
+            tot = cen.sum((1, 2))
+            dxs = np.where(tot > 0, (cen * np.array([-1, 0, 1])[None, None, :]).sum((1, 2)) / np.maximum(tot, 1e-12),
+                           0)
+            dys = np.where(tot > 0, (cen * np.array([-1, 0, 1])[None, :, None]).sum((1, 2)) / np.maximum(tot, 1e-12),
+                           0)
+            x0 = c0[idx] + 0.5 + dxs
+            y0 = r0[idx] + 0.5 + dys
+            usable = w0.reshape(idx.size, -1).sum(1)
+            fit = fit_psf_compiled if cfg.engine == "taichi" else fit_psf          # module docstring, step 5
+            xf, yf, Af, _, sf_, cf, okf = fit(st, w0, rr0, cc0, x0, y0, np.full(idx.size, s), noise[idx],
+                                              cfg.gain_e_per_adu, fit_sigma=fit_sigma)
+            okf &= usable >= 6
         fb = ~okf
         if fb.any():     # fallback: plateau centre (saturated) or the 3 x 3 centroid
             xf, yf = xf.copy(), yf.copy()

@@ -29,6 +29,11 @@ _PIXEL = {np.dtype(np.uint8).str: "u8", np.dtype(np.uint16).str: "u16", np.dtype
           np.dtype(np.float64).str: "f64"}
 
 
+def pixel_type_name(dtype) -> str:
+    """The Taichi type name ("u8", "u16", "f32", "f64") of frames of ``dtype`` (uint8, uint16, float32, float64)."""
+    return _PIXEL[np.dtype(dtype).str]
+
+
 def pixel_dtype_supported(dtype) -> bool:
     """Whether the kernels read frames of ``dtype`` directly (uint8, uint16, float32, float64)."""
     return np.dtype(dtype).str in _PIXEL

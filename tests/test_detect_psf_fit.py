@@ -120,3 +120,66 @@ def test_the_fit_engine_is_a_setting_and_numpy_starts_no_taichi():
     assert started == "False" and started_b == "True" and default == "taichi"
     assert na == nb and int(na) >= 30
     assert float(dx) < 1e-6 and float(dy) < 1e-6 and float(df) < 1e-6 and abs(float(sa) - float(sb)) < 1e-6
+
+
+def _frame_with_stars(rng, H=96, W=128, K=40, s=0.9, sat=None):
+    """A 16-bit-like float32 residual frame of K pixel-integrated Gaussian stars (math.erf; some within 2 px of the
+    edges) on noise 2 ADU, their true positions, and the image (the residual + 100 ADU)."""
+    x = np.concatenate([rng.uniform(0.6, 2.0, 4), rng.uniform(W - 2.0, W - 0.6, 4), rng.uniform(3, W - 3, K - 8)])
+    y = np.concatenate([rng.uniform(3, H - 3, 8), rng.uniform(3, H - 3, K - 8)])
+    y[:2] = rng.uniform(0.6, 2.0, 2)
+    flux = rng.uniform(300, 5000, K)
+    cols = np.arange(W + 1)
+    rows = np.arange(H + 1)
+    R = np.zeros((H, W))
+    for k in range(K):
+        px = np.diff([_Phi((c - x[k]) / s) for c in cols])
+        py = np.diff([_Phi((r - y[k]) / s) for r in rows])
+        R += flux[k] * np.outer(py, px)
+    R = (R + rng.normal(0, 2.0, R.shape)).astype(np.float32)
+    return R, (R + 100).astype(np.float32), x, y, flux
+
+
+@pytest.mark.parametrize("fit_sigma", [False, True])
+def test_frame_fit_is_the_stamp_cut_and_numpy_fit(fit_sigma):
+    """fit_frame_compiled (stamps cut, start, fit and Fisher inverse in one kernel) against cut_stamps + the 3 x 3
+    start + the numpy fit + numpy.linalg.inv, on a frame of stars near every edge, with hot centres (weight 0) and
+    saturated pixels (weight 0): the same starts, ok flags, positions to 1e-9 px, variances to 1e-6; and the
+    positions of the converged fits within 0.1 px of the truth (math.erf stars, 2 ADU noise)."""
+    from dualsight.kernels.detect_psf import cut_stamps, fit_outcome
+    from dualsight.kernels.detect_psf_fit import fit_frame_compiled
+
+    rng = np.random.default_rng([24, int(fit_sigma)])
+    s = 0.9
+    R, img, x, y, flux = _frame_with_stars(rng, s=s)
+    H, W = R.shape
+    sat = float(np.quantile(img, 0.999))                  # the brightest pixels saturated
+    r = np.clip(np.floor(y).astype(np.int64), 0, H - 1)
+    c = np.clip(np.floor(x).astype(np.int64), 0, W - 1)
+    K, h = r.size, 3
+    hot = rng.random(K) < 0.2
+    noise = np.full(K, 2.0)
+    got = fit_frame_compiled(R, img, r, c, hot, h, sat, s, noise, None, fit_sigma=fit_sigma)
+    st, w0, rr0, cc0 = cut_stamps(R, None, r, c, h, img=img, sat=sat)
+    w0[hot, h, h] = 0.0
+    box = (slice(None), slice(h - 1, h + 2), slice(h - 1, h + 2))
+    cen = np.maximum(st[box].astype(np.float64), 0) * w0[box]
+    tot = cen.sum((1, 2))
+    x0 = c + 0.5 + (cen * np.array([-1, 0, 1])[None, None, :]).sum((1, 2)) / np.maximum(tot, 1e-12)
+    y0 = r + 0.5 + (cen * np.array([-1, 0, 1])[None, :, None]).sum((1, 2)) / np.maximum(tot, 1e-12)
+    np.testing.assert_allclose(got["x0"], x0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got["y0"], y0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got["tot"], tot, rtol=1e-12)
+    xf, yf, A, b, sf, cov, ok = fit_psf(st, w0, rr0, cc0, x0, y0, np.full(K, s), noise, None, fit_sigma=fit_sigma)
+    ok &= w0.reshape(K, -1).sum(1) >= 6
+    assert np.array_equal(got["ok"], ok) and ok.sum() >= K - 4 and (~w0.astype(bool)).any(axis=(1, 2)).sum() >= 8
+    for name, want in (("x", xf), ("y", yf), ("A", A), ("b", b), ("s", sf)):
+        np.testing.assert_allclose(got[name][ok], want[ok], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(got["cxx"][ok], cov[ok, 0, 0], rtol=1e-6)
+    np.testing.assert_allclose(got["cyy"][ok], cov[ok, 1, 1], rtol=1e-6)
+    d = np.hypot(x[:, None] - x[None, :], y[:, None] - y[None, :]) + np.eye(K) * 1e9
+    alone = ok & (d.min(1) > 2 * h + 2)          # no other star's light on the stamp (PSF sigma 0.9 px)
+    assert alone.sum() >= 10
+    assert np.abs(got["x"][alone] - x[alone]).max() < 0.1 and np.abs(got["y"][alone] - y[alone]).max() < 0.1
+    if fit_sigma:
+        assert abs(np.median(got["s"][ok]) - s) < 0.02
