@@ -188,6 +188,12 @@ def bench_frame(repeats: int, extra: tuple[str, ...] = (), detectors=("local", "
           f"({label}; median detections: "
           + ", ".join(f"{d} {int(np.median(results[(d, 'numpy')]['n_det']))}" for d in detectors)
           + (f"; hil star options {' '.join(extra)}" if extra else "") + ")")
+    from dualsight.jobs.kinds.hil_star_spec import COMPILED_DETECT_MIN_IMAGES
+    run_engine = validate(dl.LocalDetectConfig, rt.settings.detect_local, source="spec",
+                          section="settings.detect_local").engine
+    print(f"  (detector 'local': the fit_engine `hil star` resolves for a run of these {len(paths)} images, "
+          f"{run_engine}; 'local-compiled': fit_engine taichi, what a default run of >= {COMPILED_DETECT_MIN_IMAGES:,} "
+          "images gets: the per-frame cost of a big batch)")
     for (detector, engine), per in results.items():
         med = {s: 1e3 * statistics.median(per[s]) for s in order if s in per}
         total = 1e3 * statistics.median(per["total"])       # the median frame's sum (not the sum of medians)

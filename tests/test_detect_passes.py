@@ -145,3 +145,27 @@ def test_sorted_clipped_stats_mad_when_the_narrowest_run_is_the_last():
     got = sorted_clipped_stats(s, 3.0, 0, truncation_correction(3.0))
     assert got[0][0] == 10.0 and got[1][0] == pytest.approx(1.4826)
     assert clipped_stats(s, 3.0, 0)[1][0] == pytest.approx(1.4826)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_the_row_sort_kind_changes_the_time_only(dtype, monkeypatch):
+    """tile_background sorts the tiles' quarter samples with the kind row_sort_kind measured faster ("stable": radix,
+    "quicksort": numpy's SIMD sort); the tile levels and noises are the same bits with either (a 16 / 8-bit frame with
+    stars and a gradient, both engines)."""
+    from dualsight.kernels import detect_background
+    from dualsight.kernels.detect_background import row_sort_kind
+
+    assert row_sort_kind(dtype) in ("stable", "quicksort")
+    rng = np.random.default_rng([24, np.dtype(dtype).itemsize])
+    H, W = 96, 160
+    yy, xx = np.mgrid[0:H, 0:W]
+    img = 40 + 0.1 * xx + rng.normal(0, 2.0, (H, W))
+    img[rng.random((H, W)) < 0.01] = 250
+    img = np.clip(np.rint(img), 0, 255).astype(dtype)
+    for engine in ("numpy", "taichi"):
+        got = []
+        for kind in ("stable", "quicksort"):
+            monkeypatch.setattr(detect_background, "row_sort_kind", lambda dt, kind=kind: kind)
+            got.append(tile_background(img, 32, 3.0, 3, 3, engine))
+        for a, b in zip(*got):
+            np.testing.assert_array_equal(a, b)
