@@ -304,9 +304,9 @@ def _measure(img, R, inv, Z, sig_f, s, cfg, sat, fit_sigma=False, cands=None, sp
                             np.clip(pc[:, None, None] + o5[None, None, :], 0, W - 1)] >= sat).any((1, 2))
         top = np.flatnonzero((z > 15) & ~near_sat)
         if top.size:      # isolated: no other candidate within 3 PSF half-widths
-            d = np.hypot(pr[top, None] - pr[None, :], pc[top, None] - pc[None, :]).astype(np.float64)
-            d[np.arange(top.size), top] = np.inf
-            top = top[d.min(1) > 3 * max(2, math.ceil(2.5 * s))]
+            d2 = (pr[top, None] - pr[None, :]) ** 2 + (pc[top, None] - pc[None, :]) ** 2     # integers: exact
+            d2[np.arange(top.size), top] = np.iinfo(d2.dtype).max
+            top = top[d2.min(1) > (3 * max(2, math.ceil(2.5 * s))) ** 2]
         top = top[np.argsort(-z[top], kind="stable")]     # the 25 brightest after the hot-pixel test below
         pr, pc, npix = pr[top], pc[top], npix[top]
         K = pr.size
@@ -457,12 +457,19 @@ def _measure_width(img, R, inv, s, cfg, sat, tail):
 
 
 def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
+    import cv2
+
     H, W = img.shape
     level, sig = tile_background(img, cfg.tile_px, cfg.clip_sigma, cfg.clip_iters, cfg.mesh_filter, cfg.engine)
     bg = interpolate_tiles(level, cfg.tile_px, H, W)
     floor = np.float32(max(cfg.noise_floor_adu, 1e-6))
     inv = interpolate_tiles(1.0 / np.maximum(sig, floor), cfg.tile_px, H, W)    # 1 / the pixel noise (harmonic)
-    R = np.subtract(img, bg, dtype=np.float32)
+    if img.dtype in (np.uint8, np.uint16, np.float32):   # OpenCV's subtraction: the same float32 values, ~20 % faster
+        R = cv2.subtract(img, bg, dtype=cv2.CV_32F)
+    else:
+        R = np.subtract(img, bg, dtype=np.float32)
+    if sat is not None and not img.max() >= sat:    # no saturated pixel: every saturation test is void (one
+        sat = None                                  # SIMD pass instead of the candidates' stamp gathers)
     s = cfg.psf_sigma_px if cfg.psf_sigma_px is not None else cfg.psf_sigma_init_px
     tail = clamped(img)                   # a frame clamped at its black level: its filtered noise's tail checked
     if cfg.psf_sigma_px is None:     # measure the PSF width on bright, unsaturated, isolated stars

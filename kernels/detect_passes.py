@@ -17,6 +17,11 @@ with ``fit_engine`` "taichi", the default), reading the frame in its own dtype (
 Only passes a compiled loop does faster than numpy/OpenCV's vectorised calls live here: the bilinear background
 and noise maps and the residual (OpenCV's ``resize`` and one subtraction, ~0.36 ms) took 4.2 ms as a Taichi loop
 with the interpolation per pixel (measured 2026-11-27), the matched filter is OpenCV's ``sepFilter2D`` (SIMD).
+Taichi's CPU backend does not vectorise these loops: a pass over a 1024 x 1024 16-bit frame costs ~0.5 ns per pixel
+however it is written (the last window with integer bounds and sums: 0.52 ms against 0.54 in float64; unrolled by
+8 or 32 with separate accumulators, or over the flat frame: 0.93-0.99 ms; measured 2026-11-27), ~4x an OpenCV or
+numpy SIMD pass, so a fused compiled pass over the frame (background, filter and threshold in one loop) would be
+slower than the OpenCV calls it replaced.
 Each kernel runs its loop serially (one frame is well under 1 ms of work: a parallel launch's round trip through
 Taichi's thread pool, ~0.1 ms, costs more than a second thread gains; frames run in parallel in the workers).
 Equal to the numpy path up to rounding (float64 sums here, float32 there; tests/test_detect_passes.py)."""
