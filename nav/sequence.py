@@ -4,23 +4,28 @@ tracking, lock lost by rule, fallback, re-acquisition (issue 22, points 1-3).
 Per frame ``k`` (in time order), with the last fix (attitude ``A_f``, covariance ``P_f``, frame ``f``) of either mode:
 
 1. no image (a dropped frame): mode ``none``, reason ``no_image``; nothing runs.
-2. a prior exists (a fix at most ``max_coast_frames`` frames old): **tracking** (``nav/tracking.py``): propagate
-   ``A_f`` over ``t_k - t_f`` with the rate (the gyro's when given: the mean of its two samples at ``f`` and ``k``,
-   covariance ``gyro_sigma^2 I / 2``; else the rate from the last two fixes of either mode,
-   ``nav/angular_rate.rate_between``, with its covariance; else zero with ``cfg.rate_sigma_rad_s``), predict,
-   match in windows, solve with the centroid weights, verify.  Lock held: mode ``tracking``.
-   A lock whose stated covariance (scaled by the fit's variance factor) has a principal 1-sigma above
-   ``cfg.max_sigma_rad`` is *degraded* (a two-star or short-baseline roll): mode ``none``, reason ``degraded``, no
-   lost-in-space on the same stars, and it is no prior (the last output fix stays the prior).
+2. a prior exists (the filter fused a solution at most ``max_coast_frames`` frames ago): **tracking**
+   (``nav/tracking.py``) from the filtered state (``nav/attitude_filter.py``: an IMM of a steady and a manoeuvre
+   motion model over the attitude and the body rate) extrapolated at its rate with its covariance (no random
+   acceleration in the windows; with a gyro, its rates propagate: the mean of its two samples, covariance
+   ``gyro_sigma^2 I / 2``; frames more than ``cfg.filter_max_gap_s`` apart, e.g. a ground camera's 30 s apart, are
+   fused at a constant rate, every model without acceleration: the models' random acceleration is a spacecraft's at a few frames per second):
+   predict the stars, match in windows, solve with the centroid
+   weights, verify.  Without the filter (``cfg.attitude_filter`` false) the last output fix is propagated with the
+   rate from the last two fixes (``nav/angular_rate.rate_between``; else zero with ``cfg.rate_sigma_rad_s``).
 3. no prior, or tracking lost lock (its reason is kept in the row): **lost-in-space** on the same frame: geometric
    voting (``nav/star_solution.identify``, as the star job calls it) and the weighted SVD attitude
    (``nav/attitude.solve_identified``).  A fix is *verified* when the attitude is solved from at least
    ``lis_min_stars`` accepted stars, the match threshold ``T > 0`` and the chance-match probability is at most
-   ``cfg.max_p_chance`` (when the voting states it).  Verified: mode ``lost_in_space`` (degraded as in 2: ``none``);
-   else ``none``.
-4. with a fix at ``k``: the rate from the two attitudes (``rate_between``, over ``t_k - t_f``) and from the
-   displacements of the stars identified in both frames (``rate_from_star_pairs``, Crassidis 2002), each with its
-   covariance; the fix becomes the prior.
+   ``cfg.max_p_chance`` (when the voting states it).
+4. a verified solution of either mode is fused in the filter (update; a restart at the solution when its
+   normalised innovation exceeds ``cfg.filter_gate`` or no prior exists) and the filtered attitude is the frame's
+   answer.  An answer whose covariance has a principal 1-sigma above ``cfg.max_sigma_rad`` is *degraded*: mode
+   ``none`` (tracking's: reason ``degraded``), not output; the filter keeps what it learnt from it.  Without the
+   filter the answer is the frame's own solution, and a degraded one is no prior.
+5. with an output at ``k``: the rate from the two last output attitudes (``rate_between``, over ``t_k - t_f``)
+   and from the displacements of the stars identified in both frames (``rate_from_star_pairs``, Crassidis 2002),
+   each with its covariance (the filter's own rate is in ``rate_filter``).
 
 The loop runs over frames (a sequence is causal); every step inside is vectorised over stars.  Latency per stage
 is measured with ``time.perf_counter_ns`` around each call (ns; -1 where the stage did not run).  Optionally
@@ -39,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dualsight.config import TrackingConfig
+from dualsight.nav import attitude_filter as filt
 from dualsight.nav.angular_rate import pair_by_identity, rate_between, rate_from_star_pairs
 from dualsight.nav.attitude import solve_identified
 from dualsight.nav.observations import MAX_OBS, Observations
@@ -125,7 +131,11 @@ class SequenceResult:
     not run).  degraded : (T,) bool, a verified answer (tracking's or lost-in-space's) whose largest principal
     1-sigma exceeds ``cfg.max_sigma_rad``: mode ``none`` (tracking's: reason ``degraded``), not a prior; its
     attitude and covariance in A_degraded, cov_degraded (T, 3, 3) (NaN elsewhere).  sigma_max : (T,) rad that
-    largest principal 1-sigma of every verified answer (NaN elsewhere).  rate_att, rate_star : (T, 3) rad/s rate from the last two fixes / from the stars seen in both, with
+    largest principal 1-sigma of every verified answer (NaN elsewhere; the filtered attitude's with
+    ``cfg.attitude_filter``).  frame_sigma_max : (T,) rad the same of the frame's own solution (before the filter).
+    rate_filter, rate_filter_cov : (T, 3) rad/s, (T, 3, 3) (rad/s)^2 the filter's rate at the frame (NaN without
+    the filter or a fused solution).  p_manoeuvre : (T,) the filter's probability of not being in its steady model
+    (the accelerating and the manoeuvre models; NaN as above).  rate_att, rate_star : (T, 3) rad/s rate from the last two fixes / from the stars seen in both, with
     rate_att_cov, rate_star_cov (T, 3, 3) (rad/s)^2 (NaN where not available); rate_pairs : stars of rate_star.
     t_predict_ns (propagate + predict), t_track_ns (match + solve + verify), t_lis_ns (voting + attitude),
     t_rate_ns (both rates), t_total_ns : int64 wall time (-1 where the stage did not run).
@@ -152,6 +162,10 @@ class SequenceResult:
     rate_pairs: np.ndarray
     degraded: np.ndarray
     sigma_max: np.ndarray
+    frame_sigma_max: np.ndarray
+    rate_filter: np.ndarray
+    rate_filter_cov: np.ndarray
+    p_manoeuvre: np.ndarray
     A_degraded: np.ndarray
     cov_degraded: np.ndarray
     t_predict_ns: np.ndarray
@@ -199,7 +213,9 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                two_star=np.zeros(T, bool), rms_sigma=np.full(T, np.nan), p_chance=np.full(T, np.nan),
                T_lis=np.zeros(T, np.int32), rate_att=nan3.copy(), rate_att_cov=nan33.copy(), rate_star=nan3.copy(),
                rate_star_cov=nan33.copy(), rate_pairs=np.zeros(T, np.int32), degraded=np.zeros(T, bool),
-               sigma_max=np.full(T, np.nan), A_degraded=nan33.copy(), cov_degraded=nan33.copy(),
+               sigma_max=np.full(T, np.nan), frame_sigma_max=np.full(T, np.nan), rate_filter=nan3.copy(),
+               rate_filter_cov=nan33.copy(), p_manoeuvre=np.full(T, np.nan),
+               A_degraded=nan33.copy(), cov_degraded=nan33.copy(),
                **{k: np.full(T, -1, np.int64) for k in ("t_predict_ns", "t_track_ns", "t_lis_ns", "t_rate_ns",
                                                         "t_total_ns")})
     det_row = np.full(K, -1, np.int64)
@@ -212,8 +228,18 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
         return lost_in_space(xy, sg, camera, cat_unit, index, voting, cat_vmag, cfg.max_p_chance, lis_min_stars,
                              engine)
 
-    fix = None                         # (A, P, frame) of the last fix, either mode
-    rate = None                        # (omega, cov) from the last two fixes
+    fix = None                         # (A, P, frame) of the last output attitude, either mode
+    rate = None                        # (omega, cov) from the last two fixes (without the filter)
+    state, last_fused = None, -1       # the attitude filter (nav/attitude_filter.py) and its last fused frame
+    use_filter = cfg.attitude_filter
+    # the filter's motion models: steady (constant rate), accelerating (constant acceleration), manoeuvre
+    # (constant rate, large random acceleration)
+    noise = np.array([cfg.accel_steady_rad_s2, cfg.jerk_rad_s3, cfg.accel_manoeuvre_rad_s2])
+    const_accel = np.array([False, True, False])
+    accel0 = np.array([0.0, cfg.accel_manoeuvre_rad_s2, 0.0])
+    zero_noise = np.zeros(3)
+    ps = cfg.model_switch_prob
+    switch = np.full((3, 3), 0.5 * ps) + np.eye(3) * (1.0 - 1.5 * ps)
     for k in range(T):
         s = slice(int(off[k]), int(off[k + 1]))
         xy, sg = xy_all[s], sig_all[s]
@@ -226,21 +252,37 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
             t_shadow[k] = clock() - c0
             shadow_rows[s], shadow_ok[k] = sh.rows, sh.verified
         c_start = clock()
-        A = P = None
-        rows = None
+        meas = None                    # (A, cov, mode, rows) of the frame's verified solution
         if fix is not None and k - fix[2] > max_coast_frames:
             fix = rate = None
-        if fix is not None:
-            dt = t[k] - t[fix[2]]
-            if gyro is not None:
-                om = 0.5 * (np.asarray(gyro[fix[2]], np.float64) + np.asarray(gyro[k], np.float64))
-                C = np.eye(3) * (0.5 * gyro_sigma_rad_s ** 2)
-            elif rate is not None:
-                om, C = rate
-            else:
-                om, C = np.zeros(3), np.eye(3) * cfg.rate_sigma_rad_s ** 2
+        if state is not None and k - last_fused > max_coast_frames:
+            state = None
+        pstate = None
+        if (state if use_filter else fix) is not None:
             c0 = clock()
-            Ap, Pp = propagate(fix[0], fix[1], om, C, dt)
+            if use_filter:
+                g = gc = None
+                if gyro is not None:
+                    g = 0.5 * (np.asarray(gyro[last_fused], np.float64) + np.asarray(gyro[k], np.float64))
+                    gc = np.eye(3) * (0.5 * gyro_sigma_rad_s ** 2)
+                long_gap = t[k] - state.t > cfg.filter_max_gap_s
+                pstate = (filt.predict(state, t[k], zero_noise, switch, None, g, gc) if long_gap
+                          else filt.predict(state, t[k], noise, switch, const_accel, g, gc))
+                # the windows follow the constant-rate extrapolation of the filtered state (its attitude, rate and
+                # their covariance, no random acceleration): the motion models are for fusing, and their
+                # acceleration held over a long gap (frames 30 s apart) would open every window to its maximum
+                Ap, Pp, _, _ = filt.combined(filt.predict(state, t[k], zero_noise, switch,
+                                                          None if long_gap else const_accel, g, gc))
+            else:
+                dt = t[k] - t[fix[2]]
+                if gyro is not None:
+                    om = 0.5 * (np.asarray(gyro[fix[2]], np.float64) + np.asarray(gyro[k], np.float64))
+                    C = np.eye(3) * (0.5 * gyro_sigma_rad_s ** 2)
+                elif rate is not None:
+                    om, C = rate
+                else:
+                    om, C = np.zeros(3), np.eye(3) * cfg.rate_sigma_rad_s ** 2
+                Ap, Pp = propagate(fix[0], fix[1], om, C, dt)
             pred = predict(Ap, Pp, cat_unit, camera, cfg)
             c1 = clock()
             res = track(pred, xy, sg, cat_unit, camera, cfg)
@@ -251,27 +293,44 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
             if res.locked:
                 out["n_used"][k], out["two_star"][k] = res.n_used, res.two_star
                 out["rms_sigma"][k], out["p_chance"][k] = res.rms_sigma, res.p_chance
-                out["sigma_max"][k] = max_sigma(res.cov)
-                if res.degraded:              # verified but too weak to output; lost-in-space sees the same stars
-                    out["reason"][k], out["degraded"][k] = DEGRADED, True
-                    out["A_degraded"][k], out["cov_degraded"][k] = res.A, res.cov
-                else:
-                    A, P, rows = res.A, res.cov, res.det_row
-                    out["mode"][k] = TRACKING
-        if A is None and not out["degraded"][k]:                        # acquire, or fall back
+                meas = (res.A, res.cov, TRACKING, res.det_row)
+        if meas is None:                                                 # acquire, or fall back
             c0 = clock()
             fx_ = lis(xy, sg)
             out["t_lis_ns"][k] = clock() - c0
             out["T_lis"][k] = fx_.T
             if fx_.verified:
                 out["n_used"][k], out["p_chance"][k] = fx_.n_used, fx_.p_chance
-                out["sigma_max"][k] = max_sigma(fx_.cov)
-                if out["sigma_max"][k] > cfg.max_sigma_rad:
-                    out["degraded"][k] = True
-                    out["A_degraded"][k], out["cov_degraded"][k] = fx_.A, fx_.cov
+                meas = (fx_.A, fx_.cov, LOST_IN_SPACE, fx_.rows)
+        if meas is not None:
+            c0 = clock()
+            A, P, mode, rows = meas
+            out["frame_sigma_max"][k] = max_sigma(P)
+            if use_filter:                # fuse the frame's solution; restart where it does not fit the track
+                if pstate is None or filt.innovation(pstate, A, P) > cfg.filter_gate:
+                    om0 = C0 = None           # a restart keeps the rate between the last answer and this one
+                    if pstate is not None:
+                        A_l, P_l, _, _ = filt.combined(state)
+                        om0, C0 = rate_between(A_l, A, t[k] - state.t, P_l, P)
+                    state = filt.start(A, P, t[k], cfg.rate_sigma_rad_s, 3, om0, C0, accel0)
                 else:
-                    A, P, rows = fx_.A, fx_.cov, fx_.rows
-                    out["mode"][k] = LOST_IN_SPACE
+                    state = filt.update(pstate, A, P)
+                last_fused = k
+                A, P, om_f, C_f = filt.combined(state)
+                out["rate_filter"][k], out["rate_filter_cov"][k] = om_f, C_f
+                out["p_manoeuvre"][k] = 1.0 - state.mu[0]
+            out["sigma_max"][k] = max_sigma(P)
+            t_fuse = clock() - c0
+            if out["sigma_max"][k] > cfg.max_sigma_rad:   # verified but too weak to output (nor a prior alone)
+                out["degraded"][k] = True
+                out["A_degraded"][k], out["cov_degraded"][k] = A, P
+                if mode == TRACKING:
+                    out["reason"][k] = DEGRADED
+                A = None
+            else:
+                out["mode"][k] = mode
+        else:
+            A, t_fuse = None, 0
         if A is not None:
             det_row[s] = rows
             out["A"][k], out["cov"][k] = A, P
@@ -291,10 +350,12 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                     if ok:
                         out["rate_star"][k], out["rate_star_cov"][k] = om_s, C_s
                         out["rate_pairs"][k] = len(ip)
-            out["t_rate_ns"][k] = clock() - c0
+            out["t_rate_ns"][k] = clock() - c0 + t_fuse
             fix = (A, P, k)
             if focal is not None:                 # the focal length refined from this fix (nav/focal_refine.py)
                 camera = focal.update(k, xy, sg, rows, A, cat_unit, camera)
+        elif meas is not None:
+            out["t_rate_ns"][k] = t_fuse
         out["t_total_ns"][k] = clock() - c_start
     return SequenceResult(**out, det_row=det_row, shadow_rows=shadow_rows, shadow_verified=shadow_ok,
                           t_shadow_ns=t_shadow)

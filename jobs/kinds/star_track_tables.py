@@ -35,10 +35,12 @@ FRAMES_SCHEMA = pa.schema(
      ("n_used", _I), ("two_star", pa.bool_()), ("residual_rms_sigma", _F), ("p_chance", _F), ("T_lis", _I),
      ("err_x_arcsec", _F), ("err_y_arcsec", _F), ("err_z_arcsec", _F), ("err_total_arcsec", _F),
      ("sigma_x_arcsec", _F), ("sigma_y_arcsec", _F), ("sigma_z_arcsec", _F),
-     ("degraded", pa.bool_()), ("sigma_max_arcsec", _F), ("degraded_err_max_arcsec", _F)]
+     ("degraded", pa.bool_()), ("sigma_max_arcsec", _F), ("degraded_err_max_arcsec", _F),
+     ("frame_sigma_max_arcsec", _F), ("p_manoeuvre", _F)]
     + [(f"rate_att_{a}_deg_s", _F) for a in _XYZ] + [(f"rate_att_sigma_{a}_deg_s", _F) for a in _XYZ]
     + [(f"rate_star_{a}_deg_s", _F) for a in _XYZ] + [(f"rate_star_sigma_{a}_deg_s", _F) for a in _XYZ]
     + [("rate_star_pairs", _I)]
+    + [(f"rate_filter_{a}_deg_s", _F) for a in _XYZ] + [(f"rate_filter_sigma_{a}_deg_s", _F) for a in _XYZ]
     + [(f"true_rate_{a}_deg_s", _F) for a in _XYZ] + [(f"true_rate_mean_{a}_deg_s", _F) for a in _XYZ]
     + [(f"gyro_{a}_deg_s", _F) for a in _XYZ]
     + [("image_digest", _L), ("t_render_ns", _L), ("t_detect_ns", _L), ("t_predict_ns", _L), ("t_track_ns", _L),
@@ -51,7 +53,11 @@ FRAMES_SCHEMA = pa.schema(
 ``sigma_*``: the attitude's stated 1-sigma per camera axis (the withheld one's on a degraded frame);
 ``degraded``: the tracker verified an attitude but withheld it, its largest principal 1-sigma ``sigma_max_arcsec``
 (stated on every verified answer) above ``tracking.max_sigma_rad`` (not valid, so no false lock: it costs
-availability); ``degraded_err_max_arcsec``: the withheld attitude's largest axis error (what it would have cost); ``rate_att_*``: the rate from this fix and the previous
+availability); ``degraded_err_max_arcsec``: the withheld attitude's largest axis error (what it would have cost);
+``frame_sigma_max_arcsec``: the frame's own solution's largest principal 1-sigma (before the attitude filter;
+``sigma_max_arcsec`` is the filtered one's with ``tracking.attitude_filter``); ``p_manoeuvre``: the filter's
+manoeuvre-model probability; ``rate_filter_*``: the filter's rate at the frame and its 1-sigma (compare with
+``true_rate_*``); ``rate_att_*``: the rate from this fix and the previous
 one (``rate_star_*``: from the stars seen in both), ``true_rate_*``: the true body rate at the frame,
 ``true_rate_mean_*``: the true mean rate over the same interval as ``rate_att``; ``t_nav_ns``: the tracker's whole
 time on the frame (tracking, fallback and rates); ``shadow_*``, ``n_id_*``: lost-in-space run beside tracking
@@ -153,6 +159,7 @@ def frames_table(case_id: int, spec, out: dict) -> pa.Table:
         "degraded": res.degraded, "sigma_max_arcsec": _nullable(res.sigma_max / ARCSEC),
         "degraded_err_max_arcsec": _nullable(np.max(np.abs(axis_errors(res.A_degraded, d["A_true"],
                                                                        frame=spec.star.error_frame)), axis=1) / ARCSEC),
+        "frame_sigma_max_arcsec": _nullable(res.frame_sigma_max / ARCSEC), "p_manoeuvre": _nullable(res.p_manoeuvre),
     }
     prev = previous_fix(valid)
     true_mean = _true_mean_rate(d["A_true"], d["t"], np.where(valid, prev, -1))
@@ -163,6 +170,10 @@ def frames_table(case_id: int, spec, out: dict) -> pa.Table:
         cols[f"rate_star_{a}_deg_s"] = _nullable(res.rate_star[:, i] * deg)
         cols[f"rate_star_sigma_{a}_deg_s"] = _nullable(np.sqrt(res.rate_star_cov[:, i, i]) * deg)
     cols["rate_star_pairs"] = res.rate_pairs
+    for i, a in enumerate(_XYZ):
+        cols[f"rate_filter_{a}_deg_s"] = _nullable(res.rate_filter[:, i] * deg)
+    for i, a in enumerate(_XYZ):
+        cols[f"rate_filter_sigma_{a}_deg_s"] = _nullable(np.sqrt(res.rate_filter_cov[:, i, i]) * deg)
     for i, a in enumerate(_XYZ):
         cols[f"true_rate_{a}_deg_s"] = d["omega"][:, i] * deg
     for i, a in enumerate(_XYZ):
