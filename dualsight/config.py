@@ -313,7 +313,9 @@ _TrackStars = typing.Annotated[int, pydantic.Field(ge=2, le=1000)]
 _TRACKING_UNITS = {"window_k_sigma": "sigma", "window_min_px": "px", "window_max_px": "px", "tight_window_px": "px",
                    "centroid_sigma_px": "px", "min_stars": "stars", "min_stars_tight": "stars",
                    "max_predicted": "stars", "residual_k_sigma": "sigma", "max_rms_sigma": "sigma",
-                   "initial_cone_rad": "rad", "rate_sigma_rad_s": "rad/s", "max_sigma_rad": "rad"}
+                   "initial_cone_rad": "rad", "rate_sigma_rad_s": "rad/s", "max_sigma_rad": "rad",
+                   "accel_steady_rad_s2": "rad/s^2", "accel_manoeuvre_rad_s2": "rad/s^2",
+                   "filter_max_gap_s": "s", "jerk_rad_s3": "rad/s^3"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -354,6 +356,24 @@ class TrackingConfig:
         preset's local detector: ``examples/star/track.toml`` uses 25 arcsec, a quarter of the reference's 100
         arcsec limit, so a valid attitude beyond the limit is a 4-sigma event); the default, 10 deg, withholds
         nothing (a detector without sigmas gets ``centroid_sigma_px``, an assumption, not a measurement).
+        With ``attitude_filter`` the rule applies to the filtered attitude.
+    attitude_filter : fuse every verified frame solution (tracking's or lost-in-space's, degraded ones too) in the
+        gyroless attitude and rate filter of ``nav/attitude_filter.py`` and output the filtered attitude; the
+        prediction of the next frame is the filter's (default true).  False: each frame's own solution, the rate
+        from the last two fixes.
+    accel_steady_rad_s2, accel_manoeuvre_rad_s2 : 1-sigma angular acceleration per axis (rad/s^2) of the filter's
+        steady and manoeuvre models (constant rate with a random acceleration), in (0, 100 deg/s^2], steady <=
+        manoeuvre (defaults 0.05 and 1 deg/s^2: the steady model follows most of a jitter of 2 arcsec at 2 Hz,
+        0.09 deg/s^2 peak; the manoeuvre model a small satellite's slew acceleration, typically 0.1-1 deg/s^2).
+    jerk_rad_s3 : 1-sigma angular jerk per axis (rad/s^3) of the filter's third model, a constant angular
+        acceleration (a slew's acceleration phase), in (0, 1000 deg/s^3] (default 0.2 deg/s^3).
+    model_switch_prob : probability per frame that the motion leaves its model (for one of the other two, equally),
+        in (0, 2/3) (default 0.05).
+    filter_gate : a verified solution whose normalised innovation squared (chi-square, 3 dof) against the filter's
+        prediction exceeds this restarts the filter at it, in (0, 1e6] (default 25: p = 1.7e-5).
+    filter_max_gap_s : frames further apart than this (s) are fused at a constant rate, without the models' random
+        acceleration (which describes a spacecraft's attitude control over a fraction of a second, not a ground
+        camera's frames 30 s apart), in (0, 1e6] (default 1).
     """
 
     window_k_sigma: typing.Annotated[float, pydantic.Field(gt=0, le=20.0)] = 5.0
@@ -370,9 +390,19 @@ class TrackingConfig:
     initial_cone_rad: typing.Annotated[float, pydantic.Field(gt=0, le=10 * _DEG)] = 0.05 * _DEG
     rate_sigma_rad_s: typing.Annotated[float, pydantic.Field(gt=0, le=30 * _DEG)] = 0.5 * _DEG
     max_sigma_rad: typing.Annotated[float, pydantic.Field(gt=0, le=10 * _DEG)] = 10 * _DEG
+    attitude_filter: bool = True
+    accel_steady_rad_s2: typing.Annotated[float, pydantic.Field(gt=0, le=100 * _DEG)] = 0.05 * _DEG
+    accel_manoeuvre_rad_s2: typing.Annotated[float, pydantic.Field(gt=0, le=100 * _DEG)] = 1.0 * _DEG
+    jerk_rad_s3: typing.Annotated[float, pydantic.Field(gt=0, le=1000 * _DEG)] = 0.2 * _DEG
+    model_switch_prob: typing.Annotated[float, pydantic.Field(gt=0, lt=2.0 / 3.0)] = 0.05
+    filter_gate: typing.Annotated[float, pydantic.Field(gt=0, le=1e6)] = 25.0
+    filter_max_gap_s: typing.Annotated[float, pydantic.Field(gt=0, le=1e6)] = 1.0
 
     def __post_init__(self):
         check_fields(self, lambda name, msg: ConfigError(msg, field=f"tracking.{name}"), _TRACKING_UNITS)
+        if self.accel_steady_rad_s2 > self.accel_manoeuvre_rad_s2:
+            raise ConfigError(f"must be <= accel_manoeuvre_rad_s2 ({self.accel_manoeuvre_rad_s2:g} rad/s^2), got "
+                              f"{self.accel_steady_rad_s2!r}", field="tracking.accel_steady_rad_s2")
         if self.window_min_px > self.window_max_px:
             raise ConfigError(f"must be <= window_max_px ({self.window_max_px:g} px), got {self.window_min_px!r}",
                               field="tracking.window_min_px")
