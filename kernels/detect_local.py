@@ -82,7 +82,9 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
    device optical position estimators", JOSA A 3, 1809).  Background-limited and well sampled it is
    sigma_px = sqrt(8 pi) s^2 sigma / Fs = sqrt(2) s / SNR; photon-limited, s / sqrt(N_photons).  With
    ``fit_engine`` "taichi" (or "auto", the default) the fits run as one compiled kernel (:mod:`dualsight.kernels.detect_psf_fit`:
-   3-5x faster, positions equal to the numpy fit's within ~1e-12 px, not bit for bit), and so do the tiles' last
+   3-5x faster, positions equal to the numpy fit's within ~1e-12 px, not bit for bit; one launch per group of
+   stamps, which also cuts the stamps from the frame, starts them at the 3 x 3 centroid and inverts the Fisher
+   matrix: ``fit_frame_compiled``), and so do the tiles' last
    clipping window and the candidates' components (:mod:`dualsight.kernels.detect_passes`; float64 sums: the
    detections within ~1e-7 px of the numpy path's).  The engine is a setting of the run, never chosen by what the
    process happens to run; "numpy" starts no kernels (Taichi's start and the detector's kernels cost ~1.1 s once
