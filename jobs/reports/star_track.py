@@ -119,6 +119,12 @@ def text(rep: dict) -> str:
         f"rate error RMS: from attitudes {formatted(j['rate_att_err_rms_deg_s'], '{:.4f}')} deg/s, from stars "
         f"{formatted(j['rate_star_err_rms_deg_s'], '{:.4f}')} deg/s (within 3 sigma: "
         f"{'-' if j['rate_star_within_3sigma'] is None else percent(j['rate_star_within_3sigma'])})",
+        f"attitude filter (tracking.attitude_filter): rate error RMS {formatted(j['rate_filter_err_rms_deg_s'], '{:.4f}')} "
+        f"deg/s against the true rate at the frame, within 3 sigma "
+        f"{'-' if j['rate_filter_within_3sigma'] is None else percent(j['rate_filter_within_3sigma'])} of "
+        f"{j['rate_filter_frames']:,} frames; frames output thanks to the filter (their own solution's sigma above the "
+        f"largest output sigma): "
+        f"{j['valid_by_the_filter_only']}",
     ]
     if j["ids_equal_to_lost_in_space"] is not None:
         lines.append(f"identities of tracking vs lost-in-space on the same frames: {j['ids_equal_to_lost_in_space']} "

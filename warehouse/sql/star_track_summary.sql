@@ -1,5 +1,5 @@
 -- Star tracking campaign (issue 22, point 5): availability, first fix, re-acquisition, false locks, rate error and
--- its consistency with the stated sigmas, degraded frames (an attitude the tracker withheld: its stated sigma above
+-- its consistency with the stated sigmas (the attitude filter's rate against the true rate at the frame too), degraded frames (an attitude the tracker withheld: its stated sigma above
 -- tracking.max_sigma_rad; $limit: the error limit in arcsec), identities of tracking against lost-in-space on the same frames.
 -- Full scan of star_frames and star_sequences of one run ($run); rates in deg/s, errors in arcsec.
 WITH f AS (SELECT * FROM star_frames WHERE run = $run),
@@ -18,6 +18,12 @@ rate AS (
            (rate_att_z_deg_s - true_rate_mean_z_deg_s) AS ez, rate_att_sigma_x_deg_s AS sx,
            rate_att_sigma_y_deg_s AS sy, rate_att_sigma_z_deg_s AS sz
     FROM f WHERE rate_att_x_deg_s IS NOT NULL
+),
+frate AS (    -- the attitude filter's rate against the true rate at the frame
+    SELECT (rate_filter_x_deg_s - true_rate_x_deg_s) AS ex, (rate_filter_y_deg_s - true_rate_y_deg_s) AS ey,
+           (rate_filter_z_deg_s - true_rate_z_deg_s) AS ez, rate_filter_sigma_x_deg_s AS sx,
+           rate_filter_sigma_y_deg_s AS sy, rate_filter_sigma_z_deg_s AS sz
+    FROM f WHERE rate_filter_x_deg_s IS NOT NULL
 ),
 srate AS (
     SELECT (rate_star_x_deg_s - true_rate_mean_x_deg_s) AS ex, (rate_star_y_deg_s - true_rate_mean_y_deg_s) AS ey,
@@ -63,5 +69,12 @@ SELECT
     (SELECT sqrt(avg(ex * ex + ey * ey + ez * ez)) FROM srate)                  AS rate_star_err_rms_deg_s,
     (SELECT avg(((abs(ex) <= 3 * sx)::INT + (abs(ey) <= 3 * sy)::INT + (abs(ez) <= 3 * sz)::INT) / 3.0) FROM srate)
                                                                                 AS rate_star_within_3sigma,
+    (SELECT count(*) FROM frate)                                                AS rate_filter_frames,
+    (SELECT sqrt(avg(ex * ex + ey * ey + ez * ez)) FROM frate)                  AS rate_filter_err_rms_deg_s,
+    (SELECT avg(((abs(ex) <= 3 * sx)::INT + (abs(ey) <= 3 * sy)::INT + (abs(ez) <= 3 * sz)::INT) / 3.0) FROM frate)
+                                                                                AS rate_filter_within_3sigma,
+    (SELECT count(*) FILTER (WHERE valid AND frame_sigma_max_arcsec > sigma_max_arcsec * 1.0001
+                             AND frame_sigma_max_arcsec > (SELECT max(sigma_max_arcsec) FROM f WHERE valid)) FROM f)
+                                                                                AS valid_by_the_filter_only,
     (SELECT sum(n_id_agree) FROM f)                                             AS ids_equal_to_lost_in_space,
     (SELECT sum(n_id_disagree) FROM f)                                          AS ids_different_from_lost_in_space;
