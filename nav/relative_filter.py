@@ -20,7 +20,21 @@ Updates (Joseph form, Bar-Shalom Eq. 5.2.3-18; optionally iterated, Bar-Shalom S
   u_m, ``z = E u_m = 0`` and ``h(x) = E u(x)``, ``H = -E R (I - rho^ rho^T) / |rho|`` on the position,
   noise ``E C E^T`` (2, 2): two angles, well posed whatever the direction.
 - **range** (:func:`range_update`): ``h(x) = |rho|``, ``H = [rho^T / |rho|, 0]``; a blobber's [min, max] range is
-  a uniform uncertainty, sigma = (max - min) / sqrt(12) (:func:`range_sigma`).
+  a uniform uncertainty, sigma = (max - min) / sqrt(12) (:func:`range_sigma`); the rendezvous kind gives the
+  blobber's range with its known bias removed and its spread over orientations instead
+  (``nav/blobber_range_error.py``).
+
+Correlated centre-of-brightness error (:func:`bias_propagate`, ``bias`` of :func:`bearing_update`, ``n_bias`` of
+:func:`run`): the bearing measures the line of sight to the target's centre of brightness, whose offset from the
+body's centre after the mean phase correction is not white: the target spins about one axis, so the photocentre
+averaged over a spin differs from the mean over all attitudes by an offset that changes only as the viewing
+geometry does (``scene/target_photometry.photocentre_statistics``).  The filter appends nb states beta of unit
+variance, each a first-order Gauss-Markov process (Gelb, *Applied Optimal Estimation*, 1974, Table 4.4-1;
+Brown & Hwang, *Introduction to Random Signals and Applied Kalman Filtering*, 4th ed., 2012, Sec. 4.2 and 9.2):
+``beta_k = d beta_{k-1} + w``, ``var w = 1 - d^2`` (stationary unit variance; d = exp(-dpsi / psi_c) from the
+caller); the offset in ICRS is ``G beta`` with G (3, nb) metres per unit state across the line of sight, so the
+predicted line of sight becomes ``u = (-R rho + G beta) / |-R rho + G beta|`` and its Jacobian gains
+``E (I - u u^T) G / |.|`` on beta.  The NEES stays the 6 relative states' (the marginal of the augmented P).
 
 Bearings alone do not observe the range under linear relative dynamics (a scaled trajectory gives the same
 bearings) until a known manoeuvre breaks the scaling (Woffinden & Geller, IEEE TAES 45(3), 2009).
@@ -43,6 +57,7 @@ from dualsight.config import FilterConfig
 from dualsight.scene.relative_orbit import CircularOrbit, cw_stm, hill_to_icrs
 
 __all__ = ["process_noise", "predict", "apply_manoeuvre", "tangent_basis", "isotropic_bearing_cov", "bearing_update",
+           "bias_propagate",
            "range_sigma", "range_update", "nees", "chi2_mean_bounds", "run"]
 
 
@@ -58,20 +73,24 @@ def process_noise(n: float, dt: float, q: float) -> np.ndarray:
 
 
 def predict(x, P, dt: float, n: float, cfg: FilterConfig):
-    """Propagate (B, 6) states and (B, 6, 6) covariances over dt (s) by CW (mean motion n, rad/s)."""
-    Phi = cw_stm(n, dt)
-    return x @ Phi.T, Phi @ P @ Phi.T + process_noise(n, dt, cfg.accel_psd)
+    """Propagate (B, 6 + nb) states and (B, 6 + nb, 6 + nb) covariances over dt (s) by CW (mean motion n, rad/s);
+    bias states (:func:`bias_propagate`) are held."""
+    Phi = np.eye(x.shape[-1])
+    Phi[:6, :6] = cw_stm(n, dt)
+    Q = np.zeros_like(Phi)
+    Q[:6, :6] = process_noise(n, dt, cfg.accel_psd)
+    return x @ Phi.T, Phi @ P @ Phi.T + Q
 
 
 def apply_manoeuvre(x, P, dv, cfg: FilterConfig):
     """Add a known delta-v (3,) or (B, 3) (m/s, Hill frame) to the velocity, and its execution error variance
     ``(dv_sigma_frac |dv|)^2 + dv_sigma_m_s^2`` per axis to the velocity block of P."""
-    dv = np.broadcast_to(np.asarray(dv, np.float64), x[..., 3:].shape)
+    dv = np.broadcast_to(np.asarray(dv, np.float64), x[..., 3:6].shape)
     x = x.copy()
-    x[:, 3:] += dv
+    x[:, 3:6] += dv
     var = (cfg.dv_sigma_frac * np.linalg.norm(dv, axis=-1)) ** 2 + cfg.dv_sigma_m_s ** 2
     P = P.copy()
-    P[:, 3:, 3:] += var[:, None, None] * np.eye(3)
+    P[:, 3:6, 3:6] += var[:, None, None] * np.eye(3)
     return x, P
 
 
@@ -104,33 +123,59 @@ def _update(x, P, fn, Rm, iterations: int):
         S = H @ P @ Ht + Rm
         K = np.swapaxes(np.linalg.solve(S, H @ P), -1, -2)          # P H^T S^-1 (P, S symmetric)
         xi = x + np.einsum("bim,bm->bi", K, resid - np.einsum("bmi,bi->bm", H, x - xi))
-    IKH = np.eye(6) - K @ H
+    IKH = np.eye(x.shape[-1]) - K @ H
     P = IKH @ P @ np.swapaxes(IKH, -1, -2) + K @ Rm @ np.swapaxes(K, -1, -2)
     return xi, 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
-def bearing_update(x, P, u_meas, cov_meas, R_hill, iterations: int = 1):
+def bearing_update(x, P, u_meas, cov_meas, R_hill, iterations: int = 1, bias=None):
     """Update by an inertial bearing: u_meas (B, 3) ICRS unit line of sight from chaser to target, cov_meas
     (B, 3, 3) its covariance (rad^2, rank 2 across u_meas), R_hill (3, 3) or (B, 3, 3) the Hill-to-ICRS rotation
     at the measurement time.  Two tangent-plane angles (module docstring); ``iterations`` > 1 iterates the
-    linearisation (an iterated EKF: needed when the prior's error across the line of sight is a sizeable angle)."""
+    linearisation (an iterated EKF: needed when the prior's error across the line of sight is a sizeable angle).
+    x (B, 6 + nb), P (B, 6 + nb, 6 + nb): with bias (B, 3, nb) m per unit bias state (the centre of brightness's
+    correlated offset, ICRS; module docstring) the line of sight is to ``-R rho + bias beta``, beta =
+    x[:, 6:6 + nb]."""
     u_meas = np.asarray(u_meas, np.float64)
     R = np.broadcast_to(np.asarray(R_hill, np.float64), (x.shape[0], 3, 3))
     E = tangent_basis(u_meas)
     ER = E @ R
+    G = None if bias is None or np.size(bias) == 0 else np.asarray(bias, np.float64).reshape(x.shape[0], 3, -1)
+    nb = 0 if G is None else G.shape[-1]
 
     def fn(xi):
-        rho = xi[:, :3]
-        r = np.linalg.norm(rho, axis=-1)
-        rh = rho / r[:, None]
-        resid = np.einsum("bij,bj->bi", ER, rh)                    # z - h = E u_meas + E R rho^ = 0 + E R rho^
-        proj = (np.eye(3) - rh[:, :, None] * rh[:, None, :]) / r[:, None, None]
-        H = np.zeros((xi.shape[0], 2, 6))
-        H[:, :, :3] = -ER @ proj
+        s = -np.einsum("bij,bj->bi", R, xi[:, :3])                # chaser -> target body origin (ICRS, m)
+        if G is not None:
+            s = s + np.einsum("bij,bj->bi", G, xi[:, 6:6 + nb])   # -> its centre of brightness
+        r = np.linalg.norm(s, axis=-1)
+        sh = s / r[:, None]
+        resid = -np.einsum("bij,bj->bi", E, sh)                    # z - h = E u_meas - E s^ = 0 - E s^
+        Ep = E @ ((np.eye(3) - sh[:, :, None] * sh[:, None, :]) / r[:, None, None])
+        H = np.zeros((xi.shape[0], 2, xi.shape[1]))
+        H[:, :, :3] = -Ep @ R
+        if G is not None:
+            H[:, :, 6:6 + nb] = Ep @ G
         return resid, H
 
     Rm = E @ np.asarray(cov_meas, np.float64) @ np.swapaxes(E, -1, -2)
     return _update(x, P, fn, Rm, iterations)
+
+
+def bias_propagate(x, P, decay, nb: int | None = None):
+    """First-order Gauss-Markov step of the unit-variance bias states x[:, 6:] (module docstring): beta <- d beta,
+    P's beta rows and columns scaled by d and ``1 - d^2`` added to its diagonal (Brown & Hwang Sec. 4.2: the
+    discrete model of exp(-|tau| / T) autocorrelation, unit variance).  decay (B, nb) or (nb,) in [0, 1]; the
+    bias states are x[:, 6:6 + nb] (nb: default all after the 6 relative states)."""
+    nb = x.shape[1] - 6 if nb is None else int(nb)
+    if nb == 0:
+        return x, P
+    d = np.broadcast_to(np.asarray(decay, np.float64), (x.shape[0], nb))
+    f = np.concatenate([np.ones((x.shape[0], 6)), d, np.ones((x.shape[0], x.shape[1] - 6 - nb))], -1)
+    x = x * f
+    P = P * f[:, :, None] * f[:, None, :]
+    idx = np.arange(6, 6 + nb)
+    P[:, idx, idx] += 1.0 - d ** 2
+    return x, P
 
 
 def range_sigma(range_min_m, range_max_m):
@@ -140,13 +185,13 @@ def range_sigma(range_min_m, range_max_m):
 
 def range_update(x, P, range_m, sigma_m, iterations: int = 1):
     """Update by a measured range (B,) m with 1-sigma (B,) or scalar m (``iterations`` as in
-    :func:`bearing_update`)."""
+    :func:`bearing_update`); x (B, 6 + nb) (bias states untouched but through their correlations)."""
     z = np.asarray(range_m, np.float64)
 
     def fn(xi):
         rho = xi[:, :3]
         r = np.linalg.norm(rho, axis=-1)
-        H = np.zeros((xi.shape[0], 1, 6))
+        H = np.zeros((xi.shape[0], 1, xi.shape[1]))
         H[:, 0, :3] = rho / r[:, None]
         return (z - r)[:, None], H
 
@@ -174,7 +219,8 @@ def chi2_mean_bounds(dof: int, runs: int, prob: float = 0.95) -> tuple[float, fl
 
 
 def run(x0, P0, times, orbit: CircularOrbit, cfg: FilterConfig, *, bearings=None, bearing_cov=None,
-        ranges=None, range_sig=None, dv_times=(), dv=None, adjust=None, select=None):
+        ranges=None, range_sig=None, dv_times=(), dv=None, adjust=None, select=None, n_bias: int = 0,
+        bias_decay=None):
     """The filter over a sequence of frames, batched over B runs.
 
     x0 (B, 6), P0 (B, 6, 6) at ``times[0]``; times (T,) s increasing; bearings (B, T, 3) ICRS lines of sight with
@@ -187,12 +233,20 @@ def run(x0, P0, times, orbit: CircularOrbit, cfg: FilterConfig, *, bearings=None
     ``select(k, x, P, R_k) -> (u (B, 3), C (B, 3, 3))`` called at frame k after the prediction with every run's
     predicted state and covariance and the Hill-to-ICRS rotation, returning the bearing to update with (NaN rows:
     none), in place of ``bearings``/``adjust`` (the flight way to pick the target among candidates and gate
-    outliers by the innovation: ``nav/target_finding.py``).  Returns the updated states (B, T, 6) and
-    covariances (B, T, 6, 6) at every frame."""
+    outliers by the innovation: ``nav/target_finding.py``); it may return a third element G (B, 3, n_bias), the
+    centre of brightness's correlated offset per unit bias state (ICRS, m; :func:`bearing_update`).  n_bias: the
+    number of unit-variance Gauss-Markov bias states appended to the state (zero mean, unit variance at
+    ``times[0]``; module docstring), propagated at frame k by ``bias_decay(k, x, R_k) -> (B, n_bias)`` (the
+    correlation with frame k - 1; not called at frame 0; None: held constant).  Returns the updated relative
+    states (B, T, 6) and their covariances (B, T, 6, 6) at every frame (the bias states' marginal left out)."""
     times = np.asarray(times, np.float64)
     n = orbit.mean_motion
     x, P = np.array(x0, np.float64), np.array(P0, np.float64)
     B, T = x.shape[0], times.size
+    nb = int(n_bias)
+    if nb:
+        x = np.concatenate([x, np.zeros((B, nb))], -1)
+        P = np.block([[P, np.zeros((B, 6, nb))], [np.zeros((B, nb, 6)), np.broadcast_to(np.eye(nb), (B, nb, nb))]])
     tm = np.asarray(dv_times, np.float64).reshape(-1)
     if tm.size and (np.any(tm <= times[0]) or np.any(tm > times[-1])):
         raise ValueError("run: manoeuvre times must lie in (times[0], times[-1]]")
@@ -212,11 +266,14 @@ def run(x0, P0, times, orbit: CircularOrbit, cfg: FilterConfig, *, bearings=None
         if times[k] > t_now:
             x, P = predict(x, P, times[k] - t_now, n, cfg)
             t_now = times[k]
+        if nb and k > 0 and bias_decay is not None:
+            x, P = bias_propagate(x, P, bias_decay(k, x, R[k]), nb)
         if select is not None:
-            b, bc = select(k, x, P, R[k])
+            b, bc, *g = select(k, x, P, R[k])
             ok = np.all(np.isfinite(b), axis=-1)
             if ok.any():
-                x[ok], P[ok] = bearing_update(x[ok], P[ok], b[ok], np.asarray(bc)[ok], R[k], cfg.iterations)
+                G = np.asarray(g[0])[ok][..., :nb] if g and nb else None
+                x[ok], P[ok] = bearing_update(x[ok], P[ok], b[ok], np.asarray(bc)[ok], R[k], cfg.iterations, G)
         elif bearings is not None:
             b = np.asarray(bearings[:, k], np.float64)
             ok = np.all(np.isfinite(b), axis=-1)
@@ -231,5 +288,5 @@ def run(x0, P0, times, orbit: CircularOrbit, cfg: FilterConfig, *, bearings=None
             if ok.any():
                 x[ok], P[ok] = range_update(x[ok], P[ok], r[ok], np.asarray(range_sig[:, k], np.float64)[ok],
                                             cfg.iterations)
-        xs[:, k], Ps[:, k] = x, P
+        xs[:, k], Ps[:, k] = x[:, :6], P[:, :6, :6]
     return xs, Ps

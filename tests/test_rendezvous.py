@@ -303,7 +303,8 @@ def test_photocentre_table_of_a_sphere_is_the_lit_sphere_and_the_correction_move
     # sight -R rho^ is u itself
     R_k = np.stack([np.cross(u, s) / np.linalg.norm(np.cross(u, s)), u, s], axis=1)
     R_k[:, 2] = np.cross(R_k[:, 0], R_k[:, 1])
-    u2, C2 = sel(0, x, np.eye(6)[None], R_k)
+    u2, C2, G2 = sel(0, x, np.eye(6)[None], R_k)
+    assert not np.any(G2)                                       # no photocentre statistics: no bias states
     assert m["bearing_used"][0] and m["found_by"][0] in (1, 3)      # gate (star) or resolved_blob (prox)
     s_perp = (s - np.dot(s, u) * u) / np.linalg.norm(s - np.dot(s, u) * u)
     off = 3 * np.pi / 16 * R * np.sin(al) * (1 + np.cos(al)) / (np.sin(al) + (np.pi - al) * np.cos(al))
