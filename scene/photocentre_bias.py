@@ -150,7 +150,8 @@ def photocentre_statistics(shape: TargetShape, spinning: bool = True, seed: int 
 
     Geometry per phase angle alpha: Sun along +z, observer at angle alpha from it, turned about z by each angle
     of :data:`BIAS_TURN_DEG`; offsets projected on the plane of the sky, along the Sun's projection and across.
-    Where nothing lit faces the camera (alpha -> 180 deg) the offsets are zero (``photocentre_offset``)."""
+    Where nothing lit faces the camera (possible beyond 90 deg of phase) the offsets are zero
+    (``photocentre_offset``) and count, where ``photocentre_table`` keeps the lit attitudes only."""
     if offset is None:
         def offset(R_body, sun, obs):
             return photocentre_offset(shape, R_body, sun, obs)
