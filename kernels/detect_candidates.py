@@ -8,7 +8,7 @@ functions over arrays; ``cfg`` is a :class:`~dualsight.kernels.detect_local.Loca
 import numpy as np
 
 from dualsight.kernels.detect_background import order_statistic, robust_stats
-from dualsight.kernels.detect_passes import foreground_components
+from dualsight.kernels.detect_passes import candidate_maxima
 from dualsight.kernels.detect_psf import psf_kernel_1d
 
 
@@ -167,7 +167,7 @@ def find_candidates(Z, cfg):
     """Candidate stars of the matched-filtered SNR image Z ((H, W) float32, :func:`matched_filter`): the 3 x 3
     local maxima of Z > ``cfg.k_sigma``, grouped into foreground components (``cfg.connectivity``,
     :func:`sparse_components` over the foreground pixels only; with ``cfg.engine`` "taichi" components and
-    maxima in one compiled pass, :func:`dualsight.kernels.detect_passes.foreground_components`) and deblended
+    maxima and deblending in one compiled pass, :func:`dualsight.kernels.detect_passes.candidate_maxima`) and deblended
     (``cfg.deblend_min_sep_px``, ``cfg.deblend_contrast``); components over ``cfg.max_blob_pixels`` are counted,
     not searched.
 
@@ -182,20 +182,20 @@ def find_candidates(Z, cfg):
     if f.size == 0:
         e = np.zeros(0, np.int64)
         return e, e, e, 0
+    if cfg.engine == "taichi":     # components, local maxima and deblending in one compiled pass over the foreground
+        return candidate_maxima(f, Z, cfg.connectivity, cfg.max_blob_pixels, cfg.deblend_min_sep_px,
+                                cfg.deblend_contrast)
     fr, fc = np.divmod(f, W)
-    if cfg.engine == "taichi":     # components and local maxima in one compiled pass over the foreground
-        lab_f, peak = foreground_components(f, Z, cfg.connectivity)
-    else:
-        lab_f = sparse_components(f, H, W, cfg.connectivity)
-        # the 3 x 3 local maxima among the foreground pixels (outside the frame ignored: clipped indices repeat
-        # an in-frame pixel of the neighbourhood), from their 8 neighbours' values
-        zf = Z.ravel()[f]
-        peak = np.ones(f.size, bool)
-        for dr in (-1, 0, 1):
-            rr = np.clip(fr + dr, 0, H - 1) * W
-            for dc in (-1, 0, 1):
-                if dr or dc:
-                    peak &= zf >= Z.ravel()[rr + np.clip(fc + dc, 0, W - 1)]
+    lab_f = sparse_components(f, H, W, cfg.connectivity)
+    # the 3 x 3 local maxima among the foreground pixels (outside the frame ignored: clipped indices repeat
+    # an in-frame pixel of the neighbourhood), from their 8 neighbours' values
+    zf = Z.ravel()[f]
+    peak = np.ones(f.size, bool)
+    for dr in (-1, 0, 1):
+        rr = np.clip(fr + dr, 0, H - 1) * W
+        for dc in (-1, 0, 1):
+            if dr or dc:
+                peak &= zf >= Z.ravel()[rr + np.clip(fc + dc, 0, W - 1)]
     npix_c = np.bincount(lab_f).astype(np.int64)
     f = f[peak]
     pr, pc = fr[peak].astype(np.int64), fc[peak].astype(np.int64)

@@ -169,3 +169,48 @@ def test_the_row_sort_kind_changes_the_time_only(dtype, monkeypatch):
             got.append(tile_background(img, 32, 3.0, 3, 3, engine))
         for a, b in zip(*got):
             np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("connectivity", [8, 4])
+def test_compiled_candidates_are_the_numpy_paths(connectivity):
+    """find_candidates with the compiled pass (detect_passes.candidate_maxima: labelling, maxima, sort, deblending in
+    one kernel) returns the numpy path's arrays in its order (sparse_components, a lexsort, the pairs' distance and
+    dip tests): frames of blended blobs with several maxima (some closer than the deblending distance, some without a
+    dip), plateaus of equal maxima (ties), blobs on every edge, and components over max_blob_pixels; for several
+    deblending settings.  And a written-out case: two peaks 4 px apart with a dip are two stars, without it one."""
+    import cv2
+
+    from dualsight.kernels.detect_candidates import find_candidates
+    from dualsight.kernels.detect_local import LocalDetectConfig
+
+    rng = np.random.default_rng([24, connectivity, 1])
+    n_multi = 0
+    for H, W in ((1, 9), (7, 1), (40, 64), (96, 128)):
+        Z = (4 * cv2.GaussianBlur(rng.normal(0, 1, (H, W)).astype(np.float32), (0, 0), 1.2)).astype(np.float32)
+        for _ in range(H * W // 300):                 # bright blends: 2-3 Gaussians close together
+            cy, cx = rng.uniform(0, H), rng.uniform(0, W)
+            yy, xx = np.mgrid[0:H, 0:W]
+            for _ in range(rng.integers(2, 4)):
+                oy, ox = cy + rng.normal(0, 2.5), cx + rng.normal(0, 2.5)
+                Z += rng.uniform(4, 30) * np.exp(-((yy - oy) ** 2 + (xx - ox) ** 2) / (2 * rng.uniform(0.6, 1.5) ** 2))
+        Z[rng.random((H, W)) < 0.01] = 12.0            # plateaus of equal maxima
+        Z = Z.astype(np.float32)
+        for sep, contrast, maxpix in ((2.0, 0.2, 4096), (0.0, 0.0, 4096), (3.5, 0.5, 25), (1.0, 0.9, 4096)):
+            want, got = [], []
+            for engine, dst in (("numpy", want), ("taichi", got)):
+                cfg = LocalDetectConfig(k_sigma=1.5, deblend_min_sep_px=sep, deblend_contrast=contrast,
+                                        max_blob_pixels=maxpix, connectivity=connectivity, fit_engine=engine)
+                dst.extend(find_candidates(Z, cfg))
+            for a, b in zip(want[:3], got[:3]):
+                np.testing.assert_array_equal(a, b)
+            assert want[3] == got[3]
+            n_multi += len(want[0]) - len(np.unique(want[2]))
+    assert n_multi > 20                                  # components with more than one star were tested
+
+    Z = np.zeros((9, 15), np.float32)
+    Z[4, 3], Z[4, 7], Z[4, 4:7] = 10.0, 9.0, 6.0          # a dip to 6 < 0.8 x 9: two stars
+    cfg = LocalDetectConfig(k_sigma=1.0, fit_engine="taichi")
+    r, c, npix, n_large = find_candidates(Z, cfg)
+    assert (r.tolist(), c.tolist(), npix.tolist(), n_large) == ([4, 4], [3, 7], [5, 5], 0)
+    Z[4, 4:7] = 8.0                                      # 8 >= 0.8 x 9: one star
+    assert find_candidates(Z, cfg)[1].tolist() == [3]
