@@ -31,7 +31,6 @@ at that measurement (a verified lost-in-space fix after a manoeuvre the models d
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,6 +55,9 @@ class FilterState:
     P: np.ndarray
     mu: np.ndarray
     t: float
+    P_free: np.ndarray | None = None
+    """After :func:`predict`: (M, 9, 9) the covariances without this step's random acceleration (the constant-rate
+    extrapolation that the tracking windows follow, :func:`combined` with ``free=True``); None after an update."""
 
 
 def start(A: np.ndarray, cov: np.ndarray, t: float, rate_sigma_rad_s: float, n_models: int = 2,
@@ -113,10 +115,8 @@ def predict(s: FilterState, t: float, noise: np.ndarray, switch: np.ndarray, con
         Ps[~ca, :, 6:] = 0.0
         Ps[~ca, 6:, 6:] = a_C
     x0 = mix.T @ xs
-    P0 = np.empty_like(s.P)
-    for j in range(M):                                  # M = 3: the models, not stars or pixels
-        d = xs - x0[j]
-        P0[j] = np.einsum("m,mij->ij", mix[:, j], Ps) + (d.T * mix[:, j]) @ d
+    d = xs[None, :, :] - x0[:, None, :]                 # (j, i, 9): model i's mean from model j's mixed one
+    P0 = np.einsum("ij,iab->jab", mix, Ps) + np.einsum("ij,jia,jib->jab", mix, d, d)
     x0[~ca, 6:] = 0.0                                   # a constant-rate model has no acceleration
     P0[~ca, 6:, :] = 0.0
     P0[~ca, :, 6:] = 0.0
@@ -140,23 +140,23 @@ def predict(s: FilterState, t: float, noise: np.ndarray, switch: np.ndarray, con
     x[:, :3] -= w * dt
     g_cv = np.array([0.5 * dt * dt, dt, 0.0])           # DWNA: acceleration held over the interval
     g_ca = np.array([dt ** 3 / 6.0, 0.5 * dt * dt, dt])  # DWPA: jerk held over the interval
-    P = np.einsum("ab,mbc,dc->mad", F, P0, F)
-    n2 = np.asarray(noise, np.float64) ** 2
-    for j in range(M):
-        g = g_ca if ca[j] else g_cv
-        P[j] += n2[j] * np.kron(np.outer(g, g), _I3)
+    P_free = F @ P0 @ F.T
+    q = np.where(ca[:, None, None], np.kron(np.outer(g_ca, g_ca), _I3), np.kron(np.outer(g_cv, g_cv), _I3))
+    P = P_free + (np.asarray(noise, np.float64) ** 2)[:, None, None] * q
     if gyro is not None:                                # the gyro's rate: no random acceleration on it
-        P[:, 3:, :] = 0.0
-        P[:, :, 3:] = 0.0
-        P[:, 3:6, 3:6] = gyro_cov
-        P[:, :3, :3] = Phi @ P0[:, :3, :3] @ Phi.T + (dt * dt) * gyro_cov
-    return FilterState(Phi @ s.A_ref, x, 0.5 * (P + np.swapaxes(P, 1, 2)), c, float(t))
+        for Q in (P, P_free):
+            Q[:, 3:, :] = 0.0
+            Q[:, :, 3:] = 0.0
+            Q[:, 3:6, 3:6] = gyro_cov
+            Q[:, :3, :3] = Phi @ P0[:, :3, :3] @ Phi.T + (dt * dt) * gyro_cov
+    return FilterState(Phi @ s.A_ref, x, 0.5 * (P + np.swapaxes(P, 1, 2)), c, float(t),
+                       0.5 * (P_free + np.swapaxes(P_free, 1, 2)))
 
 
-def combined(s: FilterState) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def combined(s: FilterState, free: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The combined estimate: attitude (3, 3), its covariance (3, 3) rad^2, rate (3,) rad/s and its covariance
-    (3, 3) (rad/s)^2 (Bar-Shalom Eq. 11.6.6-20/21)."""
-    m, C = _moments(s.x, s.P, s.mu)
+    (3, 3) (rad/s)^2 (Bar-Shalom Eq. 11.6.6-20/21); ``free``: with the covariances of :attr:`FilterState.P_free`."""
+    m, C = _moments(s.x, s.P_free if free else s.P, s.mu)
     return frame_rotation(m[:3]) @ s.A_ref, C[:3, :3], m[3:6], C[3:6, 3:6]
 
 
@@ -175,19 +175,15 @@ def update(s: FilterState, A_m: np.ndarray, R: np.ndarray) -> FilterState:
     folded into ``A_ref`` (every model's ``dtheta`` shifted by it, first order)."""
     z = log_rotation(A_m @ s.A_ref.T)
     M = len(s.mu)
-    x = s.x.copy()
-    P = np.empty_like(s.P)
-    loglik = np.empty(M)
-    for j in range(M):                                  # M = 3 models
-        nu = z - x[j, :3]
-        S = s.P[j, :3, :3] + R
-        Si = np.linalg.inv(S)
-        K = s.P[j, :, :3] @ Si
-        x[j] += K @ nu
-        IKH = np.eye(9)
-        IKH[:, :3] -= K
-        P[j] = IKH @ s.P[j] @ IKH.T + K @ R @ K.T
-        loglik[j] = -0.5 * (nu @ Si @ nu + math.log(max(np.linalg.det(S), 1e-300)))
+    nu = z - s.x[:, :3]                                 # (M, 3) innovations
+    S = s.P[:, :3, :3] + R
+    Si = np.linalg.inv(S)
+    K = s.P[:, :, :3] @ Si                              # (M, 9, 3)
+    x = s.x + np.einsum("mij,mj->mi", K, nu)
+    IKH = np.broadcast_to(np.eye(9), (M, 9, 9)).copy()
+    IKH[:, :, :3] -= K
+    P = IKH @ s.P @ np.swapaxes(IKH, 1, 2) + K @ R @ np.swapaxes(K, 1, 2)      # Joseph form
+    loglik = -0.5 * (np.einsum("mi,mij,mj->m", nu, Si, nu) + np.log(np.maximum(np.linalg.det(S), 1e-300)))
     lw = loglik + np.log(np.maximum(s.mu, 1e-300))
     mu = np.exp(lw - lw.max())
     mu /= mu.sum()

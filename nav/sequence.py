@@ -137,8 +137,9 @@ class SequenceResult:
     the filter or a fused solution).  p_manoeuvre : (T,) the filter's probability of not being in its steady model
     (the accelerating and the manoeuvre models; NaN as above).  rate_att, rate_star : (T, 3) rad/s rate from the last two fixes / from the stars seen in both, with
     rate_att_cov, rate_star_cov (T, 3, 3) (rad/s)^2 (NaN where not available); rate_pairs : stars of rate_star.
-    t_predict_ns (propagate + predict), t_track_ns (match + solve + verify), t_lis_ns (voting + attitude),
-    t_rate_ns (both rates), t_total_ns : int64 wall time (-1 where the stage did not run).
+    t_predict_ns (propagate + predict; with the filter, predict only), t_track_ns (match + solve + verify),
+    t_lis_ns (voting + attitude), t_rate_ns (both rates), t_filter_ns (the attitude filter's prediction, fusion and
+    estimate: it runs after either mode), t_total_ns : int64 wall time (-1 where the stage did not run).
     det_row : (K,) int64 catalog row of each detection in the answer (-1 none).  shadow_rows : (K,) int64
     lost-in-space's identities on every frame (``shadow_lis``; else None), shadow_verified : (T,) bool,
     t_shadow_ns : (T,) int64.
@@ -172,6 +173,7 @@ class SequenceResult:
     t_track_ns: np.ndarray
     t_lis_ns: np.ndarray
     t_rate_ns: np.ndarray
+    t_filter_ns: np.ndarray
     t_total_ns: np.ndarray
     det_row: np.ndarray
     shadow_rows: np.ndarray | None
@@ -217,6 +219,7 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                rate_filter_cov=nan33.copy(), p_manoeuvre=np.full(T, np.nan),
                A_degraded=nan33.copy(), cov_degraded=nan33.copy(),
                **{k: np.full(T, -1, np.int64) for k in ("t_predict_ns", "t_track_ns", "t_lis_ns", "t_rate_ns",
+                                                        "t_filter_ns",
                                                         "t_total_ns")})
     det_row = np.full(K, -1, np.int64)
     shadow_rows = np.full(K, -1, np.int64) if shadow_lis else None
@@ -258,6 +261,7 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
         if state is not None and k - last_fused > max_coast_frames:
             state = None
         pstate = None
+        t_filt = 0
         if (state if use_filter else fix) is not None:
             c0 = clock()
             if use_filter:
@@ -271,8 +275,9 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                 # the windows follow the constant-rate extrapolation of the filtered state (its attitude, rate and
                 # their covariance, no random acceleration): the motion models are for fusing, and their
                 # acceleration held over a long gap (frames 30 s apart) would open every window to its maximum
-                Ap, Pp, _, _ = filt.combined(filt.predict(state, t[k], zero_noise, switch,
-                                                          None if long_gap else const_accel, g, gc))
+                Ap, Pp, _, _ = filt.combined(pstate, free=True)
+                t_filt = clock() - c0
+                c0 = clock()
             else:
                 dt = t[k] - t[fix[2]]
                 if gyro is not None:
@@ -350,12 +355,12 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                     if ok:
                         out["rate_star"][k], out["rate_star_cov"][k] = om_s, C_s
                         out["rate_pairs"][k] = len(ip)
-            out["t_rate_ns"][k] = clock() - c0 + t_fuse
+            out["t_rate_ns"][k] = clock() - c0
             fix = (A, P, k)
             if focal is not None:                 # the focal length refined from this fix (nav/focal_refine.py)
                 camera = focal.update(k, xy, sg, rows, A, cat_unit, camera)
-        elif meas is not None:
-            out["t_rate_ns"][k] = t_fuse
+        if use_filter and (t_filt or t_fuse):
+            out["t_filter_ns"][k] = t_filt + t_fuse
         out["t_total_ns"][k] = clock() - c_start
     return SequenceResult(**out, det_row=det_row, shadow_rows=shadow_rows, shadow_verified=shadow_ok,
                           t_shadow_ns=t_shadow)

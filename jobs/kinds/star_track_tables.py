@@ -44,7 +44,7 @@ FRAMES_SCHEMA = pa.schema(
     + [(f"true_rate_{a}_deg_s", _F) for a in _XYZ] + [(f"true_rate_mean_{a}_deg_s", _F) for a in _XYZ]
     + [(f"gyro_{a}_deg_s", _F) for a in _XYZ]
     + [("image_digest", _L), ("t_render_ns", _L), ("t_detect_ns", _L), ("t_predict_ns", _L), ("t_track_ns", _L),
-       ("t_lis_ns", _L), ("t_rate_ns", _L), ("t_nav_ns", _L), ("shadow_verified", pa.bool_()),
+       ("t_lis_ns", _L), ("t_rate_ns", _L), ("t_filter_ns", _L), ("t_nav_ns", _L), ("shadow_verified", pa.bool_()),
        ("t_shadow_lis_ns", _L), ("n_id_agree", _I), ("n_id_disagree", _I), ("focal_px", _F), ("focal_sigma_px", _F)])
 """One row per frame.  ``A_true``/``A_est``: row-major inertial -> camera matrices (``A_est`` null without a fix);
 ``mode``: ``nav.sequence.MODE_NAMES``; ``lock_reason``: ``nav.sequence.REASON_NAMES`` (``locked``: tracking held,
@@ -60,7 +60,7 @@ manoeuvre-model probability; ``rate_filter_*``: the filter's rate at the frame a
 ``true_rate_*``); ``rate_att_*``: the rate from this fix and the previous
 one (``rate_star_*``: from the stars seen in both), ``true_rate_*``: the true body rate at the frame,
 ``true_rate_mean_*``: the true mean rate over the same interval as ``rate_att``; ``t_nav_ns``: the tracker's whole
-time on the frame (tracking, fallback and rates); ``shadow_*``, ``n_id_*``: lost-in-space run beside tracking
+time on the frame (tracking, fallback, rates and the attitude filter, ``t_filter_ns``); ``shadow_*``, ``n_id_*``: lost-in-space run beside tracking
 (``shadow_lost_in_space``), identities equal / different where both identified a detection; ``focal_px``,
 ``focal_sigma_px``: the focal length (fx) refined while tracking up to this frame and its 1-sigma
 (``refine_focal``, ``nav/focal_refine.py``; null without it or before the first estimate)."""
@@ -196,6 +196,7 @@ def frames_table(case_id: int, spec, out: dict) -> pa.Table:
                  "t_render_ns": _int_or_null(r["t_render_ns"]), "t_detect_ns": _int_or_null(r["t_detect_ns"]),
                  "t_predict_ns": _int_or_null(res.t_predict_ns), "t_track_ns": _int_or_null(res.t_track_ns),
                  "t_lis_ns": _int_or_null(res.t_lis_ns), "t_rate_ns": _int_or_null(res.t_rate_ns),
+                 "t_filter_ns": _int_or_null(res.t_filter_ns),
                  "t_nav_ns": _int_or_null(res.t_total_ns), **shadow})
     fz = out.get("focal")
     cols["focal_px"] = _nullable(fz.f_fused if fz is not None else np.full(T, np.nan))

@@ -1,5 +1,5 @@
 -- Star tracking: per mode, frames, error per axis (RMS over the frames with an attitude, arcsec) and the latency
--- per frame of the tracker (t_nav_ns: tracking, fallback and rates) and of its stages (ms); lost-in-space run
+-- per frame of the tracker (t_nav_ns: tracking, fallback, rates and the attitude filter) and of its stages (ms); lost-in-space run
 -- beside tracking on the same frames (shadow_lost_in_space) in the last column.  One run ($run).
 SELECT
     mode,
@@ -13,6 +13,7 @@ SELECT
     avg(t_predict_ns) / 1e6                              AS predict_ms,
     avg(t_track_ns) / 1e6                                AS track_ms,
     avg(t_lis_ns) / 1e6                                  AS lost_in_space_ms,
+    avg(t_filter_ns) / 1e6                               AS filter_ms,
     avg(coalesce(t_render_ns, 0) + coalesce(t_detect_ns, 0)) / 1e6 AS render_detect_ms,
     avg(t_shadow_lis_ns) / 1e6                           AS shadow_lost_in_space_ms
 FROM star_frames
