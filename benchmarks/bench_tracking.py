@@ -16,6 +16,10 @@ rendering, so only the two algorithms are timed, on the same detections.
   (``nav/tracking``); lost-in-space answers frame 0 and the frame after a lost lock.  The tracking times are those
   of the frames that followed a fix (the ones tracking ran on).
 
+Then the tracker as the product runs it (``nav/sequence.run_sequence``) on the same detections, with the attitude
+filter (``nav/attitude_filter.py``, the default; it runs after either mode) and without: the whole tracker's median
+time per tracked frame, its predict + match + solve + verify part and the filter's part.
+
 Prints per-frame median and mean wall times of each, their CPU time (``time.process_time``: what the machine's
 other processes do not inflate; the mean, as the clock may tick coarsely), the load average (the first 5 frames of each are warm-up, not counted), the ratio,
 the availability of each, the identities' agreement where both answer, and the attitude errors against the truth.
@@ -38,6 +42,7 @@ from dualsight.nav.angular_rate import rate_between  # noqa: E402
 from dualsight.nav.attitude import solve_identified  # noqa: E402
 from dualsight.nav.errors import axis_errors  # noqa: E402
 from dualsight.nav.observations import Observations  # noqa: E402
+from dualsight.nav.sequence import TRACKING, run_sequence  # noqa: E402
 from dualsight.nav.star_solution import identify  # noqa: E402
 from dualsight.nav.tracking import predict, propagate, track  # noqa: E402
 from dualsight.nav.voting_config import VotingConfig  # noqa: E402
@@ -148,6 +153,21 @@ def main() -> int:
     for name, e in (("lost-in-space", lis_err), ("tracking", trk_err)):
         e = np.array(e) / ARCSEC
         print(f"{name} error RMS arcsec (x, y, roll): {np.sqrt(np.mean(e ** 2, axis=0)).round(2).tolist()}")
+    # the tracker as the product runs it (nav/sequence.run_sequence) on the same detections: with the attitude
+    # filter (the default) and without; per tracked frame the whole time and the filter's share
+    xy_all = np.concatenate([s_[0] for s_ in seq])
+    off = np.concatenate([[0], np.cumsum([len(s_[0]) for s_ in seq])])
+    for on in (True, False):
+        c = TrackingConfig(centroid_sigma_px=cfg.centroid_sigma_px, attitude_filter=on)
+        r = run_sequence(t, xy_all, None, off, cam, cat.unit, ctx.index, voting, c, cat_vmag=cat.vmag)
+        trk = np.flatnonzero(r.mode == TRACKING)[5:]
+        tot = r.t_total_ns[trk] / 1e6
+        core = (r.t_predict_ns[trk] + r.t_track_ns[trk]) / 1e6
+        filt = r.t_filter_ns[trk] / 1e6 if on else np.zeros(1)
+        print(f"run_sequence, attitude filter {'on ' if on else 'off'}: tracked frames {len(trk) + 5}/{len(seq)}; "
+              f"ms/frame median: whole tracker {np.median(tot):.3f} (lost-in-space / it: "
+              f"{np.median(tl) / np.median(tot):.1f}x), predict + match + solve + verify {np.median(core):.3f} "
+              f"({np.median(tl) / np.median(core):.1f}x), filter {np.median(filt):.3f}")
     return 0
 
 
