@@ -114,16 +114,17 @@ the frame with a bright sky, which has fewer than 3 stars above SNR 30, is measu
 instead of keeping the initial 1.0; from the binned first pass, 2026-11-27: within 0.015 px of those.)
 
 Centroids use the continuous pixel convention (pixel (r, c) has its centre at (c + 0.5, r + 0.5)).
-Cost (one core, ``benchmarks/bench_detect_speed.py --against 306a946 --rounds 3``, CPU time, load 4.1-4.4), the
-default (fit_engine "taichi"), 2026-11-27 after the one-launch fits, the SIMD sort of the tiles' samples and the
-saturation shortcut: 6.4-7.1 ms per ESA frame — background ~1.5, filter ~1.7, candidates ~0.7, hot-pixel test and
-fits ~1.7 (of which the fit kernels ~0.8: ~300 stars x 2.6 us), other ~0.85 — against 8.4-8.6 ms for 306a946 (ratios
-0.75-0.85, median 0.81); 7.1-7.6 ms per rendered 1024 x 1024 frame (background ~2.1, filter ~2.3, candidates ~0.6,
-fits ~1.0, other ~1.1) against 8.0-8.4 ms (median ratio 0.90).  What remains is mostly full-frame work that the
-maths asks for (measured alone on a 1024 x 1024 frame, one core: the matched filter's sepFilter2D 0.67 ms and the
-binned one's 0.17, the tiles' last window over every pixel 0.54, their sorted quarter samples 0.14 + clipping 0.28,
-the background and noise maps 0.24, the residual 0.15, Z's scaling 0.22, the two noise samples' clipped statistics
-0.30: ~2.7 ms before the first candidate) plus ~0.5-0.8 ms of numpy calls per pass over the candidates.
+Cost (one core, ``benchmarks/bench_detect_speed.py --against 306a946 --rounds 3``, CPU time, load 5.7-5.8), the
+default (fit_engine "taichi"), 2026-11-27 after the one-launch fits, the compiled candidate search, the SIMD sort of
+the tiles' samples and the saturation shortcut: 5.3-5.8 ms per ESA frame — background ~1.6, filter ~1.35,
+candidates ~0.45, hot-pixel test and fits ~1.5 (of which the fit kernels ~0.8: ~300 stars x 2.6 us), other ~0.65 —
+against 6.7-7.8 ms for 306a946 (ratios 0.75-0.83, median 0.77); 5.5-6.4 ms per rendered 1024 x 1024 frame
+(background ~1.85, filter ~2.0, candidates ~0.45, fits ~0.85, other ~0.9) against 6.9-7.7 ms (median ratio 0.84).
+What remains is mostly full-frame work that the maths asks for (measured alone on a 1024 x 1024 frame, one core: the
+matched filter's sepFilter2D 0.67 ms and the binned one's 0.17, the tiles' last window over every pixel 0.54, their
+sorted quarter samples 0.14 + clipping 0.28, the background and noise maps 0.24, the residual 0.15, Z's scaling 0.22,
+the two noise samples' clipped statistics 0.30: ~2.7 ms before the first candidate) plus ~0.3-0.6 ms of numpy calls
+per pass over the candidates.
 Earlier the same day, at load 14-16 (CPU times there run ~1.2x those at load ~4, from 0fd2b06's): ~9.7 ms per ESA
 frame (1024 x 768, 90-520 detections, width measured) — background ~2.7, matched filter ~2.0 (binned width pass and
 final pass, noise samples included), candidates ~1.0, hot-pixel test and PSF fits ~3.1 (width pass included), other ~1.2;
