@@ -15,7 +15,10 @@ One case is one approach of a chaser to a target near a circular orbit::
        "subpixel" estimator); the attitude from the chaser's own star tracker (true attitude + a Gaussian error of
        ``attitude_sigma_arcsec`` per axis, the same sigma in the bearing's covariance)
     -> the EKF over the frames (nav/relative_filter.run: CW prediction, the known manoeuvres with their nominal
-       delta-v and execution error, bearing and range updates) -> Arrow rows (jobs/kinds/rendezvous_tables.py)
+       delta-v and execution error, bearing and range updates; two Gauss-Markov states for the centre of
+       brightness's residual that a target spinning about a fixed axis keeps from frame to frame,
+       scene/photocentre_bias.py; the blobber's range with its known bias removed, nav/blobber_range_error.py;
+       no process noise: the truth has none) -> Arrow rows (jobs/kinds/rendezvous_tables.py)
 
 Target finding (``nav/target_finding.py``, issue 23.3): in a star frame every detection that matches no catalog
 star through the frame's attitude, is not fixed on the sky (recurs in ICRS) nor on the detector (recurs on a pixel),
