@@ -17,7 +17,8 @@ rendering, so only the two algorithms are timed, on the same detections.
   of the frames that followed a fix (the ones tracking ran on).
 
 Then the tracker as the product runs it (``nav/sequence.run_sequence``) on the same detections, with the attitude
-filter (``nav/attitude_filter.py``, the default; it runs after either mode) and without: the whole tracker's median
+filter (``nav/attitude_filter.py``, the default; it runs after either mode) and the smear weights of
+``examples/star/track.toml`` (``nav/smear_weights.py``, exposure = the frame interval), and without either: the whole tracker's median
 time per tracked frame, its predict + match + solve + verify part and the filter's part.
 
 Prints per-frame median and mean wall times of each, their CPU time (``time.process_time``: what the machine's
@@ -157,14 +158,16 @@ def main() -> int:
     # filter (the default) and without; per tracked frame the whole time and the filter's share
     xy_all = np.concatenate([s_[0] for s_ in seq])
     off = np.concatenate([[0], np.cumsum([len(s_[0]) for s_ in seq])])
-    for on in (True, False):
-        c = TrackingConfig(centroid_sigma_px=cfg.centroid_sigma_px, attitude_filter=on)
-        r = run_sequence(t, xy_all, None, off, cam, cat.unit, ctx.index, voting, c, cat_vmag=cat.vmag)
+    for on in (True, False):              # "on": as examples/star/track.toml sets it (filter, smear weights)
+        c = TrackingConfig(centroid_sigma_px=cfg.centroid_sigma_px, attitude_filter=on,
+                           smear_sigma_per_px=0.02 if on else 0.0, smear_cross_per_px=0.003 if on else 0.0)
+        r = run_sequence(t, xy_all, None, off, cam, cat.unit, ctx.index, voting, c, cat_vmag=cat.vmag,
+                         exposure_s=dt)
         trk = np.flatnonzero(r.mode == TRACKING)[5:]
         tot = r.t_total_ns[trk] / 1e6
         core = (r.t_predict_ns[trk] + r.t_track_ns[trk]) / 1e6
         filt = r.t_filter_ns[trk] / 1e6 if on else np.zeros(1)
-        print(f"run_sequence, attitude filter {'on ' if on else 'off'}: tracked frames {len(trk) + 5}/{len(seq)}; "
+        print(f"run_sequence, attitude filter and smear weights {'on ' if on else 'off'}: tracked frames {len(trk) + 5}/{len(seq)}; "
               f"ms/frame median: whole tracker {np.median(tot):.3f} (lost-in-space / it: "
               f"{np.median(tl) / np.median(tot):.1f}x), predict + match + solve + verify {np.median(core):.3f} "
               f"({np.median(tl) / np.median(core):.1f}x), filter {np.median(filt):.3f}")

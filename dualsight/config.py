@@ -315,7 +315,8 @@ _TRACKING_UNITS = {"window_k_sigma": "sigma", "window_min_px": "px", "window_max
                    "max_predicted": "stars", "residual_k_sigma": "sigma", "max_rms_sigma": "sigma",
                    "initial_cone_rad": "rad", "rate_sigma_rad_s": "rad/s", "max_sigma_rad": "rad",
                    "accel_steady_rad_s2": "rad/s^2", "accel_manoeuvre_rad_s2": "rad/s^2",
-                   "filter_max_gap_s": "s", "jerk_rad_s3": "rad/s^3"}
+                   "filter_max_gap_s": "s", "jerk_rad_s3": "rad/s^3",
+                   "smear_sigma_per_px": "px/px", "smear_cross_per_px": "px/px"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -374,6 +375,12 @@ class TrackingConfig:
     filter_max_gap_s : frames further apart than this (s) are fused at a constant rate, without the models' random
         acceleration (which describes a spacecraft's attitude control over a fraction of a second, not a ground
         camera's frames 30 s apart), in (0, 1e6] (default 1).
+    smear_sigma_per_px, smear_cross_per_px : centroid error (px, 1-sigma) per px of a star's streak along and
+        across the streak, added in quadrature to the detector's sigma in tracking (the model error of a round-PSF
+        fit to a streak; the streak's length and direction from the filter's rate and the sequence's exposure:
+        ``nav/smear_weights.py``; the tracked attitude is then refined with each star's 2 x 2 covariance), in
+        [0, 1] (defaults 0: off; ``examples/star/track.toml`` sets 0.02 and 0.003 for the ``realistic`` preset's
+        local detector).
     """
 
     window_k_sigma: typing.Annotated[float, pydantic.Field(gt=0, le=20.0)] = 5.0
@@ -397,6 +404,8 @@ class TrackingConfig:
     model_switch_prob: typing.Annotated[float, pydantic.Field(gt=0, lt=2.0 / 3.0)] = 0.05
     filter_gate: typing.Annotated[float, pydantic.Field(gt=0, le=1e6)] = 25.0
     filter_max_gap_s: typing.Annotated[float, pydantic.Field(gt=0, le=1e6)] = 1.0
+    smear_sigma_per_px: typing.Annotated[float, pydantic.Field(ge=0, le=1.0)] = 0.0
+    smear_cross_per_px: typing.Annotated[float, pydantic.Field(ge=0, le=1.0)] = 0.0
 
     def __post_init__(self):
         check_fields(self, lambda name, msg: ConfigError(msg, field=f"tracking.{name}"), _TRACKING_UNITS)

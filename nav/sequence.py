@@ -10,7 +10,9 @@ Per frame ``k`` (in time order), with the last fix (attitude ``A_f``, covariance
    acceleration in the windows; with a gyro, its rates propagate: the mean of its two samples, covariance
    ``gyro_sigma^2 I / 2``; frames more than ``cfg.filter_max_gap_s`` apart, e.g. a ground camera's 30 s apart, are
    fused at a constant rate, every model without acceleration: the models' random acceleration is a spacecraft's at a few frames per second):
-   predict the stars, match in windows, solve with the centroid
+   predict the stars (with ``exposure_s`` and ``cfg.smear_sigma_per_px``, each detection's sigma gains the
+   round-PSF fit's model error across its predicted streak, and the lock is refined with the 2 x 2 covariance along
+   and across it: ``nav/smear_weights.py``), match in windows, solve with the centroid
    weights, verify.  Without the filter (``cfg.attitude_filter`` false) the last output fix is propagated with the
    rate from the last two fixes (``nav/angular_rate.rate_between``; else zero with ``cfg.rate_sigma_rad_s``).
 3. no prior, or tracking lost lock (its reason is kept in the row): **lost-in-space** on the same frame: geometric
@@ -48,8 +50,10 @@ from dualsight.nav import attitude_filter as filt
 from dualsight.nav.angular_rate import pair_by_identity, rate_between, rate_from_star_pairs
 from dualsight.nav.attitude import solve_identified
 from dualsight.nav.observations import MAX_OBS, Observations
+from dualsight.nav.smear_weights import refine_anisotropic, smear_axes, streak_length
 from dualsight.nav.star_solution import identify
-from dualsight.nav.tracking import DEGRADED, LOCK_REASONS, NO_PRIOR, max_sigma, predict, propagate, track
+from dualsight.nav.tracking import (DEGRADED, LOCK_REASONS, NO_PRIOR, max_sigma, pixel_jacobian, predict, propagate,
+                                    track)
 
 __all__ = ["MODE_NAMES", "NO_FIX", "LOST_IN_SPACE", "TRACKING", "REASON_NAMES", "NO_IMAGE", "LisFix",
            "lost_in_space", "SequenceResult", "run_sequence"]
@@ -185,7 +189,8 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                  camera, cat_unit: np.ndarray, index, voting, cfg: TrackingConfig, *,
                  available: np.ndarray | None = None, gyro: np.ndarray | None = None, gyro_sigma_rad_s: float = 0.0,
                  cat_vmag: np.ndarray | None = None, max_coast_frames: int = 10, lis_min_stars: int = 3,
-                 shadow_lis: bool = False, engine: str = "taichi", focal=None) -> SequenceResult:
+                 shadow_lis: bool = False, engine: str = "taichi", focal=None,
+                 exposure_s: float = 0.0) -> SequenceResult:
     """Run one sequence through the state machine of the module docstring.
 
     times : (T,) s, increasing.  det_xy : (K, 2) centroids (px) of every frame, frame k's in
@@ -199,6 +204,9 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
     verified lost-in-space fix.  shadow_lis : also run lost-in-space on every frame (comparison only).
     engine : the voting's engine, ``"taichi"`` or ``"numpy"``.  focal : a ``nav.focal_refine.FocalFuser`` or None:
     after every fix it refines the focal length, and the next frames use its camera.
+    exposure_s : the frames' exposure (s): with the filter's rate, each detection's sigma in tracking gains
+    ``cfg.smear_cross_per_px`` times its predicted streak length in quadrature, and the lock is refined with
+    ``cfg.smear_sigma_per_px`` along the streak (``nav/smear_weights.py``; 0: neither).
     """
     t = np.asarray(times, np.float64)
     T = t.size
@@ -289,8 +297,15 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                     om, C = np.zeros(3), np.eye(3) * cfg.rate_sigma_rad_s ** 2
                 Ap, Pp = propagate(fix[0], fix[1], om, C, dt)
             pred = predict(Ap, Pp, cat_unit, camera, cfg)
+            sg_t = sg
+            smear = pstate is not None and exposure_s > 0 and cfg.smear_sigma_per_px > 0 and len(xy) > 0
+            if smear:
+                # a streak fitted as a round PSF: its centroid error grows with the streak's length, which the
+                # filter's rate predicts (nav/smear_weights.py); across the streak by smear_cross_per_px
+                om_p = filt.combined(pstate)[2]
+                sg_t = np.hypot(sg, cfg.smear_cross_per_px * streak_length(xy, camera, om_p, exposure_s))
             c1 = clock()
-            res = track(pred, xy, sg, cat_unit, camera, cfg)
+            res = track(pred, xy, sg_t, cat_unit, camera, cfg)
             c2 = clock()
             out["t_predict_ns"][k], out["t_track_ns"][k] = c1 - c0, c2 - c1
             out["reason"][k] = res.reason
@@ -299,6 +314,15 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                 out["n_used"][k], out["two_star"][k] = res.n_used, res.two_star
                 out["rms_sigma"][k], out["p_chance"][k] = res.rms_sigma, res.p_chance
                 meas = (res.A, res.cov, TRACKING, res.det_row)
+                used = res.det_row >= 0
+                if smear and int(used.sum()) >= 3:        # along the streak by smear_sigma_per_px
+                    r_u = cat_unit[res.det_row[used]]
+                    u, length = smear_axes(pixel_jacobian(r_u @ res.A.T, camera), om_p, exposure_s)
+                    s2 = sg[used] ** 2
+                    A2, C2, chi2 = refine_anisotropic(res.A, xy[used], r_u, camera,
+                                                      s2 + (cfg.smear_sigma_per_px * length) ** 2,
+                                                      s2 + (cfg.smear_cross_per_px * length) ** 2, u)
+                    meas = (A2, C2 * max(1.0, chi2 / max(1, 2 * int(used.sum()) - 3)), TRACKING, res.det_row)
         if meas is None:                                                 # acquire, or fall back
             c0 = clock()
             fx_ = lis(xy, sg)

@@ -337,7 +337,7 @@ def compute_sequence(spec: StarTrackSpec, ctx: star.StarContext, case_id: int) -
                        spec.tracking, available=draw["events"] != DROPPED, gyro=draw["gyro"],
                        gyro_sigma_rad_s=math.hypot(seq.gyro_noise_deg_s, seq.gyro_bias_deg_s) * DEG,
                        cat_vmag=cat.vmag, max_coast_frames=seq.max_coast_frames, lis_min_stars=seq.lis_min_stars,
-                       shadow_lis=seq.shadow_lost_in_space, focal=focal)
+                       shadow_lis=seq.shadow_lost_in_space, focal=focal, exposure_s=sp.sensor.exposure_s)
     err = axis_errors(res.A, draw["A_true"], frame=sp.error_frame)
     tot = total_error_angle(res.A, draw["A_true"])
     valid = res.mode != NO_FIX
