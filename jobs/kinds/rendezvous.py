@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -68,8 +68,9 @@ from dualsight.nav.resolved_blobs import excluded_blobs, without_excluded
 from dualsight.nav.star_solution import centroid_weights, identify, solve
 from dualsight.nav.target_finding import (FOUND_BY, chi2_gate_2dof, innovation_d2, pick, predicted_bearing,
                                           repeats, unmatched)
-from dualsight.nav.target_bearing import (attitude_covariance, bearing_error, blob_centroid_sigma, inertial_bearing,
-                                          sphere_phase_correction)
+from dualsight.nav.target_bearing import (BLOB_SIGMA_FRAC_BY_DETECTOR, PointCentroidTable, attitude_covariance,
+                                          bearing_error, blob_centroid_sigma, inertial_bearing, point_centroid_sigma,
+                                          point_centroid_table, sphere_phase_correction)
 from dualsight.scene.attitude import quat_to_dcm, quaternions_from_uniforms
 from dualsight.scene.camera import Camera
 from dualsight.scene.motion import place_body
@@ -81,7 +82,7 @@ from dualsight.scene.relative_orbit import CircularOrbit, hill_to_icrs, propagat
 from dualsight.scene.rotation_vector import frame_rotation
 from dualsight.scene.example_files import shipped_path
 from dualsight.scene.satellite import load_satellite
-from dualsight.scene.starfield_geometry import stars_in_field
+from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
 from dualsight.scene.target_in_field import TargetCases, diameter_px, target_frames, with_target
 from dualsight.scene.target_photometry import apparent_brightness, photocentre_table, target_shape
 from dualsight.scene.units import ARCSEC, DEG
@@ -108,11 +109,6 @@ FIXED_SKY_TOL_PX = 2.0
 """An unmatched detection recurring within this many pixels' angle in ICRS in another frame is fixed on the sky."""
 FIXED_PIXEL_TOL_PX = 1.5
 """An unmatched detection recurring within this many pixels in two other frames is fixed on the detector."""
-BLOB_SIGMA_FRAC_POINT = 0.01
-"""Fraction of a point-like target blob's RMS radius added to its centroid sigma
-(``nav/target_bearing.blob_centroid_sigma``; its default 0.02 overstates the far preset's bearings; chosen on the
-filter's NEES with accel_psd 1e-14 on seed 2 before the photocentre's bias states; with them, the far preset's
-used bearings give a mean 2-dof NEES of 1.9-2.0 beyond 400 m on seeds 1 and 2, the bearing model holding)."""
 BLOBBER = BlobberConfig(estimator="subpixel", threshold=0.0, target="all", connectivity=8)
 """The proximity frames' blobber (``nav/blobber.py``)."""
 RANGE_FLOOR_FRAC = 0.005
@@ -288,6 +284,7 @@ class RendezvousContext:
     materials: np.ndarray | None = None
     table: object = None
     range_ratio: tuple = ()                # (bin centres, m_q, s_q): nav/blobber_range_error on ``table``
+    centroid: PointCentroidTable | None = None   # star camera: point_centroid_calibration(spec)
 
 
 def make_context(spec: RendezvousSpec) -> RendezvousContext:
@@ -297,7 +294,8 @@ def make_context(spec: RendezvousSpec) -> RendezvousContext:
     if spec.is_star:
         pc = photocentre_table(shape)
         pb = photocentre_statistics(shape, spinning=spinning)
-        return RendezvousContext(sat, shape, pc, pb, star=star.make_context(spec.star))
+        sctx = star.make_context(spec.star)
+        return RendezvousContext(sat, shape, pc, pb, star=sctx, centroid=point_centroid_calibration(spec, sctx.psf))
     from dualsight.catalogs.areas import area_table        # pyarrow
 
     pc, pb = prox_photocentre(sat, shape, spinning)
@@ -327,6 +325,58 @@ def prox_photocentre(sat, shape, spinning: bool) -> tuple[tuple, PhotocentreStat
     pb = photocentre_statistics(shape, spinning=spinning, offset=offset)
     spread = np.sqrt(pb.spread_white ** 2 + 0.5 * (pb.sigma_sun ** 2 + pb.sigma_cross ** 2))
     return (pb.alpha, pb.mean_sun, spread), pb
+
+
+CALIB_LEVELS = np.logspace(3.0, 11.0, 321)
+"""Electrons per exposure of the point sources of :func:`point_centroid_calibration` (40 levels per decade: the
+saturated centroid's error oscillates with the flux, a period of about a quarter decade for the paper sensor)."""
+CALIB_PHASES = 64
+"""Renders per level of :func:`point_centroid_calibration` (uniform sub-pixel positions; each level's sigma is
+then known to about 1 / sqrt(2 x 64) = 9 %, and the many levels a campaign's targets span average that out)."""
+CALIB_WINDOW_PX = 64
+"""Side of the window the calibration renders in (the point source near its centre; the sensor, PSF, detector and
+distortion of the star camera)."""
+
+
+def point_centroid_calibration(spec: RendezvousSpec, psf=None) -> PointCentroidTable:
+    """The star camera's centroid error for a point source against its measured flux, by Monte Carlo of the
+    camera's own render and detector (``jobs/kinds/star.render_and_detect``: the spec's sensor, with its noise if
+    any, its detector and PSF) on :data:`CALIB_WINDOW_PX`-pixel windows, one source per window at a uniform
+    sub-pixel position, :data:`CALIB_PHASES` renders at each of :data:`CALIB_LEVELS`; the table of
+    ``nav/target_bearing.point_centroid_table``.  Deterministic (its own generator, not the run's seed): a ground
+    calibration of the camera, as a flight star tracker's centroid error model is.  ~0.5 s noise-free (sparse
+    path), longer with noise (full windows)."""
+    sp = spec.star
+    w = CALIB_WINDOW_PX
+    c0 = 0.5 * w
+    cam = replace(sp.camera, width=w, height=w, cx=c0, cy=c0)
+    L, K = len(CALIB_LEVELS), CALIB_PHASES
+    rng = np.random.default_rng([23, 6, 3])
+    x = c0 + rng.random(L * K)
+    y = c0 + rng.random(L * K)
+    e = np.repeat(CALIB_LEVELS, K).astype(np.float32)
+    level = np.repeat(np.arange(L), K)
+    seeds = rng.integers(0, 2**63 - 1, size=L * K, dtype=np.int64).astype(np.uint64)
+    flux = np.full(L * K, np.nan)
+    err = np.full((L * K, 2), np.nan)
+    chunk = 4096 if (sp.sensor.is_ideal and sp.detector == "global") else 512
+    for s in range(0, L * K, chunk):
+        i = np.arange(s, min(L * K, s + chunk))
+        n = len(i)
+        fs = FieldStars(x[i, None], y[i, None], e[i, None], np.ones((n, 1), bool), np.zeros((n, 1), np.int64),
+                        np.ones((n, 1), bool), np.ones(n, np.int64))
+        det = star.render_and_detect(fs, seeds[i], cam, sp.sensor, sp.detect, keep_images=False,
+                                     attitude=np.broadcast_to(np.eye(3), (n, 3, 3)), detector=sp.detector,
+                                     psf=psf).detections
+        case = np.asarray(det.case, np.int64)
+        d2 = (det.x - x[i][case]) ** 2 + (det.y - y[i][case]) ** 2
+        o = np.lexsort((d2, case))                            # each window's detection nearest the source
+        first = o[np.unique(case[o], return_index=True)[1]]
+        near = first[d2[first] < 9.0]
+        b = i[case[near]]
+        flux[b] = det.flux[near]
+        err[b] = np.stack([det.x[near] - x[b], det.y[near] - y[b]], -1)
+    return point_centroid_table(level, flux, err)
 
 
 def memory_estimate(spec: RendezvousSpec) -> int:
@@ -513,7 +563,7 @@ def measure_star(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
         _, ok, cov_unit = solve_identified(obs.vec, ident.ids, used, cat.unit, return_cov=True)
         att_ok = ok & sol.ok
         s2 = attitude_covariance(np.ones((len(fr), 1, 1)), sol.residual, n_used,
-                                 floor_rad=star.CENTROID_FLOOR_PX / f)[:, 0, 0]
+                                 floor_rad=float(np.min(ctx.centroid.sigma_px)) / f)[:, 0, 0]
         P_att = np.where(att_ok[:, None, None], cov_unit, 0.0) * s2[:, None, None]
         # every detection of a frame with an attitude is a candidate until the catalog and its motion say
         # otherwise (nav/target_finding.py); the truth only scores the pick afterwards (target_detection)
@@ -521,12 +571,15 @@ def measure_star(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
         case = np.asarray(det.case, np.int64)
         kk = np.flatnonzero(att_ok[case])
         cl = case[kk]
-        sig_px = np.sqrt(s2)[cl] * f                 # the stars' own centroid scatter (px)
-        if det.sigma_px is not None:
-            sig_px = np.hypot(np.asarray(det.sigma_px)[kk], star.CENTROID_FLOOR_PX)
         npix = np.asarray(det.npix)[kk]
-        sig_px = blob_centroid_sigma(npix, sig_px, npix > sc.star_blob_limit,     # saturation, a partly lit body
-                                     frac_point=BLOB_SIGMA_FRAC_POINT)
+        resolved = npix > sc.star_blob_limit
+        # a blob a star could make: the camera's own centroid error at its measured flux (pixel phase, saturation,
+        # noise: point_centroid_calibration); a larger one: the star's scatter plus the partly lit, saturated
+        # body's share of its size (nav/target_bearing.blob_centroid_sigma, the spec's detector's fraction)
+        sig_pt = point_centroid_sigma(np.asarray(det.flux)[kk], ctx.centroid)
+        sig_res = blob_centroid_sigma(npix, np.sqrt(s2)[cl] * f, True,
+                                      frac_resolved=BLOB_SIGMA_FRAC_BY_DETECTOR[sp.detector][1])
+        sig_px = np.where(resolved, sig_res, sig_pt)
         xy = np.stack([det.x[kk], det.y[kk]], -1)
         u, C = inertial_bearing(sol.A_est[cl], P_att[cl], xy, sig_px, sp.camera)
         parts.append((fr[cl], u, C, xy, kk == kt[cl]))
