@@ -9,7 +9,8 @@ One case is one approach of a chaser to a target near a circular orbit::
     -> star camera ("camera = star"): stars + target in one frame (scene/target_in_field: target_frames,
        with_target), rendered and detected by the star job's chain (jobs/kinds/star.render_and_detect), resolved
        blobs kept out of the vote, star identification and attitude (nav/star_solution), the target's inertial
-       bearing through that attitude (nav/target_bearing.inertial_bearing)
+       bearing through that attitude (nav/target_bearing.inertial_bearing; a point-like target's centroid sigma
+       at its measured flux from the camera's own calibration, :func:`point_centroid_calibration`)
        proximity camera (a camera file): the target alone, rendered as the prox job does (kernels/points.render,
        exact coverage), the blobber's centre of brightness and range with its [min, max] (nav/blobber.py,
        "subpixel" estimator); the attitude from the chaser's own star tracker (true attitude + a Gaussian error of
