@@ -63,7 +63,7 @@ from dualsight.kernels.sensor_config import flux_from_magnitude
 from dualsight.nav import relative_filter as rf
 from dualsight.nav.attitude import solve_identified
 from dualsight.nav.blobber import BlobberConfig, run_blobber
-from dualsight.nav.blobber_range_error import range_ratio_at, range_ratio_statistics
+from dualsight.nav.blobber_range_error import RangeRatioCalibration, range_ratio_at, range_ratio_statistics
 from dualsight.nav.observations import observations
 from dualsight.nav.resolved_blobs import excluded_blobs, without_excluded
 from dualsight.nav.star_solution import centroid_weights, identify, solve
@@ -286,6 +286,7 @@ class RendezvousContext:
     table: object = None
     range_ratio: tuple = ()                # (bin centres, m_q, s_q): nav/blobber_range_error on ``table``
     centroid: PointCentroidTable | None = None   # star camera: point_centroid_calibration(spec)
+    range_calibration: RangeRatioCalibration | None = None   # proximity: blobber_range_calibration(...)
 
 
 def make_context(spec: RendezvousSpec) -> RendezvousContext:
@@ -303,8 +304,61 @@ def make_context(spec: RendezvousSpec) -> RendezvousContext:
     table = area_table(sat, n=20000, bin_width=0.05)
     mq, sq = range_ratio_statistics(table.samples_ratio, table.samples_area, table.ratio_lo, table.ratio_hi,
                                     table.curve(BLOBBER.curve))
-    return RendezvousContext(sat, shape, pc, pb, mesh=sat.mesh(), materials=sat.materials(), table=table,
-                             range_ratio=(table.ratio, mq, sq))
+    mesh, materials = sat.mesh(), sat.materials()
+    cal = blobber_range_calibration(sat, mesh, materials, table, spec.camera) if spec.cfg.range_source == "blobber" \
+        else None
+    return RendezvousContext(sat, shape, pc, pb, mesh=mesh, materials=materials, table=table,
+                             range_ratio=(table.ratio, mq, sq), range_calibration=cal)
+
+
+RANGE_CALIB_SPANS = ((10.0, 80.0, 12000), (0.4, 10.0, 6000))
+"""Ranges (m) of :func:`blobber_range_calibration`'s renders: (low, high, count) log-uniform; more where the blob
+is small (its observed axis ratio is poor and q's mean moves with it) than where the table alone is right."""
+RANGE_CALIB_POINTING_DEG = 0.5
+"""1-sigma per axis of the calibration target's offset from the boresight (the presets' pointing error)."""
+
+
+def blobber_range_calibration(sat, mesh, materials, table, camera: Camera) -> RangeRatioCalibration:
+    """The proximity camera's blobber range against the truth, by Monte Carlo of the camera's own renderer
+    (``kernels/points.render``, "accurate", the satellite file's light) and blobber (:data:`BLOBBER`, the area
+    table ``table``): the target at ranges log-uniform in each of :data:`RANGE_CALIB_SPANS`, off the boresight by
+    :data:`RANGE_CALIB_POINTING_DEG`, orientations uniform on SO(3), the Sun from a uniform direction; a blob that
+    touches the image's edge is not a range (:func:`touches_edge`) and is left out.  Returns the samples as
+    ``nav/blobber_range_error.RangeRatioCalibration`` (q = range_est / range against n_blob and the observed axis
+    ratio).  Deterministic (its own generator, not the run's seed): a ground calibration of the blobber on the
+    target's model, as :func:`point_centroid_calibration` is of the star camera.  ~10 s for the 3U CubeSat and the
+    paper's proximity camera (one process, 2 shared cores)."""
+    from dualsight.kernels.points import render              # Taichi
+
+    rng = np.random.default_rng([23, 6, 4])
+    r = np.concatenate([np.exp(rng.uniform(math.log(lo), math.log(hi), n)) for lo, hi, n in RANGE_CALIB_SPANS])
+    M = r.size
+    u = rng.random((M, 3))
+    R_body = quat_to_dcm(quaternions_from_uniforms(u[:, 0], u[:, 1], u[:, 2]))
+    off = rng.normal(size=(M, 2)) * RANGE_CALIB_POINTING_DEG * DEG
+    los = np.stack([np.tan(off[:, 0]), np.tan(off[:, 1]), np.ones(M)], -1)
+    pos = los / np.linalg.norm(los, axis=1, keepdims=True) * r[:, None]
+    sun = rng.normal(size=(M, 3))
+    sun /= np.linalg.norm(sun, axis=1, keepdims=True)
+    q, n_blob, ratio = np.full(M, np.nan), np.full(M, np.nan), np.full(M, np.nan)
+    light = sat.camera
+    for s in range(0, M, PROX_CHUNK):
+        i = np.arange(s, min(M, s + PROX_CHUNK))
+        poses = place_body(sat, R_body[i], pos[i], sun[i])
+        img, cov = render("accurate", mesh, materials, poses.R, poses.t, poses.light, camera, light.I_a, light.I_l)
+        b = run_blobber(img, camera, table, BLOBBER, coverage=cov)
+        ok = b.found & ~touches_edge(b.box, camera) & np.isfinite(b.range_est)
+        q[i] = np.where(ok, b.range_est / r[i], np.nan)
+        n_blob[i] = np.where(ok, b.n_blob, np.nan)
+        ratio[i] = np.where(ok, b.axis_ratio, np.nan)
+    return RangeRatioCalibration(n_blob, ratio, q)
+
+
+def touches_edge(box: np.ndarray, camera: Camera) -> np.ndarray:
+    """(B,) whether a blob's inclusive bounding box (B, 4) [x0, y0, x1, y1] reaches the image's first or last row
+    or column: the target is cut by the frame, its pixel count and centre of brightness are the visible part's."""
+    box = np.asarray(box)
+    return (box[:, 0] <= 0) | (box[:, 1] <= 0) | (box[:, 2] >= camera.width - 1) | (box[:, 3] >= camera.height - 1)
 
 
 def prox_photocentre(sat, shape, spinning: bool) -> tuple[tuple, PhotocentreStatistics | None]:
@@ -509,7 +563,8 @@ def _empty_meas(T: int) -> dict:
             "range_sigma": nan.copy(), "digest": np.zeros(T, np.int64), "t_render_ns": np.zeros(T, np.int64),
             "u_used": np.full((T, 3), np.nan), "C_used": np.zeros((T, 3, 3)), "bearing_raw_err": nan.copy(),
             "target_xy": np.full((T, 2), np.nan), "found_by": np.zeros(T, np.int8), "found_true": np.zeros(T, bool),
-            "axis_ratio": nan.copy(), "range_filter": nan.copy(), "cand": None}
+            "axis_ratio": nan.copy(), "range_filter": nan.copy(), "cand": None, "n_blob": nan.copy(), "range_sigma_frac": nan.copy(),
+            "cut": np.zeros(T, bool)}
 
 
 def _candidates(frame, u, C, xy, true) -> dict:
@@ -665,7 +720,12 @@ def measure_prox(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
         m["range_min"][fr] = np.where(rok, b.range_min, np.nan)
         m["range_max"][fr] = np.where(rok, b.range_max, np.nan)
         m["axis_ratio"][fr] = np.where(rok, b.axis_ratio, np.nan)
-    k = np.flatnonzero(m["detected"])
+        m["n_blob"][fr] = np.where(rok, b.n_blob, np.nan)
+        m["cut"][fr] = found & touches_edge(b.box, cam)
+    # a blob the frame's edge cuts gives neither a bearing (its centre of brightness is the visible part's) nor a
+    # range (its pixels are): the target is too close or off the boresight (:func:`touches_edge`)
+    m["range"][m["cut"]] = np.nan
+    k = np.flatnonzero(m["detected"] & ~m["cut"])
     m["cand"] = _candidates(k, m["u"][k], m["C"][k], m["target_xy"][k], np.ones(len(k), bool))
     m["u"][:], m["C"][:] = np.nan, 0.0
     rok = np.isfinite(m["range"]) & (c.range_source == "blobber")
@@ -676,13 +736,21 @@ def measure_prox(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
 
 def range_model(ctx: RendezvousContext, m: dict) -> None:
     """The filter's blobber range (``m["range_filter"]``) and its 1-sigma (``m["range_sigma"]``) where
-    ``m["range_used"]``: the blobber's known bias removed and its spread over the orientations of the observed axis
-    ratio as the sigma, ``range / m_q`` and ``range s_q / m_q^2`` (``nav/blobber_range_error.py``), at least
-    :data:`RANGE_FLOOR_FRAC` of the range (pixel sampling)."""
+    ``m["range_used"]``: the blobber's known bias removed and its spread as the sigma, ``range / m_q`` and
+    ``range s_q / m_q^2`` (``nav/blobber_range_error.py``), at least :data:`RANGE_FLOOR_FRAC` of the range; the
+    filter takes the sigma as the fraction ``m["range_sigma_frac"]`` = s_q / m_q of its predicted range
+    (``relative_filter.run``'s ``range_sig_frac``: a sigma scaled by the measured range biases the estimate short).  m_q and
+    s_q are the calibration's (``ctx.range_calibration``: q's mean and spread over renders at the blob's summed
+    coverage ``m["n_blob"]`` and observed axis ratio, :func:`blobber_range_calibration`), else the area table's
+    at the observed axis ratio (``ctx.range_ratio``: exact silhouettes, no pixel sampling)."""
     rok = m["range_used"]
-    mq, sq = range_ratio_at(m["axis_ratio"], *ctx.range_ratio)
+    if ctx.range_calibration is not None:
+        mq, sq, _ = ctx.range_calibration.at(m["n_blob"], m["axis_ratio"])
+    else:
+        mq, sq = range_ratio_at(m["axis_ratio"], *ctx.range_ratio)
     m["range_filter"] = np.where(rok, m["range"] / mq, np.nan)
-    m["range_sigma"] = np.where(rok, np.maximum(m["range"] * sq / mq ** 2, RANGE_FLOOR_FRAC * m["range"]), np.nan)
+    m["range_sigma_frac"] = np.where(rok, np.maximum(sq / mq, RANGE_FLOOR_FRAC), np.nan)
+    m["range_sigma"] = m["range_sigma_frac"] * m["range_filter"]
 
 
 def filter_config(cfg: RendezvousConfig) -> FilterConfig:
@@ -826,7 +894,7 @@ def run_filter(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, m: dict
     decay, seed_los = cob_bias_decay(spec, ctx)
     seed_los(draw["x0_nominal"][None], hill_to_icrs(spec.orbit, spec.times[:1])[0])
     xs, Ps = rf.run(draw["x0_nominal"][None], P0[None], spec.times, spec.orbit, filter_config(c), ranges=rng[None],
-                    range_sig=np.nan_to_num(m["range_sigma"], nan=1.0)[None],
+                    range_sig_frac=np.nan_to_num(m["range_sigma_frac"], nan=1.0)[None],
                     dv_times=np.asarray(c.manoeuvre_times_s), dv=draw["dv_nominal"] if len(c.manoeuvre_times_s)
                     else None, select=target_selector(spec, ctx, m), n_bias=nb, bias_decay=decay if nb else None)
     return xs[0], Ps[0]
