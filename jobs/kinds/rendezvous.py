@@ -18,7 +18,9 @@ One case is one approach of a chaser to a target near a circular orbit::
     -> the EKF over the frames (nav/relative_filter.run: CW prediction, the known manoeuvres with their nominal
        delta-v and execution error, bearing and range updates; two Gauss-Markov states for the centre of
        brightness's residual that a target spinning about a fixed axis keeps from frame to frame,
-       scene/photocentre_bias.py; the blobber's range with its known bias removed, nav/blobber_range_error.py;
+       scene/photocentre_bias.py; the blobber's range with its bias removed and its spread as a fraction of the
+       predicted range, both from a calibration of the blobber through the camera's own renderer,
+       :func:`blobber_range_calibration`, nav/blobber_range_error.py; a blob cut by the frame's edge gives neither;
        no process noise: the truth has none) -> Arrow rows (jobs/kinds/rendezvous_tables.py)
 
 Target finding (``nav/target_finding.py``, issue 23.3): in a star frame every detection that matches no catalog
