@@ -46,8 +46,8 @@ STAR_TIMING = ("t_sample_ns", "t_render_ns", "t_detect_ns", "t_identify_ns", "t_
 STAR_ORDER = {"star_cases": "case_id", "star_detections": "case_id, det_index"}
 PROX_TIMING = ("t_sample_ns", "t_render_ns", "t_blob_paper_ns", "t_blob_subpixel_ns", "t_total_ns")
 PROX_ORDER = {"prox_cases": "case_id"}
-TRACK_TIMING = ("t_render_ns", "t_detect_ns", "t_predict_ns", "t_track_ns", "t_lis_ns", "t_rate_ns", "t_nav_ns",
-                "t_shadow_lis_ns", "t_sample_ns", "t_total_ns")
+TRACK_TIMING = ("t_render_ns", "t_detect_ns", "t_predict_ns", "t_track_ns", "t_lis_ns", "t_rate_ns", "t_filter_ns",
+                "t_nav_ns", "t_shadow_lis_ns", "t_sample_ns", "t_total_ns")
 
 
 def rotation_angle_arcsec(A: np.ndarray, B: np.ndarray) -> float:
