@@ -102,8 +102,9 @@ GATE_PROB = 0.99999
 """Probability of the chi-square(2) validation gate on the bearing innovation (``nav/target_finding.py``): a
 bearing farther from the filter's prediction than this (wrong identification or attitude, a false detection) is
 not used.  The candidates are already the detections no catalog star explains that move against the stars, so the
-gate guards against identification and attitude failures only; the true target's bearings have heavier tails than
-a Gaussian (1.3-1.6 % of the far preset's frames beyond the 2-dof 99.73 % point against 0.27 %, seeds 1-4), and a
+gate guards against identification and attitude failures only; the true target's bearings had heavier tails than
+a Gaussian (1.3-1.6 % of the far preset's frames beyond the 2-dof 99.73 % point against 0.27 %, seeds 1-4, before
+the point target's centroid sigma came from its calibration: at most 0.14 % since, below 400 m 1.6-2 %), and a
 filter without process noise (the truth has none) that rejects two or three of them in a row can stay locked out
 (0.999: seed 2 case 83 and seed 4 case 89 gated out for 41 and 55 frames), so the gate is wide (d2 < 23.0)."""
 MATCH_TOL_PX = 2.0
