@@ -180,3 +180,35 @@ def orion_field(camera: Camera):
                           hot_pixel_fraction=2e-4, hot_pixel_e=3000.0, hot_pixel_seed=7, bias_adu=20.0)
     field_ = stars_in_field(A[None], cat.unit, flux_from_magnitude(cat.vmag, sensor), camera, psf_margin_px(sensor))
     return A, cat, sensor, field_
+
+
+def noisy_block_sequence(camera: Camera, seed: int = 15):
+    """A 60-frame sequence at 10 fps turning at 0.3 deg/s about a random axis over a random sphere catalog (3,000
+    stars, seed 21): detections are the catalog stars in the image with Gaussian centroid noise of 0.05 px, except
+    the first two frames and four blocks of 4 frames (8, 20, 32, 44) at 0.6 px, each stated honestly per detection.
+    Returns SimpleNamespace(t (T,), A (T, 3, 3) true attitudes, w (3,) rad/s, xy (K, 2), sg (K,), off (T + 1,),
+    noisy (T,) bool, cat (N, 3), pairs: the pair catalog's i, j, angle)."""
+    from types import SimpleNamespace
+    rng = np.random.default_rng(seed)
+    cat = sphere_catalog(21, 3000)
+    pi, pj, pa = pair_catalog(cat, camera.fov_rad[2] * 1.05)
+    T = 60
+    noisy = np.zeros(T, bool)
+    noisy[:2] = True
+    for s0 in (8, 20, 32, 44):
+        noisy[s0: s0 + 4] = True
+    A0 = euler123_to_dcm(random_euler123(rng, 1))[0]
+    w = unit(rng.normal(size=3)) * math.radians(0.3)
+    t = np.arange(T) / 10.0
+    A = np.stack([rotation(w, np.linalg.norm(w) * tk).T @ A0 for tk in t])
+    xys, sgs, counts = [], [], []
+    for k in range(T):
+        px, front = camera.project(cat @ A[k].T)
+        inn = np.flatnonzero(front & camera.in_image(np.nan_to_num(px, nan=-1.0)))
+        s_k = 0.6 if noisy[k] else 0.05
+        xys.append(px[inn] + rng.normal(scale=s_k, size=(inn.size, 2)))
+        sgs.append(np.full(inn.size, s_k))
+        counts.append(inn.size)
+    return SimpleNamespace(t=t, A=A, w=w, xy=np.concatenate(xys), sg=np.concatenate(sgs),
+                           off=np.concatenate([[0], np.cumsum(counts)]), noisy=noisy, cat=cat,
+                           pairs=SimpleNamespace(i=pi, j=pj, angle=pa))

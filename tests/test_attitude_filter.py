@@ -26,7 +26,7 @@ from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.attitude import euler123_to_dcm, random_euler123
 from dualsight.scene.camera import Camera
 from dualsight.scene.rotation_vector import frame_rotation
-from helpers import pair_catalog, rotation, sphere_catalog, unit
+from helpers import noisy_block_sequence, unit
 
 ARCSEC = math.pi / 180 / 3600
 PINHOLE = Camera(1024, 768, 4.65e-6, 3655.9, 3600.0, 512.0, 384.0, (0.0, 0.0, 0.0, 0.0, 0.0))
@@ -115,30 +115,9 @@ def test_the_noisy_frames_of_a_track_are_fused_not_withheld():
     0.05 px, with blocks of 0.6 px frames whose own roll 1-sigma is ~100 arcsec): with the filter the noisy frames
     inside the track are output, within the 100 arcsec limit and 4.5 stated sigmas, their roll error a fraction of
     the frames' own."""
-    rng = np.random.default_rng(15)
     cam = PINHOLE
-    cat = sphere_catalog(21, 3000)
-    pi, pj, pa = pair_catalog(cat, cam.fov_rad[2] * 1.05)
-    pairs = SimpleNamespace(i=pi, j=pj, angle=pa)
-    T = 60
-    noisy = np.zeros(T, bool)
-    noisy[:2] = True
-    for s0 in (8, 20, 32, 44):
-        noisy[s0: s0 + 4] = True
-    A0 = euler123_to_dcm(random_euler123(rng, 1))[0]
-    w = unit(rng.normal(size=3)) * math.radians(0.3)
-    t = np.arange(T) / 10.0
-    A = np.stack([rotation(w, np.linalg.norm(w) * tk).T @ A0 for tk in t])
-    xys, sgs, counts = [], [], []
-    for k in range(T):
-        px, front = cam.project(cat @ A[k].T)
-        inn = np.flatnonzero(front & cam.in_image(np.nan_to_num(px, nan=-1.0)))
-        s_k = 0.6 if noisy[k] else 0.05
-        xys.append(px[inn] + rng.normal(scale=s_k, size=(inn.size, 2)))
-        sgs.append(np.full(inn.size, s_k))
-        counts.append(inn.size)
-    off = np.concatenate([[0], np.cumsum(counts)])
-    xy, sg = np.concatenate(xys), np.concatenate(sgs)
+    sq = noisy_block_sequence(cam)
+    t, A, w, xy, sg, off, noisy, cat, pairs = sq.t, sq.A, sq.w, sq.xy, sq.sg, sq.off, sq.noisy, sq.cat, sq.pairs
     out = {}
     for name, on in (("frame", False), ("filter", True)):
         cfg = TrackingConfig(centroid_sigma_px=0.05, max_sigma_rad=25 * ARCSEC, attitude_filter=on)
