@@ -212,3 +212,26 @@ def noisy_block_sequence(camera: Camera, seed: int = 15):
     return SimpleNamespace(t=t, A=A, w=w, xy=np.concatenate(xys), sg=np.concatenate(sgs),
                            off=np.concatenate([[0], np.cumsum(counts)]), noisy=noisy, cat=cat,
                            pairs=SimpleNamespace(i=pi, j=pj, angle=pa))
+
+
+def angle_deg(a, b):
+    """(...,) degrees between the vectors a and b (..., 3), any lengths."""
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, -1), -1, 1)))
+
+
+def sky_geometry(boresight, r_km, sun_km, moon_km):
+    """The truth of the keep-out and shadow columns by brute-force geometry from astropy's positions.
+
+    boresight : (N, 3) the camera's +z in ICRS.  r_km, sun_km, moon_km : (N, 3) the spacecraft's, the Sun's and the
+    Moon's geocentric positions (km).  Returns dict of (N,) arrays: sun_deg, moon_deg (angles from the boresight,
+    seen from the spacecraft), limb_deg (to the Earth's limb, R = 6378.137 km), umbra (the Sun, 0.27 deg, wholly
+    behind the Earth's disk), clear (neither umbra nor within 0.3 deg of the limb: the frames a shadow test judges).
+    """
+    rho = np.degrees(np.arcsin(6378.137 / np.linalg.norm(r_km, axis=1)))
+    sep = angle_deg(sun_km - r_km, -r_km)
+    umbra = sep < rho - 0.27
+    return {"sun_deg": angle_deg(boresight, sun_km - r_km), "moon_deg": angle_deg(boresight, moon_km - r_km),
+            "limb_deg": angle_deg(boresight, -r_km) - rho, "umbra": umbra,
+            "clear": ~umbra & (np.abs(sep - rho) > 0.3)}

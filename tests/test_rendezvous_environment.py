@@ -11,6 +11,7 @@ import pytest
 
 from dualsight.errors import ConfigError
 from dualsight.jobs.kinds import rendezvous as rz
+from helpers import angle_deg, sky_geometry
 
 ENV = {"epoch_utc": "2032-06-01T03:00:00", "sun_keepout_deg": 40.0, "earth_keepout_deg": 25.0,
        "moon_keepout_deg": 15.0}
@@ -27,12 +28,6 @@ def _spec(config):
 def case():
     spec = _spec(FAR)
     return spec, rz.compute_case(spec, rz.make_context(spec), 0)
-
-
-def _ang(a, b):
-    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
-    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
-    return np.degrees(np.arccos(np.clip(np.sum(a * b, -1), -1, 1)))
 
 
 def test_frames_against_astropy(case):
@@ -65,22 +60,18 @@ def test_frames_against_astropy(case):
         sun = get_body("sun", tm).cartesian.xyz.to("km").value.T
         moon = get_body("moon", tm).cartesian.xyz.to("km").value.T
     b = out["geo"]["A_true"][:, 2, :]
-    sun_deg = _ang(b, sun - r)
+    g = sky_geometry(b, r, sun, moon)
+    sun_deg, limb, umbra, clear = g["sun_deg"], g["limb_deg"], g["umbra"], g["clear"]
     assert np.max(np.abs(np.array(rows["sun_angle_deg"]) - sun_deg)) < 0.012
-    assert np.max(np.abs(np.array(rows["moon_angle_deg"]) - _ang(b, moon - r))) < 0.35
-    rho = np.degrees(np.arcsin(6378.137 / np.linalg.norm(r, axis=1)))
-    limb = _ang(b, -r) - rho
+    assert np.max(np.abs(np.array(rows["moon_angle_deg"]) - g["moon_deg"])) < 0.35
     assert np.max(np.abs(np.array(rows["earth_limb_angle_deg"]) - limb)) < 1e-6
     assert rows["sun_keepout"] == (sun_deg < 40.0).tolist()
     assert rows["earth_keepout"] == (limb < 25.0).tolist()
-    sep = _ang(sun - r, -r)
-    umbra = sep < rho - 0.27
-    clear = ~umbra & (np.abs(sep - rho) > 0.3)
     ecl = np.array(rows["eclipse"])
     assert np.array_equal(ecl[clear | umbra], umbra[clear | umbra])
     assert 0 < ecl.sum() < len(t)                      # an orbit: some frames in the shadow, some not
     # the target is lit by the epoch's Sun
-    assert _ang(out["geo"]["targets"].sun_icrs[0], sun[0]).max() < 0.012
+    assert angle_deg(out["geo"]["targets"].sun_icrs[0], sun[0]).max() < 0.012
 
 
 def test_without_the_table_null():

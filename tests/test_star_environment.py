@@ -14,6 +14,7 @@ import pytest
 from dualsight.errors import ConfigError
 from dualsight.jobs.engine.specs import preset_and_config
 from dualsight.jobs.kinds import star
+from helpers import angle_deg, sky_geometry
 
 SAT = "examples/satellites/cubesat_3u.toml"
 ENV = {"epoch_utc": ["2031-01-01T00:00:00", "2031-12-31T00:00:00"], "altitude_km": 600.0, "inclination_deg": 45.0,
@@ -50,12 +51,6 @@ def _truth_positions(seed):
     return np.array(out_t), np.array(out_r)
 
 
-def _ang(a, b):
-    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
-    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
-    return np.degrees(np.arccos(np.clip(np.sum(a * b, -1), -1, 1)))
-
-
 def test_rows_against_astropy(runs):
     from astropy.utils import iers
     iers.conf.auto_download = False
@@ -73,18 +68,14 @@ def test_rows_against_astropy(runs):
         sun = get_body("sun", t).cartesian.xyz.to("km").value.T
         moon = get_body("moon", t).cartesian.xyz.to("km").value.T
     b = np.asarray(out["draw"]["A_true"])[:, 2, :]            # the camera's +z in ICRS
-    sun_deg = _ang(b, sun - r)
+    g = sky_geometry(b, r, sun, moon)
+    sun_deg, limb, umbra, clear = g["sun_deg"], g["limb_deg"], g["umbra"], g["clear"]
     assert np.max(np.abs(np.degrees(rows["sun_angle_rad"]) - sun_deg)) < 0.012
-    assert np.max(np.abs(np.degrees(rows["moon_angle_rad"]) - _ang(b, moon - r))) < 0.35
-    rho = np.degrees(np.arcsin(6378.137 / np.linalg.norm(r, axis=1)))
-    limb = _ang(b, -r) - rho
+    assert np.max(np.abs(np.degrees(rows["moon_angle_rad"]) - g["moon_deg"])) < 0.35
     assert np.max(np.abs(np.degrees(rows["earth_limb_angle_rad"]) - limb)) < 1e-6
     assert rows["sun_keepout"] == (sun_deg < 35.0).tolist()
     assert rows["earth_keepout"] == (limb < 22.0).tolist()
     # shadow: the Sun (0.27 deg) wholly behind the Earth's disk from the spacecraft
-    sep = _ang(sun - r, -r)
-    umbra = sep < rho - 0.27
-    clear = ~umbra & (np.abs(sep - rho) > 0.3)
     assert np.array_equal(np.array(rows["eclipse"])[clear | umbra], umbra[clear | umbra])
     # a target in the umbra is dark: no light, no detection of it
     ecl = np.array(rows["eclipse"])
@@ -93,7 +84,7 @@ def test_rows_against_astropy(runs):
     # the target's Sun is the epoch's: its RA/Dec column is the Sun seen from the spacecraft
     s = np.stack([np.cos(rows["sun_dec_rad"]) * np.cos(rows["sun_ra_rad"]),
                   np.cos(rows["sun_dec_rad"]) * np.sin(rows["sun_ra_rad"]), np.sin(rows["sun_dec_rad"])], -1)
-    assert _ang(s, sun - r).max() < 0.012
+    assert angle_deg(s, sun - r).max() < 0.012
 
 
 def test_without_environment_null_and_unchanged(runs):
