@@ -38,7 +38,7 @@ import numpy as np
 from dualsight.nav.angular_rate import log_rotation
 from dualsight.scene.rotation_vector import frame_rotation
 
-__all__ = ["FilterState", "start", "predict", "combined", "innovation", "update"]
+__all__ = ["FilterState", "start", "predict", "combined", "rate", "innovation", "update"]
 
 _I3 = np.eye(3)
 
@@ -84,7 +84,17 @@ def _moments(x: np.ndarray, P: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, n
     """Mean (9,) and covariance (9, 9) of a Gaussian mixture: weights w (M,), means x (M, 9), covariances P."""
     m = w @ x
     d = x - m
-    return m, np.einsum("m,mij->ij", w, P) + (d.T * w) @ d
+    return m, np.tensordot(w, P, 1) + (d.T * w) @ d
+
+
+def _kron_i3(g: np.ndarray) -> np.ndarray:
+    """(9, 9) ``kron(outer(g, g), I3)`` for g (3,): one 3 x 3 block per pair of the state's three parts."""
+    return (np.multiply.outer(g, g)[:, None, :, None] * _I3[None, :, None, :]).reshape(9, 9)
+
+
+def rate(s: FilterState) -> np.ndarray:
+    """(3,) rad/s the combined rate (the probability-weighted mean of the models'), without the covariance."""
+    return s.mu @ s.x[:, 3:6]
 
 
 def predict(s: FilterState, t: float, noise: np.ndarray, switch: np.ndarray, const_accel: np.ndarray | None = None,
@@ -116,7 +126,7 @@ def predict(s: FilterState, t: float, noise: np.ndarray, switch: np.ndarray, con
         Ps[~ca, 6:, 6:] = a_C
     x0 = mix.T @ xs
     d = xs[None, :, :] - x0[:, None, :]                 # (j, i, 9): model i's mean from model j's mixed one
-    P0 = np.einsum("ij,iab->jab", mix, Ps) + np.einsum("ij,jia,jib->jab", mix, d, d)
+    P0 = np.tensordot(mix.T, Ps, 1) + np.swapaxes(d * mix.T[:, :, None], 1, 2) @ d
     x0[~ca, 6:] = 0.0                                   # a constant-rate model has no acceleration
     P0[~ca, 6:, :] = 0.0
     P0[~ca, :, 6:] = 0.0
@@ -141,7 +151,7 @@ def predict(s: FilterState, t: float, noise: np.ndarray, switch: np.ndarray, con
     g_cv = np.array([0.5 * dt * dt, dt, 0.0])           # DWNA: acceleration held over the interval
     g_ca = np.array([dt ** 3 / 6.0, 0.5 * dt * dt, dt])  # DWPA: jerk held over the interval
     P_free = F @ P0 @ F.T
-    q = np.where(ca[:, None, None], np.kron(np.outer(g_ca, g_ca), _I3), np.kron(np.outer(g_cv, g_cv), _I3))
+    q = np.where(ca[:, None, None], _kron_i3(g_ca), _kron_i3(g_cv)) if ca.any() else _kron_i3(g_cv)
     P = P_free + (np.asarray(noise, np.float64) ** 2)[:, None, None] * q
     if gyro is not None:                                # the gyro's rate: no random acceleration on it
         for Q in (P, P_free):

@@ -302,7 +302,7 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
             if smear:
                 # a streak fitted as a round PSF: its centroid error grows with the streak's length, which the
                 # filter's rate predicts (nav/smear_weights.py); across the streak by smear_cross_per_px
-                om_p = filt.combined(pstate)[2]
+                om_p = filt.rate(pstate)
                 sg_t = np.hypot(sg, cfg.smear_cross_per_px * streak_length(xy, camera, om_p, exposure_s))
             c1 = clock()
             res = track(pred, xy, sg_t, cat_unit, camera, cfg)

@@ -64,6 +64,31 @@ def test_without_acceleration_the_filter_is_the_constant_rate_regression(seed):
     np.testing.assert_allclose(np.diag(C_f), sig ** 2 / np.sum((t - t.mean()) ** 2), rtol=0.02)
 
 
+def test_the_mixing_step_is_bar_shalom_term_by_term():
+    """IMM interaction (Bar-Shalom, Li & Kirubarajan 2001, Eqs. 11.6.6-6 to -9), written out as sums over models:
+    c_j = sum_i p_ij mu_i, mu_i|j = p_ij mu_i / c_j, x0_j = sum_i mu_i|j x_i, P0_j = sum_i mu_i|j (P_i + (x_i -
+    x0_j)(x_i - x0_j)^T).  With no time step (F = I, no random acceleration) predict's P_free is P0 and its
+    probabilities c; constant-rate models carry no acceleration (zero rows and columns)."""
+    rng = np.random.default_rng(7)
+    M = 3
+    x = rng.normal(size=(M, 9)) * 1e-3
+    L = rng.normal(size=(M, 9, 9)) * 1e-3
+    P = L @ np.swapaxes(L, 1, 2) + np.eye(9) * 1e-9
+    mu = np.array([0.6, 0.3, 0.1])
+    p = np.array([[0.90, 0.06, 0.04], [0.10, 0.85, 0.05], [0.02, 0.08, 0.90]])
+    s = af.FilterState(np.eye(3), x, P, mu, 0.0)
+    out = af.predict(s, 0.0, np.zeros(M), p)
+    for j in range(M):
+        c = sum(p[i, j] * mu[i] for i in range(M))
+        assert out.mu[j] == pytest.approx(c, rel=1e-12)
+        w = [p[i, j] * mu[i] / c for i in range(M)]
+        x0 = sum(w[i] * x[i] for i in range(M))
+        P0 = sum(w[i] * (P[i] + np.outer(x[i] - x0, x[i] - x0)) for i in range(M))
+        np.testing.assert_allclose(out.x[j, :6], x0[:6], rtol=1e-10, atol=1e-18)
+        np.testing.assert_allclose(out.P_free[j, :6, :6], P0[:6, :6], rtol=1e-10, atol=1e-20)
+        assert not out.x[j, 6:].any() and not out.P_free[j, 6:].any()
+
+
 def test_a_static_attitude_measured_n_times_has_covariance_r_over_n():
     rng = np.random.default_rng(4)
     A0 = euler123_to_dcm(random_euler123(rng, 1))[0]
