@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+import duckdb
 import pytest
 
 from dualsight.errors import InputError
@@ -127,6 +128,19 @@ def test_default_shard_size_depends_on_the_case_count_only():
     assert default_shard_size(10**7) == 1000
     assert default_shard_size(10**9) == 10**5          # at most ~10^4 shards
     assert -(-10**9 // default_shard_size(10**9)) == 10**4
+
+
+def test_a_kind_with_slow_cases_caps_its_shards(tmp_path, monkeypatch):
+    assert default_shard_size(2000, 25) == 25               # 80 shards instead of 8 of 250
+    assert default_shard_size(100, 25) == 25
+    assert default_shard_size(2000, 7) == 7
+    assert default_shard_size(10**9, 25) == 10**5           # the cap never makes more than ~10^4 shards
+    from dualsight.jobs.kinds import selftest
+    monkeypatch.setattr(selftest, "MAX_SHARD_CASES", 10, raising=False)
+    m = run_job("selftest", {"seed": 1}, n_cases=100, lake=Lake(tmp_path), run_id="r", workers=1, progress=False)
+    assert (m["shard_size"], m["n_shards"]) == (10, 10)     # the runner plans with the kind's cap
+    ids = duckdb.sql(f"SELECT case_id FROM read_parquet('{tmp_path}/{selftest.PRIMARY}/**/*.parquet') ORDER BY 1")
+    assert [r[0] for r in ids.fetchall()] == list(range(100))
 
 
 # ============================================================================================ identity

@@ -9,8 +9,9 @@ that defines::
     spec_from_dict(d, source) -> spec  validated spec (raises ConfigError); ``spec.to_dict()`` is canonical
     make_context(spec) -> ctx          per-process state (catalogs, tables), built once per worker process
     compute_shard(spec, case_ids, ctx) -> {dataset: pa.Table}
-    optional: memory_estimate(spec) -> bytes, shard_summary(tables) -> {name: int}, progress_postfix(stats) -> str
-              datasets(spec) -> [names]: the datasets of SCHEMAS this spec writes (default: all)
+    optional: memory_estimate(spec) -> bytes, shard_summary(tables) -> {name: int}, progress_postfix(stats) -> str,
+              datasets(spec) -> [names]: the datasets of SCHEMAS this spec writes (default: all),
+              MAX_SHARD_CASES: int, cases per shard at most (a kind whose cases take seconds each)
 
 Identity.  A run is its canonical spec: ``spec_hash`` is a SHA-256 over the kind, the canonical spec, the
 number of cases and the code version (:func:`dualsight.version.code_version`).  The manifest and every
@@ -100,11 +101,16 @@ def default_run_id(kind: str, hash_hex: str) -> str:
     return f"{kind.replace('_', '-')}-{hash_hex}"
 
 
-def default_shard_size(n_cases: int) -> int:
-    """Cases per shard from the case count alone (never from the worker count, so a rerun on other
-    hardware plans the same shards): 1/8 of the run within [25, 1000], growing to 1/10^4 of it beyond
-    10^7 cases so that no run has more than ~10^4 shards."""
-    return int(max(min(1000, max(25, math.ceil(n_cases / 8))), math.ceil(n_cases / 10**4)))
+def default_shard_size(n_cases: int, max_cases: int | None = None) -> int:
+    """Cases per shard from the case count and the kind alone (never from the worker count, so a rerun on other
+    hardware plans the same shards): 1/8 of the run within [25, 1000], at most ``max_cases`` (a kind's
+    ``MAX_SHARD_CASES``: cases that take seconds each, so that a shard, the unit of progress and of work lost to a
+    killed worker, stays near a minute), growing to 1/10^4 of the run beyond 10^7 cases so that no run has more
+    than ~10^4 shards."""
+    size = min(1000, max(25, math.ceil(n_cases / 8)))
+    if max_cases is not None:
+        size = min(size, max(1, int(max_cases)))
+    return int(max(size, math.ceil(n_cases / 10**4)))
 
 
 @dataclass(frozen=True)
@@ -247,7 +253,8 @@ def _run_job_locked(mod, kind, canonical, h, n_cases, lake, run_id, datasets, sh
                 raise InputError(f"run {run_id!r} has no manifest but its shards belong to another spec "
                                  f"(hash {sorted(foreign)[0]}, this one {h}); choose another --run, or remove "
                                  "the old run with `dualsight lake check --repair`", source="--run")
-            plan = Plan(run_id, kind, n_cases, shard_size or default_shard_size(n_cases), h)
+            plan = Plan(run_id, kind, n_cases,
+                        shard_size or default_shard_size(n_cases, getattr(mod, "MAX_SHARD_CASES", None)), h)
             manifest = {"run_id": run_id, "kind": kind, "job": mod.NAME, "label": label, "spec": canonical,
                         "spec_hash": h, "code_version": code_version(), "seed": canonical.get("seed"),
                         "n_cases": n_cases, "shard_size": plan.shard_size, "n_shards": plan.n_shards,

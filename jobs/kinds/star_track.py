@@ -58,6 +58,9 @@ from dualsight.scene.units import ARCSEC, DEG
 
 NAME = "star_track"
 PRIMARY = "star_sequences"
+MAX_SHARD_CASES = 25
+"""A sequence (50 frames of the realistic sensor) takes 1-3 s on a core: 25 per shard keep a shard, the progress
+bar's step and the work a killed worker loses, near a minute (``jobs/engine/runner.default_shard_size``)."""
 SCHEMAS = {"star_sequences": SEQUENCES_SCHEMA, "star_frames": FRAMES_SCHEMA}
 DEFAULT_CASES = 100
 
