@@ -84,7 +84,7 @@ def _moments(x: np.ndarray, P: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, n
     """Mean (9,) and covariance (9, 9) of a Gaussian mixture: weights w (M,), means x (M, 9), covariances P."""
     m = w @ x
     d = x - m
-    return m, np.tensordot(w, P, 1) + (d.T * w) @ d
+    return m, (w @ P.reshape(len(w), -1)).reshape(P.shape[1:]) + (d.T * w) @ d
 
 
 def _kron_i3(g: np.ndarray) -> np.ndarray:
@@ -126,7 +126,7 @@ def predict(s: FilterState, t: float, noise: np.ndarray, switch: np.ndarray, con
         Ps[~ca, 6:, 6:] = a_C
     x0 = mix.T @ xs
     d = xs[None, :, :] - x0[:, None, :]                 # (j, i, 9): model i's mean from model j's mixed one
-    P0 = np.tensordot(mix.T, Ps, 1) + np.swapaxes(d * mix.T[:, :, None], 1, 2) @ d
+    P0 = (mix.T @ Ps.reshape(M, -1)).reshape(Ps.shape) + np.swapaxes(d * mix.T[:, :, None], 1, 2) @ d
     x0[~ca, 6:] = 0.0                                   # a constant-rate model has no acceleration
     P0[~ca, 6:, :] = 0.0
     P0[~ca, :, 6:] = 0.0
