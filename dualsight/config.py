@@ -316,7 +316,7 @@ _TRACKING_UNITS = {"window_k_sigma": "sigma", "window_min_px": "px", "window_max
                    "initial_cone_rad": "rad", "rate_sigma_rad_s": "rad/s", "max_sigma_rad": "rad",
                    "accel_steady_rad_s2": "rad/s^2", "accel_manoeuvre_rad_s2": "rad/s^2",
                    "filter_max_gap_s": "s", "jerk_rad_s3": "rad/s^3",
-                   "smear_sigma_per_px": "px/px", "smear_cross_per_px": "px/px"}
+                   "smear_sigma_per_px": "px/px", "smear_cross_per_px": "px/px", "rate_jitter_rad_s": "rad/s"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -381,6 +381,11 @@ class TrackingConfig:
         ``nav/smear_weights.py``; the tracked attitude is then refined with each star's 2 x 2 covariance), in
         [0, 1] (defaults 0: off; ``examples/star/track.toml`` sets 0.02 and 0.003 for the ``realistic`` preset's
         local detector).
+    rate_jitter_rad_s : 1-sigma per axis (rad/s) of the platform's rate jitter, faster than the filter follows,
+        added to the filter's stated rate covariance (``rate_filter_cov``): the filter's rate is the rate averaged
+        over its memory, the row's truth the rate at the frame, and they differ by the jitter's.  A sinusoid of
+        amplitude a (rad) at f (Hz) per axis has an RMS rate of ``2 pi f a / sqrt(2)`` (``examples/star/track.toml``:
+        2 arcsec at 2 Hz, 8.6e-5 rad/s).  In [0, 1 rad/s] (default 0: no jitter stated).
     """
 
     window_k_sigma: typing.Annotated[float, pydantic.Field(gt=0, le=20.0)] = 5.0
@@ -406,6 +411,7 @@ class TrackingConfig:
     filter_max_gap_s: typing.Annotated[float, pydantic.Field(gt=0, le=1e6)] = 1.0
     smear_sigma_per_px: typing.Annotated[float, pydantic.Field(ge=0, le=1.0)] = 0.0
     smear_cross_per_px: typing.Annotated[float, pydantic.Field(ge=0, le=1.0)] = 0.0
+    rate_jitter_rad_s: typing.Annotated[float, pydantic.Field(ge=0, le=1.0)] = 0.0
 
     def __post_init__(self):
         check_fields(self, lambda name, msg: ConfigError(msg, field=f"tracking.{name}"), _TRACKING_UNITS)

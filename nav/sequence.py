@@ -137,8 +137,8 @@ class SequenceResult:
     attitude and covariance in A_degraded, cov_degraded (T, 3, 3) (NaN elsewhere).  sigma_max : (T,) rad that
     largest principal 1-sigma of every verified answer (NaN elsewhere; the filtered attitude's with
     ``cfg.attitude_filter``).  frame_sigma_max : (T,) rad the same of the frame's own solution (before the filter).
-    rate_filter, rate_filter_cov : (T, 3) rad/s, (T, 3, 3) (rad/s)^2 the filter's rate at the frame (NaN without
-    the filter or a fused solution).  p_manoeuvre : (T,) the filter's probability of not being in its steady model
+    rate_filter, rate_filter_cov : (T, 3) rad/s, (T, 3, 3) (rad/s)^2 the filter's rate at the frame and its
+    covariance with ``cfg.rate_jitter_rad_s`` added (NaN without the filter or a fused solution).  p_manoeuvre : (T,) the filter's probability of not being in its steady model
     (the accelerating and the manoeuvre models; NaN as above).  rate_att, rate_star : (T, 3) rad/s rate from the last two fixes / from the stars seen in both, with
     rate_att_cov, rate_star_cov (T, 3, 3) (rad/s)^2 (NaN where not available); rate_pairs : stars of rate_star.
     t_predict_ns (propagate + predict; with the filter, predict only), t_track_ns (match + solve + verify),
@@ -346,7 +346,8 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                     state = filt.update(pstate, A, P)
                 last_fused = k
                 A, P, om_f, C_f = filt.combined(state)
-                out["rate_filter"][k], out["rate_filter_cov"][k] = om_f, C_f
+                out["rate_filter"][k] = om_f
+                out["rate_filter_cov"][k] = C_f + np.eye(3) * cfg.rate_jitter_rad_s ** 2    # the jitter it averages
                 out["p_manoeuvre"][k] = 1.0 - state.mu[0]
             out["sigma_max"][k] = max_sigma(P)
             t_fuse = clock() - c0
