@@ -309,6 +309,16 @@ def _build_clipped(dtype):
         return lo
 
     @ti.func
+    def moved(s: ti.template(), r, a, b, med, sign, s1, s2):
+        """The window's sums s1 (of v - med) and s2 (of its square) with the row's values a..b-1 added (``sign``
+        1) or taken out (-1), one by one in order (an empty range: unchanged)."""
+        for i in range(a, b):
+            d = sign * (ti.cast(s[r, i], f64) - med)
+            s1 += d
+            s2 += sign * (d * d)
+        return s1, s2
+
+    @ti.func
     def lattice(s: ti.template(), r, N, q):
         """The row's quantile q on the 1-ADU lattice (detect_background.lattice_quantiles)."""
         k = q * N
@@ -350,22 +360,10 @@ def _build_clipped(dtype):
                         s1, s2 = f64(0.0), f64(0.0)
                     # the window's sums from the last one's: only the values at its moved ends are added or taken
                     # out (a window moves by a few values of the sorted row: ~1/3 of the work of summing it anew)
-                    for i in range(lo, plo):
-                        d = ti.cast(s[r, i], f64) - med
-                        s1 += d
-                        s2 += d * d
-                    for i in range(plo, lo):
-                        d = ti.cast(s[r, i], f64) - med
-                        s1 -= d
-                        s2 -= d * d
-                    for i in range(phi, hi):
-                        d = ti.cast(s[r, i], f64) - med
-                        s1 += d
-                        s2 += d * d
-                    for i in range(hi, phi):
-                        d = ti.cast(s[r, i], f64) - med
-                        s1 -= d
-                        s2 -= d * d
+                    s1, s2 = moved(s, r, lo, plo, med, f64(1.0), s1, s2)     # entered at the low end
+                    s1, s2 = moved(s, r, plo, lo, med, f64(-1.0), s1, s2)    # left at the low end
+                    s1, s2 = moved(s, r, phi, hi, med, f64(1.0), s1, s2)     # entered at the high end
+                    s1, s2 = moved(s, r, hi, phi, med, f64(-1.0), s1, s2)    # left at the high end
                     plo, phi = lo, hi
                     mean = s1 / (hi - lo)
                     if sig > 0:
