@@ -317,11 +317,12 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                 used = res.det_row >= 0
                 if smear and int(used.sum()) >= 3:        # along the streak by smear_sigma_per_px
                     r_u = cat_unit[res.det_row[used]]
-                    u, length = smear_axes(pixel_jacobian(r_u @ res.A.T, camera), om_p, exposure_s)
+                    G_u = pixel_jacobian(r_u @ res.A.T, camera)
+                    u, length = smear_axes(G_u, om_p, exposure_s)
                     s2 = sg[used] ** 2
                     A2, C2, chi2 = refine_anisotropic(res.A, xy[used], r_u, camera,
                                                       s2 + (cfg.smear_sigma_per_px * length) ** 2,
-                                                      s2 + (cfg.smear_cross_per_px * length) ** 2, u)
+                                                      s2 + (cfg.smear_cross_per_px * length) ** 2, u, G_u)
                     meas = (A2, C2 * max(1.0, chi2 / max(1, 2 * int(used.sum()) - 3)), TRACKING, res.det_row)
         if meas is None:                                                 # acquire, or fall back
             c0 = clock()

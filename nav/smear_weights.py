@@ -44,7 +44,7 @@ def smear_axes(G: np.ndarray, omega: np.ndarray, exposure_s: float) -> tuple[np.
 
 
 def refine_anisotropic(A: np.ndarray, det_xy: np.ndarray, r: np.ndarray, camera, var_along: np.ndarray,
-                       var_cross: np.ndarray, u: np.ndarray):
+                       var_cross: np.ndarray, u: np.ndarray, G: np.ndarray | None = None):
     """Weighted least-squares attitude with a 2 x 2 centroid covariance per star,
     ``C_i = var_along_i u u^T + var_cross_i n n^T`` (``n`` across the streak): one Gauss-Newton step on the
     reprojection error from ``A`` (Hartley & Zisserman, "Multiple View Geometry", 2nd ed., Sec. A6.1),
@@ -54,7 +54,8 @@ def refine_anisotropic(A: np.ndarray, det_xy: np.ndarray, r: np.ndarray, camera,
     ``y - G delta``.
 
     A : (3, 3) starting attitude (inertial -> camera).  det_xy : (M, 2) px.  r : (M, 3) catalog unit vectors of the
-    same stars.  var_along, var_cross : (M,) px^2.  u : (M, 2) unit smear directions.
+    same stars.  var_along, var_cross : (M,) px^2.  u : (M, 2) unit smear directions.  G : (M, 2, 3) the pixel
+    Jacobians at ``r @ A.T`` when the caller has them (:func:`smear_axes`'s), else computed here.
     Returns A (3, 3), cov (3, 3) rad^2 and chi2 (the weighted residual sum of squares after the step).
     """
     n = np.stack([-u[:, 1], u[:, 0]], axis=1)
@@ -63,7 +64,7 @@ def refine_anisotropic(A: np.ndarray, det_xy: np.ndarray, r: np.ndarray, camera,
     v = r @ A.T
     px, _ = camera.project(v)
     y = det_xy - px
-    G = pixel_jacobian(v, camera)
+    G = pixel_jacobian(v, camera) if G is None else G
     GtW = np.einsum("mki,mkl->mil", G, W)
     cov = np.linalg.inv(np.einsum("mil,mlj->ij", GtW, G))
     delta = cov @ np.einsum("mil,ml->i", GtW, y)
