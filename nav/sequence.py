@@ -10,9 +10,9 @@ Per frame ``k`` (in time order), with the last fix (attitude ``A_f``, covariance
    acceleration in the windows; with a gyro, its rates propagate: the mean of its two samples, covariance
    ``gyro_sigma^2 I / 2``; frames more than ``cfg.filter_max_gap_s`` apart, e.g. a ground camera's 30 s apart, are
    fused at a constant rate, every model without acceleration: the models' random acceleration is a spacecraft's at a few frames per second):
-   predict the stars (with ``exposure_s`` and ``cfg.smear_sigma_per_px``, each detection's sigma gains the
-   round-PSF fit's model error across its predicted streak, and the lock is refined with the 2 x 2 covariance along
-   and across it: ``nav/smear_weights.py``), match in windows, solve with the centroid
+   predict the stars (with ``exposure_s`` and ``cfg.smear_sigma_per_px``, the centroid of the detection each
+   predicted star pairs with gains the round-PSF fit's model error along and across the star's predicted streak, a
+   2 x 2 covariance: ``nav/smear_weights.py``), match in windows, solve with the centroid
    weights, verify.  Without the filter (``cfg.attitude_filter`` false) the last output fix is propagated with the
    rate from the last two fixes (``nav/angular_rate.rate_between``; else zero with ``cfg.rate_sigma_rad_s``).
 3. no prior, or tracking lost lock (its reason is kept in the row): **lost-in-space** on the same frame: geometric
@@ -50,9 +50,9 @@ from dualsight.nav import attitude_filter as filt
 from dualsight.nav.angular_rate import pair_by_identity, rate_between, rate_from_star_pairs
 from dualsight.nav.attitude import solve_identified
 from dualsight.nav.observations import MAX_OBS, Observations
-from dualsight.nav.smear_weights import refine_anisotropic, smear_axes, streak_length
+from dualsight.nav.smear_weights import smear_axes
 from dualsight.nav.star_solution import identify
-from dualsight.nav.tracking import (DEGRADED, LOCK_REASONS, NO_PRIOR, max_sigma, pixel_jacobian, predict, propagate,
+from dualsight.nav.tracking import (DEGRADED, LOCK_REASONS, NO_PRIOR, max_sigma, predict, propagate,
                                     track)
 
 __all__ = ["MODE_NAMES", "NO_FIX", "LOST_IN_SPACE", "TRACKING", "REASON_NAMES", "NO_IMAGE", "LisFix",
@@ -141,7 +141,8 @@ class SequenceResult:
     covariance with ``cfg.rate_jitter_rad_s`` added (NaN without the filter or a fused solution).  p_manoeuvre : (T,) the filter's probability of not being in its steady model
     (the accelerating and the manoeuvre models; NaN as above).  rate_att, rate_star : (T, 3) rad/s rate from the last two fixes / from the stars seen in both, with
     rate_att_cov, rate_star_cov (T, 3, 3) (rad/s)^2 (NaN where not available); rate_pairs : stars of rate_star.
-    t_predict_ns (propagate + predict; with the filter, predict only), t_track_ns (match + solve + verify),
+    t_predict_ns (propagate + predict, and the predicted streaks; with the filter, no propagation), t_track_ns
+    (match + solve + verify),
     t_lis_ns (voting + attitude), t_rate_ns (both rates), t_filter_ns (the attitude filter's prediction, fusion and
     estimate: it runs after either mode), t_total_ns : int64 wall time (-1 where the stage did not run).
     det_row : (K,) int64 catalog row of each detection in the answer (-1 none).  shadow_rows : (K,) int64
@@ -204,9 +205,9 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
     verified lost-in-space fix.  shadow_lis : also run lost-in-space on every frame (comparison only).
     engine : the voting's engine, ``"taichi"`` or ``"numpy"``.  focal : a ``nav.focal_refine.FocalFuser`` or None:
     after every fix it refines the focal length, and the next frames use its camera.
-    exposure_s : the frames' exposure (s): with the filter's rate, each detection's sigma in tracking gains
-    ``cfg.smear_cross_per_px`` times its predicted streak length in quadrature, and the lock is refined with
-    ``cfg.smear_sigma_per_px`` along the streak (``nav/smear_weights.py``; 0: neither).
+    exposure_s : the frames' exposure (s): with the filter's rate, a tracked detection's centroid variance gains
+    ``cfg.smear_sigma_per_px`` times its predicted star's streak length, squared, along the streak and
+    ``cfg.smear_cross_per_px`` times it across (``nav/smear_weights.py``; 0: neither).
     """
     t = np.asarray(times, np.float64)
     T = t.size
@@ -297,15 +298,16 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                     om, C = np.zeros(3), np.eye(3) * cfg.rate_sigma_rad_s ** 2
                 Ap, Pp = propagate(fix[0], fix[1], om, C, dt)
             pred = predict(Ap, Pp, cat_unit, camera, cfg)
-            sg_t = sg
-            smear = pstate is not None and exposure_s > 0 and cfg.smear_sigma_per_px > 0 and len(xy) > 0
+            smear = pstate is not None and exposure_s > 0 and cfg.smear_sigma_per_px > 0 and len(pred.rows) > 0
             if smear:
                 # a streak fitted as a round PSF: its centroid error grows with the streak's length, which the
-                # filter's rate predicts (nav/smear_weights.py); across the streak by smear_cross_per_px
-                om_p = filt.rate(pstate)
-                sg_t = np.hypot(sg, cfg.smear_cross_per_px * streak_length(xy, camera, om_p, exposure_s))
+                # filter's rate predicts at each predicted star (nav/smear_weights.py): along the streak by
+                # smear_sigma_per_px, across it by smear_cross_per_px, in the fit's 2 x 2 weights
+                u_p, len_p = smear_axes(pred.G, filt.rate(pstate), exposure_s)
             c1 = clock()
-            res = track(pred, xy, sg_t, cat_unit, camera, cfg)
+            res = track(pred, xy, sg, cat_unit, camera, cfg,
+                        (u_p, (cfg.smear_sigma_per_px * len_p) ** 2, (cfg.smear_cross_per_px * len_p) ** 2)
+                        if smear else None)
             c2 = clock()
             out["t_predict_ns"][k], out["t_track_ns"][k] = c1 - c0, c2 - c1
             out["reason"][k] = res.reason
@@ -314,16 +316,6 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                 out["n_used"][k], out["two_star"][k] = res.n_used, res.two_star
                 out["rms_sigma"][k], out["p_chance"][k] = res.rms_sigma, res.p_chance
                 meas = (res.A, res.cov, TRACKING, res.det_row)
-                used = res.det_row >= 0
-                if smear and int(used.sum()) >= 3:        # along the streak by smear_sigma_per_px
-                    r_u = cat_unit[res.det_row[used]]
-                    G_u = pixel_jacobian(r_u @ res.A.T, camera)
-                    u, length = smear_axes(G_u, om_p, exposure_s)
-                    s2 = sg[used] ** 2
-                    A2, C2, chi2 = refine_anisotropic(res.A, xy[used], r_u, camera,
-                                                      s2 + (cfg.smear_sigma_per_px * length) ** 2,
-                                                      s2 + (cfg.smear_cross_per_px * length) ** 2, u, G_u)
-                    meas = (A2, C2 * max(1.0, chi2 / max(1, 2 * int(used.sum()) - 3)), TRACKING, res.det_row)
         if meas is None:                                                 # acquire, or fall back
             c0 = clock()
             fx_ = lis(xy, sg)

@@ -14,9 +14,12 @@ A star tracker in tracking mode knows its last attitude and its rate, so it need
 2. :func:`match`: each predicted star takes the detection inside its window; a window holding two or more
    detections is ambiguous and dropped, and so is every star of a detection claimed by two windows (one
    detection per star, one star per detection).  A (P, D) distance table, no loop over stars.
-3. :func:`track`: SVD attitude of the matched pairs with the centroid weights ``w = 1 / sigma_rad^2`` (Markley 1988,
-   :func:`solve_pairs`, the math of ``nav/attitude.py`` for one case, with the attitude covariance, scaled by the
-   fit's a posteriori variance factor ``max(1, rms^2)``), the residual test (a star beyond
+3. :func:`track`: the attitude of the matched pairs by weighted least squares on their reprojection error,
+   Gauss-Newton from the prediction (:func:`solve_reprojection`; the prediction's pixel Jacobians serve the first
+   step, and within a window's pixels one step from the prediction usually meets the tolerance), each pair weighted
+   by its 2 x 2 centroid covariance (:func:`centroid_whitening`: the detector's sigma, and a streak's variance along
+   and across it when the caller knows the rate), with the attitude covariance scaled by the fit's a posteriori
+   variance factor ``max(1, rms^2)``; the residual test (a star beyond
    ``residual_k_sigma`` is dropped and the attitude solved again once; then the RMS per degree of freedom must stay
    below ``max_rms_sigma``) and the chance-match test (:func:`tracking_chance` over ``nav/chance.py``'s binomial
    tail).  Lock is lost by rule, one code of :data:`LOCK_REASONS`: too few matches (``min_stars``, or
@@ -27,14 +30,15 @@ A star tracker in tracking mode knows its last attitude and its rate, so it need
 
 This follows what tetra3rs 0.5.1 (MIT) describes for its tracking mode (previous attitude as a hint with an
 uncertainty cone, nearest detections, SVD solve, the same false-match test, 3 stars instead of 4) with the cone
-replaced by per-star windows from the propagated covariance; the code is dualsight's own.  Angles in radians,
+replaced by per-star windows from the propagated covariance and the SVD by a fit in pixels from the prediction; the
+code is dualsight's own.  Angles in radians,
 pixels in the (col, row) convention of docs/architecture.md.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -46,7 +50,7 @@ from dualsight.scene.starfield_geometry import field_half_angle
 
 __all__ = ["LOCK_REASONS", "LOCKED", "NO_PRIOR", "TOO_FEW_MATCHES", "DEGENERATE", "RESIDUAL", "P_CHANCE", "DEGRADED",
            "Prediction", "TrackResult", "propagate", "pixel_jacobian", "predict", "match", "tracking_chance",
-           "solve_pairs", "max_sigma", "track"]
+           "solve_pairs", "centroid_whitening", "solve_reprojection", "max_sigma", "track"]
 
 LOCK_REASONS = ("locked", "no_prior", "too_few_matches", "degenerate", "residual", "p_chance", "degraded")
 """Names of :attr:`TrackResult.reason` (index = code): lock held, or why it was lost; ``degraded`` is set by the
@@ -65,7 +69,9 @@ class Prediction:
     A : (3, 3) predicted attitude (inertial -> camera).  cov : (3, 3) rad^2 its error covariance (camera frame,
     the convention of ``nav.attitude.svd_attitude``).  rows : (P,) int64 catalog rows, brightest first.
     xy : (P, 2) float64 predicted pixel positions (col, row).  sigma_px : (P,) largest principal 1-sigma of each
-    position (px), centroid noise included.  radius_px : (P,) match window radius (px).
+    position (px), centroid noise included.  radius_px : (P,) match window radius (px).  G : (P, 2, 3) px/rad the
+    pixel Jacobians at the predicted positions (:func:`pixel_jacobian`; what a caller needs for each star's image
+    motion, ``G omega``, and for a least-squares step from ``A``), or None.
     """
 
     A: np.ndarray
@@ -74,6 +80,7 @@ class Prediction:
     xy: np.ndarray
     sigma_px: np.ndarray
     radius_px: np.ndarray
+    G: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -83,12 +90,15 @@ class TrackResult:
     A : (3, 3) attitude (NaN when not locked).  cov : (3, 3) rad^2 its error covariance (NaN when not locked).
     locked : bool.  reason : int code of :data:`LOCK_REASONS`.
     det_row : (D,) int64 catalog row of each detection used in the solution (-1 = unmatched, ambiguous or
-        rejected).  residual_px : (D,) post-fit residual of each used detection (px, angle times fx; NaN otherwise).
+        rejected).  residual_sigma : (D,) post-fit residual of each used detection in its centroid sigmas (the norm of
+    its whitened 2-vector, :func:`solve_reprojection`; NaN otherwise).
     n_predicted, n_matched (unique pairs before the residual test), n_used (in the final solution),
     n_ambiguous (windows with two or more detections) : int.  two_star : the lock rests on two stars (allowed
     only under a tight prediction).  rms_sigma : post-fit RMS per degree of freedom in centroid sigmas.
     p_chance : chance-match probability (:func:`tracking_chance`).  degraded : locked, but the stated covariance
     (variance factor applied) has a principal 1-sigma above ``cfg.max_sigma_rad``: too weak to output.
+    star, det : (n_used,) int64 the pairs of the final solution: index into the :class:`Prediction` and into the
+    detections (empty when not locked).
     """
 
     A: np.ndarray
@@ -96,7 +106,7 @@ class TrackResult:
     locked: bool
     reason: int
     det_row: np.ndarray
-    residual_px: np.ndarray
+    residual_sigma: np.ndarray
     n_predicted: int
     n_matched: int
     n_used: int
@@ -105,6 +115,8 @@ class TrackResult:
     rms_sigma: float
     p_chance: float
     degraded: bool = False
+    star: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    det: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 def propagate(A_prev: np.ndarray, cov_prev: np.ndarray, omega: np.ndarray, cov_omega: np.ndarray,
@@ -162,7 +174,7 @@ def predict(A: np.ndarray, cov: np.ndarray, cat_unit: np.ndarray, camera, cfg: T
     ``scene.camera.Camera``.  Keeps the ``cfg.max_predicted`` brightest stars inside the image.
     """
     A = np.asarray(A, np.float64)
-    cos_half = _cos_half_angle(camera)
+    cos_half, lo, hi, f2, c2 = _camera_constants(camera)
     cand = (cat_unit @ A[2] > cos_half).nonzero()[0]                  # cone test, then the camera model
     v = cat_unit[cand] @ A.T
     if camera.has_distortion:
@@ -171,31 +183,35 @@ def predict(A: np.ndarray, cov: np.ndarray, cat_unit: np.ndarray, camera, cfg: T
         rows, v, px = cand[keep], v[keep], px[keep]
         G = pixel_jacobian(v, camera).reshape(-1, 3)                  # rows u0, v0, u1, v1, ...
     else:                                     # the pinhole (camera.project's formula) and its Jacobian in one pass
-        xn = v[:, :2] / v[:, 2:]
-        px = xn * (camera.fx, camera.fy) + (camera.cx, camera.cy)
-        keep = ((px >= 0.0) & (px < (camera.width, camera.height))).all(axis=1).nonzero()[0][: cfg.max_predicted]
-        rows, xn, px = cand[keep], xn[keep], px[keep]
+        xn = v[:, :2] / v[:, 2:]              # inside the image: lo <= xn < hi (px = f xn + c in [0, size))
+        keep = ((xn >= lo) & (xn < hi)).all(axis=1).nonzero()[0][: cfg.max_predicted]
+        rows, xn = cand[keep], xn[keep]
+        px = xn * f2 + c2
         G = _pinhole_jacobian(xn[:, 0], xn[:, 1], camera).reshape(-1, 3)
     cov = np.asarray(cov, np.float64)
     GP = G @ cov
-    ac = (GP * G).sum(axis=1).reshape(-1, 2)                         # S = G P G^T: its diagonal (a, c) ...
+    ac = (GP * G).sum(axis=1)                                          # S = G P G^T: its diagonal (a, c) ...
+    a, c = ac[0::2], ac[1::2]
     b = (GP[0::2] * G[1::2]).sum(axis=1)                               # ... and off-diagonal entry
-    h = 0.5 * (ac[:, 0] - ac[:, 1])
-    lam = 0.5 * (ac[:, 0] + ac[:, 1]) + np.sqrt(h * h + b * b)         # largest eigenvalue of the 2 x 2
+    lam = 0.5 * (a + c) + np.hypot(0.5 * (a - c), b)                   # largest eigenvalue of the 2 x 2
     sigma = np.sqrt(lam + cfg.centroid_sigma_px ** 2)
     radius = np.minimum(np.maximum(cfg.window_k_sigma * sigma, cfg.window_min_px), cfg.window_max_px)
-    return Prediction(A, cov, rows, px, sigma, radius)
+    return Prediction(A, cov, rows, px, sigma, radius, G.reshape(-1, 2, 3))
 
 
-_CONE: list = [None, 0.0]
-"""The last camera of :func:`_cos_half_angle` and its cone's cosine (a tracker keeps one camera; hashing the camera
+_CAMERA: list = [None, None]
+"""The last camera of :func:`_camera_constants` and its constants (a tracker keeps one camera; hashing the camera
 for ``field_half_angle``'s memo costs more than the cone test)."""
 
 
-def _cos_half_angle(camera) -> float:
-    if _CONE[0] is not camera:
-        _CONE[0], _CONE[1] = camera, math.cos(field_half_angle(camera))
-    return _CONE[1]
+def _camera_constants(camera) -> tuple:
+    """(cosine of the image's cone half-angle, lo (2,), hi (2,) the image's normalised pinhole coordinates
+    ``[-c / f, (size - c) / f)``, f (2,) = (fx, fy), c (2,) = (cx, cy)) of the last camera asked for."""
+    if _CAMERA[0] is not camera:
+        f2, c2 = np.array([camera.fx, camera.fy]), np.array([camera.cx, camera.cy])
+        _CAMERA[0], _CAMERA[1] = camera, (math.cos(field_half_angle(camera)), -c2 / f2,
+                                          (np.array([camera.width, camera.height]) - c2) / f2, f2, c2)
+    return _CAMERA[1]
 
 
 def match(pred_xy: np.ndarray, radius_px: np.ndarray, det_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -210,10 +226,9 @@ def match(pred_xy: np.ndarray, radius_px: np.ndarray, det_xy: np.ndarray) -> tup
     P, D = len(pred_xy), len(det_xy)
     if P == 0 or D == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), 0
-    dx = pred_xy[:, 0, None] - det_xy[None, :, 0]                                # (P, D)
-    dy = pred_xy[:, 1, None] - det_xy[None, :, 1]
-    r = np.asarray(radius_px, np.float64)
-    inside = dx * dx + dy * dy <= (r * r)[:, None]          # NaN compares False (no warning for <=)
+    zp = np.ascontiguousarray(pred_xy, np.float64).view(np.complex128)     # (P, 1): x + i y, no copy
+    zd = np.ascontiguousarray(det_xy, np.float64).view(np.complex128)      # (D, 1)
+    inside = np.abs(zp - zd.T) <= np.asarray(radius_px, np.float64)[:, None]   # (P, D); NaN compares False
     n_in = inside.sum(axis=1)
     one = n_in == 1
     det = inside.argmax(axis=1)
@@ -298,25 +313,104 @@ def max_sigma(cov: np.ndarray) -> float:
     return math.sqrt(max(0.0, lam))
 
 
+def centroid_whitening(sigma_px: np.ndarray, u: np.ndarray | None = None, var_along: np.ndarray | None = None,
+                       var_cross: np.ndarray | None = None) -> np.ndarray:
+    """(M, 2, 2) ``L^T`` per centroid with ``L L^T = C^-1``, the inverse of its 2 x 2 covariance
+    ``C = (sigma^2 + var_along) u u^T + (sigma^2 + var_cross) n n^T`` (``n = (-u_y, u_x)``, across ``u``): rows
+    ``u / sqrt(sigma^2 + var_along)`` and ``n / sqrt(sigma^2 + var_cross)``.  sigma_px : (M,) the detector's
+    isotropic 1-sigma (px).  u : (M, 2) unit directions (a streak's); var_along, var_cross : (M,) px^2 added along
+    and across it (``nav/smear_weights.py``).  Without ``u``: ``I / sigma`` (isotropic)."""
+    M = len(sigma_px)
+    L = np.zeros((M, 2, 2))
+    if u is None:
+        w = 1.0 / sigma_px
+        L[:, 0, 0] = w
+        L[:, 1, 1] = w
+        return L
+    s2 = sigma_px * sigma_px
+    wa, wc = (s2 + var_along) ** -0.5, (s2 + var_cross) ** -0.5
+    L[:, 0] = u * wa[:, None]
+    L[:, 1, 0] = -u[:, 1] * wc
+    L[:, 1, 1] = u[:, 0] * wc
+    return L
+
+
+def _inverse_sym3(H: np.ndarray) -> np.ndarray | None:
+    """Inverse of a symmetric positive (semi-)definite 3 x 3 by its cofactors (faster than ``np.linalg.inv`` on one
+    3 x 3), or None when it is singular to 1e-14 of its diagonal's scale (the geometry of one star, or none)."""
+    (a, b, c), (_, d, e), (_, _, f) = H.tolist()
+    A_, B_, C_ = d * f - e * e, c * e - b * f, b * e - c * d
+    det = a * A_ + b * B_ + c * C_
+    scale = max(a, d, f)
+    if not det > 1e-14 * scale * scale * scale:          # also NaN
+        return None
+    D_, E_, F_ = a * f - c * c, b * c - a * e, a * d - b * b
+    return np.array([[A_, B_, C_], [B_, D_, E_], [C_, E_, F_]]) / det
+
+
+def solve_reprojection(A: np.ndarray, r: np.ndarray, det_xy: np.ndarray, L: np.ndarray, camera,
+                       G: np.ndarray | None = None, px: np.ndarray | None = None, max_iter: int = 5):
+    """Weighted least-squares attitude on the reprojection error: Gauss-Newton from ``A`` (Hartley & Zisserman,
+    "Multiple View Geometry", 2nd ed., Sec. A6.1), ``delta = (J^T J)^-1 J^T z`` with the whitened Jacobian
+    ``J_i = L_i^T G_i`` and residuals ``z_i = L_i^T (x_det,i - x_pred,i)`` (``L_i L_i^T = C_i^-1``, the centroid's
+    2 x 2 covariance: :func:`centroid_whitening`), ``A <- exp(-[delta x]) A``, until the step's second-order term
+    ``f |delta|^2 / 2`` is below 1e-3 px; the normal matrix, the residuals and the covariance ``(J^T J)^-1``
+    (rad^2) are those of the last linearisation, the residuals after its step ``z - J delta``.
+
+    A : (3, 3) starting attitude (inertial -> camera), e.g. the prediction (within a match window's 50 px the first
+    step leaves ~0.3 px; tracking's arcseconds, 1e-6 px).  r : (M, 3) catalog unit vectors.  det_xy : (M, 2) px.
+    L : (M, 2, 2).  G : (M, 2, 3) px/rad and px : (M, 2) the pixel Jacobians and positions at ``r @ A.T`` when the
+    caller has them (a :class:`Prediction`'s), else computed.  Returns (A, cov, e (M, 2) whitened residuals, ok);
+    ok is False when ``J^T J`` is singular or the steps do not converge in ``max_iter``.
+    """
+    tol = math.sqrt(2e-3 / (0.5 * (camera.fx + camera.fy)))
+    for _ in range(max_iter):
+        if G is None or px is None:
+            v = r @ A.T
+            G = pixel_jacobian(v, camera)
+            if camera.has_distortion:
+                px, _ = camera.project(v)
+            else:                                 # the pinhole (camera.project's formula)
+                px = v[:, :2] / v[:, 2:] * (camera.fx, camera.fy) + (camera.cx, camera.cy)
+        J = (L @ G).reshape(-1, 3)
+        z = (L @ (det_xy - px)[:, :, None]).reshape(-1)
+        cov = _inverse_sym3(J.T @ J)
+        if cov is None:
+            return A, None, None, False
+        delta = cov @ (z @ J)
+        A = frame_rotation(delta) @ A
+        step2 = float(delta @ delta)
+        if step2 < tol * tol:
+            return A, cov, (z - J @ delta).reshape(-1, 2), True
+        if not math.isfinite(step2):
+            return A, None, None, False
+        G = None
+    return A, None, None, False
+
+
 def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None, cat_unit: np.ndarray, camera,
-          cfg: TrackingConfig) -> TrackResult:
+          cfg: TrackingConfig, streak: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> TrackResult:
     """Match one frame's detections to a :class:`Prediction`, solve and verify (module docstring, steps 2-3).
 
     det_xy : (D, 2) centroids (px).  det_sigma_px : optional (D,) 1-sigma centroid error per axis (px), e.g. the
-    local detector's Cramér-Rao bound; None (or non-finite entries) = ``cfg.centroid_sigma_px``.  Weights
-    ``1 / sigma_rad^2`` with ``sigma_rad = sigma_px / f`` (the mean pixel scale), so the covariance is in rad^2;
-    it is then multiplied by the a posteriori variance factor ``max(1, rms^2)`` (``rms``: the post-fit residuals'
-    RMS per degree of freedom in their sigmas; a centroid error larger than the detector states, e.g. from smear,
-    widens the stated covariance instead of leaving it optimistic; Bevington & Robinson, "Data Reduction and Error
-    Analysis", 3rd ed., Sec. 7.2).  A verified answer whose largest principal 1-sigma exceeds ``cfg.max_sigma_rad``
-    is *degraded* (``TrackResult.degraded``; e.g. a two-star or short-baseline solution's roll): the caller does
-    not output it.  cat_unit : (N, 3) the catalog ``pred.rows`` index.  camera : ``scene.camera.Camera``.
+    local detector's Cramér-Rao bound; None (or non-finite entries) = ``cfg.centroid_sigma_px``.  streak :
+    optional ``(u (P, 2), var_along (P,), var_cross (P,))`` per predicted star: what the detector's sigma leaves out
+    and the prediction knows, the variance (px^2) added along the star's image motion ``u`` and across it (a
+    streak's: ``nav/sequence.py``, ``nav/smear_weights.py``).  The attitude is the weighted least-squares fit of
+    the reprojection error from the prediction (:func:`solve_reprojection`, each pair weighted by the inverse of
+    its 2 x 2 centroid covariance, :func:`centroid_whitening`), so its covariance is in rad^2; it is then
+    multiplied by the a posteriori variance factor ``max(1, rms^2)`` (``rms``: the post-fit residuals' RMS per
+    degree of freedom in their sigmas; a centroid error larger than stated widens the stated covariance instead of
+    leaving it optimistic; Bevington & Robinson, "Data Reduction and Error Analysis", 3rd ed., Sec. 7.2).  A pair
+    whose whitened post-fit residual exceeds ``cfg.residual_k_sigma`` is dropped and the attitude solved again once.
+    A verified answer whose largest principal 1-sigma exceeds ``cfg.max_sigma_rad`` is *degraded*
+    (``TrackResult.degraded``; e.g. a two-star or short-baseline solution's roll): the caller does not output it.
+    cat_unit : (N, 3) the catalog ``pred.rows`` index.  camera : ``scene.camera.Camera``.
     """
     det_xy = np.asarray(det_xy, np.float64).reshape(-1, 2)
     D = det_xy.shape[0]
-    nan3 = np.full((3, 3), np.nan)
     det_row = np.full(D, -1, np.int64)
-    res_px = np.full(D, np.nan)
+    res_sigma = np.full(D, np.nan)
     P = len(pred.rows)
     star, det, n_amb = match(pred.xy, pred.radius_px, det_xy)
     n_matched = len(star)
@@ -325,7 +419,8 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
     need = cfg.min_stars_tight if tight else cfg.min_stars
 
     def lost(reason, n_used=0, rms=np.nan, p=np.nan):
-        return TrackResult(nan3, nan3.copy(), False, reason, det_row, res_px, P, n_matched, n_used, n_amb,
+        nan3 = np.full((3, 3), np.nan)
+        return TrackResult(nan3, nan3.copy(), False, reason, det_row, res_sigma, P, n_matched, n_used, n_amb,
                            n_used == 2, float(rms), float(p), False)
 
     if n_matched < need:
@@ -334,40 +429,32 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
         sig = np.full(n_matched, cfg.centroid_sigma_px)
     else:
         sig = np.asarray(det_sigma_px, np.float64)[det]
-        sig = np.where(np.isfinite(sig) & (sig > 0), sig, cfg.centroid_sigma_px)
-    f = 0.5 * (camera.fx + camera.fy)
-    if camera.has_distortion:
-        b = camera.backproject(det_xy[det])
-    else:                                     # the pinhole's back-projection (camera.backproject's formula)
-        b = np.ones((n_matched, 3))
-        b[:, :2] = (det_xy[det] - (camera.cx, camera.cy)) / (camera.fx, camera.fy)
-        b /= np.sqrt((b * b).sum(axis=1))[:, None]
+        if not (sig.min() > 0 and sig.max() < math.inf):        # NaN fails both
+            sig = np.where(np.isfinite(sig) & (sig > 0), sig, cfg.centroid_sigma_px)
+    L = (centroid_whitening(sig) if streak is None
+         else centroid_whitening(sig, streak[0][star], streak[1][star], streak[2][star]))
     r = cat_unit[pred.rows[star]]
-    sig_rad = sig / f
-    w = 1.0 / (sig_rad * sig_rad)
-    A, ok, cov = solve_pairs(b, r, w)
+    xy = det_xy[det]
+    G = None if pred.G is None else pred.G[star]
+    A, cov, e, ok = solve_reprojection(pred.A, r, xy, L, camera, G, pred.xy[star])
     if not ok:
         return lost(DEGENERATE, n_matched)
-    # residual angle: the chord |A r - b| (the angle to 1e-16 rad below 1e-5 rad, the arcsec regime; a larger
-    # chord is an outlier whatever its exact angle)
-    e = r @ A.T - b
-    nres = np.sqrt((e * e).sum(axis=1)) / sig_rad
+    nres = np.sqrt((e * e).sum(axis=1))
     use = nres <= cfg.residual_k_sigma
     n_used = int(use.sum())
     if n_used < n_matched:                              # drop the outliers, solve once more
         if n_used < need:
             return lost(RESIDUAL, n_used)
-        A, ok, cov = solve_pairs(b[use], r[use], w[use])
+        det, star, r, xy, L = det[use], star[use], r[use], xy[use], L[use]
+        A, cov, e, ok = solve_reprojection(A, r, xy, L, camera)
         if not ok:
             return lost(DEGENERATE, n_used)
-        e = r @ A.T - b
-        nres = np.sqrt((e * e).sum(axis=1)) / sig_rad
-        nu, det, star, sig = nres[use], det[use], star[use], sig[use]
-        worst = float(nu.max())
+        nres = np.sqrt((e * e).sum(axis=1))
+        worst = float(nres.max())
     else:                                               # every residual already within residual_k_sigma
-        nu, worst = nres, 0.0
+        worst = 0.0
     dof = max(1, 2 * n_used - 3)
-    rms = math.sqrt(float(nu @ nu) / dof)
+    rms = math.sqrt(float(nres @ nres) / dof)
     p = tracking_chance(n_used, P, D, r_max, camera.width * camera.height)
     if rms > cfg.max_rms_sigma or worst > cfg.residual_k_sigma:
         return lost(RESIDUAL, n_used, rms, p)
@@ -376,6 +463,6 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
     if rms > 1.0:
         cov = cov * (rms * rms)
     det_row[det] = pred.rows[star]
-    res_px[det] = nu * sig
-    return TrackResult(A, cov, True, LOCKED, det_row, res_px, P, n_matched, n_used, n_amb, n_used == 2, rms, p,
-                       max_sigma(cov) > cfg.max_sigma_rad)
+    res_sigma[det] = nres
+    return TrackResult(A, cov, True, LOCKED, det_row, res_sigma, P, n_matched, n_used, n_amb, n_used == 2, rms, p,
+                       max_sigma(cov) > cfg.max_sigma_rad, star, det)

@@ -29,6 +29,7 @@ refused with the allowed names, as an unknown key inside ``[camera]`` is.
 
 from __future__ import annotations
 
+import functools
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -185,8 +186,9 @@ class Camera:
         fd = 2 * math.atan(math.hypot(hw / self.fx, hh / self.fy))
         return fh, fv, fd
 
-    @property
+    @functools.cached_property
     def has_distortion(self) -> bool:
+        """Any non-zero distortion coefficient (cached: a tracker asks several times per frame)."""
         return any(abs(x) > 0 for x in self.distortion)
 
     def opencv_matrix(self) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""Streaks and the anisotropic attitude (nav/smear_weights.py) against closed forms and a Monte Carlo.
+"""Streaks (nav/smear_weights.py) and the attitude weighted along and across them (nav/tracking.py
+solve_reprojection, centroid_whitening) against closed forms and a Monte Carlo.
 
 Truth: a pinhole with square pixels turning about its optical axis at w moves a star at radius rho px from the principal point at
 rho * w px/s, tangentially; turning about its x axis at w moves the star at the principal point at fy * w px/s along
@@ -14,8 +15,8 @@ import math
 import numpy as np
 
 from dualsight.nav.angular_rate import log_rotation
-from dualsight.nav.smear_weights import refine_anisotropic, smear_axes, streak_length
-from dualsight.nav.tracking import pixel_jacobian, solve_pairs
+from dualsight.nav.smear_weights import smear_axes
+from dualsight.nav.tracking import centroid_whitening, pixel_jacobian, solve_pairs, solve_reprojection
 from dualsight.scene.attitude import euler123_to_dcm, random_euler123
 from dualsight.scene.camera import Camera
 from dualsight.scene.rotation_vector import frame_rotation
@@ -28,15 +29,14 @@ def test_streaks_of_a_roll_and_a_cross_boresight_turn_are_the_closed_forms():
     w = math.radians(0.8)
     xy = np.array([[512.0 + 300.0, 384.0], [512.0, 384.0 - 200.0], [512.0 - 150.0, 384.0 + 150.0]])
     rho = np.hypot(xy[:, 0] - 512.0, xy[:, 1] - 384.0)
-    np.testing.assert_allclose(streak_length(xy, SQUARE, np.array([0.0, 0.0, w]), 0.1), rho * w * 0.1, rtol=1e-9)
     G = pixel_jacobian(SQUARE.backproject(xy), SQUARE)
     u, length = smear_axes(G, np.array([0.0, 0.0, w]), 0.1)
+    np.testing.assert_allclose(length, rho * w * 0.1, rtol=1e-9)
     radial = (xy - (512.0, 384.0)) / rho[:, None]
     np.testing.assert_allclose(np.abs(np.sum(u * radial, axis=1)), 0.0, atol=1e-9)     # tangential
     centre = np.array([[512.0, 384.0]])
-    np.testing.assert_allclose(streak_length(centre, PINHOLE, np.array([w, 0.0, 0.0]), 0.1), 3600.0 * w * 0.1,
-                               rtol=1e-9)
-    u0, _ = smear_axes(pixel_jacobian(PINHOLE.backproject(centre), PINHOLE), np.array([w, 0.0, 0.0]), 0.1)
+    u0, l0 = smear_axes(pixel_jacobian(PINHOLE.backproject(centre), PINHOLE), np.array([w, 0.0, 0.0]), 0.1)
+    np.testing.assert_allclose(l0, 3600.0 * w * 0.1, rtol=1e-9)
     np.testing.assert_allclose(np.abs(u0), [[0.0, 1.0]], atol=1e-12)
 
 
@@ -52,8 +52,9 @@ def test_noise_free_stars_give_the_attitude_back_from_a_nearby_start():
     A, xy, r = _sky(rng)
     u = np.tile([1.0, 0.0], (len(xy), 1))
     A0 = frame_rotation(np.array([3e-6, -2e-6, 5e-5])) @ A          # an SVD answer's few arcsec off
-    A1, cov, chi2 = refine_anisotropic(A0, xy, r, PINHOLE, np.full(len(xy), 0.09), np.full(len(xy), 0.01), u)
-    assert np.abs(log_rotation(A1 @ A.T)).max() < 1e-8 and chi2 < 1e-6
+    L = centroid_whitening(np.zeros(len(xy)), u, np.full(len(xy), 0.09), np.full(len(xy), 0.01))
+    A1, cov, e, ok = solve_reprojection(A0, r, xy, L, PINHOLE)
+    assert ok and np.abs(log_rotation(A1 @ A.T)).max() < 1e-8 and float((e * e).sum()) < 1e-6
 
 
 def test_stated_covariance_is_the_scatter_and_beats_isotropic_weights_in_roll():
@@ -70,8 +71,8 @@ def test_stated_covariance_is_the_scatter_and_beats_isotropic_weights_in_roll():
         d = xy + u * rng.normal(size=(len(xy), 1)) * s_al + n * rng.normal(size=(len(xy), 1)) * s_cr
         b = PINHOLE.backproject(d)
         A_iso, ok, _ = solve_pairs(b, r, np.full(len(xy), (f / math.hypot(s_al, s_cr)) ** 2))
-        A2, cov, _ = refine_anisotropic(A_iso, d, r, PINHOLE, np.full(len(xy), s_al ** 2),
-                                        np.full(len(xy), s_cr ** 2), u)
+        L = centroid_whitening(np.zeros(len(xy)), u, np.full(len(xy), s_al ** 2), np.full(len(xy), s_cr ** 2))
+        A2, cov, _, _ = solve_reprojection(A_iso, r, d, L, PINHOLE)
         errs.append(log_rotation(A2 @ A.T))
         errs_iso.append(log_rotation(A_iso @ A.T))
         covs.append(cov)
@@ -80,3 +81,18 @@ def test_stated_covariance_is_the_scatter_and_beats_isotropic_weights_in_roll():
     stated = np.mean(covs, axis=0)
     np.testing.assert_allclose(np.diag(emp), np.diag(stated), rtol=0.2)
     assert np.var(errs[:, 2]) < 0.7 * np.var(errs_iso[:, 2])
+
+
+def test_a_star_that_does_not_move_gets_the_fallback_direction():
+    """A roll about the optical axis leaves the star at the principal point in place: its direction is (1, 0) and
+    its length 0, beside a moving star (length rho w t); no rate at all: every star (1, 0), length 0."""
+    w = math.radians(0.8)
+    xy = np.array([[512.0, 384.0], [512.0 + 300.0, 384.0]])
+    G = pixel_jacobian(SQUARE.backproject(xy), SQUARE)
+    u, length = smear_axes(G, np.array([0.0, 0.0, w]), 0.1)
+    np.testing.assert_allclose(u[0], [1.0, 0.0], atol=0)
+    np.testing.assert_allclose(length, [0.0, 300.0 * w * 0.1], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.abs(u[1]), [0.0, 1.0], atol=1e-9)
+    u, length = smear_axes(G, np.zeros(3), 0.1)
+    np.testing.assert_array_equal(u, [[1.0, 0.0], [1.0, 0.0]])
+    np.testing.assert_array_equal(length, [0.0, 0.0])

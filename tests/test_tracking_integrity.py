@@ -16,6 +16,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from dualsight.config import TrackingConfig
 from dualsight.errors import ConfigError
@@ -24,7 +26,8 @@ from dualsight.nav.angular_rate import (log_rotation, rate_between, rate_from_at
 from dualsight.nav.attitude import svd_attitude
 from dualsight.nav.errors import axis_errors
 from dualsight.nav.sequence import LOST_IN_SPACE, NO_FIX, REASON_NAMES, TRACKING, run_sequence
-from dualsight.nav.tracking import LOCKED, NO_PRIOR, Prediction, max_sigma, pixel_jacobian, predict, solve_pairs, track
+from dualsight.nav.tracking import (LOCKED, NO_PRIOR, Prediction, _inverse_sym3, centroid_whitening, max_sigma,
+                                   pixel_jacobian, predict, solve_pairs, solve_reprojection, track)
 from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.attitude import euler123_to_dcm, random_euler123
 from dualsight.scene.camera import Camera
@@ -283,3 +286,73 @@ def test_pinhole_fast_paths_equal_the_camera_model():
         assert res.locked and res.n_used == len(px)
         assert np.array_equal(res.det_row, pred.rows[::-1])
         np.testing.assert_allclose(axis_errors(res.A[None], A[None], frame="camera")[0], 0.0, atol=1e-10)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-1.0, 1.0), min_size=9, max_size=9), st.floats(1e-12, 1e3))
+def test_inverse_of_a_symmetric_3x3_is_numpys(m, scale):
+    """The cofactor inverse against np.linalg.inv on well-conditioned SPD matrices of any scale; a rank-2 matrix
+    (one star's information) has none."""
+    B = np.array(m).reshape(3, 3)
+    H = scale * (B @ B.T + 0.5 * np.eye(3))
+    want = np.linalg.inv(H)
+    np.testing.assert_allclose(_inverse_sym3(H), want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
+    v = np.array(m[:3]) + np.array([1.0, 0.0, 0.0])
+    assert _inverse_sym3(scale * (np.eye(3) - np.outer(v, v) / (v @ v))) is None
+
+
+def test_centroid_whitening_is_the_inverse_covariance():
+    """``L^T`` rows of centroid_whitening give ``L L^T = C^-1`` for C = (s^2 + va) u u^T + (s^2 + vc) n n^T written
+    out and inverted by numpy; isotropic: I / s^2."""
+    rng = np.random.default_rng(21)
+    th = rng.uniform(0, 2 * math.pi, 6)
+    u = np.stack([np.cos(th), np.sin(th)], axis=1)
+    s, va, vc = rng.uniform(0.05, 0.3, 6), rng.uniform(0, 0.5, 6), rng.uniform(0, 0.05, 6)
+    Lt = centroid_whitening(s, u, va, vc)
+    for i in range(6):
+        n = np.array([-u[i, 1], u[i, 0]])
+        C = (s[i] ** 2 + va[i]) * np.outer(u[i], u[i]) + (s[i] ** 2 + vc[i]) * np.outer(n, n)
+        np.testing.assert_allclose(Lt[i].T @ Lt[i], np.linalg.inv(C), rtol=1e-12)
+    Li = centroid_whitening(s)
+    np.testing.assert_allclose(np.einsum("mji,mjk->mik", Li, Li), np.eye(2) / (s ** 2)[:, None, None], rtol=1e-12)
+
+
+@pytest.mark.parametrize("cam", [PINHOLE, Camera(1024, 768, 4.65e-6, 3655.9, 3655.9, 512.0, 384.0,
+                                                 (-0.08, 0.02, 1e-4, -2e-4, 0.0))])
+def test_reprojection_fit_converges_from_half_a_degree(cam):
+    """Noise-free stars under a known attitude (Rodrigues rotation of the helpers): from a start 0.5 deg off (the
+    first step leaves ~0.2 px) the fit returns the attitude to 1e-9 rad in a few steps, with and without
+    distortion; one star alone (rank-2 information) has no attitude."""
+    rng = np.random.default_rng(22)
+    A = euler123_to_dcm(random_euler123(rng, 1))[0]
+    xy = np.column_stack([rng.uniform(60, 964, 8), rng.uniform(60, 708, 8)])
+    r = cam.backproject(xy) @ A
+    A0 = rotation(unit(rng.normal(size=3)), math.radians(0.5)) @ A
+    A1, cov, e, ok = solve_reprojection(A0, r, xy, centroid_whitening(np.full(8, 0.1)), cam)
+    assert ok and np.abs(log_rotation(A1 @ A.T)).max() < 1e-9 and np.abs(e).max() < 1e-4
+    assert not solve_reprojection(A0, r[:1], xy[:1], centroid_whitening(np.full(1, 0.1)), cam)[3]
+
+
+def test_invalid_detection_sigmas_fall_back_to_the_configured_sigma():
+    """Detector sigmas that are NaN, inf, 0 or negative count as ``centroid_sigma_px``: the answer equals the one
+    with those entries replaced by hand, and differs from the one that takes them at face value (a 1e-3 px entry)."""
+    rng = np.random.default_rng(23)
+    cat = sphere_catalog(21, 3000)
+    A = euler123_to_dcm(random_euler123(rng, 1))[0]
+    cfg = TrackingConfig(centroid_sigma_px=0.2, max_sigma_rad=math.radians(10.0))
+    pred = predict(A, np.eye(3) * 1e-12, cat, PINHOLE, cfg)
+    xy = pred.xy + rng.normal(scale=0.2, size=pred.xy.shape)
+    sig = rng.uniform(0.1, 0.3, len(xy))
+    fixed = sig.copy()
+    fixed[0] = 0.2
+    r_fixed = track(pred, xy, fixed, cat, PINHOLE, cfg)
+    for value in (np.nan, np.inf, 0.0, -1.0):            # one at a time: each must trigger the fallback alone
+        bad = sig.copy()
+        bad[0] = value
+        r_bad = track(pred, xy, bad, cat, PINHOLE, cfg)
+        assert r_bad.locked and r_fixed.locked
+        np.testing.assert_allclose(r_bad.A, r_fixed.A, atol=1e-15)
+        np.testing.assert_allclose(r_bad.cov, r_fixed.cov, rtol=1e-12)
+    tiny = fixed.copy()
+    tiny[0] = 1e-3
+    assert np.abs(track(pred, xy, tiny, cat, PINHOLE, cfg).A - r_fixed.A).max() > 1e-9
