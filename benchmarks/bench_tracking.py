@@ -19,7 +19,9 @@ rendering, so only the two algorithms are timed, on the same detections.
 Then the tracker as the product runs it (``nav/sequence.run_sequence``) on the same detections, with the attitude
 filter (``nav/attitude_filter.py``, the default; it runs after either mode) and the smear weights of
 ``examples/star/track.toml`` (``nav/smear_weights.py``, exposure = the frame interval), and without either: the whole tracker's median
-time per tracked frame, its predict + match + solve + verify part and the filter's part.
+time per tracked frame, its predict + match + solve + verify part (the streaks from the filter's rate and the fit
+with each star's 2 x 2 centroid covariance included: what tracking does in place of lost-in-space's identify +
+solve + verify) and the filter's part (it fuses either mode's answer, and runs after lost-in-space too).
 
 Prints per-frame median and mean wall times of each, their CPU time (``time.process_time``: what the machine's
 other processes do not inflate; the mean, as the clock may tick coarsely), the load average (the first 5 frames of each are warm-up, not counted), the ratio,

@@ -50,7 +50,7 @@ from dualsight.scene.starfield_geometry import field_half_angle
 
 __all__ = ["LOCK_REASONS", "LOCKED", "NO_PRIOR", "TOO_FEW_MATCHES", "DEGENERATE", "RESIDUAL", "P_CHANCE", "DEGRADED",
            "Prediction", "TrackResult", "propagate", "pixel_jacobian", "predict", "match", "tracking_chance",
-           "solve_pairs", "centroid_whitening", "solve_reprojection", "max_sigma", "track"]
+           "solve_pairs", "inverse_sym3", "centroid_whitening", "solve_reprojection", "max_sigma", "track"]
 
 LOCK_REASONS = ("locked", "no_prior", "too_few_matches", "degenerate", "residual", "p_chance", "degraded")
 """Names of :attr:`TrackResult.reason` (index = code): lock held, or why it was lost; ``degraded`` is set by the
@@ -335,7 +335,7 @@ def centroid_whitening(sigma_px: np.ndarray, u: np.ndarray | None = None, var_al
     return L
 
 
-def _inverse_sym3(H: np.ndarray) -> np.ndarray | None:
+def inverse_sym3(H: np.ndarray) -> np.ndarray | None:
     """Inverse of a symmetric positive (semi-)definite 3 x 3 by its cofactors (faster than ``np.linalg.inv`` on one
     3 x 3), or None when it is singular to 1e-14 of its diagonal's scale (the geometry of one star, or none)."""
     (a, b, c), (_, d, e), (_, _, f) = H.tolist()
@@ -374,7 +374,7 @@ def solve_reprojection(A: np.ndarray, r: np.ndarray, det_xy: np.ndarray, L: np.n
                 px = v[:, :2] / v[:, 2:] * (camera.fx, camera.fy) + (camera.cx, camera.cy)
         J = (L @ G).reshape(-1, 3)
         z = (L @ (det_xy - px)[:, :, None]).reshape(-1)
-        cov = _inverse_sym3(J.T @ J)
+        cov = inverse_sym3(J.T @ J)
         if cov is None:
             return A, None, None, False
         delta = cov @ (z @ J)

@@ -26,7 +26,7 @@ from dualsight.nav.angular_rate import (log_rotation, rate_between, rate_from_at
 from dualsight.nav.attitude import svd_attitude
 from dualsight.nav.errors import axis_errors
 from dualsight.nav.sequence import LOST_IN_SPACE, NO_FIX, REASON_NAMES, TRACKING, run_sequence
-from dualsight.nav.tracking import (LOCKED, NO_PRIOR, Prediction, _inverse_sym3, centroid_whitening, max_sigma,
+from dualsight.nav.tracking import (LOCKED, NO_PRIOR, Prediction, centroid_whitening, inverse_sym3, max_sigma,
                                    pixel_jacobian, predict, solve_pairs, solve_reprojection, track)
 from dualsight.nav.voting_config import VotingConfig
 from dualsight.scene.attitude import euler123_to_dcm, random_euler123
@@ -296,9 +296,9 @@ def test_inverse_of_a_symmetric_3x3_is_numpys(m, scale):
     B = np.array(m).reshape(3, 3)
     H = scale * (B @ B.T + 0.5 * np.eye(3))
     want = np.linalg.inv(H)
-    np.testing.assert_allclose(_inverse_sym3(H), want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
+    np.testing.assert_allclose(inverse_sym3(H), want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
     v = np.array(m[:3]) + np.array([1.0, 0.0, 0.0])
-    assert _inverse_sym3(scale * (np.eye(3) - np.outer(v, v) / (v @ v))) is None
+    assert inverse_sym3(scale * (np.eye(3) - np.outer(v, v) / (v @ v))) is None
 
 
 def test_centroid_whitening_is_the_inverse_covariance():
