@@ -354,9 +354,10 @@ class TrackingConfig:
         1-sigma at most this (rad), in (0, 10 deg]; a weaker one (a two-star or short-baseline solution's roll) is
         *degraded*: not output, not a prior (``nav/sequence.py``).  TOML also takes ``max_sigma_arcsec``.  The rule
         is only as honest as the centroid sigmas: set it where the detector states them (the ``realistic``
-        preset's local detector: ``examples/star/track.toml`` uses 25 arcsec, a quarter of the reference's 100
-        arcsec limit, so a valid attitude beyond the limit is a 4-sigma event); the default, 10 deg, withholds
-        nothing (a detector without sigmas gets ``centroid_sigma_px``, an assumption, not a measurement).
+        preset's local detector: ``examples/star/track.toml`` uses 33 arcsec, a third of the reference's 100
+        arcsec limit, so a valid attitude beyond the limit is a 3-sigma event on its weakest axis); the default,
+        10 deg, withholds nothing (a detector without sigmas gets ``centroid_sigma_px``, an assumption, not a
+        measurement).
         With ``attitude_filter`` the rule applies to the filtered attitude.
     attitude_filter : fuse every verified frame solution (tracking's or lost-in-space's, degraded ones too) in the
         gyroless attitude and rate filter of ``nav/attitude_filter.py`` and output the filtered attitude; the
