@@ -418,7 +418,7 @@ def solve_frames(frames: np.ndarray, results: list[ImageResult], truths: list[St
         alt = (ident_a, solve(obs, ident_a, cat_unit, None, weights=w))
     t4 = time.perf_counter_ns()
     share = {"t_detect_ns": (t1 - t0) // B, "t_identify_ns": (t2 - t1) // B, "t_attitude_ns": (t3 - t2) // B,
-             "t_alt_ns": (t4 - t3) // B}
+             "t_alt_ns": (t4 - t3) // B if alt is not None else 0}     # no reference method: no stage
     for b, res in enumerate(results):
         t_read = t_read_ns[b] if t_read_ns is not None else None
         res.row.update(share, t_read_ns=t_read, t_total_ns=(t_read or 0) + sum(share.values()),
