@@ -356,3 +356,34 @@ def test_invalid_detection_sigmas_fall_back_to_the_configured_sigma():
     tiny = fixed.copy()
     tiny[0] = 1e-3
     assert np.abs(track(pred, xy, tiny, cat, PINHOLE, cfg).A - r_fixed.A).max() > 1e-9
+
+
+def test_streak_weights_follow_each_star_through_shuffled_detections():
+    """Each predicted star's streak (direction, variance along and across) must weigh the detection it pairs with:
+    detections shuffled, two false stars among them, every star's streak different.  Known answer: the fit with the
+    true pairs assembled here by construction (catalog row, detection, sigma and streak of the same star)."""
+    rng = np.random.default_rng(24)
+    cat = sphere_catalog(21, 3000)
+    A = euler123_to_dcm(random_euler123(rng, 1))[0]
+    cfg = TrackingConfig(centroid_sigma_px=0.1, max_sigma_rad=math.radians(10.0), max_rms_sigma=100.0,
+                         residual_k_sigma=100.0)
+    pred = predict(A, np.eye(3) * 1e-12, cat, PINHOLE, cfg)
+    P = len(pred.rows)
+    assert P >= 8
+    th = rng.uniform(0, 2 * math.pi, P)
+    u = np.stack([np.cos(th), np.sin(th)], axis=1)
+    va, vc = rng.uniform(0.01, 0.3, P), rng.uniform(0.0, 0.02, P)
+    sig = rng.uniform(0.05, 0.2, P)
+    xy = pred.xy + rng.normal(scale=0.15, size=(P, 2))
+    far = np.array([[5.0, 5.0], [1015.0, 760.0]])                      # false stars in no window
+    order = rng.permutation(P + 2)
+    det_xy = np.concatenate([xy, far])[order]
+    det_sig = np.concatenate([sig, [0.1, 0.1]])[order]
+    res = track(pred, det_xy, det_sig, cat, PINHOLE, cfg, (u, va, vc))
+    L = centroid_whitening(sig, u, va, vc)
+    A_ref, C_ref, e_ref, ok = solve_reprojection(pred.A, cat[pred.rows], xy, L, PINHOLE, pred.G, pred.xy)
+    rms = math.sqrt(float((e_ref * e_ref).sum()) / (2 * P - 3))
+    assert ok and res.locked and res.n_used == P
+    np.testing.assert_allclose(res.A, A_ref, atol=1e-14)
+    np.testing.assert_allclose(res.cov, C_ref * max(1.0, rms * rms), rtol=1e-12)
+    assert np.array_equal(res.det_row[order < P], pred.rows[order[order < P]])
