@@ -45,6 +45,17 @@ def prediction_of(A, cat_rows, cat, cam, radius=3.0):
     return Prediction(A, np.eye(3) * 1e-14, np.asarray(cat_rows, np.int64), px, np.full(n, 0.3), np.full(n, radius))
 
 
+def lenient_sky(seed):
+    """(rng, catalog, a random attitude, a config without the residual and RMS tests nor the sigma rule): the sky
+    of the tests that look at the solve itself."""
+    rng = np.random.default_rng(seed)
+    cat = sphere_catalog(21, 3000)
+    A = euler123_to_dcm(random_euler123(rng, 1))[0]
+    cfg = TrackingConfig(centroid_sigma_px=0.1, max_sigma_rad=math.radians(10.0), max_rms_sigma=100.0,
+                         residual_k_sigma=100.0)
+    return rng, cat, A, cfg
+
+
 def two_star_sky(a):
     """Two catalog stars at +-a (rad) from the boresight along x under the identity attitude, plus far filler."""
     cat = np.array([[math.sin(a), 0.0, math.cos(a)], [-math.sin(a), 0.0, math.cos(a)], [0.0, 0.0, -1.0]])
@@ -85,11 +96,7 @@ def test_variance_factor_widens_the_stated_covariance_when_the_centroids_are_wor
     """Twelve stars with centroid noise 3x the stated sigma: the stated roll sigma grows by ~3 (the residuals'
     RMS), so the normalised errors keep unit variance (chi-square check over 800 frames); with the true sigma the
     factor stays ~1."""
-    rng = np.random.default_rng(12)
-    cat = sphere_catalog(21, 3000)
-    A = euler123_to_dcm(random_euler123(rng, 1))[0]
-    cfg = TrackingConfig(centroid_sigma_px=0.1, max_sigma_rad=math.radians(10.0), max_rms_sigma=100.0,
-                         residual_k_sigma=100.0)
+    rng, cat, A, cfg = lenient_sky(12)
     base = predict(A, np.eye(3) * 1e-14, cat, PINHOLE, cfg)
     pred = Prediction(A, base.cov, base.rows, base.xy, base.sigma_px, np.full(len(base.rows), 4.0))
     assert len(pred.rows) >= 8
@@ -362,11 +369,7 @@ def test_streak_weights_follow_each_star_through_shuffled_detections():
     """Each predicted star's streak (direction, variance along and across) must weigh the detection it pairs with:
     detections shuffled, two false stars among them, every star's streak different.  Known answer: the fit with the
     true pairs assembled here by construction (catalog row, detection, sigma and streak of the same star)."""
-    rng = np.random.default_rng(24)
-    cat = sphere_catalog(21, 3000)
-    A = euler123_to_dcm(random_euler123(rng, 1))[0]
-    cfg = TrackingConfig(centroid_sigma_px=0.1, max_sigma_rad=math.radians(10.0), max_rms_sigma=100.0,
-                         residual_k_sigma=100.0)
+    rng, cat, A, cfg = lenient_sky(24)
     pred = predict(A, np.eye(3) * 1e-12, cat, PINHOLE, cfg)
     P = len(pred.rows)
     assert P >= 8
