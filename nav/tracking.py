@@ -31,8 +31,7 @@ A star tracker in tracking mode knows its last attitude and its rate, so it need
 This follows what tetra3rs 0.5.1 (MIT) describes for its tracking mode (previous attitude as a hint with an
 uncertainty cone, nearest detections, SVD solve, the same false-match test, 3 stars instead of 4) with the cone
 replaced by per-star windows from the propagated covariance and the SVD by a fit in pixels from the prediction; the
-code is dualsight's own.  Angles in radians,
-pixels in the (col, row) convention of docs/architecture.md.
+code is dualsight's own.  Angles in radians, pixels in the (col, row) convention of docs/architecture.md.
 """
 
 from __future__ import annotations
@@ -90,8 +89,8 @@ class TrackResult:
     A : (3, 3) attitude (NaN when not locked).  cov : (3, 3) rad^2 its error covariance (NaN when not locked).
     locked : bool.  reason : int code of :data:`LOCK_REASONS`.
     det_row : (D,) int64 catalog row of each detection used in the solution (-1 = unmatched, ambiguous or
-        rejected).  residual_sigma : (D,) post-fit residual of each used detection in its centroid sigmas (the norm of
-    its whitened 2-vector, :func:`solve_reprojection`; NaN otherwise).
+        rejected).  residual_sigma : (D,) post-fit residual of each used detection in its centroid sigmas (the
+        norm of its whitened 2-vector, :func:`solve_reprojection`; NaN otherwise).
     n_predicted, n_matched (unique pairs before the residual test), n_used (in the final solution),
     n_ambiguous (windows with two or more detections) : int.  two_star : the lock rests on two stars (allowed
     only under a tight prediction).  rms_sigma : post-fit RMS per degree of freedom in centroid sigmas.
