@@ -316,7 +316,8 @@ _TRACKING_UNITS = {"window_k_sigma": "sigma", "window_min_px": "px", "window_max
                    "initial_cone_rad": "rad", "rate_sigma_rad_s": "rad/s", "max_sigma_rad": "rad",
                    "accel_steady_rad_s2": "rad/s^2", "accel_manoeuvre_rad_s2": "rad/s^2",
                    "filter_max_gap_s": "s", "jerk_rad_s3": "rad/s^3",
-                   "smear_sigma_per_px": "px/px", "smear_cross_per_px": "px/px", "rate_jitter_rad_s": "rad/s"}
+                   "smear_sigma_per_px": "px/px", "smear_cross_per_px": "px/px", "rate_jitter_rad_s": "rad/s",
+                   "edge_margin_px": "px"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -339,6 +340,12 @@ class TrackingConfig:
     min_stars_tight : fewest matched stars for a lock under a tight prediction, in [2, 1000], <= min_stars
         (default 2).
     max_predicted : the brightest catalog stars predicted in the image, integer in [2, 1000] (default 40).
+    edge_margin_px : a predicted star is matched only when its whole predicted streak (half its length either side
+        of the predicted centroid, along its image motion; no length without smear) lies at least this far (px)
+        inside the image, in [0, 1000] (default 1): a star or streak cut by the image's edge has its centroid pulled
+        inwards, along the streak, by up to half its length, which a fit weighting the streak as whole cannot know
+        (``nav.smear_weights.streak_inside``; on 10^5 frames at up to 1 deg/s, two of three false locks came from a
+        streak cut by the edge).
     residual_k_sigma : a matched star whose post-fit residual exceeds this many of its centroid sigmas is dropped
         and the attitude solved again, in (0, 100] (default 5).
     max_rms_sigma : lock is lost when the post-fit residuals' RMS per degree of freedom exceeds this many sigmas
@@ -397,6 +404,7 @@ class TrackingConfig:
     min_stars: _TrackStars = 3
     min_stars_tight: _TrackStars = 2
     max_predicted: _TrackStars = 40
+    edge_margin_px: typing.Annotated[float, pydantic.Field(ge=0, le=1000.0)] = 1.0
     residual_k_sigma: typing.Annotated[float, pydantic.Field(gt=0, le=100.0)] = 5.0
     max_rms_sigma: typing.Annotated[float, pydantic.Field(gt=0, le=100.0)] = 3.0
     max_p_chance: typing.Annotated[float, pydantic.Field(gt=0, le=1.0)] = 1e-3

@@ -12,7 +12,8 @@ Per frame ``k`` (in time order), with the last fix (attitude ``A_f``, covariance
    fused at a constant rate, every model without acceleration: the models' random acceleration is a spacecraft's at a few frames per second):
    predict the stars (with ``exposure_s`` and ``cfg.smear_sigma_per_px``, the centroid of the detection each
    predicted star pairs with gains the round-PSF fit's model error along and across the star's predicted streak, a
-   2 x 2 covariance: ``nav/smear_weights.py``), match in windows, solve with the centroid
+   2 x 2 covariance: ``nav/smear_weights.py``), leave out the stars whose predicted streak is not whole inside
+   the image (``cfg.edge_margin_px``: a cut streak's centroid is biased), match in windows, solve with the centroid
    weights, verify.  Without the filter (``cfg.attitude_filter`` false) the last output fix is propagated with the
    rate from the last two fixes (``nav/angular_rate.rate_between``; else zero with ``cfg.rate_sigma_rad_s``).
 3. no prior, or tracking lost lock (its reason is kept in the row): **lost-in-space** on the same frame: geometric
@@ -24,7 +25,12 @@ Per frame ``k`` (in time order), with the last fix (attitude ``A_f``, covariance
    normalised innovation exceeds ``cfg.filter_gate`` or no prior exists) and the filtered attitude is the frame's
    answer.  An answer whose covariance has a principal 1-sigma above ``cfg.max_sigma_rad`` is *degraded*: mode
    ``none`` (tracking's: reason ``degraded``), not output; the filter keeps what it learnt from it.  Without the
-   filter the answer is the frame's own solution, and a degraded one is no prior.
+   filter the answer is the frame's own solution, and a degraded one is no prior.  A lost-in-space fix that
+   restarts an established filter (two solutions or more fused; tracking lost lock on the frame and the fix
+   contradicts the track) is *unconfirmed*: mode ``none``, reason ``unconfirmed``; the next frame tracks from it
+   and, locked, confirms it (a fix that contradicts an unconfirmed restart is output).  (On 10^5 frames
+   at up to 1 deg/s, the one false lock of lost-in-space was such a fix: tracking had rejected the frame by its
+   residuals, lost-in-space solved it 6 sigma off.)
 5. with an output at ``k``: the rate from the two last output attitudes (``rate_between``, over ``t_k - t_f``)
    and from the displacements of the stars identified in both frames (``rate_from_star_pairs``, Crassidis 2002),
    each with its covariance (the filter's own rate is in ``rate_filter``).
@@ -50,21 +56,22 @@ from dualsight.nav import attitude_filter as filt
 from dualsight.nav.angular_rate import pair_by_identity, rate_between, rate_from_star_pairs
 from dualsight.nav.attitude import solve_identified
 from dualsight.nav.observations import MAX_OBS, Observations
-from dualsight.nav.smear_weights import smear_axes
+from dualsight.nav.smear_weights import smear_axes, streak_inside
 from dualsight.nav.star_solution import identify
 from dualsight.nav.tracking import (DEGRADED, LOCK_REASONS, NO_PRIOR, max_sigma, predict, propagate,
                                     track)
 
-__all__ = ["MODE_NAMES", "NO_FIX", "LOST_IN_SPACE", "TRACKING", "REASON_NAMES", "NO_IMAGE", "LisFix",
+__all__ = ["MODE_NAMES", "NO_FIX", "LOST_IN_SPACE", "TRACKING", "REASON_NAMES", "NO_IMAGE", "UNCONFIRMED", "LisFix",
            "lost_in_space", "SequenceResult", "run_sequence"]
 
 MODE_NAMES = ("none", "lost_in_space", "tracking")
 """Names of :attr:`SequenceResult.mode` (index = code): no valid attitude, a verified lost-in-space fix, a lock."""
 NO_FIX, LOST_IN_SPACE, TRACKING = range(len(MODE_NAMES))
-REASON_NAMES = LOCK_REASONS + ("no_image",)
+REASON_NAMES = LOCK_REASONS + ("no_image", "unconfirmed")
 """Names of :attr:`SequenceResult.reason`: ``nav.tracking.LOCK_REASONS`` (``locked``: tracking held; ``no_prior``:
-tracking did not run; else why it lost lock) and ``no_image`` (a dropped frame)."""
-NO_IMAGE = len(LOCK_REASONS)
+tracking did not run; else why it lost lock), ``no_image`` (a dropped frame) and ``unconfirmed`` (a verified
+lost-in-space fix that contradicts the filter's live track: the filter restarts at it, the frame has no output)."""
+NO_IMAGE, UNCONFIRMED = len(LOCK_REASONS), len(LOCK_REASONS) + 1
 
 
 @dataclass(frozen=True)
@@ -147,7 +154,8 @@ class SequenceResult:
     estimate: it runs after either mode), t_total_ns : int64 wall time (-1 where the stage did not run).
     det_row : (K,) int64 catalog row of each detection in the answer (-1 none).  shadow_rows : (K,) int64
     lost-in-space's identities on every frame (``shadow_lis``; else None), shadow_verified : (T,) bool,
-    t_shadow_ns : (T,) int64.
+    t_shadow_ns : (T,) int64.  predictions : {frame: ``nav.tracking.Prediction``} of every frame tracking ran on,
+    as matched (after the edge cut; ``keep_predictions``), else None.
     """
 
     mode: np.ndarray
@@ -184,6 +192,7 @@ class SequenceResult:
     shadow_rows: np.ndarray | None
     shadow_verified: np.ndarray | None
     t_shadow_ns: np.ndarray | None
+    predictions: dict | None = None
 
 
 def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray | None, offsets: np.ndarray,
@@ -191,7 +200,7 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                  available: np.ndarray | None = None, gyro: np.ndarray | None = None, gyro_sigma_rad_s: float = 0.0,
                  cat_vmag: np.ndarray | None = None, max_coast_frames: int = 10, lis_min_stars: int = 3,
                  shadow_lis: bool = False, engine: str = "taichi", focal=None,
-                 exposure_s: float = 0.0) -> SequenceResult:
+                 exposure_s: float = 0.0, keep_predictions: bool = False) -> SequenceResult:
     """Run one sequence through the state machine of the module docstring.
 
     times : (T,) s, increasing.  det_xy : (K, 2) centroids (px) of every frame, frame k's in
@@ -243,6 +252,8 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
     fix = None                         # (A, P, frame) of the last output attitude, either mode
     rate = None                        # (omega, cov) from the last two fixes (without the filter)
     state, last_fused = None, -1       # the attitude filter (nav/attitude_filter.py) and its last fused frame
+    n_fused, doubtful = 0, False       # solutions fused since the filter's start; started at an unconfirmed fix
+    predictions = {} if keep_predictions else None
     use_filter = cfg.attitude_filter
     # the filter's motion models: steady (constant rate), accelerating (constant acceleration), manoeuvre
     # (constant rate, large random acceleration)
@@ -304,6 +315,13 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                 # filter's rate predicts at each predicted star (nav/smear_weights.py): along the streak by
                 # smear_sigma_per_px, across it by smear_cross_per_px, in the fit's 2 x 2 weights
                 u_p, len_p = smear_axes(pred.G, filt.rate(pstate), exposure_s)
+            else:
+                u_p, len_p = np.zeros((len(pred.rows), 2)), np.zeros(len(pred.rows))
+            inside = streak_inside(pred.xy, u_p, len_p, cfg.edge_margin_px, camera.width, camera.height)
+            if not inside.all():                      # a streak cut by the image's edge: its centroid is biased
+                pred, u_p, len_p = pred.take(inside), u_p[inside], len_p[inside]
+            if keep_predictions:
+                predictions[k] = pred
             c1 = clock()
             res = track(pred, xy, sg, cat_unit, camera, cfg,
                         (u_p, (cfg.smear_sigma_per_px * len_p) ** 2, (cfg.smear_cross_per_px * len_p) ** 2)
@@ -328,15 +346,24 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
             c0 = clock()
             A, P, mode, rows = meas
             out["frame_sigma_max"][k] = max_sigma(P)
+            unconfirmed = False
             if use_filter:                # fuse the frame's solution; restart where it does not fit the track
                 if pstate is None or filt.innovation(pstate, A, P) > cfg.filter_gate:
-                    om0 = C0 = None           # a restart keeps the rate between the last answer and this one
-                    if pstate is not None:
+                    # a lost-in-space fix that contradicts an established track (two solutions or more fused, and
+                    # tracking just lost lock on this frame): two answers disagree, so the filter restarts at the
+                    # fix but does not output it before the next frame's tracking confirms it
+                    unconfirmed = pstate is not None and mode == LOST_IN_SPACE and n_fused >= 2
+                    om0 = C0 = None           # a restart keeps the rate between the last answer and this one, or
+                    if pstate is not None and (unconfirmed or doubtful):    # the track's own rate when one of the
+                        _, _, om0, C0 = filt.combined(pstate)                # two answers may be wrong
+                    elif pstate is not None:
                         A_l, P_l, _, _ = filt.combined(state)
                         om0, C0 = rate_between(A_l, A, t[k] - state.t, P_l, P)
                     state = filt.start(A, P, t[k], cfg.rate_sigma_rad_s, 3, om0, C0, accel0)
+                    n_fused, doubtful = 1, unconfirmed
                 else:
                     state = filt.update(pstate, A, P)
+                    n_fused, doubtful = n_fused + 1, False
                 last_fused = k
                 A, P, om_f, C_f = filt.combined(state)
                 out["rate_filter"][k] = om_f
@@ -349,6 +376,9 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                 out["A_degraded"][k], out["cov_degraded"][k] = A, P
                 if mode == TRACKING:
                     out["reason"][k] = DEGRADED
+                A = None
+            elif unconfirmed:
+                out["reason"][k] = UNCONFIRMED
                 A = None
             else:
                 out["mode"][k] = mode
@@ -381,4 +411,4 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
             out["t_filter_ns"][k] = t_filt + t_fuse
         out["t_total_ns"][k] = clock() - c_start
     return SequenceResult(**out, det_row=det_row, shadow_rows=shadow_rows, shadow_verified=shadow_ok,
-                          t_shadow_ns=t_shadow)
+                          t_shadow_ns=t_shadow, predictions=predictions)

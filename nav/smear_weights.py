@@ -10,6 +10,8 @@ bright star whose stated sigma is 0.02 px can be 0.3 px off and pull a whole sol
 * :func:`smear_axes`: each star's streak (direction and length, px) from the body rate: the
   image of ``dv/dt = -omega x v`` is ``d(px)/dt = G omega``, ``G`` the pixel Jacobian of
   ``nav.tracking.pixel_jacobian``.
+* :func:`streak_inside`: whether each predicted streak lies whole inside the image (a streak cut by the edge has
+  its centroid pulled inwards along it, an error no weight describes; tracking leaves such stars out).
 * the weights: ``nav.tracking.centroid_whitening`` turns the variances along and across each streak into a 2 x 2
   covariance per star, and ``nav.tracking.solve_reprojection`` fits the attitude with them (``nav/sequence.py``).
 """
@@ -18,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["smear_axes"]
+__all__ = ["smear_axes", "streak_inside"]
 
 
 def smear_axes(G: np.ndarray, omega: np.ndarray, exposure_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -31,3 +33,18 @@ def smear_axes(G: np.ndarray, omega: np.ndarray, exposure_s: float) -> tuple[np.
         return vel / speed[:, None], speed * float(exposure_s)
     u = np.where(speed[:, None] > 0, vel / np.where(speed > 0, speed, 1.0)[:, None], np.array([1.0, 0.0]))
     return u, speed * float(exposure_s)
+
+
+def streak_inside(xy: np.ndarray, u: np.ndarray, length: np.ndarray, margin_px: float, width: int,
+                  height: int) -> np.ndarray:
+    """Whether each streak lies whole inside a ``width`` x ``height`` image with ``margin_px`` to spare.
+
+    xy : (M, 2) px predicted centroids (col, row; the image spans [0, width) x [0, height)).  u : (M, 2) unit
+    directions of the image motion, length : (M,) px streak lengths (:func:`smear_axes`; zeros for a still star).
+    The streak runs from ``xy - u length / 2`` to ``xy + u length / 2``; its bounding box grown by ``margin_px``
+    must fit in ``[0, width] x [0, height]``.  Returns (M,) bool.  A streak cut by the edge loses the part outside,
+    so a round-PSF fit's centroid moves inwards along the streak by up to ``length / 2``.
+    """
+    ext = np.abs(np.asarray(u, np.float64)) * (0.5 * np.asarray(length, np.float64))[:, None] + float(margin_px)
+    xy = np.asarray(xy, np.float64)
+    return ((xy - ext >= 0.0) & (xy + ext <= np.array([float(width), float(height)]))).all(axis=1)

@@ -81,6 +81,11 @@ class Prediction:
     radius_px: np.ndarray
     G: np.ndarray | None = None
 
+    def take(self, keep: np.ndarray) -> "Prediction":
+        """The prediction of the stars ``keep`` ((P,) bool or int index) only; A and cov unchanged."""
+        return Prediction(self.A, self.cov, self.rows[keep], self.xy[keep], self.sigma_px[keep],
+                          self.radius_px[keep], None if self.G is None else self.G[keep])
+
 
 @dataclass(frozen=True)
 class TrackResult:

@@ -13,9 +13,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from dualsight.nav.angular_rate import log_rotation
-from dualsight.nav.smear_weights import smear_axes
+from dualsight.nav.smear_weights import smear_axes, streak_inside
 from dualsight.nav.tracking import centroid_whitening, pixel_jacobian, solve_pairs, solve_reprojection
 from dualsight.scene.attitude import euler123_to_dcm, random_euler123
 from dualsight.scene.camera import Camera
@@ -96,3 +98,20 @@ def test_a_star_that_does_not_move_gets_the_fallback_direction():
     u, length = smear_axes(G, np.zeros(3), 0.1)
     np.testing.assert_array_equal(u, [[1.0, 0.0], [1.0, 0.0]])
     np.testing.assert_array_equal(length, [0.0, 0.0])
+
+
+@settings(max_examples=300, deadline=None)
+@given(x=st.floats(-5, 70), y=st.floats(-5, 50), ang=st.floats(0, 2 * math.pi), length=st.floats(0, 40),
+       margin=st.floats(0, 6))
+def test_a_streak_is_inside_exactly_when_every_point_of_it_is_margin_inside(x, y, ang, length, margin):
+    """Truth: 401 points sampled along the streak, each with a square of half-side ``margin`` around it, all in the
+    64 x 48 image box (a brute force over the segment, not the bounding-box formula); points within 1e-6 px of the
+    boundary are not judged."""
+    u = np.array([[math.cos(ang), math.sin(ang)]])
+    s = np.linspace(-0.5, 0.5, 401)[:, None] * length
+    pts = np.array([x, y]) + s * u
+    slack = np.array([(pts[:, 0] - margin).min(), (pts[:, 1] - margin).min(),
+                      64 - (pts[:, 0] + margin).max(), 48 - (pts[:, 1] + margin).max()])
+    assume(np.abs(slack).min() > 1e-6)
+    got = streak_inside(np.array([[x, y]]), u, np.array([length]), margin, 64, 48)
+    assert got.shape == (1,) and bool(got[0]) == bool((slack >= 0).all())

@@ -324,10 +324,11 @@ def _without(det, drop: np.ndarray):
     return dataclasses.replace(det, **per)
 
 
-def compute_sequence(spec: StarTrackSpec, ctx: star.StarContext, case_id: int) -> dict:
+def compute_sequence(spec: StarTrackSpec, ctx: star.StarContext, case_id: int, keep_predictions: bool = False) -> dict:
     """Draw, render, track and score one sequence; returns dict(draw, rendered, result, err (T, 3) rad,
     total_err (T,) rad, valid (T,), within (T,), t_sample_ns, focal (the ``nav.focal_refine.FocalFuser`` with
-    ``refine_focal``, else None), frames table, sequence row)."""
+    ``refine_focal``, else None), frames table, sequence row).  keep_predictions: the result keeps every tracked
+    frame's prediction (``SequenceResult.predictions``, for replay)."""
     seq, sp = spec.sequence, spec.star
     c0 = time.perf_counter_ns()
     draw = draw_sequence(spec, case_id)
@@ -340,7 +341,8 @@ def compute_sequence(spec: StarTrackSpec, ctx: star.StarContext, case_id: int) -
                        spec.tracking, available=draw["events"] != DROPPED, gyro=draw["gyro"],
                        gyro_sigma_rad_s=math.hypot(seq.gyro_noise_deg_s, seq.gyro_bias_deg_s) * DEG,
                        cat_vmag=cat.vmag, max_coast_frames=seq.max_coast_frames, lis_min_stars=seq.lis_min_stars,
-                       shadow_lis=seq.shadow_lost_in_space, focal=focal, exposure_s=sp.sensor.exposure_s)
+                       shadow_lis=seq.shadow_lost_in_space, focal=focal, exposure_s=sp.sensor.exposure_s,
+                       keep_predictions=keep_predictions)
     err = axis_errors(res.A, draw["A_true"], frame=sp.error_frame)
     tot = total_error_angle(res.A, draw["A_true"])
     valid = res.mode != NO_FIX

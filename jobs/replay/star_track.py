@@ -5,14 +5,13 @@ draw, render, detect, track); its ``star_sequences`` row and every one of its ``
 stored ones (timings aside), and every delivered frame is re-rendered as a full image here, whose digest must equal
 the frame's stored ``image_digest``, before anything is recorded.  Per frame the recording holds the image, the
 detections (identified ones labelled with their HIP number), the catalog stars at the true attitude, the match
-windows that tracking predicted (rebuilt from the previous fix and rate exactly as ``nav/sequence.py`` does, checked
-against the row's ``n_predicted``), both attitudes as arrows, errors and rates as time series, and the mode as text.
+windows that tracking predicted (kept by the recomputed run, ``keep_predictions``; their count checked against the
+row's ``n_predicted``), both attitudes as arrows, errors and rates as time series, and the mode as text.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from pathlib import Path
 
 import numpy as np
@@ -21,14 +20,12 @@ from dualsight.errors import InputError
 from dualsight.jobs.replay.cases import recording_path, refuse_frame_mismatch, refuse_mismatch, sequence_rows
 from dualsight.kernels.digest import to_int64
 from dualsight.kernels.sensor_config import flux_from_magnitude
-from dualsight.nav.focal_refine import scaled_camera
 from dualsight.nav.sequence import MODE_NAMES, NO_FIX
-from dualsight.nav.tracking import predict, propagate
 from dualsight.scene.attitude_trajectory import BLANK, DROPPED
 from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
 from dualsight.warehouse.lake import Lake
 
-__all__ = ["replay_track_case", "frame_images", "predicted_windows"]
+__all__ = ["replay_track_case", "frame_images"]
 
 
 def frame_images(spec, ctx, draw: dict) -> dict[int, tuple[np.ndarray, int]]:
@@ -61,41 +58,6 @@ def frame_images(spec, ctx, draw: dict) -> dict[int, tuple[np.ndarray, int]]:
     return out
 
 
-def predicted_windows(spec, ctx, draw: dict, res, focal=None) -> dict[int, object]:
-    """{frame: ``nav.tracking.Prediction``} of every frame on which tracking ran, rebuilt from the sequence's
-    answers by the rules of ``nav.sequence.run_sequence``: the last fix (either mode) propagated by the gyro's mean
-    rate over the interval, else the last rate from two fixes, else no rate with ``rate_sigma_rad_s``; a fix older
-    than ``max_coast_frames`` is none; with ``focal`` (the sequence's ``nav.focal_refine.FocalFuser``) the camera's
-    focal length is the one fused up to the previous frames.  A loop over the frames (tens), not over stars."""
-    seq, cfg = spec.sequence, spec.tracking
-    t, gyro = draw["t"], draw["gyro"]
-    gyro_c = np.eye(3) * 0.5 * (math.hypot(seq.gyro_noise_deg_s, seq.gyro_bias_deg_s) * math.pi / 180) ** 2
-    avail = draw["events"] != DROPPED
-    out, fix, rate = {}, None, None
-    for k in range(len(t)):
-        if not avail[k]:
-            continue
-        if fix is not None and k - fix > seq.max_coast_frames:
-            fix = rate = None
-        if fix is not None:
-            if gyro is not None:
-                om, C = 0.5 * (gyro[fix] + gyro[k]), gyro_c
-            elif rate is not None:
-                om, C = rate
-            else:
-                om, C = np.zeros(3), np.eye(3) * cfg.rate_sigma_rad_s ** 2
-            Ap, Pp = propagate(res.A[fix], res.cov[fix], om, C, t[k] - t[fix])
-            cam = spec.star.camera
-            if focal is not None and np.isfinite(focal.f_fused[:k]).any():    # the refined focal length then
-                cam = scaled_camera(cam, focal.f_fused[:k][np.isfinite(focal.f_fused[:k])][-1] / cam.fx)
-            out[k] = predict(Ap, Pp, ctx.catalog.unit, cam, cfg)
-        if res.mode[k] != NO_FIX:
-            if fix is not None:
-                rate = (res.rate_att[k], res.rate_att_cov[k])
-            fix = k
-    return out
-
-
 def replay_track_case(lake: Lake, run_id: str, case_id: int, output: Path | None = None, rec=None,
                       frame_offset: int = 0) -> Path:
     """Recompute sequence ``case_id`` of a ``star_track`` run, verify it against its rows (the sequence row, every
@@ -111,7 +73,7 @@ def replay_track_case(lake: Lake, run_id: str, case_id: int, output: Path | None
     manifest, seq_row, frames = sequence_rows(lake, run_id, case_id, "star_track", "star_sequences", "star_frames")
     spec = star_track.spec_from_dict(manifest["spec"], source=f"manifest of run {run_id}")
     ctx = star_track.make_context(spec)
-    out = star_track.compute_sequence(spec, ctx, case_id)
+    out = star_track.compute_sequence(spec, ctx, case_id, keep_predictions=True)
     refuse_mismatch(seq_row, out["sequence"], case_id, run_id, manifest)
     refuse_frame_mismatch(frames, out["frames"].to_pylist(), case_id, run_id, manifest)
     images = frame_images(spec, ctx, out["draw"])
@@ -120,10 +82,10 @@ def replay_track_case(lake: Lake, run_id: str, case_id: int, output: Path | None
             raise InputError(f"replay of case {case_id}: frame {k}: column image_digest is {frames[k]['image_digest']} "
                              f"in the lake, {dig} for the frame re-rendered alone", source=f"run {run_id}")
     res, draw, rnd = out["result"], out["draw"], out["rendered"]
-    windows = predicted_windows(spec, ctx, draw, res, out["focal"])
+    windows = res.predictions
     for k, p in windows.items():
         if len(p.rows) != frames[k]["n_predicted"]:
-            raise InputError(f"replay of case {case_id}: frame {k}: {len(p.rows)} predicted windows rebuilt, "
+            raise InputError(f"replay of case {case_id}: frame {k}: {len(p.rows)} predicted windows recomputed, "
                              f"n_predicted is {frames[k]['n_predicted']} in the lake", source=f"run {run_id}")
     hip, unit, cam = ctx.catalog.hip, ctx.catalog.unit, star_track.truth_camera(spec)
     output = Path(output or f"{run_id}-case{case_id}.rrd")
