@@ -317,7 +317,7 @@ _TRACKING_UNITS = {"window_k_sigma": "sigma", "window_min_px": "px", "window_max
                    "accel_steady_rad_s2": "rad/s^2", "accel_manoeuvre_rad_s2": "rad/s^2",
                    "filter_max_gap_s": "s", "jerk_rad_s3": "rad/s^3",
                    "smear_sigma_per_px": "px/px", "smear_cross_per_px": "px/px", "rate_jitter_rad_s": "rad/s",
-                   "edge_margin_px": "px"}
+                   "edge_margin_px": "px", "streak_psf_sigma_px": "px"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -389,6 +389,10 @@ class TrackingConfig:
         ``nav/smear_weights.py``; the tracked attitude is then refined with each star's 2 x 2 covariance), in
         [0, 1] (defaults 0: off; ``examples/star/track.toml`` sets 0.02 and 0.003 for the ``realistic`` preset's
         local detector).
+    streak_psf_sigma_px : the 1-sigma width (px) of a star's profile across its streak; with it, the detector's
+        stated variance along a streak of L px grows by ``1 + L^2 / (12 s^2)`` (the streak's profile is wider
+        along it: ``nav.smear_weights.along_gain``), in [0, 20] (default 0: off; ``examples/star/track.toml``
+        sets 1.28, measured on the ``realistic`` preset's frames).
     rate_jitter_rad_s : 1-sigma per axis (rad/s) of the platform's rate jitter, faster than the filter follows,
         added to the filter's stated rate covariance (``rate_filter_cov``): the filter's rate is the rate averaged
         over its memory, the row's truth the rate at the frame, and they differ by the jitter's.  A sinusoid of
@@ -420,6 +424,7 @@ class TrackingConfig:
     filter_max_gap_s: typing.Annotated[float, pydantic.Field(gt=0, le=1e6)] = 1.0
     smear_sigma_per_px: typing.Annotated[float, pydantic.Field(ge=0, le=1.0)] = 0.0
     smear_cross_per_px: typing.Annotated[float, pydantic.Field(ge=0, le=1.0)] = 0.0
+    streak_psf_sigma_px: typing.Annotated[float, pydantic.Field(ge=0, le=20.0)] = 0.0
     rate_jitter_rad_s: typing.Annotated[float, pydantic.Field(ge=0, le=1.0)] = 0.0
 
     def __post_init__(self):

@@ -56,7 +56,7 @@ from dualsight.nav import attitude_filter as filt
 from dualsight.nav.angular_rate import pair_by_identity, rate_between, rate_from_star_pairs
 from dualsight.nav.attitude import solve_identified
 from dualsight.nav.observations import MAX_OBS, Observations
-from dualsight.nav.smear_weights import smear_axes, streak_inside
+from dualsight.nav.smear_weights import along_gain, smear_axes, streak_inside
 from dualsight.nav.star_solution import identify
 from dualsight.nav.tracking import (DEGRADED, LOCK_REASONS, NO_PRIOR, max_sigma, predict, propagate,
                                     track)
@@ -309,11 +309,13 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                     om, C = np.zeros(3), np.eye(3) * cfg.rate_sigma_rad_s ** 2
                 Ap, Pp = propagate(fix[0], fix[1], om, C, dt)
             pred = predict(Ap, Pp, cat_unit, camera, cfg)
-            smear = pstate is not None and exposure_s > 0 and cfg.smear_sigma_per_px > 0 and len(pred.rows) > 0
+            smear = (pstate is not None and exposure_s > 0 and len(pred.rows) > 0
+                     and (cfg.smear_sigma_per_px > 0 or cfg.streak_psf_sigma_px > 0))
             if smear:
                 # a streak fitted as a round PSF: its centroid error grows with the streak's length, which the
-                # filter's rate predicts at each predicted star (nav/smear_weights.py): along the streak by
-                # smear_sigma_per_px, across it by smear_cross_per_px, in the fit's 2 x 2 weights
+                # filter's rate predicts at each predicted star (nav/smear_weights.py): the detector's variance
+                # along the streak by 1 + L^2 / (12 s^2) (streak_psf_sigma_px), plus smear_sigma_per_px along and
+                # smear_cross_per_px across it per px, in the fit's 2 x 2 weights
                 u_p, len_p = smear_axes(pred.G, filt.rate(pstate), exposure_s)
             else:
                 u_p, len_p = np.zeros((len(pred.rows), 2)), np.zeros(len(pred.rows))
@@ -324,8 +326,8 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                 predictions[k] = pred
             c1 = clock()
             res = track(pred, xy, sg, cat_unit, camera, cfg,
-                        (u_p, (cfg.smear_sigma_per_px * len_p) ** 2, (cfg.smear_cross_per_px * len_p) ** 2)
-                        if smear else None)
+                        (u_p, (cfg.smear_sigma_per_px * len_p) ** 2, (cfg.smear_cross_per_px * len_p) ** 2,
+                         along_gain(len_p, cfg.streak_psf_sigma_px)) if smear else None)
             c2 = clock()
             out["t_predict_ns"][k], out["t_track_ns"][k] = c1 - c0, c2 - c1
             out["reason"][k] = res.reason

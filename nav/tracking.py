@@ -318,12 +318,14 @@ def max_sigma(cov: np.ndarray) -> float:
 
 
 def centroid_whitening(sigma_px: np.ndarray, u: np.ndarray | None = None, var_along: np.ndarray | None = None,
-                       var_cross: np.ndarray | None = None) -> np.ndarray:
+                       var_cross: np.ndarray | None = None, gain_along: np.ndarray | None = None) -> np.ndarray:
     """(M, 2, 2) ``L^T`` per centroid with ``L L^T = C^-1``, the inverse of its 2 x 2 covariance
-    ``C = (sigma^2 + var_along) u u^T + (sigma^2 + var_cross) n n^T`` (``n = (-u_y, u_x)``, across ``u``): rows
-    ``u / sqrt(sigma^2 + var_along)`` and ``n / sqrt(sigma^2 + var_cross)``.  sigma_px : (M,) the detector's
-    isotropic 1-sigma (px).  u : (M, 2) unit directions (a streak's); var_along, var_cross : (M,) px^2 added along
-    and across it (``nav/smear_weights.py``).  Without ``u``: ``I / sigma`` (isotropic)."""
+    ``C = (sigma^2 (1 + gain_along) + var_along) u u^T + (sigma^2 + var_cross) n n^T`` (``n = (-u_y, u_x)``, across
+    ``u``): rows ``u / sqrt(sigma^2 (1 + gain_along) + var_along)`` and ``n / sqrt(sigma^2 + var_cross)``.
+    sigma_px : (M,) the detector's isotropic 1-sigma (px).  u : (M, 2) unit directions (a streak's); var_along,
+    var_cross : (M,) px^2 added along and across it; gain_along : optional (M,) the detector's variance's relative
+    growth along it (a streak's profile is wider along it: ``nav/smear_weights.py``).  Without ``u``: ``I / sigma``
+    (isotropic)."""
     M = len(sigma_px)
     L = np.zeros((M, 2, 2))
     if u is None:
@@ -332,7 +334,8 @@ def centroid_whitening(sigma_px: np.ndarray, u: np.ndarray | None = None, var_al
         L[:, 1, 1] = w
         return L
     s2 = sigma_px * sigma_px
-    wa, wc = (s2 + var_along) ** -0.5, (s2 + var_cross) ** -0.5
+    wa = (s2 + var_along if gain_along is None else s2 * (1.0 + gain_along) + var_along) ** -0.5
+    wc = (s2 + var_cross) ** -0.5
     L[:, 0] = u * wa[:, None]
     L[:, 1, 0] = -u[:, 1] * wc
     L[:, 1, 1] = u[:, 0] * wc
@@ -398,9 +401,10 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
 
     det_xy : (D, 2) centroids (px).  det_sigma_px : optional (D,) 1-sigma centroid error per axis (px), e.g. the
     local detector's Cramér-Rao bound; None (or non-finite entries) = ``cfg.centroid_sigma_px``.  streak :
-    optional ``(u (P, 2), var_along (P,), var_cross (P,))`` per predicted star: what the detector's sigma leaves out
-    and the prediction knows, the variance (px^2) added along the star's image motion ``u`` and across it (a
-    streak's: ``nav/sequence.py``, ``nav/smear_weights.py``).  The attitude is the weighted least-squares fit of
+    optional ``(u (P, 2), var_along (P,), var_cross (P,)[, gain_along (P,)])`` per predicted star: what the
+    detector's sigma leaves out and the prediction knows, the variance (px^2) added along the star's image motion
+    ``u`` and across it, and the relative growth of the detector's variance along it (a streak's:
+    ``nav/sequence.py``, ``nav/smear_weights.py``; :func:`centroid_whitening`).  The attitude is the weighted least-squares fit of
     the reprojection error from the prediction (:func:`solve_reprojection`, each pair weighted by the inverse of
     its 2 x 2 centroid covariance, :func:`centroid_whitening`), so its covariance is in rad^2; it is then
     multiplied by the a posteriori variance factor ``max(1, rms^2)`` (``rms``: the post-fit residuals' RMS per
@@ -436,7 +440,8 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
         if not (sig.min() > 0 and sig.max() < math.inf):        # NaN fails both
             sig = np.where(np.isfinite(sig) & (sig > 0), sig, cfg.centroid_sigma_px)
     L = (centroid_whitening(sig) if streak is None
-         else centroid_whitening(sig, streak[0][star], streak[1][star], streak[2][star]))
+         else centroid_whitening(sig, streak[0][star], streak[1][star], streak[2][star],
+                                 streak[3][star] if len(streak) > 3 else None))
     r = cat_unit[pred.rows[star]]
     xy = det_xy[det]
     G = None if pred.G is None else pred.G[star]

@@ -140,7 +140,8 @@ def test_gyro_rate_carries_tracking_at_a_high_rate(sky):
     assert r0.mode[1] == LOST_IN_SPACE and REASON_NAMES[r0.reason[1]] != "locked"
 
 
-def test_smear_weights_make_the_stated_covariance_hold_on_streaked_centroids(sky):
+@pytest.mark.parametrize("profile", [False, True])
+def test_smear_weights_make_the_stated_covariance_hold_on_streaked_centroids(sky, profile):
     """Centroids of streaked stars scattered along the true streak by ``smear_sigma_per_px`` x its length and across
     it by ``smear_cross_per_px`` x its length (the model of nav/smear_weights.py), the detector stating a round
     0.08 px, detections shuffled, one false star per frame.  With the smear weights the tracked attitudes' roll is
@@ -148,8 +149,12 @@ def test_smear_weights_make_the_stated_covariance_hold_on_streaked_centroids(sky
     sequences; none when the streaks are dropped from the fit), and their errors are within the stated covariance: mean NEES below the
     chi-square(3) mean's 3-sigma bound of the frame count (not overconfident), above 1.5 (the a posteriori variance
     factor leaves it at most 2x conservative).  Truth: each streak's direction and length from the camera model at
-    the exposure's two ends (not the code's pixel Jacobian)."""
+    the exposure's two ends (not the code's pixel Jacobian).  ``profile``: the scatter along a streak of L px is
+    instead the detector's sigma times sqrt(1 + L^2 / (12 x 1.28^2)) (a 1.28 px profile blurred by the streak), across
+    it the detector's, and the tracker states it with ``streak_psf_sigma_px``."""
     s0, along, cross, exposure = 0.08, 0.02, 0.003, 0.1
+    if profile:
+        along, cross = 0.0, 0.0
     nees, roll = {True: [], False: []}, {True: [], False: []}
     for seed in range(31, 40):
         rng = np.random.default_rng(seed)
@@ -168,6 +173,8 @@ def test_smear_weights_make_the_stated_covariance_hold_on_streaked_centroids(sky
             u = d / length[:, None]
             n = np.stack([-u[:, 1], u[:, 0]], axis=1)
             sa, sc = np.hypot(s0, along * length), np.hypot(s0, cross * length)
+            if profile:
+                sa = s0 * np.sqrt(1.0 + length ** 2 / (12 * 1.28 ** 2))
             xy = px[inn] + u * (sa * rng.normal(size=inn.size))[:, None] + n * (sc * rng.normal(size=inn.size))[:, None]
             xy = rng.permutation(np.concatenate([xy, rng.uniform((0, 0), (CAM.width, CAM.height), (1, 2))]))
             xys.append(xy), counts.append(len(xy))
@@ -176,7 +183,8 @@ def test_smear_weights_make_the_stated_covariance_hold_on_streaked_centroids(sky
         A_true = np.stack([att(tk) for tk in t])
         for on in (True, False):
             cfg = TrackingConfig(centroid_sigma_px=s0, smear_sigma_per_px=along if on else 0.0,
-                                 smear_cross_per_px=cross if on else 0.0)
+                                 smear_cross_per_px=cross if on else 0.0,
+                                 streak_psf_sigma_px=1.28 if on and profile else 0.0)
             r = run_sequence(t, xy, np.full(len(xy), s0), off, CAM, sky.cat, sky.pairs, VotingConfig.robust(2e-4),
                              cfg, engine="numpy", exposure_s=exposure)
             trk = np.flatnonzero(r.mode == TRACKING)
