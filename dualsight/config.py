@@ -193,7 +193,32 @@ def validate(tp, raw, *, source: str, section: str | None = None):
         inp = err.get("input")
         got = "" if err["type"] in ("missing", "missing_argument") or isinstance(inp, (dict, list)) \
             else f", got {inp!r}"
-        raise ConfigError(f"{msg}{got}", source=source, field=fld) from None
+        rng = allowed_range(_annotation_at(tp, err["loc"])) if err["type"] in _RANGE_ERRORS else ""
+        raise ConfigError(f"{msg}{f' (allowed {rng})' if rng else ''}{got}", source=source, field=fld) from None
+
+
+_RANGE_ERRORS = ("greater_than", "greater_than_equal", "less_than", "less_than_equal")
+"""pydantic's error types of a number outside its field's range (the message then states the whole range)."""
+
+
+def _annotation_at(tp, loc):
+    """The annotation (with its ``Annotated`` range) of the field at pydantic error location ``loc`` inside
+    ``tp``, following nested tables; None where ``loc`` leads nowhere (a tuple element, an unknown key)."""
+    ann = None
+    for part in loc:
+        if not isinstance(part, str):
+            continue                                   # an element of a tuple: its tuple's annotation
+        if isinstance(tp, type) and issubclass(tp, pydantic.BaseModel) and part in tp.model_fields:
+            f = tp.model_fields[part]
+            ann = typing.Annotated[(f.annotation, *f.metadata)] if f.metadata else f.annotation
+        elif dataclasses.is_dataclass(tp):
+            ann = typing.get_type_hints(tp, include_extras=True).get(part)
+        else:
+            return None
+        inner = [a for a in typing.get_args(typing.get_args(ann)[0] if typing.get_origin(ann) is typing.Annotated
+                                            else ann) if a is not type(None)] or [ann]
+        tp = next((a for a in inner if isinstance(a, type)), inner[0])
+    return ann
 
 
 def _field_names(tp, loc) -> list[str]:
@@ -270,8 +295,10 @@ def dataclass_from_table(cls, table: dict | None, *, source: str, section: str, 
             key, scale, value = written[fld]
             detail = e.detail.split(", got ")[0]
             detail = re.sub(r"(-?\d+(?:\.\d+)?(?:e-?\d+)?)", lambda m: f"{float(m.group(1)) / scale:.6g}", detail)
-            raise ConfigError(f"{detail} ({key.rsplit('_', 1)[1]}), got {value!r}", source=source,
-                              field=f"{section}.{key}") from None
+            unit = key.rsplit('_', 1)[1]
+            detail = (re.sub(r"\(allowed (.*)\)$", rf"(allowed \1 {unit})", detail) if detail.endswith(")")
+                      and "(allowed " in detail else f"{detail} ({unit})")
+            raise ConfigError(f"{detail}, got {value!r}", source=source, field=f"{section}.{key}") from None
         raise
 
 

@@ -106,7 +106,7 @@ def test_tolerance_given_in_arcsec_is_bounded_too():
     with pytest.raises(ConfigError) as e:
         dataclass_from_table(VotingConfig, {"tolerance_arcsec": 1e9}, source="spec.toml", section="voting")
     # named as written, in the units written: 1 deg = 3600 arcsec
-    assert e.value.field == "voting.tolerance_arcsec" and "3600 (arcsec)" in str(e.value) and "1000000000" in str(e.value)
+    assert e.value.field == "voting.tolerance_arcsec" and "(allowed (0, 3600] arcsec)" in str(e.value) and "1000000000" in str(e.value)
     ok = dataclass_from_table(VotingConfig, {"tolerance_arcsec": 3600.0}, source="spec.toml", section="voting")
     assert ok.tolerance_rad == pytest.approx(MAX_TOLERANCE_RAD)
 
@@ -262,3 +262,21 @@ def test_unknown_key_with_a_newline_is_one_line(where):
     with pytest.raises(ConfigError) as e:
         Camera.from_dict({**CAM, "a\nb": 1}, source="cam.toml")
     assert "\n" not in str(e.value) and e.value.field == "camera.a\\nb"
+
+
+@pytest.mark.parametrize("cls, section, name, bad, stated", [
+    ("tracking", "tracking", "window_k_sigma", 50.0, "(0, 20]"),          # TrackingConfig's docstring ranges
+    ("tracking", "tracking", "streak_psf_sigma_px", -1.0, "[0, 20]"),
+    ("tracking", "tracking", "edge_margin_px", 2000.0, "[0, 1000]"),
+    ("tracking", "tracking", "model_switch_prob", 0.7, "(0, 0.666667)"),
+    ("catalog", "catalog", "mag_limit", 13.0, "[-2, 12]"),
+])
+def test_a_toml_value_out_of_range_states_the_whole_range(cls, section, name, bad, stated):
+    """Not only the bound it broke ("less than or equal to 20") but the field's whole range, as its docstring
+    states it."""
+    from dualsight.config import TrackingConfig
+
+    tp = TrackingConfig if cls == "tracking" else CONFIGS[cls]
+    with pytest.raises(ConfigError) as e:
+        dataclass_from_table(tp, {name: bad}, source="spec.toml", section=section)
+    assert f"(allowed {stated})" in str(e.value), str(e.value)
