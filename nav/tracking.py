@@ -19,8 +19,8 @@ A star tracker in tracking mode knows its last attitude and its rate, so it need
    step, and within a window's pixels one step from the prediction usually meets the tolerance), each pair weighted
    by its 2 x 2 centroid covariance (:func:`centroid_whitening`: the detector's sigma, and a streak's variance along
    and across it when the caller knows the rate), with the attitude covariance scaled by the fit's a posteriori
-   variance factor ``max(1, rms^2)``; the residual test (a star beyond
-   ``residual_k_sigma`` is dropped and the attitude solved again once; then the RMS per degree of freedom must stay
+   variance factor ``max(1, rms^2)``; the residual test (a star whose deleted residual, the
+   residual a fit without it sees, :func:`deleted_residuals`, is beyond ``residual_k_sigma`` is dropped and the attitude solved again once; then the RMS per degree of freedom must stay
    below ``max_rms_sigma``) and the chance-match test (:func:`tracking_chance` over ``nav/chance.py``'s binomial
    tail).  Lock is lost by rule, one code of :data:`LOCK_REASONS`: too few matches (``min_stars``, or
    ``min_stars_tight`` when every window is tight), a degenerate geometry, the residual test, the chance-match
@@ -49,7 +49,8 @@ from dualsight.scene.starfield_geometry import field_half_angle
 
 __all__ = ["LOCK_REASONS", "LOCKED", "NO_PRIOR", "TOO_FEW_MATCHES", "DEGENERATE", "RESIDUAL", "P_CHANCE", "DEGRADED",
            "Prediction", "TrackResult", "propagate", "pixel_jacobian", "predict", "match", "tracking_chance",
-           "solve_pairs", "inverse_sym3", "centroid_whitening", "solve_reprojection", "max_sigma", "track"]
+           "solve_pairs", "inverse_sym3", "centroid_whitening", "solve_reprojection", "deleted_residuals",
+           "max_sigma", "track"]
 
 LOCK_REASONS = ("locked", "no_prior", "too_few_matches", "degenerate", "residual", "p_chance", "degraded")
 """Names of :attr:`TrackResult.reason` (index = code): lock held, or why it was lost; ``degraded`` is set by the
@@ -395,6 +396,30 @@ def solve_reprojection(A: np.ndarray, r: np.ndarray, det_xy: np.ndarray, L: np.n
     return A, None, None, False
 
 
+def deleted_residuals(e: np.ndarray, J: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Each observation's residual as the fit *without* it would see it, in its own sigmas: (M,) ``sqrt(e_i^T (I -
+    H_ii)^-1 e_i)``, ``H_ii = J_i cov J_i^T`` the 2 x 2 diagonal block of the hat matrix (the observation's
+    leverage).
+
+    e : (M, 2) whitened post-fit residuals, J : (M, 2, 3) whitened Jacobians (``L_i^T G_i``, rad -> sigmas), cov :
+    (3, 3) ``(J^T J)^-1`` (:func:`solve_reprojection`).  The deleted residual ``d_i = z_i - J_i x_(i)`` of a fit
+    without observation i is ``(I - H_ii)^-1 e_i`` with covariance ``(I - H_ii)^-1``, so the statistic is
+    chi-square with 2 degrees of freedom for a correct observation (Belsley, Kuh & Welsch, "Regression
+    Diagnostics", 1980, Sec. 2.1; Cook & Weisberg, "Residuals and Influence in Regression", 1982, Sec. 2.2).  A
+    star with a small stated sigma pulls the fit towards itself and leaves a small post-fit residual however wrong
+    it is; its deleted residual shows the error.  Where ``I - H_ii`` is singular to 1e-9 (a star the fit cannot do
+    without: two stars) the post-fit norm ``|e_i|`` is returned.
+    """
+    H = np.einsum("mij,jk,mlk->mil", J, cov, J)                      # (M, 2, 2)
+    a, b, d = 1.0 - H[:, 0, 0], -H[:, 0, 1], 1.0 - H[:, 1, 1]         # I - H_ii = [[a, b], [b, d]]
+    det = a * d - b * b
+    e0, e1 = e[:, 0], e[:, 1]
+    plain = e0 * e0 + e1 * e1
+    ok = det > 1e-9
+    q = np.where(ok, (d * e0 * e0 - 2.0 * b * e0 * e1 + a * e1 * e1) / np.where(ok, det, 1.0), plain)
+    return np.sqrt(np.maximum(q, 0.0))
+
+
 def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None, cat_unit: np.ndarray, camera,
           cfg: TrackingConfig, streak: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> TrackResult:
     """Match one frame's detections to a :class:`Prediction`, solve and verify (module docstring, steps 2-3).
@@ -410,7 +435,9 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
     multiplied by the a posteriori variance factor ``max(1, rms^2)`` (``rms``: the post-fit residuals' RMS per
     degree of freedom in their sigmas; a centroid error larger than stated widens the stated covariance instead of
     leaving it optimistic; Bevington & Robinson, "Data Reduction and Error Analysis", 3rd ed., Sec. 7.2).  A pair
-    whose whitened post-fit residual exceeds ``cfg.residual_k_sigma`` is dropped and the attitude solved again once.
+    whose deleted residual (:func:`deleted_residuals`: its whitened residual against the fit without it; a bright
+    star's post-fit residual hides its error) exceeds ``cfg.residual_k_sigma`` is dropped and the attitude solved
+    again once; with fewer than 3 pairs the post-fit residual is tested.
     A verified answer whose largest principal 1-sigma exceeds ``cfg.max_sigma_rad`` is *degraded*
     (``TrackResult.degraded``; e.g. a two-star or short-baseline solution's roll): the caller does not output it.
     cat_unit : (N, 3) the catalog ``pred.rows`` index.  camera : ``scene.camera.Camera``.
@@ -445,21 +472,24 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
     r = cat_unit[pred.rows[star]]
     xy = det_xy[det]
     G = None if pred.G is None else pred.G[star]
+    if G is None:
+        G = pixel_jacobian(r @ pred.A.T, camera)
     A, cov, e, ok = solve_reprojection(pred.A, r, xy, L, camera, G, pred.xy[star])
     if not ok:
         return lost(DEGENERATE, n_matched)
     nres = np.sqrt((e * e).sum(axis=1))
-    use = nres <= cfg.residual_k_sigma
+    dres = deleted_residuals(e, L @ G, cov) if n_matched >= 3 else nres     # the outlier test: deleted residuals
+    use = dres <= cfg.residual_k_sigma
     n_used = int(use.sum())
     if n_used < n_matched:                              # drop the outliers, solve once more
         if n_used < need:
             return lost(RESIDUAL, n_used)
-        det, star, r, xy, L = det[use], star[use], r[use], xy[use], L[use]
+        det, star, r, xy, L, G = det[use], star[use], r[use], xy[use], L[use], G[use]
         A, cov, e, ok = solve_reprojection(A, r, xy, L, camera)
         if not ok:
             return lost(DEGENERATE, n_used)
         nres = np.sqrt((e * e).sum(axis=1))
-        worst = float(nres.max())
+        worst = float((deleted_residuals(e, L @ G, cov) if n_used >= 3 else nres).max())
     else:                                               # every residual already within residual_k_sigma
         worst = 0.0
     dof = max(1, 2 * n_used - 3)
