@@ -203,7 +203,7 @@ BAD = {
     "k_a wrong type": (dict(component=_comp("cuboid", CUBOID_3U, 'k_a = "shiny"')), "component[0].k_a",
                        "valid number, got 'shiny'"),
     "k_s negative": (dict(component=_comp("cuboid", CUBOID_3U, "k_s = -1")), "component[0].k_s",
-                     "greater than or equal to 0, got -1"),
+                     "greater than or equal to 0 (allowed [0, 10]), got -1"),
     "position wrong length": (dict(body="[body]\nposition = [0.0, 1.0]"), "body.position", "at least 3 items"),
     "light missing": (dict(camera=CAM64), "camera.light_direction", "missing"),
     "light zero": (dict(camera=CAM64 + "\nlight_direction = [0, 0, 0]"), "camera.light_direction", "zero"),
