@@ -47,3 +47,16 @@ def test_the_width_comes_from_isolated_stars_not_from_close_pairs():
         assert (d < 0.5).all()
     img_pairs = _render(H, W, px, py, np.full(24, 9000.0), 1.2, 3.0, rng)
     assert detect_real(img_pairs[None], LocalDetectConfig()).psf_sigma_px[0] == 1.0
+
+
+def test_a_sparse_field_measures_its_width_from_the_stars_it_has():
+    """Two isolated stars of PSF sigma 1.5 px (a sparse field, or a smeared frame's streaks fitted as round stars):
+    the width is theirs, 1.5 px within 0.03, not the initial 1.0 px (which made the filter and the fit too
+    narrow, and the stated centroid sigma half the error along a streak)."""
+    rng = np.random.default_rng(25)
+    img = _render(160, 240, np.array([60.3, 170.6]), np.array([50.4, 110.2]), np.array([6000.0, 4000.0]), 1.5, 3.0,
+                  rng)
+    for engine in ("numpy", "taichi"):
+        det = detect_real(img[None], LocalDetectConfig(fit_engine=engine))
+        assert abs(det.psf_sigma_px[0] - 1.5) < 0.03, (engine, det.psf_sigma_px[0])
+        assert len(det.x) == 2
