@@ -57,6 +57,16 @@ def lenient_sky(seed):
     return rng, cat, A, cfg
 
 
+def streaked_sky(seed):
+    """:func:`lenient_sky` with its exact prediction (at least 8 stars) and a random streak direction per star:
+    (rng, catalog, attitude, config, prediction, u (P, 2))."""
+    rng, cat, A, cfg = lenient_sky(seed)
+    pred = predict(A, np.eye(3) * 1e-12, cat, PINHOLE, cfg)
+    assert len(pred.rows) >= 8
+    th = rng.uniform(0, 2 * math.pi, len(pred.rows))
+    return rng, cat, A, cfg, pred, np.stack([np.cos(th), np.sin(th)], axis=1)
+
+
 def two_star_sky(a):
     """Two catalog stars at +-a (rad) from the boresight along x under the identity attitude, plus far filler."""
     cat = np.array([[math.sin(a), 0.0, math.cos(a)], [-math.sin(a), 0.0, math.cos(a)], [0.0, 0.0, -1.0]])
@@ -370,12 +380,8 @@ def test_streak_weights_follow_each_star_through_shuffled_detections():
     """Each predicted star's streak (direction, variance along and across) must weigh the detection it pairs with:
     detections shuffled, two false stars among them, every star's streak different.  Known answer: the fit with the
     true pairs assembled here by construction (catalog row, detection, sigma and streak of the same star)."""
-    rng, cat, A, cfg = lenient_sky(24)
-    pred = predict(A, np.eye(3) * 1e-12, cat, PINHOLE, cfg)
+    rng, cat, A, cfg, pred, u = streaked_sky(24)
     P = len(pred.rows)
-    assert P >= 8
-    th = rng.uniform(0, 2 * math.pi, P)
-    u = np.stack([np.cos(th), np.sin(th)], axis=1)
     va, vc = rng.uniform(0.01, 0.3, P), rng.uniform(0.0, 0.02, P)
     sig = rng.uniform(0.05, 0.2, P)
     xy = pred.xy + rng.normal(scale=0.15, size=(P, 2))
@@ -398,12 +404,8 @@ def test_deleted_residuals_are_the_leave_one_out_refits():
     answer), its whitened residual d_i against that fit and d_i's covariance I + J_i cov_(i) J_i^T (the fit's
     uncertainty without it); the chi-square d^T Var^-1 d equals deleted_residuals' square to 1e-3 (the
     refits' own linearisation)."""
-    rng, cat, A, cfg = lenient_sky(31)
-    pred = predict(A, np.eye(3) * 1e-12, cat, PINHOLE, cfg)
+    rng, cat, A, cfg, pred, u = streaked_sky(31)
     P = len(pred.rows)
-    assert P >= 8
-    th = rng.uniform(0, 2 * math.pi, P)
-    u = np.stack([np.cos(th), np.sin(th)], axis=1)
     sig = rng.uniform(0.02, 0.3, P)
     L = centroid_whitening(sig, u, rng.uniform(0, 0.2, P), np.zeros(P))
     r = cat[pred.rows]
