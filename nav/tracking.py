@@ -410,13 +410,18 @@ def deleted_residuals(e: np.ndarray, J: np.ndarray, cov: np.ndarray) -> np.ndarr
     it is; its deleted residual shows the error.  Where ``I - H_ii`` is singular to 1e-9 (a star the fit cannot do
     without: two stars) the post-fit norm ``|e_i|`` is returned.
     """
-    H = np.einsum("mij,jk,mlk->mil", J, cov, J)                      # (M, 2, 2)
-    a, b, d = 1.0 - H[:, 0, 0], -H[:, 0, 1], 1.0 - H[:, 1, 1]         # I - H_ii = [[a, b], [b, d]]
+    Jf = J.reshape(-1, 3)
+    JC = Jf @ cov                                                    # rows J_i0 cov, J_i1 cov, ...
+    hd = (JC * Jf).sum(axis=1)                                       # H_ii's diagonal (h00, h11, h00, ...) ...
+    a, d = 1.0 - hd[0::2], 1.0 - hd[1::2]                            # I - H_ii = [[a, b], [b, d]]
+    b = -(JC[0::2] * Jf[1::2]).sum(axis=1)                           # ... and off-diagonal
     det = a * d - b * b
     e0, e1 = e[:, 0], e[:, 1]
-    plain = e0 * e0 + e1 * e1
+    q = d * e0 * e0 - 2.0 * b * e0 * e1 + a * e1 * e1
+    if det.min() > 1e-9:
+        return np.sqrt(np.maximum(q / det, 0.0))
     ok = det > 1e-9
-    q = np.where(ok, (d * e0 * e0 - 2.0 * b * e0 * e1 + a * e1 * e1) / np.where(ok, det, 1.0), plain)
+    q = np.where(ok, q / np.where(ok, det, 1.0), e0 * e0 + e1 * e1)
     return np.sqrt(np.maximum(q, 0.0))
 
 
