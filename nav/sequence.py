@@ -46,6 +46,8 @@ convention of docs/architecture.md.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 from dataclasses import dataclass
 
@@ -60,9 +62,16 @@ from dualsight.nav.smear_weights import along_gain, smear_axes, streak_inside
 from dualsight.nav.star_solution import identify
 from dualsight.nav.tracking import (DEGRADED, LOCK_REASONS, NO_PRIOR, max_sigma, predict, propagate,
                                     track)
+from dualsight.scene.starfield_geometry import field_half_angle
 
 __all__ = ["MODE_NAMES", "NO_FIX", "LOST_IN_SPACE", "TRACKING", "REASON_NAMES", "NO_IMAGE", "UNCONFIRMED", "LisFix",
            "lost_in_space", "SequenceResult", "run_sequence"]
+
+_NEAR_MARGIN = math.radians(2.0)
+"""Tracking predicts from the catalog stars within the field's half-angle + this of a recent boresight, refreshed
+when the boresight has moved by half of it (:data:`_COS_NEAR_STEP`): the cone test of 40 stars' neighbourhood
+instead of the whole catalog's every frame."""
+_COS_NEAR_STEP = math.cos(0.5 * _NEAR_MARGIN)
 
 MODE_NAMES = ("none", "lost_in_space", "tracking")
 """Names of :attr:`SequenceResult.mode` (index = code): no valid attitude, a verified lost-in-space fix, a lock."""
@@ -254,6 +263,7 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
     state, last_fused = None, -1       # the attitude filter (nav/attitude_filter.py) and its last fused frame
     n_fused, doubtful = 0, False       # solutions fused since the filter's start; started at an unconfirmed fix
     predictions = {} if keep_predictions else None
+    near_axis = near_camera = near_rows = near_cat = None     # the catalog near the boresight (see the loop)
     use_filter = cfg.attitude_filter
     # the filter's motion models: steady (constant rate), accelerating (constant acceleration), manoeuvre
     # (constant rate, large random acceleration)
@@ -308,7 +318,14 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                 else:
                     om, C = np.zeros(3), np.eye(3) * cfg.rate_sigma_rad_s ** 2
                 Ap, Pp = propagate(fix[0], fix[1], om, C, dt)
-            pred = predict(Ap, Pp, cat_unit, camera, cfg)
+            if near_axis is None or float(Ap[2] @ near_axis) < _COS_NEAR_STEP or camera is not near_camera:
+                # the catalog stars within the field's half-angle + 2 deg of this boresight: predict's cone test
+                # then runs over them (valid while the boresight stays within 1 deg of near_axis)
+                near_axis, near_camera = Ap[2].copy(), camera
+                near_rows = np.flatnonzero(cat_unit @ near_axis > math.cos(field_half_angle(camera) + _NEAR_MARGIN))
+                near_cat = cat_unit[near_rows]
+            pred = predict(Ap, Pp, near_cat, camera, cfg)
+            pred = dataclasses.replace(pred, rows=near_rows[pred.rows])         # rows of the whole catalog
             smear = (pstate is not None and exposure_s > 0 and len(pred.rows) > 0
                      and (cfg.smear_sigma_per_px > 0 or cfg.streak_psf_sigma_px > 0))
             if smear:
