@@ -69,8 +69,8 @@ __all__ = ["MODE_NAMES", "NO_FIX", "LOST_IN_SPACE", "TRACKING", "REASON_NAMES", 
 
 _NEAR_MARGIN = math.radians(2.0)
 """Tracking predicts from the catalog stars within the field's half-angle + this of a recent boresight, refreshed
-when the boresight has moved by half of it (:data:`_COS_NEAR_STEP`): the cone test of 40 stars' neighbourhood
-instead of the whole catalog's every frame."""
+when the boresight has moved by half of it (:data:`_COS_NEAR_STEP`): the cone test over those (68 of 8,916 stars of
+a V 6.5 catalog in the reference camera's field) instead of the whole catalog every frame."""
 _COS_NEAR_STEP = math.cos(0.5 * _NEAR_MARGIN)
 
 MODE_NAMES = ("none", "lost_in_space", "tracking")
