@@ -7,8 +7,9 @@
 The campaign of ``--config`` (default ``examples/star/track.toml``: the ``realistic`` preset, the paper's star
 camera with the realistic CMOS sensor and the local detector, catalog to V 6.5, constant rates and slews up to
 1 deg/s, 10 fps, each frame smeared by its rate over the 0.1 s exposure, one blinded and one dropped frame per
-sequence, the attitude filter and the streak weights), with lost-in-space run beside tracking on every frame
-(``shadow_lost_in_space``) so that both are timed on the same frames in the same run; ``--frames``, ``--fps``,
+sequence, the attitude filter and the streak weights), with lost-in-space run on every frame too
+(``shadow_lost_in_space``: in a pass of its own after each sequence's tracking loop, ``nav/sequence.py``) so that both
+are timed on the same frames in the same run, each in a loop of its own; ``--frames``, ``--fps``,
 ``--rate-max`` and ``--max-sigma-arcsec`` override the file.  Prints the campaign report (``dualsight star track
 --report``: its speed row is tracking's predict + match + solve + verify against lost-in-space's identify + solve +
 verify, mean ms) and the per-frame medians of tracking (the whole tracker on a tracked frame, and its predict +

@@ -46,9 +46,9 @@ def streak_inside(xy: np.ndarray, u: np.ndarray, length: np.ndarray, margin_px: 
     must fit in ``[0, width] x [0, height]``.  Returns (M,) bool.  A streak cut by the edge loses the part outside,
     so a round-PSF fit's centroid moves inwards along the streak by up to ``length / 2``.
     """
-    ext = np.abs(np.asarray(u, np.float64)) * (0.5 * np.asarray(length, np.float64))[:, None] + float(margin_px)
-    xy = np.asarray(xy, np.float64)
-    return ((xy - ext >= 0.0) & (xy + ext <= np.array([float(width), float(height)]))).all(axis=1)
+    # inside [ext, size - ext] on both axes  <=>  |xy - size / 2| + ext <= size / 2, ext = |u| L / 2 + margin
+    half = np.array([0.5 * width, 0.5 * height])
+    return (np.abs(xy - half) + np.abs(u) * (0.5 * length)[:, None] <= half - float(margin_px)).all(axis=1)
 
 
 def along_gain(length: np.ndarray, psf_sigma_px: float) -> np.ndarray:

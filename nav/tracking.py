@@ -50,7 +50,7 @@ from dualsight.scene.starfield_geometry import field_half_angle
 __all__ = ["LOCK_REASONS", "LOCKED", "NO_PRIOR", "TOO_FEW_MATCHES", "DEGENERATE", "RESIDUAL", "P_CHANCE", "DEGRADED",
            "Prediction", "TrackResult", "propagate", "pixel_jacobian", "predict", "match", "tracking_chance",
            "solve_pairs", "inverse_sym3", "centroid_whitening", "solve_reprojection", "deleted_residuals",
-           "max_sigma", "track"]
+           "deleted_residual_bound", "max_sigma", "track"]
 
 LOCK_REASONS = ("locked", "no_prior", "too_few_matches", "degenerate", "residual", "p_chance", "degraded")
 """Names of :attr:`TrackResult.reason` (index = code): lock held, or why it was lost; ``degraded`` is set by the
@@ -170,13 +170,16 @@ def _pinhole_jacobian(x: np.ndarray, y: np.ndarray, camera) -> np.ndarray:
     return G
 
 
-def predict(A: np.ndarray, cov: np.ndarray, cat_unit: np.ndarray, camera, cfg: TrackingConfig) -> Prediction:
+def predict(A: np.ndarray, cov: np.ndarray, cat_unit: np.ndarray, camera, cfg: TrackingConfig,
+            rows: np.ndarray | None = None) -> Prediction:
     """The catalog stars that attitude ``A`` (already propagated, :func:`propagate`) puts in the image, their
     predicted pixels, uncertainties and match windows.
 
     A : (3, 3) inertial -> camera.  cov : (3, 3) rad^2 its error covariance.  cat_unit : (N, 3) ICRS unit
     vectors, brightest first (the stars a detector can see: the catalog's magnitude limit).  camera :
-    ``scene.camera.Camera``.  Keeps the ``cfg.max_predicted`` brightest stars inside the image.
+    ``scene.camera.Camera``.  rows : optional (N,) int64 the row of each ``cat_unit`` entry in a larger catalog (a
+    subset near the boresight, ``nav/sequence.py``): the prediction's ``rows`` are then that catalog's.  Keeps the
+    ``cfg.max_predicted`` brightest stars inside the image.
     """
     A = np.asarray(A, np.float64)
     cos_half, lo, hi, f2, c2 = _camera_constants(camera)
@@ -185,12 +188,12 @@ def predict(A: np.ndarray, cov: np.ndarray, cat_unit: np.ndarray, camera, cfg: T
     if camera.has_distortion:
         px, _ = camera.project(v)             # inside the cone (< 90 deg): z > 0, px finite
         keep = camera.in_image(px).nonzero()[0][: cfg.max_predicted]
-        rows, v, px = cand[keep], v[keep], px[keep]
+        sel, v, px = cand[keep], v[keep], px[keep]
         G = pixel_jacobian(v, camera).reshape(-1, 3)                  # rows u0, v0, u1, v1, ...
     else:                                     # the pinhole (camera.project's formula) and its Jacobian in one pass
         xn = v[:, :2] / v[:, 2:]              # inside the image: lo <= xn < hi (px = f xn + c in [0, size))
         keep = ((xn >= lo) & (xn < hi)).all(axis=1).nonzero()[0][: cfg.max_predicted]
-        rows, xn = cand[keep], xn[keep]
+        sel, xn = cand[keep], xn[keep]
         px = xn * f2 + c2
         G = _pinhole_jacobian(xn[:, 0], xn[:, 1], camera).reshape(-1, 3)
     cov = np.asarray(cov, np.float64)
@@ -201,7 +204,7 @@ def predict(A: np.ndarray, cov: np.ndarray, cat_unit: np.ndarray, camera, cfg: T
     lam = 0.5 * (a + c) + np.hypot(0.5 * (a - c), b)                   # largest eigenvalue of the 2 x 2
     sigma = np.sqrt(lam + cfg.centroid_sigma_px ** 2)
     radius = np.minimum(np.maximum(cfg.window_k_sigma * sigma, cfg.window_min_px), cfg.window_max_px)
-    return Prediction(A, cov, rows, px, sigma, radius, G.reshape(-1, 2, 3))
+    return Prediction(A, cov, sel if rows is None else rows[sel], px, sigma, radius, G.reshape(-1, 2, 3))
 
 
 _CAMERA: list = [None, None]
@@ -425,6 +428,21 @@ def deleted_residuals(e: np.ndarray, J: np.ndarray, cov: np.ndarray) -> np.ndarr
     return np.sqrt(np.maximum(q, 0.0))
 
 
+def deleted_residual_bound(res_norm: np.ndarray, J: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """An upper bound (M,) of :func:`deleted_residuals` that costs a third of it: ``|e_i| / sqrt(1 - tr(H_ii))``
+    (``|e_i| * 1e150`` where ``tr(H_ii) >= 1``, where the bound does not hold: above any threshold).
+
+    res_norm : (M,) ``|e_i|``, the norms of the whitened post-fit residuals.  J : (M, 2, 3) whitened Jacobians.
+    cov : (3, 3) ``(J^T J)^-1``.  ``e_i^T (I - H_ii)^-1 e_i <= |e_i|^2 / (1 - lambda_max(H_ii))`` and
+    ``lambda_max(H_ii) <= tr(H_ii)`` (``H_ii = J_i cov J_i^T`` is positive semi-definite).  On a tracked frame the
+    leverages are ~3 / M and the residuals ~1 sigma, so the bound clears the outlier threshold on almost every
+    frame and :func:`track` computes the exact statistic only when it does not: the same decisions.
+    """
+    Jf = J.reshape(-1, 3)
+    tr = ((Jf @ cov) * Jf).sum(axis=1).reshape(-1, 2).sum(axis=1)
+    return res_norm / np.sqrt(np.maximum(1.0 - tr, 1e-300))       # tr >= 1: |e_i| * 1e150, beyond any threshold
+
+
 def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None, cat_unit: np.ndarray, camera,
           cfg: TrackingConfig, streak: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> TrackResult:
     """Match one frame's detections to a :class:`Prediction`, solve and verify (module docstring, steps 2-3).
@@ -483,7 +501,13 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
     if not ok:
         return lost(DEGENERATE, n_matched)
     nres = np.sqrt((e * e).sum(axis=1))
-    dres = deleted_residuals(e, L @ G, cov) if n_matched >= 3 else nres     # the outlier test: deleted residuals
+    if n_matched >= 3:                                  # the outlier test: deleted residuals, their bound first
+        LG = L @ G
+        dres = deleted_residual_bound(nres, LG, cov)
+        if not dres.max() <= cfg.residual_k_sigma:
+            dres = deleted_residuals(e, LG, cov)
+    else:
+        dres = nres
     use = dres <= cfg.residual_k_sigma
     n_used = int(use.sum())
     if n_used < n_matched:                              # drop the outliers, solve once more
@@ -494,7 +518,13 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
         if not ok:
             return lost(DEGENERATE, n_used)
         nres = np.sqrt((e * e).sum(axis=1))
-        worst = float((deleted_residuals(e, L @ G, cov) if n_used >= 3 else nres).max())
+        if n_used >= 3:
+            LG = L @ G
+            worst = float(deleted_residual_bound(nres, LG, cov).max())
+            if not worst <= cfg.residual_k_sigma:
+                worst = float(deleted_residuals(e, LG, cov).max())
+        else:
+            worst = float(nres.max())
     else:                                               # every residual already within residual_k_sigma
         worst = 0.0
     dof = max(1, 2 * n_used - 3)
