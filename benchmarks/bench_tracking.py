@@ -31,16 +31,19 @@ the availability of each, the identities' agreement where both answer, and the a
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import time
+from pathlib import Path
 
 os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
+ROOT = Path(__file__).resolve().parents[1]
 
 import numpy as np  # noqa: E402
 
 from dualsight.config import TrackingConfig  # noqa: E402
-from dualsight.jobs.kinds import star  # noqa: E402
+from dualsight.jobs.kinds import star, star_track  # noqa: E402
 from dualsight.nav.angular_rate import rate_between  # noqa: E402
 from dualsight.nav.attitude import solve_identified  # noqa: E402
 from dualsight.nav.errors import axis_errors  # noqa: E402
@@ -160,9 +163,13 @@ def main() -> int:
     # filter (the default) and without; per tracked frame the whole time and the filter's share
     xy_all = np.concatenate([s_[0] for s_ in seq])
     off = np.concatenate([[0], np.cumsum([len(s_[0]) for s_ in seq])])
-    for on in (True, False):              # "on": as examples/star/track.toml sets it (filter, smear weights)
-        c = TrackingConfig(centroid_sigma_px=cfg.centroid_sigma_px, attitude_filter=on,
-                           smear_sigma_per_px=0.02 if on else 0.0, smear_cross_per_px=0.003 if on else 0.0)
+    # "on": examples/star/track.toml's [tracking] table (the filter, the streak weights, the edge cut), from the file
+    track_toml = ROOT / "examples" / "star" / "track.toml"
+    on_cfg = dataclasses.replace(star_track.spec_from_dict(star_track.resolve_spec(None, track_toml)[0]).tracking,
+                                 centroid_sigma_px=cfg.centroid_sigma_px)
+    for on in (True, False):
+        c = on_cfg if on else TrackingConfig(centroid_sigma_px=cfg.centroid_sigma_px, attitude_filter=False,
+                                             smear_sigma_per_px=0.0, smear_cross_per_px=0.0)
         r = run_sequence(t, xy_all, None, off, cam, cat.unit, ctx.index, voting, c, cat_vmag=cat.vmag,
                          exposure_s=dt)
         trk = np.flatnonzero(r.mode == TRACKING)[5:]
