@@ -321,9 +321,12 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                 # the catalog stars within the field's half-angle + 2 deg of this boresight: predict's cone test
                 # then runs over them (valid while the boresight stays within 1 deg of near_axis)
                 near_axis, near_camera = Ap[2].copy(), camera
-                near_rows = np.flatnonzero(cat_unit @ near_axis > math.cos(field_half_angle(camera) + _NEAR_MARGIN))
+                half = field_half_angle(camera)
+                near_rows = np.flatnonzero(cat_unit @ near_axis > math.cos(half + _NEAR_MARGIN))
                 near_cat = cat_unit[near_rows]
-            pred = predict(Ap, Pp, near_cat, camera, cfg, near_rows)           # rows of the whole catalog
+                # all of them in front of the camera while the boresight is within 1 deg: no cone test needed
+                near_front = half + 1.5 * _NEAR_MARGIN < 0.5 * math.pi
+            pred = predict(Ap, Pp, near_cat, camera, cfg, near_rows, near=near_front)   # the whole catalog's rows
             smear = (pstate is not None and exposure_s > 0 and len(pred.rows) > 0
                      and (cfg.smear_sigma_per_px > 0 or cfg.streak_psf_sigma_px > 0))
             if smear:
@@ -332,16 +335,19 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                 # along the streak by 1 + L^2 / (12 s^2) (streak_psf_sigma_px), plus smear_sigma_per_px along and
                 # smear_cross_per_px across it per px, in the fit's 2 x 2 weights
                 u_p, len_p = smear_axes(pred.G, filt.rate(pstate), exposure_s)
-            else:
-                u_p, len_p = np.zeros((len(pred.rows), 2)), np.zeros(len(pred.rows))
+            else:                                     # still stars: the margin alone
+                u_p = len_p = None
             inside = streak_inside(pred.xy, u_p, len_p, cfg.edge_margin_px, camera.width, camera.height)
             if not inside.all():                      # a streak cut by the image's edge: its centroid is biased
-                pred, u_p, len_p = pred.take(inside), u_p[inside], len_p[inside]
+                pred = pred.take(inside)
+                if smear:
+                    u_p, len_p = u_p[inside], len_p[inside]
             if keep_predictions:
                 predictions[k] = pred
             c1 = clock()
             res = track(pred, xy, sg, cat_unit, camera, cfg,
-                        (u_p, (cfg.smear_sigma_per_px * len_p) ** 2, (cfg.smear_cross_per_px * len_p) ** 2,
+                        (u_p, (cfg.smear_sigma_per_px * len_p) ** 2,
+                         (cfg.smear_cross_per_px * len_p) ** 2 if cfg.smear_cross_per_px > 0 else None,
                          along_gain(len_p, cfg.streak_psf_sigma_px)) if smear else None)
             c2 = clock()
             out["t_predict_ns"][k], out["t_track_ns"][k] = c1 - c0, c2 - c1

@@ -36,18 +36,21 @@ def smear_axes(G: np.ndarray, omega: np.ndarray, exposure_s: float) -> tuple[np.
     return u, speed * float(exposure_s)
 
 
-def streak_inside(xy: np.ndarray, u: np.ndarray, length: np.ndarray, margin_px: float, width: int,
+def streak_inside(xy: np.ndarray, u: np.ndarray | None, length: np.ndarray | None, margin_px: float, width: int,
                   height: int) -> np.ndarray:
     """Whether each streak lies whole inside a ``width`` x ``height`` image with ``margin_px`` to spare.
 
     xy : (M, 2) px predicted centroids (col, row; the image spans [0, width) x [0, height)).  u : (M, 2) unit
-    directions of the image motion, length : (M,) px streak lengths (:func:`smear_axes`; zeros for a still star).
+    directions of the image motion, length : (M,) px streak lengths (:func:`smear_axes`; zeros for a still star;
+    both None: still stars, the margin alone).
     The streak runs from ``xy - u length / 2`` to ``xy + u length / 2``; its bounding box grown by ``margin_px``
     must fit in ``[0, width] x [0, height]``.  Returns (M,) bool.  A streak cut by the edge loses the part outside,
     so a round-PSF fit's centroid moves inwards along the streak by up to ``length / 2``.
     """
     # inside [ext, size - ext] on both axes  <=>  |xy - size / 2| + ext <= size / 2, ext = |u| L / 2 + margin
     half = np.array([0.5 * width, 0.5 * height])
+    if u is None:
+        return (np.abs(xy - half) <= half - float(margin_px)).all(axis=1)
     return (np.abs(xy - half) + np.abs(u) * (0.5 * length)[:, None] <= half - float(margin_px)).all(axis=1)
 
 

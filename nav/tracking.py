@@ -171,29 +171,34 @@ def _pinhole_jacobian(x: np.ndarray, y: np.ndarray, camera) -> np.ndarray:
 
 
 def predict(A: np.ndarray, cov: np.ndarray, cat_unit: np.ndarray, camera, cfg: TrackingConfig,
-            rows: np.ndarray | None = None) -> Prediction:
+            rows: np.ndarray | None = None, near: bool = False) -> Prediction:
     """The catalog stars that attitude ``A`` (already propagated, :func:`propagate`) puts in the image, their
     predicted pixels, uncertainties and match windows.
 
     A : (3, 3) inertial -> camera.  cov : (3, 3) rad^2 its error covariance.  cat_unit : (N, 3) ICRS unit
     vectors, brightest first (the stars a detector can see: the catalog's magnitude limit).  camera :
     ``scene.camera.Camera``.  rows : optional (N,) int64 the row of each ``cat_unit`` entry in a larger catalog (a
-    subset near the boresight, ``nav/sequence.py``): the prediction's ``rows`` are then that catalog's.  Keeps the
-    ``cfg.max_predicted`` brightest stars inside the image.
+    subset near the boresight, ``nav/sequence.py``): the prediction's ``rows`` are then that catalog's.  near: the
+    caller vouches that every row of ``cat_unit`` lies in front of the camera (less than 90 deg from the boresight,
+    as a subset within the field's half-angle + a few degrees is), so the cone test is left out and the camera
+    model alone decides what is in the image.  Keeps the ``cfg.max_predicted`` brightest stars inside the image.
     """
     A = np.asarray(A, np.float64)
     cos_half, lo, hi, f2, c2 = _camera_constants(camera)
-    cand = (cat_unit @ A[2] > cos_half).nonzero()[0]                  # cone test, then the camera model
-    v = cat_unit[cand] @ A.T
+    if near:                                  # every row in front of the camera (the caller's subset)
+        cand, v = None, cat_unit @ A.T
+    else:                                     # cone test, then the camera model
+        cand = (cat_unit @ A[2] > cos_half).nonzero()[0]
+        v = cat_unit[cand] @ A.T
     if camera.has_distortion:
         px, _ = camera.project(v)             # inside the cone (< 90 deg): z > 0, px finite
         keep = camera.in_image(px).nonzero()[0][: cfg.max_predicted]
-        sel, v, px = cand[keep], v[keep], px[keep]
+        sel, v, px = (keep if cand is None else cand[keep]), v[keep], px[keep]
         G = pixel_jacobian(v, camera).reshape(-1, 3)                  # rows u0, v0, u1, v1, ...
     else:                                     # the pinhole (camera.project's formula) and its Jacobian in one pass
         xn = v[:, :2] / v[:, 2:]              # inside the image: lo <= xn < hi (px = f xn + c in [0, size))
         keep = ((xn >= lo) & (xn < hi)).all(axis=1).nonzero()[0][: cfg.max_predicted]
-        sel, xn = cand[keep], xn[keep]
+        sel, xn = (keep if cand is None else cand[keep]), xn[keep]
         px = xn * f2 + c2
         G = _pinhole_jacobian(xn[:, 0], xn[:, 1], camera).reshape(-1, 3)
     cov = np.asarray(cov, np.float64)
@@ -327,7 +332,7 @@ def centroid_whitening(sigma_px: np.ndarray, u: np.ndarray | None = None, var_al
     ``C = (sigma^2 (1 + gain_along) + var_along) u u^T + (sigma^2 + var_cross) n n^T`` (``n = (-u_y, u_x)``, across
     ``u``): rows ``u / sqrt(sigma^2 (1 + gain_along) + var_along)`` and ``n / sqrt(sigma^2 + var_cross)``.
     sigma_px : (M,) the detector's isotropic 1-sigma (px).  u : (M, 2) unit directions (a streak's); var_along,
-    var_cross : (M,) px^2 added along and across it; gain_along : optional (M,) the detector's variance's relative
+    var_cross : (M,) px^2 added along and across it (var_cross None: nothing across); gain_along : optional (M,) the detector's variance's relative
     growth along it (a streak's profile is wider along it: ``nav/smear_weights.py``).  Without ``u``: ``I / sigma``
     (isotropic)."""
     M = len(sigma_px)
@@ -339,7 +344,7 @@ def centroid_whitening(sigma_px: np.ndarray, u: np.ndarray | None = None, var_al
         return L
     s2 = sigma_px * sigma_px
     wa = (s2 + var_along if gain_along is None else s2 * (1.0 + gain_along) + var_along) ** -0.5
-    wc = (s2 + var_cross) ** -0.5
+    wc = s2 ** -0.5 if var_cross is None else (s2 + var_cross) ** -0.5
     L[:, 0] = u * wa[:, None]
     L[:, 1, 0] = -u[:, 1] * wc
     L[:, 1, 1] = u[:, 0] * wc
@@ -490,7 +495,8 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
         if not (sig.min() > 0 and sig.max() < math.inf):        # NaN fails both
             sig = np.where(np.isfinite(sig) & (sig > 0), sig, cfg.centroid_sigma_px)
     L = (centroid_whitening(sig) if streak is None
-         else centroid_whitening(sig, streak[0][star], streak[1][star], streak[2][star],
+         else centroid_whitening(sig, streak[0][star], streak[1][star],
+                                 None if streak[2] is None else streak[2][star],
                                  streak[3][star] if len(streak) > 3 else None))
     r = cat_unit[pred.rows[star]]
     xy = det_xy[det]
@@ -501,15 +507,14 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
     if not ok:
         return lost(DEGENERATE, n_matched)
     nres = np.sqrt((e * e).sum(axis=1))
+    use = None                                          # None: every pair within residual_k_sigma
     if n_matched >= 3:                                  # the outlier test: deleted residuals, their bound first
         LG = L @ G
-        dres = deleted_residual_bound(nres, LG, cov)
-        if not dres.max() <= cfg.residual_k_sigma:
-            dres = deleted_residuals(e, LG, cov)
-    else:
-        dres = nres
-    use = dres <= cfg.residual_k_sigma
-    n_used = int(use.sum())
+        if not deleted_residual_bound(nres, LG, cov).max() <= cfg.residual_k_sigma:
+            use = deleted_residuals(e, LG, cov) <= cfg.residual_k_sigma
+    elif not nres.max() <= cfg.residual_k_sigma:
+        use = nres <= cfg.residual_k_sigma
+    n_used = n_matched if use is None else int(use.sum())
     if n_used < n_matched:                              # drop the outliers, solve once more
         if n_used < need:
             return lost(RESIDUAL, n_used)
@@ -538,5 +543,9 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
         cov = cov * (rms * rms)
     det_row[det] = pred.rows[star]
     res_sigma[det] = nres
+    # degraded: the largest principal sigma beyond max_sigma_rad; the trace bounds the largest eigenvalue, so the
+    # exact one is needed only when the trace exceeds the limit (a tracked frame's is far below it)
+    lim2 = cfg.max_sigma_rad * cfg.max_sigma_rad
+    degraded = not cov[0, 0] + cov[1, 1] + cov[2, 2] <= lim2 and max_sigma(cov) > cfg.max_sigma_rad
     return TrackResult(A, cov, True, LOCKED, det_row, res_sigma, P, n_matched, n_used, n_amb, n_used == 2, rms, p,
-                       max_sigma(cov) > cfg.max_sigma_rad, star, det)
+                       degraded, star, det)

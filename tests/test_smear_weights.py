@@ -115,3 +115,14 @@ def test_a_streak_is_inside_exactly_when_every_point_of_it_is_margin_inside(x, y
     assume(np.abs(slack).min() > 1e-6)
     got = streak_inside(np.array([[x, y]]), u, np.array([length]), margin, 64, 48)
     assert got.shape == (1,) and bool(got[0]) == bool((slack >= 0).all())
+
+
+@settings(max_examples=200, deadline=None)
+@given(x=st.floats(-5, 70), y=st.floats(-5, 50), margin=st.floats(0, 6))
+def test_a_still_star_is_inside_when_its_margin_square_is(x, y, margin):
+    """No streak (``u`` and ``length`` None): the star's square of half-side ``margin`` in the 64 x 48 box, written
+    out; points within 1e-6 px of the boundary are not judged."""
+    slack = np.array([x - margin, y - margin, 64 - x - margin, 48 - y - margin])
+    assume(np.abs(slack).min() > 1e-6)
+    got = streak_inside(np.array([[x, y]]), None, None, margin, 64, 48)
+    assert got.shape == (1,) and bool(got[0]) == bool((slack >= 0).all())

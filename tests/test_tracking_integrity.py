@@ -461,6 +461,25 @@ def test_the_deleted_residual_bound_is_above_the_leave_one_out_refits(seed, n, o
         assert bound[i] ** 2 >= chi2 * (1 - 1e-6) - 1e-9
 
 
+@pytest.mark.parametrize("factor, degraded", [(0.99, True), (1.01, False)])
+def test_degraded_is_the_largest_eigenvalue_against_the_limit(factor, degraded):
+    """A locked frame's stated covariance (12 stars, 0.2 px): its largest principal sigma by numpy's eigvalsh; with
+    the limit 1 % below it the answer is degraded, 1 % above it it is not (the roll's variance is most of the trace,
+    so both limits lie within the trace's range, where the exact eigenvalue decides)."""
+    rng, cat, A, _ = lenient_sky(41)
+    base = TrackingConfig(centroid_sigma_px=0.2, max_sigma_rad=math.radians(10.0))
+    pred = predict(A, np.eye(3) * (5 * ARCSEC) ** 2, cat, PINHOLE, base)
+    xy = pred.xy + rng.normal(scale=0.2, size=(len(pred.rows), 2))
+    ref = track(pred, xy, np.full(len(xy), 0.2), cat, PINHOLE, base)
+    assert ref.locked and not ref.degraded
+    lam = np.linalg.eigvalsh(ref.cov)
+    assert lam[-1] < np.trace(ref.cov) < 1.2 * lam[-1]
+    cfg = TrackingConfig(centroid_sigma_px=0.2, max_sigma_rad=factor * math.sqrt(lam[-1]))
+    res = track(pred, xy, np.full(len(xy), 0.2), cat, PINHOLE, cfg)
+    assert res.locked and res.degraded == degraded
+    np.testing.assert_array_equal(res.cov, ref.cov)
+
+
 def leave_one_out_chi2(A, r, xy, L):
     """(M,) each star's whitened residual against the fit without it, as a chi-square with its covariance (the
     brute force of the test above: one refit per star; NaN where the rest cannot be fitted), and the post-fit
