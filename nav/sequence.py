@@ -318,8 +318,8 @@ def run_sequence(times: np.ndarray, det_xy: np.ndarray, det_sigma_px: np.ndarray
                     om, C = np.zeros(3), np.eye(3) * cfg.rate_sigma_rad_s ** 2
                 Ap, Pp = propagate(fix[0], fix[1], om, C, dt)
             if near_axis is None or float(Ap[2] @ near_axis) < _COS_NEAR_STEP or camera is not near_camera:
-                # the catalog stars within the field's half-angle + 2 deg of this boresight: predict's cone test
-                # then runs over them (valid while the boresight stays within 1 deg of near_axis)
+                # the catalog stars within the field's half-angle + 2 deg of this boresight: the prediction runs
+                # over them alone (valid while the boresight stays within 1 deg of near_axis)
                 near_axis, near_camera = Ap[2].copy(), camera
                 half = field_half_angle(camera)
                 near_rows = np.flatnonzero(cat_unit @ near_axis > math.cos(half + _NEAR_MARGIN))
