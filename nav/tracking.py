@@ -19,8 +19,9 @@ A star tracker in tracking mode knows its last attitude and its rate, so it need
    step, and within a window's pixels one step from the prediction usually meets the tolerance), each pair weighted
    by its 2 x 2 centroid covariance (:func:`centroid_whitening`: the detector's sigma, and a streak's variance along
    and across it when the caller knows the rate), with the attitude covariance scaled by the fit's a posteriori
-   variance factor ``max(1, rms^2)``; the residual test (a star whose deleted residual, the
-   residual a fit without it sees, :func:`deleted_residuals`, is beyond ``residual_k_sigma`` is dropped and the attitude solved again once; then the RMS per degree of freedom must stay
+   variance factor ``max(1, rms^2)``; the residual test (a star whose deleted residual, the residual a fit
+   without it sees, :func:`deleted_residuals`, is beyond ``residual_k_sigma`` is dropped and the attitude solved
+   again once; then the RMS per degree of freedom must stay
    below ``max_rms_sigma``) and the chance-match test (:func:`tracking_chance` over ``nav/chance.py``'s binomial
    tail).  Lock is lost by rule, one code of :data:`LOCK_REASONS`: too few matches (``min_stars``, or
    ``min_stars_tight`` when every window is tight), a degenerate geometry, the residual test, the chance-match
@@ -332,8 +333,8 @@ def centroid_whitening(sigma_px: np.ndarray, u: np.ndarray | None = None, var_al
     ``C = (sigma^2 (1 + gain_along) + var_along) u u^T + (sigma^2 + var_cross) n n^T`` (``n = (-u_y, u_x)``, across
     ``u``): rows ``u / sqrt(sigma^2 (1 + gain_along) + var_along)`` and ``n / sqrt(sigma^2 + var_cross)``.
     sigma_px : (M,) the detector's isotropic 1-sigma (px).  u : (M, 2) unit directions (a streak's); var_along,
-    var_cross : (M,) px^2 added along and across it (var_cross None: nothing across); gain_along : optional (M,) the detector's variance's relative
-    growth along it (a streak's profile is wider along it: ``nav/smear_weights.py``).  Without ``u``: ``I / sigma``
+    var_cross : (M,) px^2 added along and across it (var_cross None: nothing across); gain_along : optional (M,)
+    the detector's variance's relative growth along it (a streak's profile is wider along it: ``nav/smear_weights.py``).  Without ``u``: ``I / sigma``
     (isotropic)."""
     M = len(sigma_px)
     L = np.zeros((M, 2, 2))
@@ -448,6 +449,18 @@ def deleted_residual_bound(res_norm: np.ndarray, J: np.ndarray, cov: np.ndarray)
     return res_norm / np.sqrt(np.maximum(1.0 - tr, 1e-300))       # tr >= 1: |e_i| * 1e150, beyond any threshold
 
 
+def _outlier_statistic(e: np.ndarray, res_norm: np.ndarray, J: np.ndarray, cov: np.ndarray,
+                       k_sigma: float) -> tuple[np.ndarray, bool]:
+    """(M,) the statistic :func:`track`'s outlier test compares with ``k_sigma``, and whether every pair is within it:
+    :func:`deleted_residual_bound` when its largest value is within ``k_sigma`` (then so is every deleted
+    residual), else :func:`deleted_residuals`.  Three pairs or more; e, J, cov as there."""
+    bound = deleted_residual_bound(res_norm, J, cov)
+    if bound.max() <= k_sigma:
+        return bound, True
+    exact = deleted_residuals(e, J, cov)
+    return exact, bool(exact.max() <= k_sigma)
+
+
 def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None, cat_unit: np.ndarray, camera,
           cfg: TrackingConfig, streak: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> TrackResult:
     """Match one frame's detections to a :class:`Prediction`, solve and verify (module docstring, steps 2-3).
@@ -507,13 +520,12 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
     if not ok:
         return lost(DEGENERATE, n_matched)
     nres = np.sqrt((e * e).sum(axis=1))
-    use = None                                          # None: every pair within residual_k_sigma
+    k = cfg.residual_k_sigma
     if n_matched >= 3:                                  # the outlier test: deleted residuals, their bound first
-        LG = L @ G
-        if not deleted_residual_bound(nres, LG, cov).max() <= cfg.residual_k_sigma:
-            use = deleted_residuals(e, LG, cov) <= cfg.residual_k_sigma
-    elif not nres.max() <= cfg.residual_k_sigma:
-        use = nres <= cfg.residual_k_sigma
+        stat, within = _outlier_statistic(e, nres, L @ G, cov, k)
+    else:
+        stat, within = nres, bool(nres.max() <= k)
+    use = None if within else stat <= k                 # None: every pair within residual_k_sigma
     n_used = n_matched if use is None else int(use.sum())
     if n_used < n_matched:                              # drop the outliers, solve once more
         if n_used < need:
@@ -523,13 +535,7 @@ def track(pred: Prediction, det_xy: np.ndarray, det_sigma_px: np.ndarray | None,
         if not ok:
             return lost(DEGENERATE, n_used)
         nres = np.sqrt((e * e).sum(axis=1))
-        if n_used >= 3:
-            LG = L @ G
-            worst = float(deleted_residual_bound(nres, LG, cov).max())
-            if not worst <= cfg.residual_k_sigma:
-                worst = float(deleted_residuals(e, LG, cov).max())
-        else:
-            worst = float(nres.max())
+        worst = float((_outlier_statistic(e, nres, L @ G, cov, k)[0] if n_used >= 3 else nres).max())
     else:                                               # every residual already within residual_k_sigma
         worst = 0.0
     dof = max(1, 2 * n_used - 3)
