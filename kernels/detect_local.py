@@ -18,11 +18,11 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
    deviations of the centre (3-sigma clipping).  The first window is centred on the median with sigma =
    1.4826 MAD; the following ones on the clipped mean with the clipped standard deviation corrected for the
    truncation (for a normal distribution clipped at +-c sigma the standard deviation is
-   sigma sqrt(1 - 2 c phi(c) / (2 Phi(c) - 1)): 0.98657 sigma at c = 3).  The median, the MAD and all windows
-   but the last are computed on a quarter of the tile's pixels (even rows and even columns; sorted once, each
-   window the contiguous run of sorted values), the last window on all of the tile's pixels (tiles of odd size,
-   or ``clip_iters`` 0: everything on all pixels): the level's error is then that of the all-pixel clipped mean
-   (~sigma / sqrt(T^2), 0.031 sigma for 32 px tiles; the quarter alone: 0.063 sigma; tests/test_detect_real.py).
+   sigma sqrt(1 - 2 c phi(c) / (2 Phi(c) - 1)): 0.98657 sigma at c = 3).  All of it is computed on a quarter of
+   the tile's pixels (even rows and even columns; sorted once, each window the contiguous run of sorted values;
+   tiles of odd size: all pixels): the level errs by ~sigma / sqrt(T^2 / 4) (0.063 sigma for 32 px tiles) and the
+   noise by ~4.4 % per tile, before the median filters below (tests/test_detect_real.py; why not every pixel:
+   :func:`~dualsight.kernels.detect_background.tile_background`).
    The tile's level is the final clipped mean and its noise the corrected clipped standard deviation — not
    the median and the MAD themselves, which on integer ADU with sigma ~2-3 ADU move in 0.5-ADU steps: a 0.5
    ADU error of the level is 0.65 sigma of the matched-filtered image at PSF sigma 0.9 px.  Where the median is a
@@ -30,17 +30,18 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
    one level or 0, and a sigma of 0 never widens its window) the clipping starts from the 1-ADU lattice's
    interpolated median and interquartile range / 1.349 instead
    (:func:`~dualsight.kernels.detect_background.lattice_start`).  Tiles that keep less
-   than half of their pixels (a bright star, a glare) are replaced by the frame's median tile; a 3 x 3
+   than half of their sample (a bright star, a glare) are replaced by the frame's median tile; a 3 x 3
    median filter over the tile grid (``mesh_filter``, as SExtractor's BACK_FILTERSIZE) removes the
-   remaining outliers.  The level and the inverse noise 1 / max(sigma, ``noise_floor_adu``) are interpolated
+   remaining outliers from the levels, a 5 x 5 one (``mesh_filter`` + 2) from the noise, which varies more slowly
+   and sets more of the threshold's scatter.  The level and the inverse noise 1 / max(sigma, ``noise_floor_adu``) are interpolated
    bilinearly between tile centres (tile (i, j)'s centre is pixel coordinate ((j + 0.5) T, (i + 0.5) T);
    constant beyond the outer centres): the pixel noise is the harmonic interpolation of the tiles'.
 2. **Matched filter.**  The background-subtracted frame R is correlated with the pixel-integrated
    Gaussian PSF of standard deviation ``psf_sigma_px`` (separable kernel k_i = Phi((i + 1/2)/s) -
    Phi((i - 1/2)/s), |i| <= ceil(3 s), normalised; R = 0 outside the frame).  The filtered image's own
-   noise is measured: the clipped mean and standard deviation of a strided sample of F / sigma (every 4th
-   row and column from 4 ceil(h / 4) px off the edges, h = ceil(3 s): ~48,000 pixels; median, MAD and the
-   first two windows on every 4th sample value, the last window on all): the mean is subtracted and the
+   noise is measured: the clipped mean and standard deviation of a strided sample of F / sigma (every 8th
+   row and column from 4 ceil(h / 4) px off the edges, h = ceil(3 s): ~12,000 pixels of a 1024 x 768 frame;
+   median, MAD and the first two windows on every 4th sample value, the last window on all): the mean is subtracted and the
    standard deviation (the ratio sigma_F / sigma: sum_i k_i^2 for white noise, more for a noise correlated
    between pixels) scales the local noise map, so Z is in units of the filtered noise's own sigma even where
    the tiles' sigma is off (quantised, clamped); a frame clamped at its black level (over a quarter of its
@@ -448,9 +449,10 @@ clusters or cosmic-ray tracks (measured ~0.2 px on rendered frames with hot pixe
 is undersampled: its stars cannot be told from hot pixels anyway."""
 
 
-def _measure_width(img, R, inv, s, cfg, sat, tail):
+def _measure_width(img, R, inv, inv_tiles, s, cfg, sat, tail):
     """The PSF-width pass (module docstring): the candidates of the 2 x 2-binned residual's matched filter (PSF
-    sigma s / 2 in binned pixels; a quarter of the full pass's work), each at the top-left pixel of its bin (the
+    sigma s / 2 in binned pixels; a quarter of the full pass's work; its noise map ``inv_tiles``, the tiles'
+    1 / sigma, interpolated at the bins' centres), each at the top-left pixel of its bin (the
     brightest pixel of R within one pixel of it is the star's), fitted with the width free on full-resolution
     stamps of R (:func:`_measure`, ``fit_sigma``; a hot pixel's excess weighs 1/4 of the binned kernel's centre
     tap in the binned Z)."""
@@ -462,7 +464,9 @@ def _measure_width(img, R, inv, s, cfg, sat, tail):
         Z, _, sig_f = matched_filter(R, inv, s, tail)
         return _measure(img, R, inv, Z, sig_f, s, cfg, sat, fit_sigma=True)
     Rb = cv2.resize(R[:2 * h2, :2 * w2], (w2, h2), interpolation=cv2.INTER_AREA)          # 2 x 2 means
-    ib = np.ascontiguousarray(inv[:2 * h2:2, :2 * w2:2])     # the scale: matched_filter measures its own
+    tile = cfg.tile_px
+    ib = (interpolate_tiles(inv_tiles, tile // 2, h2, w2) if tile % 2 == 0     # the scale: matched_filter
+          else np.ascontiguousarray(inv[:2 * h2:2, :2 * w2:2]))                # measures its own
     Zb, _, sfb = matched_filter(Rb, ib, 0.5 * s, tail)
     prb, pcb, npix, n_large = find_candidates(Zb, cfg)
     kb = psf_kernel_1d(0.5 * s)
@@ -477,7 +481,8 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
     level, sig = tile_background(img, cfg.tile_px, cfg.clip_sigma, cfg.clip_iters, cfg.mesh_filter, cfg.engine)
     bg = interpolate_tiles(level, cfg.tile_px, H, W)
     floor = np.float32(max(cfg.noise_floor_adu, 1e-6))
-    inv = interpolate_tiles(1.0 / np.maximum(sig, floor), cfg.tile_px, H, W)    # 1 / the pixel noise (harmonic)
+    inv_tiles = 1.0 / np.maximum(sig, floor)
+    inv = interpolate_tiles(inv_tiles, cfg.tile_px, H, W)    # 1 / the pixel noise (harmonic)
     if img.dtype in (np.uint8, np.uint16, np.float32):   # OpenCV's subtraction: the same float32 values, ~20 % faster
         R = cv2.subtract(img, bg, dtype=cv2.CV_32F)
     else:
@@ -487,7 +492,7 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
     s = cfg.psf_sigma_px if cfg.psf_sigma_px is not None else cfg.psf_sigma_init_px
     tail = clamped(img)                   # a frame clamped at its black level: its filtered noise's tail checked
     if cfg.psf_sigma_px is None:     # measure the PSF width on bright, unsaturated, isolated stars
-        m = _measure_width(img, R, inv, s, cfg, sat, tail)
+        m = _measure_width(img, R, inv, inv_tiles, s, cfg, sat, tail)
         # fitted widths under MIN_MEASURED_SIGMA_PX are not stars' (hot-pixel clusters, cosmic-ray tracks: ~0.2 px)
         good = m["ok"] & ~m["saturated"] & (m["s"] >= MIN_MEASURED_SIGMA_PX)
         use = np.flatnonzero(good & (m["snr"] > 30))

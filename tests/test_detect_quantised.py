@@ -133,7 +133,9 @@ def test_frames_with_7_to_11_stars_are_identified(field):
 def test_tile_noise_of_integer_counts_is_the_quantised_noise(sigma):
     """Integer counts round(mu + N(0, sigma)) in 32 x 32 tiles: the clipping starts from sigma > 0 (the interpolated
     interquartile range; the MAD of such a tile is 0 for sigma < 0.74) within 35 % of the quantised values' own
-    standard deviation, and the tile's final noise is within 6 % of it (sqrt(sigma^2 + 1/12) for sigma >= 0.5)."""
+    standard deviation; the tiles' final noise is the quantised noise's, sqrt(sigma^2 + 1/12) (Sheppard; sigma >=
+    0.5), to 3.5 % on average over the 16 tiles and 15 % in each (their samples: 256 values, even rows and columns,
+    the quarter tile_background reads: 4.4 % 1-sigma per tile), and their level their sample's mean."""
     rng = np.random.default_rng([3, int(sigma * 10)])
     mu = rng.uniform(20, 30, (16, 1, 1))
     tiles = np.rint(mu + rng.normal(0, sigma, (16, 32, 32)))
@@ -144,5 +146,7 @@ def test_tile_noise_of_integer_counts_is_the_quantised_noise(sigma):
     np.testing.assert_allclose(start[1], truth, rtol=0.35)
     img = tiles.reshape(4, 4, 32, 32).transpose(0, 2, 1, 3).reshape(128, 128).astype(np.uint8)
     level, sig = tile_background(img, 32, mesh=1)
-    np.testing.assert_allclose(sig.ravel(), truth, rtol=0.06)
-    np.testing.assert_allclose(level.ravel(), tiles.reshape(16, -1).mean(1), atol=0.1 * sigma + 0.02)
+    quarter = tiles[:, ::2, ::2].reshape(16, -1)
+    ratio = sig.ravel() / math.sqrt(sigma ** 2 + 1 / 12)
+    assert abs(float(ratio.mean()) - 1) < 0.035 and float(np.abs(ratio - 1).max()) < 0.15, ratio
+    np.testing.assert_allclose(level.ravel(), quarter.mean(1), atol=0.1 * sigma + 0.02)

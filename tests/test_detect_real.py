@@ -294,7 +294,10 @@ def test_hot_pixels_on_the_frame_edges_are_rejected():
     for r, c in spots:
         img[0, r, c] += 100 * noise
     det = detect_real(img, LocalDetectConfig(psf_sigma_px=0.9))
-    assert int(det.counts[0]) == 0, np.c_[det.x, det.y]
+    # no detection at a spike (the frame's own noise peaks reach Z ~5 at this seed: not this test's subject)
+    near = [(abs(det.x - (c + 0.5)) < 3) & (abs(det.y - (r + 0.5)) < 3) for r, c in spots]
+    assert not np.any(near), np.c_[det.x, det.y]
+    assert int(det.counts[0]) <= 1
     assert int(det.hot_pixels[0]) == len(spots)
 
 
@@ -717,12 +720,13 @@ def test_local_maxima_compare_all_eight_neighbours():
     assert want.sum() < (Z > 5).sum() - 20                      # diagonal/straight brighter neighbours occur
 
 
-def test_tile_statistics_use_every_pixel_in_the_last_window():
+def test_tile_statistics_are_the_quarter_samples_and_the_noise_map_the_wider_median():
     """tile_background's level and noise per tile (mesh filter off) equal a direct implementation of step 1:
     median / 1.4826 MAD (a tied median: the interpolated median and interquartile range / 1.349 of the 1-ADU
-    lattice) and 2 clipped windows on a quarter of the tile (even rows and columns), the 3rd window on all
-    its pixels; on pure Gaussian noise (sigma 2.5 ADU, float frames) the level's error is that of the all-pixel
-    clipped mean, sigma / sqrt(1024) x ~1 (0.031 sigma), not the quarter's (0.063 sigma)."""
+    lattice) and 3 clipped windows on a quarter of the tile (even rows and columns); on pure Gaussian noise
+    (sigma 2.5 ADU, float frames) the level errs as the quarter's clipped mean, sigma / sqrt(256) x ~1 (0.063
+    sigma), and with the default median filters (3 x 3 levels, 5 x 5 noises) the noise map errs by 1.4 % RMS
+    (simulated: 1.37-1.47 %; a 3 x 3 filter of the noise leaves 2.1 %, every pixel's window 1.5 %)."""
     rng = np.random.default_rng(15)
     corr = 1.0 / math.sqrt(1.0 - 2 * 3.0 * math.exp(-4.5) / math.sqrt(2 * math.pi) / math.erf(3 / math.sqrt(2)))
     img = np.floor(200.3 + rng.normal(0, 3.0, (96, 160))).astype(np.uint16)
@@ -743,16 +747,20 @@ def test_tile_statistics_use_every_pixel_in_the_last_window():
                     return v - 0.5 + min(max((p * hs.size - n_lo) / n_eq, 0.0), 1.0)
                 c, sd = q(0.5), (q(0.75) - q(0.25)) / 1.3489795
             for it in range(3):
-                x = t.ravel() if it == 2 else half
-                w = x[np.abs(x - c) <= 3.0 * sd]
+                w = half[np.abs(half - c) <= 3.0 * sd]
                 c, sd = float(w.mean()), float(w.std()) * corr
             assert level[i, j] == pytest.approx(c, abs=2e-4) and sig[i, j] == pytest.approx(sd, rel=1e-4)
-    errs = []
+    errs, sig_errs = [], []
     for k in range(6):
-        lev, _ = tile_background((7.0 + rng.normal(0, 2.5, (H, W))).astype(np.float32), 32, mesh=1)
+        frame = (7.0 + rng.normal(0, 2.5, (H, W))).astype(np.float32)
+        lev, _ = tile_background(frame, 32, mesh=1)
         errs.append((lev - 7.0).ravel() / 2.5)
+        sig_errs.append(tile_background(frame, 32)[1].ravel() / 2.5 - 1.0)
     rms = float(np.sqrt(np.mean(np.concatenate(errs) ** 2)))
-    assert 0.028 < rms < 0.035, rms
+    assert 0.058 < rms < 0.069, rms
+    sig_errs = np.concatenate(sig_errs)
+    assert abs(float(np.mean(sig_errs))) < 0.005
+    assert 0.011 < float(np.sqrt(np.mean(sig_errs ** 2))) < 0.0175
 
 
 def test_psf_profiles_are_the_pixel_integrals_and_their_derivatives():
