@@ -23,7 +23,16 @@ Last, the source of such tails in the preset's geometry: the spin-averaged photo
 the target (``scene/target_photometry.photocentre_offset``, Lambertian facets; spin axes uniform on the sphere, 24
 spin phases, the preset's median phase angle) -- the per-approach bias the filter's bias states stand for
 (``scene/photocentre_bias.py``) -- with its kurtosis (3 for a Gaussian) and the share beyond 2 and 3 standard
-deviations (Gaussian: 4.6 % and 0.27 %).
+deviations (Gaussian: 4.6 % and 0.27 %).  And how that bias changes as the observer turns about the Sun over the
+approach (:func:`bias_harmonics`): its Fourier harmonics in the turn angle psi, with each one's share of the variance
+and kurtosis.  Where the Sun lies along the orbit normal the observer turns once per orbit, so the first harmonic
+along the Sun, a_1 cos psi + b_1 sin psi in metres across the orbit plane, has the form of the Clohessy-Wiltshire
+cross-track motion z(t) = A cos nt + B sin nt: no bearing separates them, and what the filter states for the
+cross-track state must hold that harmonic's spread over spin axes.  Last, how much of the first harmonic the target's
+light curve over the orbit tells (the spin-averaged brightness and its relative scatter over the spin, their first
+4 harmonics, a linear fit on half of the spin axes): R^2 on the other half.
+
+    python benchmarks/bench_rendezvous_nees.py --truth-only      # the last two parts only (~10 s)
 """
 
 from __future__ import annotations
@@ -37,7 +46,7 @@ from dualsight.jobs.kinds import rendezvous as rz
 from dualsight.nav.relative_filter import chi2_mean_bounds
 from dualsight.scene.attitude import quat_to_dcm, quaternions_from_uniforms
 from dualsight.scene.rotation_vector import frame_rotation
-from dualsight.scene.target_photometry import photocentre_offset
+from dualsight.scene.target_photometry import apparent_brightness, photocentre_offset
 
 
 def seed_run(preset: str, seed: int, cases: int) -> dict:
@@ -77,12 +86,73 @@ def bias_tails(shape, alpha: float, n_axes: int = 4000, n_phases: int = 24, seed
             "beyond2": float(np.mean(np.abs(z) > 2)), "beyond3": float(np.mean(np.abs(z) > 3))}
 
 
+def bias_harmonics(shape, alpha: float, n_axes: int = 2000, n_phases: int = 24, n_turns: int = 24,
+                   seed: int = 5, n_light: int = 4) -> dict:
+    """Spin-averaged photocentre offsets (m) along the Sun's projection and across it, Sun along +z, the observer at
+    ``alpha`` rad from it turned about z by ``n_turns`` even steps, over ``n_axes`` spin axes (uniform on the sphere;
+    initial attitudes uniform on SO(3); ``n_phases`` spin phases).  The bias per axis (minus the mean over axes, per
+    turn) as a Fourier series in the turn psi: b(psi) = a_0 + sum_m (a_m cos m psi + b_m sin m psi).  Returns
+    ``share`` (3, 2) the variance share of harmonics 0, 1, 2 (along, across; sum_m var(a_m) / var(b)),
+    ``kurtosis`` (3, 2) of a_0, a_1, a_2, and ``r2_light`` (2,) the held-out R^2 of a linear fit of a_1 and b_1
+    along the Sun on the first ``n_light`` harmonics of the spin-averaged brightness (relative to its mean over
+    the turn) and of its relative scatter over the spin (module docstring)."""
+    rng = np.random.default_rng(seed)
+    axes = rng.normal(size=(n_axes, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    u = rng.random((3, n_axes))
+    R0 = quat_to_dcm(quaternions_from_uniforms(u[0], u[1], u[2]))
+    phi = np.arange(n_phases) * (2.0 * np.pi / n_phases)
+    R = frame_rotation((axes[:, None, :] * phi[None, :, None]).reshape(-1, 3)) @ np.repeat(R0, n_phases, 0)
+    sun = np.array([0.0, 0.0, 1.0])
+    turns = np.arange(n_turns) * (2.0 * np.pi / n_turns)
+    obs = np.stack([np.sin(alpha) * np.cos(turns), np.sin(alpha) * np.sin(turns),
+                    np.full_like(turns, np.cos(alpha))], -1)
+    e_sun = sun - np.cos(alpha) * obs
+    e_sun /= np.linalg.norm(e_sun, axis=-1, keepdims=True)
+    e_cross = np.cross(obs, e_sun)
+    far = 1e6                                             # seen from far (as photocentre_offset does)
+    pos = np.repeat(-far * obs, len(R), 0)
+    br = apparent_brightness(shape, np.tile(R, (n_turns, 1, 1)), pos, np.tile(sun, (n_turns * len(R), 1)), 1.0)
+    off = (br.cob_cam - pos).reshape(n_turns, n_axes, n_phases, 3)
+    comp = np.stack([np.einsum("tmkj,tj->tmk", off, e_sun), np.einsum("tmkj,tj->tmk", off, e_cross)], -1)
+    bias = comp.mean(2)
+    bias = bias - bias.mean(1, keepdims=True)             # (turns, axes, 2)
+    C = np.fft.rfft(bias, axis=0) / n_turns               # a_0 = C_0, a_m = 2 Re C_m, b_m = -2 Im C_m
+    coef = [C[0].real] + [2.0 * C[m].real for m in (1, 2)]
+    var_m = [np.mean(C[0].real ** 2, 0)] + [np.mean(np.abs(2.0 * C[m]) ** 2, 0) / 2.0 for m in (1, 2)]
+    total = np.mean(bias ** 2, (0, 1))
+    share = np.array([v / total for v in var_m])           # (a_m^2 + b_m^2) / 2 averages to var(a_m) for m >= 1
+    kurt = np.array([np.mean(c ** 4, 0) / np.mean(c ** 2, 0) ** 2 for c in coef])
+    flux = br.ratio.reshape(n_turns, n_axes, n_phases)
+    F = flux.mean(2)
+    light = [F / F.mean(0, keepdims=True), flux.std(2) / np.maximum(F, 1e-300)]
+    X = [np.ones(n_axes)]
+    for y in light:
+        Cy = np.fft.rfft(y, axis=0) / n_turns
+        X += [Cy[0].real] + [part for m in range(1, n_light + 1) for part in (Cy[m].real, Cy[m].imag)]
+    X = np.stack(X, -1)
+    fit = np.arange(n_axes) < n_axes // 2
+    r2 = []
+    for y in (2.0 * C[1][:, 0].real, -2.0 * C[1][:, 0].imag):
+        beta, *_ = np.linalg.lstsq(X[fit], y[fit], rcond=None)
+        res = y[~fit] - X[~fit] @ beta
+        r2.append(1.0 - res.var() / y[~fit].var())
+    return {"share": share, "kurtosis": kurt, "r2_light": np.array(r2), "sigma_m": np.sqrt(total)}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="far", choices=sorted(rz.PRESETS))
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6])
     ap.add_argument("--cases", type=int, default=100)
+    ap.add_argument("--truth-only", action="store_true",
+                    help="only the photocentre bias's tails, harmonics and light-curve fit (no filter runs)")
     args = ap.parse_args()
+    if args.truth_only:
+        d, _ = rz.resolve_spec(args.preset, None, seed=args.seeds[0], cases=1)
+        ctx = rz.make_context(rz.spec_from_dict(d))
+        truth_model(ctx.shape, np.radians(90.0))
+        return 0
     M = args.cases
     lo, hi = chi2_mean_bounds(6, M)
     print(f"preset {args.preset}, {M} approaches per seed, seeds {args.seeds}; 95 % bounds of a mean of {M}: "
@@ -106,12 +176,24 @@ def main() -> int:
     if len(args.seeds) > 1:
         ratio = float(np.sqrt(np.mean(means.var(0, ddof=1))) / np.sqrt(12.0 / M))
         print(f"dispersion ratio across seeds: {ratio:.2f} (1 for Gaussian errors)")
-    alpha = float(last["phase"])
-    bt = bias_tails(last["ctx"].shape, alpha)
+    truth_model(last["ctx"].shape, float(last["phase"]))
+    return 0
+
+
+def truth_model(shape, alpha: float) -> None:
+    """Print :func:`bias_tails` and :func:`bias_harmonics` at phase angle ``alpha`` (rad)."""
+    bt = bias_tails(shape, alpha)
     print(f"spin-averaged photocentre offset along the Sun at {np.degrees(alpha):.0f} deg phase: std "
           f"{bt['std_m'] * 100:.2f} cm, kurtosis {bt['kurtosis']:.1f} (Gaussian 3), beyond 2 / 3 sigma "
           f"{bt['beyond2'] * 100:.1f} / {bt['beyond3'] * 100:.2f} % (Gaussian 4.6 / 0.27 %)")
-    return 0
+    h = bias_harmonics(shape, alpha)
+    print(f"as the observer turns about the Sun (std {h['sigma_m'][0] * 1000:.1f} / {h['sigma_m'][1] * 1000:.1f} mm "
+          "along / across the Sun), its variance by harmonic of the turn:")
+    for m in range(3):
+        print(f"  m = {m}: share {h['share'][m, 0] * 100:.0f} / {h['share'][m, 1] * 100:.0f} %, kurtosis "
+              f"{h['kurtosis'][m, 0]:.1f} / {h['kurtosis'][m, 1]:.1f}")
+    print(f"  first harmonic along the Sun from the light curve (linear, held-out spin axes): R^2 "
+          f"{h['r2_light'][0]:.2f} (cos), {h['r2_light'][1]:.2f} (sin)")
 
 
 if __name__ == "__main__":
