@@ -117,13 +117,17 @@ the frame with a bright sky, which has fewer than 3 stars above SNR 30, is measu
 instead of keeping the initial 1.0; from the binned first pass, 2026-11-27: within 0.015 px of those.)
 
 Centroids use the continuous pixel convention (pixel (r, c) has its centre at (c + 0.5, r + 0.5)).
-Cost (one core, ``benchmarks/bench_detect_speed.py --against 306a946 --rounds 3``, CPU time, load 5.7-5.8), the
+Cost (one core, ``benchmarks/bench_detect_speed.py --against ff0fe3d --rounds 3``, CPU time, load 1.0-1.1),
+2026-11-28, the tiles' windows on their quarter samples and the noise sample every 8th row and column: 5.1-5.7 ms per
+rendered 1024 x 1024 frame (background ~1.2, filter ~1.8 for both passes, candidates ~0.5, fits ~0.9, other ~0.85)
+against 6.4-6.7 ms (median ratio 0.80), 4.5-5.6 ms per ESA frame against 5.9-6.2 (0.91); the PSF-width pass is
+~1.1 ms of a rendered frame (``psf_sigma_px`` given: 3.8 ms).  Before (``--against 306a946``, load 5.7-5.8), the
 default (fit_engine "taichi"), 2026-11-27 after the one-launch fits, the compiled candidate search, the SIMD sort of
 the tiles' samples and the saturation shortcut: 5.3-5.8 ms per ESA frame — background ~1.6, filter ~1.35,
 candidates ~0.45, hot-pixel test and fits ~1.5 (of which the fit kernels ~0.8: ~300 stars x 2.6 us), other ~0.65 —
 against 6.7-7.8 ms for 306a946 (ratios 0.75-0.83, median 0.77); 5.5-6.4 ms per rendered 1024 x 1024 frame
 (background ~1.85, filter ~2.0, candidates ~0.45, fits ~0.85, other ~0.9) against 6.9-7.7 ms (median ratio 0.84).
-What remains is mostly full-frame work that the maths asks for (measured alone on a 1024 x 1024 frame, one core: the
+What remained then was mostly full-frame work that the maths asks for (measured alone on a 1024 x 1024 frame, one core: the
 matched filter's sepFilter2D 0.67 ms and the binned one's 0.17, the tiles' last window over every pixel 0.54, their
 sorted quarter samples 0.14 + clipping 0.28, the background and noise maps 0.24, the residual 0.15, Z's scaling 0.22,
 the two noise samples' clipped statistics 0.30: ~2.7 ms before the first candidate) plus ~0.3-0.6 ms of numpy calls
