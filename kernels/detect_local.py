@@ -510,9 +510,10 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
     Z, ratio, sig_f = matched_filter(R, inv, s, tail)   # sig_f: Z's noise, edges included
     m = _measure(img, R, inv, Z, sig_f, s, cfg, sat)
     med_sig = float(np.median(sig))
+    med_level = float(np.median(level))
     return _Frame(x=m["x"], y=m["y"], flux=m["flux"], npix=m["npix"], sigma_px=m["sigma_px"],
-                  saturated=m["saturated"], level=float(np.median(level)),
-                  threshold=float(np.median(level)) + cfg.k_sigma * max(med_sig, cfg.noise_floor_adu) * ratio,
+                  saturated=m["saturated"], level=med_level,
+                  threshold=med_level + cfg.k_sigma * max(med_sig, cfg.noise_floor_adu) * ratio,
                   noise=med_sig, psf_sigma=float(s), large=m["large"], hot=m["hot"])
 
 
