@@ -65,16 +65,22 @@ def seed_run(preset: str, seed: int, cases: int) -> dict:
             "phase": np.nanmedian(np.concatenate(phase))}
 
 
-def bias_tails(shape, alpha: float, n_axes: int = 4000, n_phases: int = 24, seed: int = 5) -> dict:
-    """The spin-averaged photocentre offset along the Sun's projection (m) over spin axes uniform on the sphere and
-    initial attitudes uniform on SO(3), Sun along +z, observer at ``alpha`` rad from it: std, kurtosis, tails."""
+def spin_attitudes(n_axes: int, n_phases: int, seed: int) -> np.ndarray:
+    """(n_axes n_phases, 3, 3) body -> frame rotations: ``n_axes`` spin axes uniform on the sphere, each with an
+    initial attitude uniform on SO(3), at ``n_phases`` even spin phases (axis-major), from ``default_rng(seed)``."""
     rng = np.random.default_rng(seed)
     axes = rng.normal(size=(n_axes, 3))
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     u = rng.random((3, n_axes))
     R0 = quat_to_dcm(quaternions_from_uniforms(u[0], u[1], u[2]))
     phi = np.arange(n_phases) * (2.0 * np.pi / n_phases)
-    R = frame_rotation((axes[:, None, :] * phi[None, :, None]).reshape(-1, 3)) @ np.repeat(R0, n_phases, 0)
+    return frame_rotation((axes[:, None, :] * phi[None, :, None]).reshape(-1, 3)) @ np.repeat(R0, n_phases, 0)
+
+
+def bias_tails(shape, alpha: float, n_axes: int = 4000, n_phases: int = 24, seed: int = 5) -> dict:
+    """The spin-averaged photocentre offset along the Sun's projection (m) over spin axes uniform on the sphere and
+    initial attitudes uniform on SO(3), Sun along +z, observer at ``alpha`` rad from it: std, kurtosis, tails."""
+    R = spin_attitudes(n_axes, n_phases, seed)
     sun = np.array([0.0, 0.0, 1.0])
     obs = np.array([np.sin(alpha), 0.0, np.cos(alpha)])
     e_sun = sun - np.cos(alpha) * obs
@@ -96,13 +102,7 @@ def bias_harmonics(shape, alpha: float, n_axes: int = 2000, n_phases: int = 24, 
     ``kurtosis`` (3, 2) of a_0, a_1, a_2, and ``r2_light`` (2,) the held-out R^2 of a linear fit of a_1 and b_1
     along the Sun on the first ``n_light`` harmonics of the spin-averaged brightness (relative to its mean over
     the turn) and of its relative scatter over the spin (module docstring)."""
-    rng = np.random.default_rng(seed)
-    axes = rng.normal(size=(n_axes, 3))
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    u = rng.random((3, n_axes))
-    R0 = quat_to_dcm(quaternions_from_uniforms(u[0], u[1], u[2]))
-    phi = np.arange(n_phases) * (2.0 * np.pi / n_phases)
-    R = frame_rotation((axes[:, None, :] * phi[None, :, None]).reshape(-1, 3)) @ np.repeat(R0, n_phases, 0)
+    R = spin_attitudes(n_axes, n_phases, seed)
     sun = np.array([0.0, 0.0, 1.0])
     turns = np.arange(n_turns) * (2.0 * np.pi / n_turns)
     obs = np.stack([np.sin(alpha) * np.cos(turns), np.sin(alpha) * np.sin(turns),
