@@ -64,12 +64,12 @@ def matched_filter(R, inv, s, tail=False):
 
     Outside the frame R is 0 (its expectation), so near an edge F sums fewer pixels and its white-noise sigma
     is sigma sqrt(sum over the kernel's in-frame part of K^2): Z is normalised by that, exactly, per row and
-    column.  Z's scale is measured on a strided sample of F x inv (every :data:`NOISE_SAMPLE_STRIDE`-th row and
-    column, half that on a clamped frame; whole taps from the edges): its clipped mean is subtracted and Z divided by its clipped standard deviation (the ratio), so a
-    noise correlated between pixels, or a pixel noise the tiles misjudge (quantised to one level), is normalised
-    by the filtered noise's own sigma, never by sigma sqrt(sum k^2).  ``tail`` (a frame clamped at its black
-    level, :func:`clamped`) also checks the sample's upper tail (:data:`TAIL_P`).  Two passes over the frame
-    after the filter: Z = F x inv / ratio, then the centre."""
+    column. Z's scale is measured on a strided sample of F x inv (every :data:`NOISE_SAMPLE_STRIDE`-th row and column,
+    half that on a clamped frame; whole taps from the edges): its clipped mean is subtracted and Z divided by its
+    clipped standard deviation (the ratio), so a noise correlated between pixels, or a pixel noise the tiles misjudge
+    (quantised to one level), is normalised by the filtered noise's own sigma, never by sigma sqrt(sum k^2). ``tail``
+    (a frame clamped at its black level, :func:`clamped`) also checks the sample's upper tail (:data:`TAIL_P`). Two
+    passes over the frame after the filter: Z = F x inv / ratio, then the centre."""
     import cv2
 
     H, W = R.shape

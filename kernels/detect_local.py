@@ -32,18 +32,18 @@ One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile
    (:func:`~dualsight.kernels.detect_background.lattice_start`).  Tiles that keep less
    than half of their sample (a bright star, a glare) are replaced by the frame's median tile; a 3 x 3
    median filter over the tile grid (``mesh_filter``, as SExtractor's BACK_FILTERSIZE) removes the
-   remaining outliers from the levels, a 5 x 5 one (``mesh_filter`` + 2) from the noise, which varies more slowly
-   and sets more of the threshold's scatter.  The level and the inverse noise 1 / max(sigma, ``noise_floor_adu``) are interpolated
-   bilinearly between tile centres (tile (i, j)'s centre is pixel coordinate ((j + 0.5) T, (i + 0.5) T);
+   remaining outliers from the levels, a 5 x 5 one (``mesh_filter`` + 2) from the noise, which varies more slowly and
+   sets more of the threshold's scatter. The level and the inverse noise 1 / max(sigma, ``noise_floor_adu``) are
+   interpolated bilinearly between tile centres (tile (i, j)'s centre is pixel coordinate ((j + 0.5) T, (i + 0.5) T);
    constant beyond the outer centres): the pixel noise is the harmonic interpolation of the tiles'.
 2. **Matched filter.**  The background-subtracted frame R is correlated with the pixel-integrated
    Gaussian PSF of standard deviation ``psf_sigma_px`` (separable kernel k_i = Phi((i + 1/2)/s) -
    Phi((i - 1/2)/s), |i| <= ceil(3 s), normalised; R = 0 outside the frame).  The filtered image's own
-   noise is measured: the clipped mean and standard deviation of a strided sample of F / sigma (every 8th
-   row and column from 4 ceil(h / 4) px off the edges, h = ceil(3 s): ~12,000 pixels of a 1024 x 768 frame;
-   median, MAD and the first two windows on every 4th sample value, the last window on all): the mean is subtracted and the
-   standard deviation (the ratio sigma_F / sigma: sum_i k_i^2 for white noise, more for a noise correlated
-   between pixels) scales the local noise map, so Z is in units of the filtered noise's own sigma even where
+   noise is measured: the clipped mean and standard deviation of a strided sample of F / sigma (every 8th row and column
+   from 4 ceil(h / 4) px off the edges, h = ceil(3 s): ~12,000 pixels of a 1024 x 768 frame; median, MAD and the first
+   two windows on every 4th sample value, the last window on all): the mean is subtracted and the standard deviation
+   (the ratio sigma_F / sigma: sum_i k_i^2 for white noise, more for a noise correlated between pixels) scales the
+   local noise map, so Z is in units of the filtered noise's own sigma even where
    the tiles' sigma is off (quantised, clamped); a frame clamped at its black level (over a quarter of its
    pixels at its minimum) also has the sample's upper tail checked (``detect_candidates.TAIL_P``: its noise is
    skewed to the right).  Near the edges the kernel's missing taps
@@ -118,8 +118,8 @@ instead of keeping the initial 1.0; from the binned first pass, 2026-11-27: with
 
 Centroids use the continuous pixel convention (pixel (r, c) has its centre at (c + 0.5, r + 0.5)).
 Cost (one core, ``benchmarks/bench_detect_speed.py --against ff0fe3d --rounds 3``, CPU time, load 1.0-1.1),
-2026-11-28, the tiles' windows on their quarter samples and the noise sample every 8th row and column: 5.1-5.7 ms per
-rendered 1024 x 1024 frame (background ~1.2, filter ~1.8 for both passes, candidates ~0.5, fits ~0.9, other ~0.85)
+2026-11-28, the tiles' windows on their quarter samples and the noise sample every 8th row and column: 5.1-5.7 ms
+per rendered 1024 x 1024 frame (background ~1.2, filter ~1.8 for both passes, candidates ~0.5, fits ~0.9, other ~0.85)
 against 6.4-6.7 ms (median ratio 0.80), 4.5-5.6 ms per ESA frame against 5.9-6.2 (0.91); the PSF-width pass is
 ~1.1 ms of a rendered frame (``psf_sigma_px`` given: 3.8 ms).  Before (``--against 306a946``, load 5.7-5.8), the
 default (fit_engine "taichi"), 2026-11-27 after the one-launch fits, the compiled candidate search, the SIMD sort of
@@ -127,11 +127,11 @@ the tiles' samples and the saturation shortcut: 5.3-5.8 ms per ESA frame — bac
 candidates ~0.45, hot-pixel test and fits ~1.5 (of which the fit kernels ~0.8: ~300 stars x 2.6 us), other ~0.65 —
 against 6.7-7.8 ms for 306a946 (ratios 0.75-0.83, median 0.77); 5.5-6.4 ms per rendered 1024 x 1024 frame
 (background ~1.85, filter ~2.0, candidates ~0.45, fits ~0.85, other ~0.9) against 6.9-7.7 ms (median ratio 0.84).
-What remained then was mostly full-frame work that the maths asks for (measured alone on a 1024 x 1024 frame, one core: the
-matched filter's sepFilter2D 0.67 ms and the binned one's 0.17, the tiles' last window over every pixel 0.54, their
-sorted quarter samples 0.14 + clipping 0.28, the background and noise maps 0.24, the residual 0.15, Z's scaling 0.22,
-the two noise samples' clipped statistics 0.30: ~2.7 ms before the first candidate) plus ~0.3-0.6 ms of numpy calls
-per pass over the candidates.
+What remained then was mostly full-frame work that the maths asks for (measured alone on a 1024 x 1024 frame, one
+core: the matched filter's sepFilter2D 0.67 ms and the binned one's 0.17, the tiles' last window over every pixel
+0.54, their sorted quarter samples 0.14 + clipping 0.28, the background and noise maps 0.24, the residual 0.15, Z's
+scaling 0.22, the two noise samples' clipped statistics 0.30: ~2.7 ms before the first candidate) plus ~0.3-0.6 ms of
+numpy calls per pass over the candidates.
 Earlier the same day, at load 14-16 (CPU times there run ~1.2x those at load ~4, from 0fd2b06's): ~9.7 ms per ESA
 frame (1024 x 768, 90-520 detections, width measured) — background ~2.7, matched filter ~2.0 (binned width pass and
 final pass, noise samples included), candidates ~1.0, hot-pixel test and PSF fits ~3.1 (width pass included), other ~1.2;
