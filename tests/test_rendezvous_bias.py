@@ -6,6 +6,7 @@ of the predicted line of sight, the range's known bias removed, against hand-bui
 import math
 
 import numpy as np
+import pytest
 
 from dualsight.jobs.kinds import rendezvous as rz
 from dualsight.scene.photocentre_bias import PhotocentreStatistics
@@ -33,7 +34,19 @@ def _meas(u):
     return m
 
 
-def test_select_hook_gives_the_bias_columns_along_the_sun_and_across_and_the_white_part_on_them():
+def _given_model(D_seen):
+    """A CobBias with the numbers of :func:`_stats` below, built by hand: what reaches the selector is the model's."""
+    def columns(k, v, D, alpha, r):
+        D_seen.append(D)
+        return D * np.array([0.03, 0.01])[None, None, :], np.tile([0.02, 0.005], (len(v), 1))
+    return rz.CobBias(2, columns, lambda k, x, R: np.ones((1, 2)), lambda x, R: None)
+
+
+@pytest.mark.parametrize("given", [False, True])
+def test_select_hook_gives_the_bias_columns_along_the_sun_and_across_and_the_white_part_on_them(given):
+    """The product's model (the statistics' sigma_sun 0.03, sigma_cross 0.01, white 0.02 / 0.005 m), or the same
+    numbers from a model passed in (``cob``): G along the Sun's side across u and u x that, the white part on the
+    same axes; the model is handed those axes."""
     spec = _spec()
     s = rz.sun_icrs(spec)
     e = np.cross(s, [0.0, 0.0, 1.0])
@@ -46,7 +59,8 @@ def test_select_hook_gives_the_bias_columns_along_the_sun_and_across_and_the_whi
     table = (a, np.zeros_like(a), np.zeros_like(a))             # no mean offset: v = u
     ctx = rz.RendezvousContext(None, shape, table, _stats(0.03, 0.01, 0.02, 0.005, 1.0, 0.5))
     m = _meas(u)
-    sel = rz.target_selector(spec, ctx, m)
+    seen = []
+    sel = rz.target_selector(spec, ctx, m, _given_model(seen) if given else None)
     r = 1000.0
     R_k = np.stack([np.cross(u, s) / np.linalg.norm(np.cross(u, s)), u, s], axis=1)
     R_k[:, 2] = np.cross(R_k[:, 0], R_k[:, 1])
@@ -60,6 +74,8 @@ def test_select_hook_gives_the_bias_columns_along_the_sun_and_across_and_the_whi
     np.testing.assert_allclose(C2[0], want, atol=1e-18)
     np.testing.assert_allclose(u2[0], u, atol=1e-15)
     assert rz.cob_bias_states(spec, ctx) == 2
+    if given:
+        np.testing.assert_allclose(seen[0][0], np.stack([d_sun, d_cross], -1), atol=1e-12)
 
 
 def test_bias_decay_is_exp_of_the_line_of_sights_turn_over_the_correlation_angle():

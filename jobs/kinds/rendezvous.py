@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -87,7 +88,7 @@ from dualsight.scene.example_files import shipped_path
 from dualsight.scene.satellite import load_satellite
 from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
 from dualsight.scene.target_in_field import TargetCases, diameter_px, target_frames, with_target
-from dualsight.scene.target_photometry import apparent_brightness, photocentre_table, target_shape
+from dualsight.scene.target_photometry import photocentre_table, target_shape
 from dualsight.scene.units import ARCSEC, DEG
 
 NAME = "rendezvous"
@@ -767,7 +768,7 @@ COB_BIAS_STATES = 2
 Sun's direction in the plane of the sky and across it (``scene/photocentre_bias.py``)."""
 
 
-def _cob_axes(u: np.ndarray, s: np.ndarray) -> np.ndarray:
+def cob_axes(u: np.ndarray, s: np.ndarray) -> np.ndarray:
     """(K, 3, 2) unit vectors across lines of sight u (K, 3): the Sun's direction s (3,) projected across u, and
     u x that (any pair across u where the Sun is along u)."""
     d = s[None] - (u @ s)[:, None] * u
@@ -777,7 +778,41 @@ def _cob_axes(u: np.ndarray, s: np.ndarray) -> np.ndarray:
     return np.stack([d, np.cross(u, d)], -1)
 
 
-def target_selector(spec: RendezvousSpec, ctx: RendezvousContext, m: dict):
+@dataclass(frozen=True)
+class CobBias:
+    """A model of what the mean phase correction leaves of the centre of brightness, as ``n`` unit-variance bias
+    states of the filter (``nav/relative_filter.run``'s ``n_bias``).  ``columns(k, v, D, alpha, r) -> (G, white)``
+    for frame k's candidates: G (K, 3, n) m per unit state (``bearing_update``'s ``bias``) and white (K, 2) m the
+    1-sigma of the rest along D's two axes, from their corrected lines of sight v (K, 3), the axes D (K, 3, 2) of
+    :func:`cob_axes` (the Sun's side across v, and v x that), the phase angles alpha (K,) rad and the predicted range
+    r m; ``decay(k, x, R_k) -> (1, n)`` the states' correlation with frame k - 1 and ``start(x, R_k)`` its first
+    line of sight (:func:`cob_bias_decay`).  The product's is :func:`gauss_markov_cob`;
+    ``benchmarks/bench_rendezvous_nees.py --models`` compares others."""
+
+    n: int
+    columns: Callable
+    decay: Callable
+    start: Callable
+
+
+def gauss_markov_cob(spec: RendezvousSpec, ctx: RendezvousContext) -> CobBias | None:
+    """The filter's model (:func:`target_selector`'s docstring): :data:`COB_BIAS_STATES` first-order Gauss-Markov
+    states, ``sigma_sun`` and ``sigma_cross`` at the phase angle, decaying as :func:`cob_bias_decay`; the scatter
+    about the spin average white.  None where :func:`cob_bias_states` is 0."""
+    nb = cob_bias_states(spec, ctx)
+    if not nb:
+        return None
+    pb = ctx.photocentre_bias
+
+    def columns(k, v, D, alpha, r):
+        s_sun, s_cross, w_sun, w_cross, _, _ = pb.at(alpha)
+        return D * np.stack([s_sun, s_cross], -1)[:, None, :], np.stack([w_sun, w_cross], -1)
+
+    decay, start = cob_bias_decay(spec, ctx)
+    return CobBias(nb, columns, decay, start)
+
+
+def target_selector(spec: RendezvousSpec, ctx: RendezvousContext, m: dict, cob: CobBias | None = None):
     """The filter's ``select`` hook (``nav/relative_filter.run``): at frame k, each of the frame's candidates
     (``m["cand"]``: the moving unmatched detections of a star frame, the resolved blob of a proximity frame) is
     corrected for the centre of brightness at the predicted range r = |rho_pred| (with ``phase_correction``: moved
@@ -797,13 +832,14 @@ def target_selector(spec: RendezvousSpec, ctx: RendezvousContext, m: dict):
 
     Records per frame the raw and used bearing and covariance (``u``, ``C``, ``u_used``, ``C_used``),
     ``bearing_used``, ``found_by`` (``FOUND_BY`` code) and ``found_true`` (the pick is the true target's
-    detection: scored after the pick)."""
+    detection: scored after the pick).  ``cob``: another model of those bias states (:class:`CobBias`; None: the
+    product's, :func:`gauss_markov_cob`)."""
     c = spec.cfg
     extra = c.cob_sigma_frac * 2.0 * ctx.shape.bounding_radius
     s = sun_icrs(spec)
     grid, mean, spread = ctx.photocentre
-    pb = ctx.photocentre_bias
-    nb = cob_bias_states(spec, ctx)
+    cob = gauss_markov_cob(spec, ctx) if cob is None else cob
+    nb = cob.n if (cob is not None and c.phase_correction) else 0
     cand = m["cand"]
     gate = chi2_gate_2dof(GATE_PROB)
     hit_code = 1 if spec.is_star else FOUND_BY.index("resolved_blob")
@@ -822,10 +858,9 @@ def target_selector(spec: RendezvousSpec, ctx: RendezvousContext, m: dict):
             alpha = np.arccos(np.clip(-(u @ s), -1.0, 1.0))          # Sun - target - chaser
             v = sphere_phase_correction(u, np.broadcast_to(s, u.shape), np.interp(alpha, grid, mean), r)
             if nb:
-                s_sun, s_cross, w_sun, w_cross, _, _ = pb.at(alpha)
-                D = _cob_axes(v, s)
-                G = D * np.stack([s_sun, s_cross], -1)[:, None, :]
-                Dw = D * np.stack([w_sun, w_cross], -1)[:, None, :] / r
+                D = cob_axes(v, s)
+                G, white = cob.columns(k, v, D, alpha, r)
+                Dw = D * white[:, None, :] / r
                 C = C + Dw @ np.swapaxes(Dw, -1, -2)
             else:
                 var = var + np.interp(alpha, grid, spread) ** 2
@@ -887,21 +922,24 @@ def cob_bias_decay(spec: RendezvousSpec, ctx: RendezvousContext):
     return decay, lambda x, R_k: last.__setitem__("u", los(x, R_k))
 
 
-def run_filter(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, m: dict) -> tuple[np.ndarray, np.ndarray]:
+def run_filter(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, m: dict,
+               cob: CobBias | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(T, 6) estimates and (T, 6, 6) covariances of the EKF (one approach) from the nominal initial state and the
     spec's prior, with the measurements ``m`` (the target picked and its bearing corrected by
-    :func:`target_selector`) and the nominal
+    :func:`target_selector`, its centre-of-brightness bias states by ``cob``, None: the product's) and the nominal
     manoeuvres."""
     c = spec.cfg
     P0 = np.diag(np.array(list(c.prior_position_m) + list(c.prior_velocity_m_s)) ** 2)
     rng = np.where(m["range_used"], m["range_filter"], np.nan)
-    nb = cob_bias_states(spec, ctx)
-    decay, seed_los = cob_bias_decay(spec, ctx)
-    seed_los(draw["x0_nominal"][None], hill_to_icrs(spec.orbit, spec.times[:1])[0])
+    cob = gauss_markov_cob(spec, ctx) if cob is None else cob
+    nb = cob.n if (cob is not None and c.phase_correction) else 0
+    if nb:
+        cob.start(draw["x0_nominal"][None], hill_to_icrs(spec.orbit, spec.times[:1])[0])
     xs, Ps = rf.run(draw["x0_nominal"][None], P0[None], spec.times, spec.orbit, filter_config(c), ranges=rng[None],
                     range_sig_frac=np.nan_to_num(m["range_sigma_frac"], nan=1.0)[None],
                     dv_times=np.asarray(c.manoeuvre_times_s), dv=draw["dv_nominal"] if len(c.manoeuvre_times_s)
-                    else None, select=target_selector(spec, ctx, m), n_bias=nb, bias_decay=decay if nb else None)
+                    else None, select=target_selector(spec, ctx, m, cob), n_bias=nb,
+                    bias_decay=cob.decay if nb else None)
     return xs[0], Ps[0]
 
 
