@@ -92,16 +92,10 @@ def bias_tails(shape, alpha: float, n_axes: int = 4000, n_phases: int = 24, seed
             "beyond2": float(np.mean(np.abs(z) > 2)), "beyond3": float(np.mean(np.abs(z) > 3))}
 
 
-def bias_harmonics(shape, alpha: float, n_axes: int = 2000, n_phases: int = 24, n_turns: int = 24,
-                   seed: int = 5, n_light: int = 4) -> dict:
-    """Spin-averaged photocentre offsets (m) along the Sun's projection and across it, Sun along +z, the observer at
-    ``alpha`` rad from it turned about z by ``n_turns`` even steps, over ``n_axes`` spin axes (uniform on the sphere;
-    initial attitudes uniform on SO(3); ``n_phases`` spin phases).  The bias per axis (minus the mean over axes, per
-    turn) as a Fourier series in the turn psi: b(psi) = a_0 + sum_m (a_m cos m psi + b_m sin m psi).  Returns
-    ``share`` (3, 2) the variance share of harmonics 0, 1, 2 (along, across; sum_m var(a_m) / var(b)),
-    ``kurtosis`` (3, 2) of a_0, a_1, a_2, and ``r2_light`` (2,) the held-out R^2 of a linear fit of a_1 and b_1
-    along the Sun on the first ``n_light`` harmonics of the spin-averaged brightness (relative to its mean over
-    the turn) and of its relative scatter over the spin (module docstring)."""
+def turn_offsets(shape, alpha: float, n_axes: int, n_phases: int, n_turns: int, seed: int):
+    """The Lambertian photocentre offset (m) along the Sun's side and across, and the brightness (E / E_sun at
+    unit distance), of :func:`spin_attitudes`' attitudes seen from far by an observer at ``alpha`` rad from the Sun
+    (along +z) turned about it by ``n_turns`` even steps: (turns, axes, phases, 2) and (turns, axes, phases)."""
     R = spin_attitudes(n_axes, n_phases, seed)
     sun = np.array([0.0, 0.0, 1.0])
     turns = np.arange(n_turns) * (2.0 * np.pi / n_turns)
@@ -115,6 +109,20 @@ def bias_harmonics(shape, alpha: float, n_axes: int = 2000, n_phases: int = 24, 
     br = apparent_brightness(shape, np.tile(R, (n_turns, 1, 1)), pos, np.tile(sun, (n_turns * len(R), 1)), 1.0)
     off = (br.cob_cam - pos).reshape(n_turns, n_axes, n_phases, 3)
     comp = np.stack([np.einsum("tmkj,tj->tmk", off, e_sun), np.einsum("tmkj,tj->tmk", off, e_cross)], -1)
+    return comp, br.ratio.reshape(n_turns, n_axes, n_phases) * far ** 2
+
+
+def bias_harmonics(shape, alpha: float, n_axes: int = 2000, n_phases: int = 24, n_turns: int = 24,
+                   seed: int = 5, n_light: int = 4) -> dict:
+    """Spin-averaged photocentre offsets (m) along the Sun's projection and across it, Sun along +z, the observer at
+    ``alpha`` rad from it turned about z by ``n_turns`` even steps, over ``n_axes`` spin axes (uniform on the sphere;
+    initial attitudes uniform on SO(3); ``n_phases`` spin phases).  The bias per axis (minus the mean over axes, per
+    turn) as a Fourier series in the turn psi: b(psi) = a_0 + sum_m (a_m cos m psi + b_m sin m psi).  Returns
+    ``share`` (3, 2) the variance share of harmonics 0, 1, 2 (along, across; sum_m var(a_m) / var(b)),
+    ``kurtosis`` (3, 2) of a_0, a_1, a_2, and ``r2_light`` (2,) the held-out R^2 of a linear fit of a_1 and b_1
+    along the Sun on the first ``n_light`` harmonics of the spin-averaged brightness (relative to its mean over
+    the turn) and of its relative scatter over the spin (module docstring)."""
+    comp, flux = turn_offsets(shape, alpha, n_axes, n_phases, n_turns, seed)
     bias = comp.mean(2)
     bias = bias - bias.mean(1, keepdims=True)             # (turns, axes, 2)
     C = np.fft.rfft(bias, axis=0) / n_turns               # a_0 = C_0, a_m = 2 Re C_m, b_m = -2 Im C_m
@@ -123,7 +131,6 @@ def bias_harmonics(shape, alpha: float, n_axes: int = 2000, n_phases: int = 24, 
     total = np.mean(bias ** 2, (0, 1))
     share = np.array([v / total for v in var_m])           # (a_m^2 + b_m^2) / 2 averages to var(a_m) for m >= 1
     kurt = np.array([np.mean(c ** 4, 0) / np.mean(c ** 2, 0) ** 2 for c in coef])
-    flux = br.ratio.reshape(n_turns, n_axes, n_phases)
     F = flux.mean(2)
     light = [F / F.mean(0, keepdims=True), flux.std(2) / np.maximum(F, 1e-300)]
     X = [np.ones(n_axes)]

@@ -902,24 +902,38 @@ def cob_bias_decay(spec: RendezvousSpec, ctx: RendezvousContext):
     about the Sun; a turn of another axis is taken as the same turn."""
     s = sun_icrs(spec)
     pb = ctx.photocentre_bias
+    turn, start = line_of_sight_turn()
+
+    def decay(k, x, R_k):
+        dpsi, u = turn(x, R_k)
+        if dpsi is None:
+            return np.ones((1, COB_BIAS_STATES))
+        alpha = float(np.arccos(np.clip(-(u @ s), -1.0, 1.0)))
+        *_, c_sun, c_cross = pb.at(alpha)
+        return np.exp(-dpsi / np.array([[c_sun, c_cross]]))
+
+    return decay, start
+
+
+def line_of_sight_turn():
+    """A pair ``(turn(x, R_k) -> (dpsi, u), start(x, R_k))`` following the predicted line of sight u = -R_k rho /
+    |rho| (ICRS; x (1, >= 3) the predicted state, R_k Hill -> ICRS) from call to call: dpsi the angle (rad) it
+    turned since the last call (None at the first, unless ``start`` gave one)."""
     last = {}
 
     def los(x, R_k):
         rho = x[0, :3]
         return -(R_k @ rho) / np.linalg.norm(rho)
 
-    def decay(k, x, R_k):
+    def turn(x, R_k):
         u = los(x, R_k)
         prev = last.get("u")
         last["u"] = u
         if prev is None:
-            return np.ones((1, COB_BIAS_STATES))
-        dpsi = float(np.arctan2(np.linalg.norm(np.cross(prev, u)), prev @ u))
-        alpha = float(np.arccos(np.clip(-(u @ s), -1.0, 1.0)))
-        *_, c_sun, c_cross = pb.at(alpha)
-        return np.exp(-dpsi / np.array([[c_sun, c_cross]]))
+            return None, u
+        return float(np.arctan2(np.linalg.norm(np.cross(prev, u)), prev @ u)), u
 
-    return decay, lambda x, R_k: last.__setitem__("u", los(x, R_k))
+    return turn, lambda x, R_k: last.__setitem__("u", los(x, R_k))
 
 
 def run_filter(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, m: dict,
