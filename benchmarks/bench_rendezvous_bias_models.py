@@ -120,8 +120,8 @@ def main() -> int:
         ctx = rz.make_context(spec)
         if not spec.is_star or not spec.cfg.phase_correction:
             raise SystemExit("bench_rendezvous_bias_models: a star-camera preset with phase_correction (e.g. far)")
-        alpha = float(np.nanmedian(rz.geometry(spec, rz.draw_case(spec, 0),
-                                               rz.truth_trajectory(spec, rz.draw_case(spec, 0)))["targets"].phase_rad))
+        draw0 = rz.draw_case(spec, 0)                 # the preset's phase angle, from its first approach
+        alpha = float(np.nanmedian(rz.geometry(spec, draw0, rz.truth_trajectory(spec, draw0))["targets"].phase_rad))
         stats = offset_harmonics(ctx.shape, alpha, spin_harmonics=args.spin)
         models = {"product": None,
                   "turn harmonics, white spin": lambda: harmonic_cob(spec, ctx, stats, 0, 1.0),

@@ -787,7 +787,7 @@ class CobBias:
     :func:`cob_axes` (the Sun's side across v, and v x that), the phase angles alpha (K,) rad and the predicted range
     r m; ``decay(k, x, R_k) -> (1, n)`` the states' correlation with frame k - 1 and ``start(x, R_k)`` its first
     line of sight (:func:`cob_bias_decay`).  The product's is :func:`gauss_markov_cob`;
-    ``benchmarks/bench_rendezvous_nees.py --models`` compares others."""
+    ``benchmarks/bench_rendezvous_bias_models.py`` compares others."""
 
     n: int
     columns: Callable
@@ -810,6 +810,13 @@ def gauss_markov_cob(spec: RendezvousSpec, ctx: RendezvousContext) -> CobBias | 
 
     decay, start = cob_bias_decay(spec, ctx)
     return CobBias(nb, columns, decay, start)
+
+
+def cob_states(spec: RendezvousSpec, ctx: RendezvousContext, cob: CobBias | None) -> tuple[CobBias | None, int]:
+    """The bias model the filter runs with (``cob``, or the product's :func:`gauss_markov_cob` for None) and its
+    number of states (0 without ``phase_correction``: the photocentre's whole spread is then white)."""
+    cob = gauss_markov_cob(spec, ctx) if cob is None else cob
+    return cob, (cob.n if (cob is not None and spec.cfg.phase_correction) else 0)
 
 
 def target_selector(spec: RendezvousSpec, ctx: RendezvousContext, m: dict, cob: CobBias | None = None):
@@ -838,8 +845,7 @@ def target_selector(spec: RendezvousSpec, ctx: RendezvousContext, m: dict, cob: 
     extra = c.cob_sigma_frac * 2.0 * ctx.shape.bounding_radius
     s = sun_icrs(spec)
     grid, mean, spread = ctx.photocentre
-    cob = gauss_markov_cob(spec, ctx) if cob is None else cob
-    nb = cob.n if (cob is not None and c.phase_correction) else 0
+    cob, nb = cob_states(spec, ctx, cob)
     cand = m["cand"]
     gate = chi2_gate_2dof(GATE_PROB)
     hit_code = 1 if spec.is_star else FOUND_BY.index("resolved_blob")
@@ -945,8 +951,7 @@ def run_filter(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, m: dict
     c = spec.cfg
     P0 = np.diag(np.array(list(c.prior_position_m) + list(c.prior_velocity_m_s)) ** 2)
     rng = np.where(m["range_used"], m["range_filter"], np.nan)
-    cob = gauss_markov_cob(spec, ctx) if cob is None else cob
-    nb = cob.n if (cob is not None and c.phase_correction) else 0
+    cob, nb = cob_states(spec, ctx, cob)
     if nb:
         cob.start(draw["x0_nominal"][None], hill_to_icrs(spec.orbit, spec.times[:1])[0])
     xs, Ps = rf.run(draw["x0_nominal"][None], P0[None], spec.times, spec.orbit, filter_config(c), ranges=rng[None],
