@@ -291,7 +291,7 @@ def tile_background(img: np.ndarray, tile: int = 32, clip: float = 3.0, iters: i
     0.9 px; a median filter keeps a step between two flat regions where it is, and a sensor's noise varies over
     hundreds of pixels, not one square.  (Reading every pixel in the last window, as before 2026-11-28, halved both
     errors for ~0.5-1 ms per 1024 x 1024 frame, a fifth of the detector; ``benchmarks/bench_detect.py``, 96 frames
-    per condition: the same completeness and false rate, README.)
+    per condition: the same completeness and false rate, docs/measurements.md.)
 
     Returns (level (ny, nx) float32, sigma (ny, nx) float32), ny = ceil(H / tile), nx = ceil(W / tile)."""
     import cv2

@@ -40,7 +40,7 @@ HIL_FIRST_STARS = 12
 detections vote first (about a quarter of the 25-star round's work) and a frame whose answer fails
 verification votes again with the 25 brightest, then widens.  On the 8 ESA frames every answer is the same
 as with 25 voters; on rendered frames with as many false stars as true ones, 12 voters alone identify 85 %
-against 94 % with 20, which the second round recovers (README)."""
+against 94 % with 20, which the second round recovers (docs/measurements.md)."""
 _METHOD_CONFIG = {"robust": lambda tol, **kw: VotingConfig.robust(tol, **{"first_stars": HIL_FIRST_STARS, **kw}),
                   "paper": VotingConfig.paper}
 

@@ -904,7 +904,7 @@ def cob_bias_decay(spec: RendezvousSpec, ctx: RendezvousContext):
     spin axis is fixed in ICRS, so this is the turn of the viewing direction relative to the body's spin) and
     psi_c the correlation's integral scale along the Sun and across at the phase angle
     (``scene/photocentre_bias.correlation_angle``; its 1/e angle is ~3x longer and made the filter
-    underconfident on 4 of 6 seeds of the far preset, README).  The statistics turn the observer
+    underconfident on 4 of 6 seeds of the far preset, docs/rendezvous.md).  The statistics turn the observer
     about the Sun; a turn of another axis is taken as the same turn."""
     s = sun_icrs(spec)
     pb = ctx.photocentre_bias

@@ -82,11 +82,11 @@ def target_rows(rep: dict) -> list[list[str]]:
     share, share1 = j["nees_inside_share"], j["nees_first_inside_share"]
     rows = [[f"(c) mean NEES of the first {j['nees_first_approaches']} approaches inside its 95 % bounds, frames >= "
              f"{j['converged_after_frames']}",
-             "-" if share1 is None else f"{j['nees_first_frames_inside']} of {j['nees_frames_checked']} frames "
+             "-" if share1 is None else f"inside at {j['nees_first_frames_inside']} of {j['nees_frames_checked']} frames "
              f"(bounds {lo1:.2f}-{hi1:.2f})", "every frame",
              verdict(None if share1 is None else share1 >= TARGETS["nees_inside_share"])],
             [f"    the same over all {j['approaches']} approaches",
-             "-" if share is None else f"{j['nees_frames_inside']} of {j['nees_frames_checked']} frames "
+             "-" if share is None else f"inside at {j['nees_frames_inside']} of {j['nees_frames_checked']} frames "
              f"(bounds {lo:.2f}-{hi:.2f}, mean {formatted(j['nees_mean_after_convergence'], '{:.2f}')})", "", ""]]
     if j["late_range_frames"]:
         r = j["range_err_ratio"]
