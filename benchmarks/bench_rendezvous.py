@@ -28,31 +28,30 @@ import time
 
 import numpy as np
 
-from dualsight.jobs.kinds import rendezvous as rz
-
-
+from dualsight.jobs.kinds import (rendezvous as rz, rendezvous_filter, rendezvous_measure, rendezvous_spec,
+                                  rendezvous_truth)
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--preset", default="far", choices=sorted(rz.PRESETS))
+    p.add_argument("--preset", default="far", choices=sorted(rendezvous_spec.PRESETS))
     p.add_argument("--cases", type=int, default=20)
     p.add_argument("--seed", type=int, default=1)
     args = p.parse_args()
-    d, _ = rz.resolve_spec(args.preset, None, seed=args.seed)
+    d, _ = rendezvous_spec.resolve_spec(args.preset, None, seed=args.seed)
     spec = rz.spec_from_dict(d)
     t0 = time.perf_counter()
     ctx = rz.make_context(spec)
     t_ctx = time.perf_counter() - t0
-    measure = rz.measure_star if spec.is_star else rz.measure_prox
+    measure = rendezvous_measure.measure_star if spec.is_star else rendezvous_measure.measure_prox
     rows = []
     for i in range(args.cases + 1):
         a = time.perf_counter()
-        draw = rz.draw_case(spec, i)
-        truth = rz.truth_trajectory(spec, draw)
-        geo = rz.geometry(spec, draw, truth)
+        draw = rendezvous_truth.draw_case(spec, i)
+        truth = rendezvous_truth.truth_trajectory(spec, draw)
+        geo = rendezvous_truth.geometry(spec, draw, truth)
         b = time.perf_counter()
         m, _ = measure(spec, ctx, draw, geo)
         c = time.perf_counter()
-        rz.run_filter(spec, ctx, draw, m)
+        rendezvous_filter.run_filter(spec, ctx, draw, m)
         e = time.perf_counter()
         if i:                                           # the first approach compiles Taichi's kernels
             rows.append((b - a, c - b, e - c))

@@ -1,11 +1,11 @@
 """The rendezvous filter's consistency (issue 23, point 6 c) with other models of the centre of brightness's bias:
-the same approaches, measured once, filtered by each model (``jobs/kinds/rendezvous.CobBias``).
+the same approaches, measured once, filtered by each model (``jobs/kinds/rendezvous_filter.CobBias``).
 
     python benchmarks/bench_rendezvous_bias_models.py [--preset far] [--seeds 1 2 3 4 5 6] [--cases 100]
 
 Models:
 
-* ``product``: the filter's own (``rendezvous.gauss_markov_cob``): two first-order Gauss-Markov states along the
+* ``product``: the filter's own (``rendezvous_filter.gauss_markov_cob``): two first-order Gauss-Markov states along the
   Sun's side and across, decaying with the line of sight's turn at the correlation's integral scale; the scatter
   about the spin average white.
 * ``turn harmonics, white spin``: the spin-averaged offset as a Fourier series of the line of sight's turn psi about
@@ -32,7 +32,8 @@ import time
 import numpy as np
 
 from bench_rendezvous_nees import turn_offsets
-from dualsight.jobs.kinds import rendezvous as rz
+from dualsight.jobs.kinds import (rendezvous as rz, rendezvous_filter, rendezvous_measure, rendezvous_spec,
+                                  rendezvous_truth)
 from dualsight.nav.relative_filter import chi2_mean_bounds, nees
 from dualsight.scene.units import DEG
 
@@ -58,10 +59,10 @@ def offset_harmonics(shape, alpha: float, turn_harmonics: int = 3, spin_harmonic
             "spin_total": np.mean(dev ** 2, (0, 1, 2))}
 
 
-def harmonic_cob(spec, ctx, stats: dict, spin_harmonics: int, psi_c_rad: float) -> rz.CobBias:
+def harmonic_cob(spec, ctx, stats: dict, spin_harmonics: int, psi_c_rad: float) -> rendezvous_filter.CobBias:
     """The ``turn harmonics`` models of the module docstring as a ``CobBias`` (states: the turn's coefficients along
     and across, then the spin phase's along and across), from :func:`offset_harmonics` at the preset's phase."""
-    s = rz.sun_icrs(spec)
+    s = rendezvous_truth.sun_icrs(spec)
     e1 = np.cross(s, [1.0, 0.0, 0.0]) if abs(s[0]) < 0.9 else np.cross(s, [0.0, 1.0, 0.0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(s, e1)
@@ -85,7 +86,7 @@ def harmonic_cob(spec, ctx, stats: dict, spin_harmonics: int, psi_c_rad: float) 
         cols += [D[:, :, i:i + 1] * (g * spin_sd[:, i])[None, None, :] for i in (0, 1)]
         return np.concatenate(cols, -1), np.tile(np.sqrt(rest), (len(v), 1))
 
-    turn, start = rz.line_of_sight_turn()
+    turn, start = rendezvous_filter.line_of_sight_turn()
 
     def decay(k, x, R_k):
         dpsi, _ = turn(x, R_k)
@@ -94,12 +95,12 @@ def harmonic_cob(spec, ctx, stats: dict, spin_harmonics: int, psi_c_rad: float) 
             d[0, 2 * nt:] = math.exp(-dpsi / psi_c_rad)
         return d
 
-    return rz.CobBias(2 * nt + 2 * nsp, columns, decay, start)
+    return rendezvous_filter.CobBias(2 * nt + 2 * nsp, columns, decay, start)
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="far", choices=sorted(rz.PRESETS))
+    ap.add_argument("--preset", default="far", choices=sorted(rendezvous_spec.PRESETS))
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6])
     ap.add_argument("--cases", type=int, default=100)
     ap.add_argument("--spin", type=int, default=4, help="spin-phase harmonics of the third model (default 4)")
@@ -115,13 +116,14 @@ def main() -> int:
     means = {n: [] for n in names}
     for seed in args.seeds:
         t0 = time.perf_counter()
-        d, _ = rz.resolve_spec(args.preset, None, seed=seed, cases=M)
+        d, _ = rendezvous_spec.resolve_spec(args.preset, None, seed=seed, cases=M)
         spec = rz.spec_from_dict(d)
         ctx = rz.make_context(spec)
         if not spec.is_star or not spec.cfg.phase_correction:
             raise SystemExit("bench_rendezvous_bias_models: a star-camera preset with phase_correction (e.g. far)")
-        draw0 = rz.draw_case(spec, 0)                 # the preset's phase angle, from its first approach
-        alpha = float(np.nanmedian(rz.geometry(spec, draw0, rz.truth_trajectory(spec, draw0))["targets"].phase_rad))
+        draw0 = rendezvous_truth.draw_case(spec, 0)                 # the preset's phase angle, from its first approach
+        geo0 = rendezvous_truth.geometry(spec, draw0, rendezvous_truth.truth_trajectory(spec, draw0))
+        alpha = float(np.nanmedian(geo0["targets"].phase_rad))
         stats = offset_harmonics(ctx.shape, alpha, spin_harmonics=args.spin)
         models = {"product": None,
                   "turn harmonics, white spin": lambda: harmonic_cob(spec, ctx, stats, 0, 1.0),
@@ -129,11 +131,12 @@ def main() -> int:
                                                                          math.radians(args.psi_c))}
         N = {n: [] for n in names}
         for i in range(M):
-            draw = rz.draw_case(spec, i)
-            truth = rz.truth_trajectory(spec, draw)
-            m, _ = rz.measure_star(spec, ctx, draw, rz.geometry(spec, draw, truth), False)
+            draw = rendezvous_truth.draw_case(spec, i)
+            truth = rendezvous_truth.truth_trajectory(spec, draw)
+            m, _ = rendezvous_measure.measure_star(spec, ctx, draw, rendezvous_truth.geometry(spec, draw, truth), False)
             for n in names:
-                xs, Ps = rz.run_filter(spec, ctx, draw, copy.deepcopy(m), models[n]() if models[n] else None)
+                xs, Ps = rendezvous_filter.run_filter(spec, ctx, draw, copy.deepcopy(m),
+                                                      models[n]() if models[n] else None)
                 N[n].append(nees(xs, Ps, truth))
         conv = spec.cfg.converged_after_frames
         for n in names:

@@ -42,7 +42,7 @@ import time
 
 import numpy as np
 
-from dualsight.jobs.kinds import rendezvous as rz
+from dualsight.jobs.kinds import rendezvous as rz, rendezvous_spec
 from dualsight.nav.relative_filter import chi2_mean_bounds
 from dualsight.scene.attitude import quat_to_dcm, quaternions_from_uniforms
 from dualsight.scene.rotation_vector import frame_rotation
@@ -50,7 +50,7 @@ from dualsight.scene.target_photometry import apparent_brightness, photocentre_o
 
 
 def seed_run(preset: str, seed: int, cases: int) -> dict:
-    d, _ = rz.resolve_spec(preset, None, seed=seed, cases=cases)
+    d, _ = rendezvous_spec.resolve_spec(preset, None, seed=seed, cases=cases)
     spec = rz.spec_from_dict(d)
     ctx = rz.make_context(spec)
     nees, z2, phase = [], [], []
@@ -149,14 +149,14 @@ def bias_harmonics(shape, alpha: float, n_axes: int = 2000, n_phases: int = 24, 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="far", choices=sorted(rz.PRESETS))
+    ap.add_argument("--preset", default="far", choices=sorted(rendezvous_spec.PRESETS))
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6])
     ap.add_argument("--cases", type=int, default=100)
     ap.add_argument("--truth-only", action="store_true",
                     help="only the photocentre bias's tails, harmonics and light-curve fit (no filter runs)")
     args = ap.parse_args()
     if args.truth_only:
-        d, _ = rz.resolve_spec(args.preset, None, seed=args.seeds[0], cases=1)
+        d, _ = rendezvous_spec.resolve_spec(args.preset, None, seed=args.seeds[0], cases=1)
         ctx = rz.make_context(rz.spec_from_dict(d))
         truth_model(ctx.shape, np.radians(90.0))
         return 0

@@ -443,7 +443,7 @@ def _kind_functions(kind: str) -> tuple[Mapping, Callable, Callable]:
     """(presets, plan, start) of a job kind of :data:`RUN_KINDS`: the one table :func:`run` dispatches through,
     the kind module's own functions, which its command calls too (``plan(preset, config, seed=, cases=,
     run_id=)`` -> a plan with ``run_id``; ``start(plan, lake, workers=, scheduler=, shard_size=, progress=)``)."""
-    from dualsight.jobs.kinds import prox, rendezvous, selftest, star, star_track          # Taichi, pyarrow
+    from dualsight.jobs.kinds import prox, rendezvous, rendezvous_spec, selftest, star, star_track  # Taichi, pyarrow
 
     table = {
         "star": (star.PRESETS, star.plan_run, star.start_run),
@@ -451,7 +451,7 @@ def _kind_functions(kind: str) -> tuple[Mapping, Callable, Callable]:
         "prox_sweep": (prox.PRESETS, functools.partial(prox.plan_run, job="sweep"), prox.start_run),
         "prox_trajectory": (prox.PRESETS, functools.partial(prox.plan_run, job="trajectory"), prox.start_run),
         "selftest": (selftest.PRESETS, selftest.plan_run, selftest.start_run),
-        "rendezvous": (rendezvous.PRESETS, rendezvous.plan_run, rendezvous.start_run),
+        "rendezvous": (rendezvous_spec.PRESETS, rendezvous.plan_run, rendezvous.start_run),
     }
     return table[kind]
 

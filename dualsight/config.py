@@ -887,7 +887,7 @@ _FILTER_UNITS = {"accel_psd": "m^2/s^3", "dv_sigma_m_s": "m/s", "dv_sigma_frac":
 @dataclasses.dataclass(frozen=True)
 class FilterConfig:
     """Noise settings of the relative-navigation EKF (``nav/relative_filter.py``; a rendezvous spec's filter comes
-    from its ``RendezvousConfig``: ``jobs/kinds/rendezvous.filter_config``).  Checked when built (ConfigError naming
+    from its ``RendezvousConfig``: ``jobs/kinds/rendezvous_filter.filter_config``).  Checked when built (ConfigError naming
     ``filter.<field>``, the value and the range).
 
     accel_psd : white acceleration noise spectral density per Hill axis, in [0, 1e-3] m^2/s^3 (1e-12 ~ 1 um/s^2
@@ -909,7 +909,7 @@ class FilterConfig:
 @dataclasses.dataclass(frozen=True)
 class ApproachEnvironmentConfig:
     """When a rendezvous approach happens and what its camera must not look at (``[rendezvous.environment]``;
-    issue 23, point 1; ``jobs/kinds/rendezvous.frame_view``): frame k is at ``epoch_utc`` + t_k on the reference
+    issue 23, point 1; ``jobs/kinds/rendezvous_truth.frame_view``): frame k is at ``epoch_utc`` + t_k on the reference
     orbit, the chaser beside the target; the Sun, Earth and Moon seen along its boresight and the Earth's shadow
     go into every frame's row (``scene/keepout.py``).
 

@@ -14,7 +14,9 @@ import pyarrow.parquet as pq
 import pytest
 
 from dualsight.config import FilterConfig
-from dualsight.jobs.kinds import rendezvous as rz
+from dualsight.jobs.kinds import (rendezvous as rz, rendezvous_context, rendezvous_filter, rendezvous_measure,
+                                  rendezvous_spec, rendezvous_truth, star)
+from dualsight.scene.target_photometry import photocentre_table
 from dualsight.jobs.reports import rendezvous as report
 from dualsight.nav import relative_filter as rf
 from dualsight.scene.relative_orbit import CircularOrbit, hill_to_icrs
@@ -28,7 +30,7 @@ CLOSE_SMALL = {"preset": "close", "rendezvous": {"duration_s": 690.0, "frame_int
 
 
 def _spec(config):
-    d, _ = rz.resolve_spec(None, config)
+    d, _ = rendezvous_spec.resolve_spec(None, config)
     return rz.spec_from_dict(d)
 
 
@@ -47,8 +49,8 @@ def _cw_closed_form(n, t, x0):
 
 def test_truth_is_the_closed_form_cw_solution_with_the_executed_burn():
     spec = _spec(None)                                       # far preset: 64 frames, one burn at frame 6
-    draw = rz.draw_case(spec, 3)
-    truth = rz.truth_trajectory(spec, draw)
+    draw = rendezvous_truth.draw_case(spec, 3)
+    truth = rendezvous_truth.truth_trajectory(spec, draw)
     n = CircularOrbit(500e3).mean_motion
     tb = spec.cfg.manoeuvre_times_s[0]
     x_b = _cw_closed_form(n, tb, draw["x0"])
@@ -72,7 +74,7 @@ def test_the_presets_v_bar_hop_ends_at_its_range_one_orbit_later():
         x[3:] += np.asarray(c.manoeuvre_dv_m_s[0])
         x = _cw_closed_form(n, 2 * math.pi / n, x)
         np.testing.assert_allclose(x[:3], [0.0, -end, 0.0], atol=1e-6)
-        _, k = rz.burn_frames(spec)
+        _, k = rendezvous_filter.burn_frames(spec)
         assert abs(spec.times[k] - tb - 2 * math.pi / n) <= 0.5 * c.frame_interval_s
 
 
@@ -82,7 +84,7 @@ def test_look_at_puts_the_boresight_on_the_line_of_sight():
     los /= np.linalg.norm(los, axis=1, keepdims=True)
     up = rng.normal(size=(20, 3))
     up[0] = los[0]                                            # degenerate: the fallback axis
-    A = rz.look_at(los, up)
+    A = rendezvous_truth.look_at(los, up)
     np.testing.assert_allclose(A @ np.swapaxes(A, 1, 2), np.broadcast_to(np.eye(3), A.shape), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(A), 1.0, atol=1e-12)
     np.testing.assert_allclose(np.einsum("tij,tj->ti", A, los), np.tile([0.0, 0.0, 1.0], (20, 1)), atol=1e-12)
@@ -267,7 +269,7 @@ def test_the_examples_are_their_presets(name, preset):
     from pathlib import Path
 
     path = Path(__file__).resolve().parents[1] / "examples" / "rendezvous" / f"{name}.toml"
-    assert rz.resolve_spec(None, path) == rz.resolve_spec(preset, None)
+    assert rendezvous_spec.resolve_spec(None, path) == rendezvous_spec.resolve_spec(preset, None)
 
 
 def test_photocentre_table_of_a_sphere_is_the_lit_sphere_and_the_correction_moves_away_from_the_sun():
@@ -276,7 +278,7 @@ def test_photocentre_table_of_a_sphere_is_the_lit_sphere_and_the_correction_move
     R = 0.5
     sphere = TargetShape(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros((1, 3)),
                          np.array([R]), np.array([0.3]), R)
-    a, mean, spread = rz.photocentre_table(sphere, n=50)
+    a, mean, spread = photocentre_table(sphere, n=50)
     inner = (a > 0) & (a < np.radians(179))
     ai = a[inner]
     # Lambertian sphere's centre of brightness towards the Sun: (3 pi / 16) R sin a (1 + cos a) / (sin a + (pi - a)
@@ -286,8 +288,8 @@ def test_photocentre_table_of_a_sphere_is_the_lit_sphere_and_the_correction_move
     np.testing.assert_allclose(spread[inner], 0.0, atol=1e-9)     # a sphere looks the same in every attitude
     # the select hook moves the bearing by the table's offset / predicted range, away from the Sun
     spec = _spec(None)
-    ctx = rz.RendezvousContext(None, sphere, (a, mean, spread))
-    s = rz.sun_icrs(spec)
+    ctx = rendezvous_context.RendezvousContext(None, sphere, (a, mean, spread))
+    s = rendezvous_truth.sun_icrs(spec)
     e = np.cross(s, [0.0, 0.0, 1.0])
     e /= np.linalg.norm(e)
     al = np.radians(60.0)
@@ -297,7 +299,7 @@ def test_photocentre_table_of_a_sphere_is_the_lit_sphere_and_the_correction_move
          "found_by": np.zeros(1, np.int8), "found_true": np.zeros(1, bool)}
     m["cand"] = {"frame": np.array([0]), "u": u[None], "C": np.zeros((1, 3, 3)), "xy": np.zeros((1, 2)),
                  "true": np.array([True])}
-    sel = rz.target_selector(spec, ctx, m)
+    sel = rendezvous_filter.target_selector(spec, ctx, m)
     x = np.array([[0.0, -1000.0, 0.0, 0.0, 0.0, 0.0]])
     # a Hill -> ICRS rotation whose along-track axis is u: rho = -1000 m along-track, so the predicted line of
     # sight -R rho^ is u itself
@@ -364,14 +366,14 @@ def test_planted_fixed_false_detections_never_become_the_target(monkeypatch):
     spec = rz.spec_from_dict({**spec.to_dict(), "rendezvous": {**spec.to_dict()["rendezvous"],
                                                              "duration_s": 7 * spec.cfg.frame_interval_s + 1.0}})
     ctx = rz.make_context(spec)
-    draw = rz.draw_case(spec, 3)
-    truth = rz.truth_trajectory(spec, draw)
-    geo = rz.geometry(spec, draw, truth)
+    draw = rendezvous_truth.draw_case(spec, 3)
+    truth = rendezvous_truth.truth_trajectory(spec, draw)
+    geo = rendezvous_truth.geometry(spec, draw, truth)
     cam = spec.camera
     star_dir = geo["u_true"][0] + 0.012 * np.cross(geo["u_true"][0], geo["R"][0][:, 2])
     star_dir /= np.linalg.norm(star_dir)
     hot = (100.25, 600.75)
-    real = rz.star.render_and_detect
+    real = star.render_and_detect
     seen = {"star": 0}
 
     def planted(field_, seeds, camera, sensor, detect_cfg, keep_images=False, attitude=None, **kw):
@@ -387,9 +389,9 @@ def test_planted_fixed_false_detections_never_become_the_target(monkeypatch):
         return type(r)(**{**{k: getattr(r, k) for k in r.__dataclass_fields__},
                           "detections": _with_planted(r.detections, B, extra)})
 
-    monkeypatch.setattr(rz.star, "render_and_detect", planted)
-    m, _ = rz.measure_star(spec, ctx, draw, geo)
-    xs, _ = rz.run_filter(spec, ctx, draw, m)
+    monkeypatch.setattr(star, "render_and_detect", planted)
+    m, _ = rendezvous_measure.measure_star(spec, ctx, draw, geo)
+    xs, _ = rendezvous_filter.run_filter(spec, ctx, draw, m)
     assert seen["star"] >= 2                                      # the planted star is in at least two frames
     c = m["cand"]
     assert not np.any(np.hypot(c["xy"][:, 0] - hot[0], c["xy"][:, 1] - hot[1]) < 0.5)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from dualsight.errors import ConfigError
-from dualsight.jobs.kinds import rendezvous as rz
+from dualsight.jobs.kinds import rendezvous as rz, rendezvous_spec
 from helpers import angle_deg, sky_geometry
 
 ENV = {"epoch_utc": "2032-06-01T03:00:00", "sun_keepout_deg": 40.0, "earth_keepout_deg": 25.0,
@@ -20,7 +20,7 @@ FAR = {"rendezvous": {"duration_s": 6000.0, "frame_interval_s": 500.0, "manoeuvr
 
 
 def _spec(config):
-    d, _ = rz.resolve_spec(None, config)
+    d, _ = rendezvous_spec.resolve_spec(None, config)
     return rz.spec_from_dict(d)
 
 

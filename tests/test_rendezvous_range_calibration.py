@@ -1,7 +1,7 @@
 """The close preset's blobber range model (issue 23 point 6 c): the calibration's kernel regression
 (nav/blobber_range_error.RangeRatioCalibration) against a brute-force loop and a known conditional mean; the filter's
 multiplicative range sigma (relative_filter.run, range_sig_frac) unbiased where a sigma from the measured range is
-short by the analytic 2 s^2; the kind's range model and its cut-blob test (jobs/kinds/rendezvous) against hand-built
+short by the analytic 2 s^2; the kind's range model and its cut-blob test (jobs/kinds/rendezvous_measure, rendezvous_context) against hand-built
 expectations."""
 
 import math
@@ -9,7 +9,7 @@ import math
 import numpy as np
 
 from dualsight.config import FilterConfig
-from dualsight.jobs.kinds import rendezvous as rz
+from dualsight.jobs.kinds import rendezvous_context, rendezvous_measure
 from dualsight.nav import relative_filter as rf
 from dualsight.nav.blobber_range_error import RangeRatioCalibration
 from dualsight.scene import relative_orbit as ro
@@ -76,11 +76,11 @@ def test_range_sigma_from_the_predicted_range_is_unbiased_and_from_the_measured_
 def test_range_model_takes_the_calibration_at_the_blobs_coverage_and_ratio():
     cal = RangeRatioCalibration(np.array([100.0, 100.0, 100.0]), np.array([2.0, 2.0, 2.0]),
                                 np.array([0.96, 0.98, 1.00]))     # mean 0.98, sd sqrt(2/3) 0.02
-    ctx = rz.RendezvousContext(None, None, (), range_ratio=(np.array([1.0, 3.0]), np.array([0.5, 0.5]),
+    ctx = rendezvous_context.RendezvousContext(None, None, (), range_ratio=(np.array([1.0, 3.0]), np.array([0.5, 0.5]),
                                                             np.array([0.5, 0.5])), range_calibration=cal)
     m = {"range_used": np.array([True, False]), "range": np.array([10.0, np.nan]),
          "axis_ratio": np.array([2.0, np.nan]), "n_blob": np.array([100.0, np.nan])}
-    rz.range_model(ctx, m)
+    rendezvous_measure.range_model(ctx, m)
     sd = math.sqrt(2 / 3) * 0.02
     np.testing.assert_allclose(m["range_filter"][0], 10.0 / 0.98)
     np.testing.assert_allclose(m["range_sigma_frac"][0], sd / 0.98)
@@ -92,4 +92,4 @@ def test_touches_edge_at_the_first_and_last_rows_and_columns():
     class Cam:
         width, height = 100, 80
     box = np.array([[0, 10, 20, 30], [10, 0, 20, 30], [10, 10, 99, 30], [10, 10, 20, 79], [1, 1, 98, 78]])
-    np.testing.assert_array_equal(rz.touches_edge(box, Cam()), [True, True, True, True, False])
+    np.testing.assert_array_equal(rendezvous_context.touches_edge(box, Cam()), [True, True, True, True, False])

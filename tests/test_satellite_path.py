@@ -31,8 +31,8 @@ def test_the_working_folder_wins_and_a_missing_file_is_named_as_given(tmp_path, 
 
 def test_the_close_preset_runs_from_another_folder(tmp_path, monkeypatch):
     """Its camera file ``examples/cameras/paper_prox.toml`` is a relative name too."""
-    from dualsight.jobs.kinds import rendezvous
+    from dualsight.jobs.kinds import rendezvous, rendezvous_spec
     monkeypatch.chdir(tmp_path)
-    spec_dict, n = rendezvous.resolve_spec("close", None, cases=1)
+    spec_dict, n = rendezvous_spec.resolve_spec("close", None, cases=1)
     spec = rendezvous.spec_from_dict(spec_dict)
     assert (spec.camera.width, spec.camera.height) == (1024, 768)           # the paper's Table 1 camera (6 mm)

@@ -1,5 +1,5 @@
 """The point target's centroid sigma from the camera's own calibration (nav/target_bearing.point_centroid_table,
-point_centroid_sigma; jobs/kinds/rendezvous.point_centroid_calibration; issue 23 point 6 c) against independent
+point_centroid_sigma; jobs/kinds/rendezvous_context.point_centroid_calibration; issue 23 point 6 c) against independent
 answers: a brute-force loop over known synthetic errors, and fresh renders of the far preset's camera at sub-pixel
 positions the calibration never drew."""
 
@@ -50,13 +50,13 @@ def test_sigma_interpolates_in_log_flux():
 
 @pytest.fixture(scope="module")
 def far_calibration():
-    from dualsight.jobs.kinds import rendezvous as rz
+    from dualsight.jobs.kinds import rendezvous as rz, rendezvous_context, rendezvous_spec
     from dualsight.jobs.kinds import star
 
-    d, _ = rz.resolve_spec("far", None, seed=1, cases=1)
+    d, _ = rendezvous_spec.resolve_spec("far", None, seed=1, cases=1)
     spec = rz.spec_from_dict(d)
     sctx = star.make_context(spec.star)
-    return spec, sctx, rz.point_centroid_calibration(spec, sctx.psf)
+    return spec, sctx, rendezvous_context.point_centroid_calibration(spec, sctx.psf)
 
 
 def test_calibration_against_fresh_renders(far_calibration):

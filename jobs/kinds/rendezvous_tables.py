@@ -38,7 +38,7 @@ FRAMES_SCHEMA = pa.schema(
        ("bearing_sigma_arcsec", _F),
        ("range_meas_m", _F), ("range_min_m", _F), ("range_max_m", _F), ("range_used", _B),
        ("image_digest", _L), ("t_render_ns", _L), ("t_nav_ns", _L)]
-    # with [rendezvous.environment] (jobs/kinds/rendezvous.frame_view, scene/keepout.py; null without): along the
+    # with [rendezvous.environment] (jobs/kinds/rendezvous_truth.frame_view, scene/keepout.py; null without): along the
     # boresight from the chaser, the Sun and Moon (parallax included) and the Earth's limb (negative: on its disk),
     # the keep-out cones, a sunlit part of the Earth in the Earth cone, the Earth's shadow (eclipse: the umbra)
     + [("sun_angle_deg", _F), ("earth_limb_angle_deg", _F), ("moon_angle_deg", _F), ("sun_keepout", _B),

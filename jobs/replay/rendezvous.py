@@ -28,6 +28,7 @@ def verified_approach(lake: Lake, run_id: str, case_id: int) -> tuple[dict, list
     ``compute_case`` dict with ``images`` (T, H, W), the stored frame rows, the stored case row); InputError naming
     the first column that differs."""
     from dualsight.jobs.kinds import rendezvous as rz         # Taichi
+    from dualsight.jobs.kinds import rendezvous_measure
 
     manifest, case_row, frames = sequence_rows(lake, run_id, case_id, "rendezvous", "rendezvous_cases",
                                                "rendezvous_frames")
@@ -36,8 +37,8 @@ def verified_approach(lake: Lake, run_id: str, case_id: int) -> tuple[dict, list
     out = rz.compute_case(spec, ctx, case_id)
     refuse_mismatch(case_row, out["case"], case_id, run_id, manifest)
     refuse_frame_mismatch(frames, out["frames"].to_pylist(), case_id, run_id, manifest)
-    m2, images = (rz.measure_star if spec.is_star else rz.measure_prox)(spec, ctx, out["draw"], out["geo"],
-                                                                         keep_images=True)
+    measure = rendezvous_measure.measure_star if spec.is_star else rendezvous_measure.measure_prox
+    m2, images = measure(spec, ctx, out["draw"], out["geo"], keep_images=True)
     for k, row in enumerate(frames):
         if int(m2["digest"][k]) != row["image_digest"]:
             raise InputError(f"replay of case {case_id}: frame {k}: column image_digest is {row['image_digest']} in "

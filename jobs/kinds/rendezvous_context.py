@@ -1,0 +1,199 @@
+"""Per-process state of the rendezvous job (:mod:`dualsight.jobs.kinds.rendezvous`): the target's satellite
+file and photometric shape, the star job's context or the proximity renderer's mesh, and the two ground
+calibrations through the camera's own renderer and detector: the point target's centroid error against its flux
+(star camera) and the blobber's range against the truth (proximity camera)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from dualsight.jobs.kinds import star
+from dualsight.nav.blobber import BlobberConfig, run_blobber
+from dualsight.nav.blobber_range_error import RangeRatioCalibration, range_ratio_statistics
+from dualsight.nav.target_bearing import PointCentroidTable, point_centroid_table
+from dualsight.scene.attitude import quat_to_dcm, quaternions_from_uniforms
+from dualsight.scene.camera import Camera
+from dualsight.scene.motion import place_body
+from dualsight.scene.photocentre_bias import (PhotocentreStatistics, facet_materials, photocentre_statistics,
+                                              shaded_photocentre_offset)
+from dualsight.scene.satellite import load_satellite
+from dualsight.scene.starfield_geometry import FieldStars
+from dualsight.scene.target_photometry import photocentre_table, target_shape
+from dualsight.scene.units import DEG
+from dualsight.jobs.kinds.rendezvous_spec import RendezvousSpec
+
+
+STAR_CHUNK = 16
+"""Star-camera frames rendered per call (full frames: 16 x 1024 x 768)."""
+
+PROX_CHUNK = 8
+"""Proximity frames rendered per call (8 x 1024 x 768 float32 image + coverage: ~50 MB)."""
+
+BLOBBER = BlobberConfig(estimator="subpixel", threshold=0.0, target="all", connectivity=8)
+"""The proximity frames' blobber (``nav/blobber.py``)."""
+
+
+@dataclass(frozen=True)
+class RendezvousContext:
+    """Per-process state: the target's satellite file and photometric shape, and either the star job's context
+    (catalogs, voting index, star blob limit) or the proximity renderer's mesh, materials and area table."""
+
+    sat: object
+    shape: object
+    photocentre: tuple = ()                # photocentre_table(shape)
+    photocentre_bias: PhotocentreStatistics | None = None   # photocentre_statistics(shape, spinning)
+    star: object = None
+    mesh: object = None
+    materials: np.ndarray | None = None
+    table: object = None
+    range_ratio: tuple = ()                # (bin centres, m_q, s_q): nav/blobber_range_error on ``table``
+    centroid: PointCentroidTable | None = None   # star camera: point_centroid_calibration(spec)
+    range_calibration: RangeRatioCalibration | None = None   # proximity: blobber_range_calibration(...)
+
+
+def make_context(spec: RendezvousSpec) -> RendezvousContext:
+    sat = load_satellite(spec.cfg.satellite)
+    shape = target_shape(sat.components)
+    spinning = spec.cfg.target_rate_deg_s > 0
+    if spec.is_star:
+        pc = photocentre_table(shape)
+        pb = photocentre_statistics(shape, spinning=spinning)
+        sctx = star.make_context(spec.star)
+        return RendezvousContext(sat, shape, pc, pb, star=sctx, centroid=point_centroid_calibration(spec, sctx.psf))
+    from dualsight.catalogs.areas import area_table        # pyarrow
+
+    pc, pb = prox_photocentre(sat, shape, spinning)
+    table = area_table(sat, n=20000, bin_width=0.05)
+    mq, sq = range_ratio_statistics(table.samples_ratio, table.samples_area, table.ratio_lo, table.ratio_hi,
+                                    table.curve(BLOBBER.curve))
+    mesh, materials = sat.mesh(), sat.materials()
+    cal = blobber_range_calibration(sat, mesh, materials, table, spec.camera) if spec.cfg.range_source == "blobber" \
+        else None
+    return RendezvousContext(sat, shape, pc, pb, mesh=mesh, materials=materials, table=table,
+                             range_ratio=(table.ratio, mq, sq), range_calibration=cal)
+
+
+RANGE_CALIB_SPANS = ((10.0, 80.0, 12000), (0.4, 10.0, 6000))
+"""Ranges (m) of :func:`blobber_range_calibration`'s renders: (low, high, count) log-uniform; more where the blob
+is small (its observed axis ratio is poor and q's mean moves with it) than where the table alone is right."""
+RANGE_CALIB_POINTING_DEG = 0.5
+"""1-sigma per axis of the calibration target's offset from the boresight (the presets' pointing error)."""
+
+
+def blobber_range_calibration(sat, mesh, materials, table, camera: Camera) -> RangeRatioCalibration:
+    """The proximity camera's blobber range against the truth, by Monte Carlo of the camera's own renderer
+    (``kernels/points.render``, "accurate", the satellite file's light) and blobber (:data:`BLOBBER`, the area
+    table ``table``): the target at ranges log-uniform in each of :data:`RANGE_CALIB_SPANS`, off the boresight by
+    :data:`RANGE_CALIB_POINTING_DEG`, orientations uniform on SO(3), the Sun from a uniform direction; a blob that
+    touches the image's edge is not a range (:func:`touches_edge`) and is left out.  Returns the samples as
+    ``nav/blobber_range_error.RangeRatioCalibration`` (q = range_est / range against n_blob and the observed axis
+    ratio).  Deterministic (its own generator, not the run's seed): a ground calibration of the blobber on the
+    target's model, as :func:`point_centroid_calibration` is of the star camera.  ~10 s for the 3U CubeSat and the
+    paper's proximity camera (one process, 2 shared cores)."""
+    from dualsight.kernels.points import render              # Taichi
+
+    rng = np.random.default_rng([23, 6, 4])
+    r = np.concatenate([np.exp(rng.uniform(math.log(lo), math.log(hi), n)) for lo, hi, n in RANGE_CALIB_SPANS])
+    M = r.size
+    u = rng.random((M, 3))
+    R_body = quat_to_dcm(quaternions_from_uniforms(u[:, 0], u[:, 1], u[:, 2]))
+    off = rng.normal(size=(M, 2)) * RANGE_CALIB_POINTING_DEG * DEG
+    los = np.stack([np.tan(off[:, 0]), np.tan(off[:, 1]), np.ones(M)], -1)
+    pos = los / np.linalg.norm(los, axis=1, keepdims=True) * r[:, None]
+    sun = rng.normal(size=(M, 3))
+    sun /= np.linalg.norm(sun, axis=1, keepdims=True)
+    q, n_blob, ratio = np.full(M, np.nan), np.full(M, np.nan), np.full(M, np.nan)
+    light = sat.camera
+    for s in range(0, M, PROX_CHUNK):
+        i = np.arange(s, min(M, s + PROX_CHUNK))
+        poses = place_body(sat, R_body[i], pos[i], sun[i])
+        img, cov = render("accurate", mesh, materials, poses.R, poses.t, poses.light, camera, light.I_a, light.I_l)
+        b = run_blobber(img, camera, table, BLOBBER, coverage=cov)
+        ok = b.found & ~touches_edge(b.box, camera) & np.isfinite(b.range_est)
+        q[i] = np.where(ok, b.range_est / r[i], np.nan)
+        n_blob[i] = np.where(ok, b.n_blob, np.nan)
+        ratio[i] = np.where(ok, b.axis_ratio, np.nan)
+    return RangeRatioCalibration(n_blob, ratio, q)
+
+
+def touches_edge(box: np.ndarray, camera: Camera) -> np.ndarray:
+    """(B,) whether a blob's inclusive bounding box (B, 4) [x0, y0, x1, y1] reaches the image's first or last row
+    or column: the target is cut by the frame, its pixel count and centre of brightness are the visible part's."""
+    box = np.asarray(box)
+    return (box[:, 0] <= 0) | (box[:, 1] <= 0) | (box[:, 2] >= camera.width - 1) | (box[:, 3] >= camera.height - 1)
+
+
+def prox_photocentre(sat, shape, spinning: bool) -> tuple[tuple, PhotocentreStatistics | None]:
+    """The proximity camera's photocentre correction and statistics: under the renderer's own shading (the
+    satellite file's ``I_a``, ``I_l`` and each component's ``k_a``, ``k_l``, ``k_s``, ``n``:
+    ``scene/photocentre_bias.shaded_photocentre_offset``; its ambient light pulls the photocentre towards the
+    silhouette's centre, to about a third of the Lambertian table's offset for the 3U CubeSat at 90 deg phase),
+    as (alpha, mean offset towards the Sun, total spread) in ``photocentre_table``'s layout and the statistics;
+    a target with spheres keeps the Lambertian table and no statistics (not modelled)."""
+    try:
+        mats = facet_materials(sat.components)
+    except ValueError:
+        return photocentre_table(shape), None
+    light = sat.camera
+
+    def offset(R_body, sun, obs):
+        return shaded_photocentre_offset(shape, mats, light.I_a, light.I_l, R_body, sun, obs)
+
+    pb = photocentre_statistics(shape, spinning=spinning, offset=offset)
+    spread = np.sqrt(pb.spread_white ** 2 + 0.5 * (pb.sigma_sun ** 2 + pb.sigma_cross ** 2))
+    return (pb.alpha, pb.mean_sun, spread), pb
+
+
+CALIB_LEVELS = np.logspace(3.0, 11.0, 321)
+"""Electrons per exposure of the point sources of :func:`point_centroid_calibration` (40 levels per decade: the
+saturated centroid's error oscillates with the flux, a period of about a quarter decade for the paper sensor)."""
+CALIB_PHASES = 64
+"""Renders per level of :func:`point_centroid_calibration` (uniform sub-pixel positions; each level's sigma is
+then known to about 1 / sqrt(2 x 64) = 9 %, and the many levels a campaign's targets span average that out)."""
+CALIB_WINDOW_PX = 64
+"""Side of the window the calibration renders in (the point source near its centre; the sensor, PSF, detector and
+distortion of the star camera)."""
+
+
+def point_centroid_calibration(spec: RendezvousSpec, psf=None) -> PointCentroidTable:
+    """The star camera's centroid error for a point source against its measured flux, by Monte Carlo of the
+    camera's own render and detector (``jobs/kinds/star.render_and_detect``: the spec's sensor, with its noise if
+    any, its detector and PSF) on :data:`CALIB_WINDOW_PX`-pixel windows, one source per window at a uniform
+    sub-pixel position, :data:`CALIB_PHASES` renders at each of :data:`CALIB_LEVELS`; the table of
+    ``nav/target_bearing.point_centroid_table``.  Deterministic (its own generator, not the run's seed): a ground
+    calibration of the camera, as a flight star tracker's centroid error model is.  ~0.5 s noise-free (sparse
+    path), longer with noise (full windows)."""
+    sp = spec.star
+    w = CALIB_WINDOW_PX
+    c0 = 0.5 * w
+    cam = replace(sp.camera, width=w, height=w, cx=c0, cy=c0)
+    L, K = len(CALIB_LEVELS), CALIB_PHASES
+    rng = np.random.default_rng([23, 6, 3])
+    x = c0 + rng.random(L * K)
+    y = c0 + rng.random(L * K)
+    e = np.repeat(CALIB_LEVELS, K).astype(np.float32)
+    level = np.repeat(np.arange(L), K)
+    seeds = rng.integers(0, 2**63 - 1, size=L * K, dtype=np.int64).astype(np.uint64)
+    flux = np.full(L * K, np.nan)
+    err = np.full((L * K, 2), np.nan)
+    chunk = 4096 if (sp.sensor.is_ideal and sp.detector == "global") else 512
+    for s in range(0, L * K, chunk):
+        i = np.arange(s, min(L * K, s + chunk))
+        n = len(i)
+        fs = FieldStars(x[i, None], y[i, None], e[i, None], np.ones((n, 1), bool), np.zeros((n, 1), np.int64),
+                        np.ones((n, 1), bool), np.ones(n, np.int64))
+        det = star.render_and_detect(fs, seeds[i], cam, sp.sensor, sp.detect, keep_images=False,
+                                     attitude=np.broadcast_to(np.eye(3), (n, 3, 3)), detector=sp.detector,
+                                     psf=psf).detections
+        case = np.asarray(det.case, np.int64)
+        d2 = (det.x - x[i][case]) ** 2 + (det.y - y[i][case]) ** 2
+        o = np.lexsort((d2, case))                            # each window's detection nearest the source
+        first = o[np.unique(case[o], return_index=True)[1]]
+        near = first[d2[first] < 9.0]
+        b = i[case[near]]
+        flux[b] = det.flux[near]
+        err[b] = np.stack([det.x[near] - x[b], det.y[near] - y[b]], -1)
+    return point_centroid_table(level, flux, err)
