@@ -30,6 +30,8 @@ import numpy as np
 
 from dualsight.jobs.kinds import (rendezvous as rz, rendezvous_filter, rendezvous_measure, rendezvous_spec,
                                   rendezvous_truth)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--preset", default="far", choices=sorted(rendezvous_spec.PRESETS))
