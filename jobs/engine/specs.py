@@ -57,6 +57,19 @@ def preset_and_config(presets: dict, preset: str | None, config: Path | str | di
     return d, source
 
 
+def seed_and_case_count(d: dict, seed: int | None, cases: int | None, default_cases: int, source: str) -> int:
+    """The command-line flags over a merged spec dict ``d`` (:func:`preset_and_config`): ``seed`` replaces
+    ``d["seed"]`` (in place) when given; returns the case count, ``cases`` when given, else the spec's ``cases``,
+    else ``default_cases``: an integer in [1, 1e9] (InputError naming ``--cases`` or the spec's ``source``)."""
+    if seed is not None:
+        d["seed"] = seed
+    n = cases if cases is not None else d.get("cases", default_cases)
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1 or n > 10**9:
+        raise InputError(f"number of cases must be an integer in [1, 1e9], got {n!r}",
+                         source="--cases" if cases is not None else source)
+    return int(n)
+
+
 def deep_merge(base: dict, over: dict) -> dict:
     """A new dict: ``base`` with ``over`` laid on top, tables merged recursively (inputs untouched)."""
     out = {k: (deep_merge(v, {}) if isinstance(v, dict) else v) for k, v in base.items()}

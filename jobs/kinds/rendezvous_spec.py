@@ -11,8 +11,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from dualsight.config import RendezvousConfig, dataclass_from_table, dataclass_to_table, validate
-from dualsight.errors import ConfigError, InputError
-from dualsight.jobs.engine.specs import preset_and_config
+from dualsight.errors import ConfigError
+from dualsight.jobs.engine.specs import preset_and_config, seed_and_case_count
 from dualsight.jobs.kinds import star
 from dualsight.scene.camera import Camera
 from dualsight.scene.relative_orbit import CircularOrbit
@@ -139,10 +139,5 @@ def resolve_spec(preset: str | None, config, *, seed: int | None = None, cases: 
     """The preset (default far), the ``--config`` TOML over it and the flags, validated: (canonical spec dict,
     number of cases)."""
     d, source = preset_and_config(PRESETS, preset, config, default="far")
-    if seed is not None:
-        d["seed"] = seed
-    n = cases if cases is not None else d.get("cases", DEFAULT_CASES)
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1 or n > 10**9:
-        raise InputError(f"number of cases must be an integer in [1, 1e9], got {n!r}",
-                         source="--cases" if cases is not None else source)
+    n = seed_and_case_count(d, seed, cases, DEFAULT_CASES, source)
     return spec_from_dict(d, source=source).to_dict(), int(n)

@@ -44,13 +44,13 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from dualsight.catalogs.pair_cache import load_pair_catalog
 from dualsight.catalogs.stars import StarCatalogConfig, load_star_catalog
-from dualsight.errors import ConfigError, InputError
+from dualsight.errors import ConfigError
 from dualsight.jobs.kinds import star_summaries
 from dualsight.jobs.kinds.star_tables import CASES_SCHEMA, DETECTIONS_SCHEMA, cases_table, detections_table
 from dualsight.jobs.kinds.star_output import with_case_count
 from dualsight.jobs.engine.runner import prepare, run_job
 from dualsight.config import OutputConfig, TargetConfig, dataclass_from_table, dataclass_to_table, validate
-from dualsight.jobs.engine.specs import preset_and_config
+from dualsight.jobs.engine.specs import preset_and_config, seed_and_case_count
 from dualsight.kernels import detect as kdetect
 from dualsight.kernels import starfield as kstar
 from dualsight.kernels.detect import DetectConfig
@@ -258,12 +258,7 @@ def resolve(preset: str | None, config: Path | str | dict | None, *, seed: int |
     engine stores).  The catalog is built (or read from the cache) here, so a magnitude limit that leaves
     too few stars fails before anything touches the lake."""
     d, source = preset_and_config(PRESETS, preset, config)
-    if seed is not None:
-        d["seed"] = seed
-    n = cases if cases is not None else d.get("cases", 200)
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1 or n > 10**9:
-        raise InputError(f"number of cases must be an integer in [1, 1e9], got {n!r}",
-                         source="--cases" if cases is not None else source)
+    n = seed_and_case_count(d, seed, cases, 200, source)
     d = with_case_count(d, n, detections)
     spec = spec_from_dict(d, source=source)
     load_star_catalog(spec.catalog)

@@ -38,7 +38,7 @@ import pyarrow as pa
 from dualsight.config import SequenceConfig, TrackingConfig, dataclass_from_table, dataclass_to_table
 from dualsight.errors import InputError
 from dualsight.jobs.engine.runner import prepare, run_job
-from dualsight.jobs.engine.specs import preset_and_config
+from dualsight.jobs.engine.specs import preset_and_config, seed_and_case_count
 from dualsight.jobs.kinds import star
 from dualsight.jobs.kinds.star_track_tables import FRAMES_SCHEMA, SEQUENCES_SCHEMA, frames_table, sequence_row
 from dualsight.kernels.digest import to_int64
@@ -102,12 +102,7 @@ def resolve_spec(preset: str | None, config, *, seed: int | None = None, cases: 
     """The preset (default paper), the ``--config`` TOML over it and the flags, validated: (canonical spec dict,
     number of cases)."""
     d, source = preset_and_config(PRESETS, preset, config)
-    if seed is not None:
-        d["seed"] = seed
-    n = cases if cases is not None else d.get("cases", DEFAULT_CASES)
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1 or n > 10**9:
-        raise InputError(f"number of cases must be an integer in [1, 1e9], got {n!r}",
-                         source="--cases" if cases is not None else source)
+    n = seed_and_case_count(d, seed, cases, DEFAULT_CASES, source)
     spec = spec_from_dict(d, source=source)
     return spec.to_dict(), int(n)
 
