@@ -485,3 +485,26 @@ def test_read_only_lake_is_a_clean_error_stays_readable_and_resumes(ro_mount):
     p = _start(mnt, run="r", n=1000, sleep_ms=5)
     assert p.wait(timeout=120) == 0
     assert_exact(mnt, "r", 1, 1000)
+
+
+@pytest.mark.parametrize("kind", ["star", "star_track", "rendezvous"])
+@pytest.mark.parametrize("text, cases", [("1", 1), ("1000000000", 10**9), ("0", None), ("1000000001", None),
+                                         ("-3", None), ("true", None), ("2.0", None), ('"many"', None)])
+def test_the_case_count_of_a_config_is_an_integer_in_1_to_1e9(kind, text, cases, tmp_path):
+    """A config file's ``cases`` (the documented range [1, 1e9]; a bool or a float is not a count) is checked the
+    same way by every Monte Carlo kind (jobs/engine/specs.seed_and_case_count), and the error names the file, not
+    ``--cases``; a ``--seed`` flag replaces the file's seed."""
+    import importlib
+
+    module = {"star": "dualsight.jobs.kinds.star", "star_track": "dualsight.jobs.kinds.star_track",
+              "rendezvous": "dualsight.jobs.kinds.rendezvous_spec"}[kind]
+    resolve_spec = importlib.import_module(module).resolve_spec
+    f = tmp_path / "c.toml"
+    f.write_text(f"seed = 3\ncases = {text}\n")
+    if cases is not None:
+        spec, n = resolve_spec(None, f, seed=11)
+        assert n == cases and (spec if isinstance(spec, dict) else spec.to_dict())["seed"] == 11
+    else:
+        with pytest.raises(InputError) as e:
+            resolve_spec(None, f, seed=11)
+        assert str(f) in str(e.value) and "[1, 1e9]" in str(e.value) and "--cases" not in str(e.value)
