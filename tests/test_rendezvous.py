@@ -157,6 +157,9 @@ def test_report_numbers_equal_numpy_over_the_rows(small_runs):
             sel = frames == r["frame"]
             assert r["mean_nees"] == pytest.approx(f["nees"][sel].mean())
             assert r["pos_err_rms_m"] == pytest.approx(np.sqrt(np.mean(f["pos_err_m"][sel] ** 2)))
+            for ax, key in zip("xyz", ("z2_radial", "z2_along", "z2_cross")):   # Hill x radial, y along, z cross
+                z = (f[f"est_{ax}"][sel] - f[f"true_{ax}"][sel]) / f[f"sigma_{ax}"][sel]
+                assert r[key] == pytest.approx(np.mean(z ** 2)), (r["frame"], key)
         lo, hi = rf.chi2_mean_bounds(6, j["approaches"])
         conv = rz.spec_from_dict(runs[name].spec).cfg.converged_after_frames
         inside = [lo <= f["nees"][frames == k].mean() <= hi for k in range(conv, frames.max() + 1)]

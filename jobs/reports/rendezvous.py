@@ -70,6 +70,8 @@ def build(lake: Lake, run_id: str) -> dict:
           "nees_first_inside_share": (sum(inside1) / len(inside1)) if inside1 else None,
           "nees_first_frames_outside": [r["frame"] for r, ok in zip(after, inside1) if not ok],
           "nees_mean_after_convergence": (sum(r["mean_nees"] for r in after) / len(after)) if after else None,
+          "z2_after_convergence": ([sum(r[k] for r in after) / len(after)
+                                    for k in ("z2_radial", "z2_along", "z2_cross")] if after else None),
           "range_err_ratio": ratio, "per_frame": per_frame, "targets": TARGETS}
     return {"tables": tables, "summary": s, "json": js}
 
@@ -82,11 +84,13 @@ def target_rows(rep: dict) -> list[list[str]]:
     share, share1 = j["nees_inside_share"], j["nees_first_inside_share"]
     rows = [[f"(c) mean NEES of the first {j['nees_first_approaches']} approaches inside its 95 % bounds, frames >= "
              f"{j['converged_after_frames']}",
-             "-" if share1 is None else f"inside at {j['nees_first_frames_inside']} of {j['nees_frames_checked']} frames "
+             "-" if share1 is None else f"inside at {j['nees_first_frames_inside']} of {j['nees_frames_checked']} "
+             "frames "
              f"(bounds {lo1:.2f}-{hi1:.2f})", "every frame",
              verdict(None if share1 is None else share1 >= TARGETS["nees_inside_share"])],
             [f"    the same over all {j['approaches']} approaches",
-             "-" if share is None else f"inside at {j['nees_frames_inside']} of {j['nees_frames_checked']} frames "
+             "-" if share is None else f"inside at {j['nees_frames_inside']} of {j['nees_frames_checked']} "
+             "frames "
              f"(bounds {lo:.2f}-{hi:.2f}, mean {formatted(j['nees_mean_after_convergence'], '{:.2f}')})", "", ""]]
     if j["late_range_frames"]:
         r = j["range_err_ratio"]
@@ -135,7 +139,12 @@ def text(rep: dict) -> str:
         f"time: {formatted(j['ms_per_approach'], '{:.0f}')} ms per approach (render {formatted(j['render_ms_per_frame'], '{:.1f}')} "
         "ms per frame)",
         "",
-        "mean NEES per frame (every 5th; * outside the 95 % bounds after convergence)",
+        "position error over its stated sigma, squared, mean over the frames after convergence (1 where the sigma is "
+        "right): radial / along-track / cross-track "
+        + ("-" if j["z2_after_convergence"] is None else " / ".join(f"{v:.2f}" for v in j["z2_after_convergence"])),
+        "",
+        "mean NEES per frame (every 5th; * outside the 95 % bounds after convergence; z2: the position error over its "
+        "stated sigma, squared, per Hill axis)",
     ]
     lo, hi = j["nees_bounds_95"]
     lo1, hi1 = j["nees_first_bounds_95"]
@@ -144,10 +153,10 @@ def text(rep: dict) -> str:
                  "*" if r["frame"] >= j["converged_after_frames"] and not lo <= r["mean_nees"] <= hi else ""),
              f"{r['mean_nees_first']:.2f}" + (
                  "*" if r["frame"] >= j["converged_after_frames"] and not lo1 <= r["mean_nees_first"] <= hi1 else ""),
-             percent(r["availability"])]
+             percent(r["availability"]), f"{r['z2_radial']:.2f} / {r['z2_along']:.2f} / {r['z2_cross']:.2f}"]
             for r in j["per_frame"] if r["frame"] % 5 == 0 or r["frame"] == len(j["per_frame"]) - 1]
     lines.append(format_table(["frame", "t s", "range m", "pos err RMS m", "sigma RMS m", "mean NEES",
-                               f"NEES first {j['nees_first_approaches']}", "bearings"],
+                               f"NEES first {j['nees_first_approaches']}", "bearings", "z2 R / A / C"],
                               rows))
     return "\n".join(lines)
 
