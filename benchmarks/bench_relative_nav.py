@@ -37,7 +37,7 @@ import time
 
 import numpy as np
 
-from dualsight.config import FilterConfig
+from dualsight.nav.relative_filter import FilterConfig
 from dualsight.nav import relative_filter as rf
 from dualsight.scene import relative_orbit as ro
 from dualsight.scene.units import ARCSEC

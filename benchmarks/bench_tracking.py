@@ -42,7 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 import numpy as np  # noqa: E402
 
-from dualsight.config import TrackingConfig  # noqa: E402
+from dualsight.nav.tracking_config import TrackingConfig
 from dualsight.jobs.kinds import star, star_track  # noqa: E402
 from dualsight.nav.angular_rate import rate_between  # noqa: E402
 from dualsight.nav.attitude import solve_identified  # noqa: E402

@@ -48,13 +48,42 @@ never over runs.
 
 from __future__ import annotations
 
+import dataclasses
+import typing
 import math
 from statistics import NormalDist
 
+import pydantic
 import numpy as np
 
-from dualsight.config import FilterConfig
+from dualsight.config import check_fields
+from dualsight.errors import ConfigError
 from dualsight.scene.relative_orbit import CircularOrbit, cw_stm, hill_to_icrs
+
+
+_FILTER_UNITS = {"accel_psd": "m^2/s^3", "dv_sigma_m_s": "m/s", "dv_sigma_frac": "of |dv|"}
+
+
+@dataclasses.dataclass(frozen=True)
+class FilterConfig:
+    """Noise settings of the relative-navigation EKF (``nav/relative_filter.py``; a rendezvous spec's filter comes
+    from its ``RendezvousConfig``: ``jobs/kinds/rendezvous_filter.filter_config``).  Checked when built (ConfigError
+    naming ``filter.<field>``, the value and the range).
+
+    accel_psd : white acceleration noise spectral density per Hill axis, in [0, 1e-3] m^2/s^3 (1e-12 ~ 1 um/s^2
+        over 1 s; default 1e-12).
+    dv_sigma_frac : 1-sigma execution error of a manoeuvre per axis, as a fraction of |dv|, in [0, 1] (default 0).
+    dv_sigma_m_s : 1-sigma execution error of a manoeuvre per axis, in [0, 1] m/s, added in quadrature (default 0).
+    iterations : linearisations per measurement update, in [1, 20] (1: the EKF; more: the iterated EKF, which stays
+        consistent when the first bearings meet a prior whose error across the line of sight is a large angle)."""
+
+    accel_psd: typing.Annotated[float, pydantic.Field(ge=0.0, le=1e-3)] = 1e-12
+    dv_sigma_frac: typing.Annotated[float, pydantic.Field(ge=0.0, le=1.0)] = 0.0
+    dv_sigma_m_s: typing.Annotated[float, pydantic.Field(ge=0.0, le=1.0)] = 0.0
+    iterations: typing.Annotated[int, pydantic.Field(ge=1, le=20)] = 1
+
+    def __post_init__(self):
+        check_fields(self, lambda name, msg: ConfigError(msg, field=f"filter.{name}"), _FILTER_UNITS)
 
 __all__ = ["process_noise", "predict", "apply_manoeuvre", "tangent_basis", "isotropic_bearing_cov", "bearing_update",
            "bias_propagate",

@@ -54,7 +54,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dualsight.config import TrackingConfig
+from dualsight.nav.tracking_config import TrackingConfig
 from dualsight.nav import attitude_filter as filt
 from dualsight.nav.angular_rate import pair_by_identity, rate_between, rate_from_star_pairs
 from dualsight.nav.attitude import solve_identified

@@ -42,8 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dualsight.config import TrackingConfig
-from dualsight.nav.attitude import svd_attitude
+from dualsight.nav.tracking_config import TrackingConfig
 from dualsight.nav.chance import binomial_tail
 from dualsight.scene.rotation_vector import frame_rotation
 from dualsight.scene.starfield_geometry import field_half_angle

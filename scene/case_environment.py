@@ -1,6 +1,6 @@
 """Each case's place in orbit and time, and what its camera sees of the Sun, Earth and Moon (issue 23, point 1).
 
-Stage of the star job with ``[target.environment]`` (``dualsight.config.EnvironmentConfig``), before the target's
+Stage of the star job with ``[target.environment]`` (``scene/environment_config.EnvironmentConfig``), before the target's
 draw (``scene/target_in_field.draw_targets`` takes the Sun from here).  Per case, from its own generator
 ``default_rng([seed, i])`` after the star job's four draws and the target's nine (so the attitude, the noise seed
 and the target of every case are those of the same run without an environment): the epoch (uniform in
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dualsight.config import EnvironmentConfig
+from dualsight.scene.environment_config import EnvironmentConfig
 from dualsight.scene.case_rng import streams as case_streams
 from dualsight.scene.ephemeris import R_EARTH_KM, jd_tt_from_unix, moon_position, sun_position
 from dualsight.scene.keepout import KeepOut, keep_out

@@ -20,7 +20,7 @@ vectors) and the geocentric Sun and Moon (km; ``scene/ephemeris.py``), batched o
   Sun visible), penumbra when ``theta_s < rho + a_s`` otherwise.  A spherical Earth (R_E = 6378.137 km, no
   atmosphere: refraction and the ~50 km of twilight are left out).
 
-Half-angle defaults (``dualsight.config.EnvironmentConfig``): Sun 30 deg, Earth limb 20 deg, Moon 10 deg, chosen
+Half-angle defaults (``scene/environment_config.EnvironmentConfig``): Sun 30 deg, Earth limb 20 deg, Moon 10 deg, chosen
 as the usual order of small star trackers' exclusion angles (Sun 25-45 deg, lit Earth 15-30 deg, Moon 5-15 deg),
 not a particular data sheet's.  Units: km, radians.  Pure numpy, no loop over frames or samples.
 """

@@ -2,7 +2,7 @@
 stars' zero point, and its light as extra point sources of the star renderer, with the stars behind it hidden.
 
 Stage between ``scene/starfield_geometry.stars_in_field`` and the render kernels of the star job.  Per case
-(``[target]`` of the spec, ``dualsight.config.TargetConfig``):
+(``[target]`` of the spec, ``scene/target_config.TargetConfig``):
 
 * draws (from the case's own generator ``default_rng([seed, i])``, after the star job's four draws, so the
   attitude and the noise seed of every case are those of the same run without a target): presence, range
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dualsight.config import TargetConfig
+from dualsight.scene.target_config import TargetConfig
 from dualsight.kernels.sensor_config import SensorConfig, flux_from_magnitude
 from dualsight.scene.attitude import quat_to_dcm, quaternions_from_uniforms
 from dualsight.scene.case_rng import streams as case_streams

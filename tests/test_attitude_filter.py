@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from dualsight.config import TrackingConfig
+from dualsight.nav.tracking_config import TrackingConfig
 from dualsight.errors import ConfigError
 from dualsight.nav import attitude_filter as af
 from dualsight.nav.angular_rate import log_rotation

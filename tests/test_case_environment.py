@@ -7,7 +7,8 @@ import warnings
 
 import numpy as np
 
-from dualsight.config import EnvironmentConfig, TargetConfig
+from dualsight.scene.environment_config import EnvironmentConfig
+from dualsight.scene.target_config import TargetConfig
 from dualsight.scene import case_environment as ce
 from dualsight.scene.camera import Camera
 from dualsight.scene.ephemeris import R_EARTH_KM

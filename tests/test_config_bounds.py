@@ -274,7 +274,7 @@ def test_unknown_key_with_a_newline_is_one_line(where):
 def test_a_toml_value_out_of_range_states_the_whole_range(cls, section, name, bad, stated):
     """Not only the bound it broke ("less than or equal to 20") but the field's whole range, as its docstring
     states it."""
-    from dualsight.config import TrackingConfig
+    from dualsight.nav.tracking_config import TrackingConfig
 
     tp = TrackingConfig if cls == "tracking" else CONFIGS[cls]
     with pytest.raises(ConfigError) as e:

@@ -229,7 +229,7 @@ def _render_with_target(tmp_path, name: str, range_m: float, pix: tuple[float, f
     direction of pixel ``pix``, lit at ``phase_deg``, written as a 12-bit-in-16-bit TIFF; returns (path, truth):
     the centre of brightness's ICRS direction, the range, the target's V and whether it was rasterised.  ``rot``: the
     target's attitude, 1-2-3 angles (rad)."""
-    from dualsight.config import TargetConfig
+    from dualsight.scene.target_config import TargetConfig
     from dualsight.kernels.starfield import render_star_fields
     from dualsight.scene.attitude import rot_axis
     from dualsight.scene.camera import Camera

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from dualsight.config import FilterConfig
+from dualsight.nav.relative_filter import FilterConfig
 from dualsight.nav import relative_filter as rf
 from dualsight.scene import relative_orbit as ro
 
@@ -195,7 +195,7 @@ def test_chi2_mean_bounds_against_exact_distribution():
 
 
 def test_filter_config_refuses_values_out_of_range():
-    """FilterConfig (dualsight/config.py): one ConfigError naming the field and its range."""
+    """FilterConfig (nav/relative_filter.py): one ConfigError naming the field and its range."""
     import pytest
 
     from dualsight.errors import ConfigError

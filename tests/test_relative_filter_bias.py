@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from dualsight.config import FilterConfig
+from dualsight.nav.relative_filter import FilterConfig
 from dualsight.nav import relative_filter as rf
 from dualsight.nav.blobber_range_error import range_ratio_at, range_ratio_statistics
 from dualsight.scene import relative_orbit as ro

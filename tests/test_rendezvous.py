@@ -13,7 +13,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from dualsight.config import FilterConfig
+from dualsight.nav.relative_filter import FilterConfig
 from dualsight.jobs.kinds import (rendezvous as rz, rendezvous_context, rendezvous_filter, rendezvous_measure,
                                   rendezvous_spec, rendezvous_truth, star)
 from dualsight.scene.target_photometry import photocentre_table

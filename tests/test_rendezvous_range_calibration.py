@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from dualsight.config import FilterConfig
+from dualsight.nav.relative_filter import FilterConfig
 from dualsight.jobs.kinds import rendezvous_context, rendezvous_measure
 from dualsight.nav import relative_filter as rf
 from dualsight.nav.blobber_range_error import RangeRatioCalibration

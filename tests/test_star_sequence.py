@@ -15,7 +15,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from dualsight.config import TrackingConfig
+from dualsight.nav.tracking_config import TrackingConfig
 from dualsight.nav.errors import axis_errors
 from dualsight.nav.sequence import LOST_IN_SPACE, NO_FIX, NO_IMAGE, REASON_NAMES, TRACKING, run_sequence
 from dualsight.nav.tracking import NO_PRIOR

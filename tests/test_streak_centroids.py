@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dualsight.config import TrackingConfig
+from dualsight.nav.tracking_config import TrackingConfig
 from dualsight.jobs.kinds import star_track
 from dualsight.nav.smear_weights import along_gain
 from helpers import rotation

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from dualsight.config import TargetConfig
+from dualsight.scene.target_config import TargetConfig
 from dualsight.errors import ConfigError
 from dualsight.jobs.engine.specs import preset_and_config
 from dualsight.jobs.kinds import star

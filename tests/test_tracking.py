@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from dualsight.config import TrackingConfig
+from dualsight.nav.tracking_config import TrackingConfig
 from dualsight.errors import ConfigError
 from dualsight.nav.attitude import svd_attitude
 from dualsight.nav.angular_rate import pair_by_identity, rate_from_attitudes, rate_from_stars

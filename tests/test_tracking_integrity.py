@@ -19,7 +19,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from dualsight.config import TrackingConfig
+from dualsight.nav.tracking_config import TrackingConfig
 from dualsight.errors import ConfigError
 from dualsight.nav.angular_rate import (log_rotation, rate_between, rate_from_attitudes, rate_from_star_pairs,
                                         rate_from_stars)

@@ -27,7 +27,8 @@ from datetime import datetime, timedelta
 import numpy as np
 from pydantic import Field
 
-from dualsight.config import TrackingConfig, dataclass_from_table, dataclass_to_table, validate
+from dualsight.config import dataclass_from_table, dataclass_to_table, validate
+from dualsight.nav.tracking_config import TrackingConfig
 from dualsight.errors import ConfigError
 from dualsight.jobs.kinds.hil_common import Frozen
 from dualsight.nav.sequence import MODE_NAMES, REASON_NAMES, run_sequence
@@ -52,7 +53,7 @@ _RATE_SUFFIXES = {"_deg_s": "_rad_s", "_arcsec_s": "_rad_s"}
 
 def tracking_settings(path) -> dict:
     """The tracker's settings of ``hil star --track --tracking FILE.toml``: a ``[tracking]`` table
-    (``dualsight.config.TrackingConfig``'s keys, ``<name>_deg`` / ``<name>_arcsec`` for a ``<name>_rad`` field and
+    (``nav/tracking_config.TrackingConfig``'s keys, ``<name>_deg`` / ``<name>_arcsec`` for a ``<name>_rad`` field and
     ``<name>_deg_s`` / ``<name>_arcsec_s`` for a ``<name>_rad_s`` one) and the top-level keys ``max_coast_frames``
     (integer in [0, 10000]) and ``lis_min_stars`` (integer in [3, 100]).  Validated now; an error names the file
     and the key (ConfigError).  Returns the spec's ``track`` keys: tracking (the canonical table, every field),

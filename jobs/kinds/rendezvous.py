@@ -42,7 +42,7 @@ Spec (TOML)::
 
     seed = 1
     cases = 100
-    [rendezvous]   ... (dualsight/config.py RendezvousConfig)
+    [rendezvous]   ... (jobs/kinds/rendezvous_spec.py RendezvousConfig)
 
 Presets: ``far`` (issue 23.6 e: V-bar hop 2 km -> 200 m with one known burn one orbit long, the star preset's
 camera, paper sensor, bearings only) and ``close`` (issue 23.6 d: the paper's proximity camera and 3U CubeSat,

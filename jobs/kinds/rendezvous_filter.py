@@ -10,7 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dualsight.config import FilterConfig, RendezvousConfig
+from dualsight.nav.relative_filter import FilterConfig
+from dualsight.jobs.kinds.rendezvous_spec import RendezvousConfig
 from dualsight.nav import relative_filter as rf
 from dualsight.nav.target_finding import FOUND_BY, chi2_gate_2dof, innovation_d2, pick, predicted_bearing
 from dualsight.nav.target_bearing import sphere_phase_correction

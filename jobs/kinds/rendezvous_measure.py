@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from dualsight.config import TargetConfig
+from dualsight.scene.target_config import TargetConfig
 from dualsight.jobs.kinds import star
 from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.kernels.sensor_config import flux_from_magnitude

@@ -1,16 +1,21 @@
 """The rendezvous job's spec (:mod:`dualsight.jobs.kinds.rendezvous`): the presets ``far`` and ``close``, the
-TOML layout (``seed``, ``cases``, ``[rendezvous]``: ``dualsight/config.py`` ``RendezvousConfig``) and its validation
+TOML layout (``seed``, ``cases``, ``[rendezvous]``: :class:`RendezvousConfig` below) and its validation
 into a :class:`RendezvousSpec`."""
 
 from __future__ import annotations
 
+import dataclasses
+import typing
 import math
 from dataclasses import dataclass, field
 
+import pydantic
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from dualsight.config import RendezvousConfig, dataclass_from_table, dataclass_to_table, validate
+from dualsight.config import check_fields
+from dualsight.scene.environment_config import ApproachEnvironmentConfig
+from dualsight.config import dataclass_from_table, dataclass_to_table, validate
 from dualsight.errors import ConfigError
 from dualsight.jobs.engine.specs import preset_and_config, seed_and_case_count
 from dualsight.jobs.kinds import star
@@ -19,6 +24,134 @@ from dualsight.scene.relative_orbit import CircularOrbit
 from dualsight.scene.example_files import shipped_path
 from dualsight.scene.satellite import load_satellite
 from dualsight.scene.units import DEG
+
+
+_Unit = typing.Annotated[float, pydantic.Field(ge=-1.0, le=1.0)]
+_RdvPos = typing.Annotated[float, pydantic.Field(ge=-1e5, le=1e5)]
+_RdvVel = typing.Annotated[float, pydantic.Field(ge=-100.0, le=100.0)]
+_RdvDv = typing.Annotated[float, pydantic.Field(ge=-10.0, le=10.0)]
+_RdvTime = typing.Annotated[float, pydantic.Field(gt=0.0, le=1e6)]
+_RdvDispP = typing.Annotated[float, pydantic.Field(ge=0.0, le=1e4)]
+_RdvDispV = typing.Annotated[float, pydantic.Field(ge=0.0, le=10.0)]
+_RdvPriorP = typing.Annotated[float, pydantic.Field(gt=0.0, le=1e5)]
+_RdvPriorV = typing.Annotated[float, pydantic.Field(gt=0.0, le=100.0)]
+_RDV_UNITS = {"altitude_km": "km", "inclination_deg": "deg", "raan_deg": "deg", "arg_lat_deg": "deg",
+              "position_m": "m", "velocity_m_s": "m/s", "dispersion_position_m": "m",
+              "dispersion_velocity_m_s": "m/s", "duration_s": "s", "frame_interval_s": "s",
+              "manoeuvre_times_s": "s", "manoeuvre_dv_m_s": "m/s", "dv_error_m_s": "m/s",
+              "pointing_error_deg": "deg", "target_rate_deg_s": "deg/s", "attitude_sigma_arcsec": "arcsec",
+              "cob_sigma_frac": "of the diameter", "prior_position_m": "m", "prior_velocity_m_s": "m/s",
+              "accel_psd": "m^2/s^3", "converged_after_frames": "frames"}
+
+
+@dataclasses.dataclass(frozen=True)
+class RendezvousConfig:
+    """One approach of a rendezvous campaign (``[rendezvous]`` of a ``dualsight rendezvous run`` spec; issue 23,
+    point 5; ``jobs/kinds/rendezvous.py``).  Every field's range is part of its type, checked when the dataclass is
+    built (ConfigError naming ``rendezvous.<field>``, the value and the range) and when a TOML table is validated.
+
+    Reference orbit (the target's, circular; ``scene/relative_orbit.CircularOrbit``): altitude_km in [150, 40000]
+        (default 500), inclination_deg in [0, 180] (51.6), raan_deg and arg_lat_deg in [0, 360] (30, 0).
+    Initial relative state of the chaser in the target's Hill frame (x radial, y along-track, z cross-track):
+        position_m (3 values, each in [-1e5, 1e5] m; default [0, -2000, 0]: 2 km behind on V-bar), velocity_m_s
+        (each in [-100, 100] m/s; default 0); per-case dispersion (1-sigma per Hill axis x, y, z, Gaussian):
+        dispersion_position_m 3 values in [0, 1e4] m (default [2, 100, 2]), dispersion_velocity_m_s 3 values in
+        [0, 10] m/s (default 1e-4 each).
+    Frames: duration_s in (0, 1e6] s (default 6300), frame_interval_s in (0, 1e4] s (default 100); frames at
+        0, dt, 2 dt, ... <= duration, at most 10000.
+    Known manoeuvres: manoeuvre_times_s (up to 16 times in (0, duration]) and manoeuvre_dv_m_s (as many [dvx, dvy,
+        dvz] in the Hill frame, each in [-10, 10] m/s); the executed delta-v carries a Gaussian error per axis of
+        dv_error_frac x |dv| (in [0, 1], default 0.01) and dv_error_m_s (in [0, 1], default 0), both known to the
+        filter.
+    Pointing: "target" (boresight on the true target with a Gaussian pointing error of pointing_error_deg per axis,
+        in [0, 10], default 0.5, drawn per frame) or "inertial" (held on the target's initial nominal direction).
+    camera: "star" (the star preset's camera and ``sensor`` preset: stars give the attitude) or the path of a
+        camera file (a proximity camera: no stars are rendered, the attitude comes from the chaser's own star
+        tracker with attitude_sigma_arcsec per axis, in (0, 3600], default 10).
+    sensor: star sensor preset "ideal", "paper" (default) or "realistic" (``jobs/kinds/star.py``).
+    satellite: the target's satellite file (1 to 4096 characters); it spins at target_rate_deg_s about an axis
+        drawn per case (in [0, 30], default 1).
+    sun_icrs: unit vector towards the Sun (ICRS, norm 1 +- 1e-3); absent = the epoch's Sun with ``environment``,
+        else the reference orbit's normal.
+    environment: ``[rendezvous.environment]`` (:class:`ApproachEnvironmentConfig`): the approach's start epoch and
+        keep-out half-angles; each frame gets the Sun, Earth and Moon columns (absent: null).
+    range_source: "blobber" (a range from every resolved blob: ``nav/blobber.py``, its [min, max] the
+        uncertainty) or "none" (bearings only).
+    phase_correction: move each bearing from the centre of brightness to the centre by the target's mean
+        photocentre offset over random attitudes at the measured phase angle, at the predicted range, and add its
+        spread over attitudes to the bearing's covariance (``scene/target_photometry.photocentre_table``; default
+        True).
+    cob_sigma_frac: a further 1-sigma of the centre of brightness about the body's centre, as a fraction of the
+        bounding sphere's diameter, at the predicted range (in [0, 1], default 0.1).
+    Filter (``nav/relative_filter.py``): prior_position_m 3 values in (0, 1e5] m and prior_velocity_m_s 3 values in
+        (0, 100] m/s (1-sigma per Hill axis about the nominal state; defaults: the dispersion's), accel_psd in
+        [0, 1e-3] m^2/s^3 (default 1e-12), iterations in [1, 20] (default 3).
+    converged_after_frames: frames after which the report holds the filter to its chi-square bounds, in [0, 10000]
+        (default 10).
+    """
+
+    altitude_km: typing.Annotated[float, pydantic.Field(ge=150.0, le=40000.0)] = 500.0
+    inclination_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=180.0)] = 51.6
+    raan_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=360.0)] = 30.0
+    arg_lat_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=360.0)] = 0.0
+    position_m: typing.Annotated[tuple[_RdvPos, _RdvPos, _RdvPos], pydantic.Field(min_length=3, max_length=3)] = \
+        (0.0, -2000.0, 0.0)
+    velocity_m_s: typing.Annotated[tuple[_RdvVel, _RdvVel, _RdvVel], pydantic.Field(min_length=3, max_length=3)] = \
+        (0.0, 0.0, 0.0)
+    dispersion_position_m: typing.Annotated[tuple[_RdvDispP, _RdvDispP, _RdvDispP],
+                                            pydantic.Field(min_length=3, max_length=3)] = (2.0, 100.0, 2.0)
+    dispersion_velocity_m_s: typing.Annotated[tuple[_RdvDispV, _RdvDispV, _RdvDispV],
+                                              pydantic.Field(min_length=3, max_length=3)] = (1e-4, 1e-4, 1e-4)
+    duration_s: _RdvTime = 6300.0
+    frame_interval_s: typing.Annotated[float, pydantic.Field(gt=0.0, le=1e4)] = 100.0
+    manoeuvre_times_s: typing.Annotated[tuple[_RdvTime, ...], pydantic.Field(max_length=16)] = ()
+    manoeuvre_dv_m_s: typing.Annotated[tuple[tuple[_RdvDv, _RdvDv, _RdvDv], ...], pydantic.Field(max_length=16)] = ()
+    dv_error_frac: typing.Annotated[float, pydantic.Field(ge=0.0, le=1.0)] = 0.01
+    dv_error_m_s: typing.Annotated[float, pydantic.Field(ge=0.0, le=1.0)] = 0.0
+    pointing: typing.Literal["target", "inertial"] = "target"
+    pointing_error_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=10.0)] = 0.5
+    camera: typing.Annotated[str, pydantic.Field(min_length=1, max_length=4096)] = "star"
+    sensor: typing.Literal["ideal", "paper", "realistic"] = "paper"
+    attitude_sigma_arcsec: typing.Annotated[float, pydantic.Field(gt=0.0, le=3600.0)] = 10.0
+    satellite: typing.Annotated[str, pydantic.Field(min_length=1, max_length=4096)] = \
+        "examples/satellites/cubesat_3u.toml"
+    target_rate_deg_s: typing.Annotated[float, pydantic.Field(ge=0.0, le=30.0)] = 1.0
+    sun_icrs: typing.Annotated[tuple[_Unit, _Unit, _Unit],
+                               pydantic.Field(min_length=3, max_length=3)] | None = None
+    range_source: typing.Literal["blobber", "none"] = "none"
+    phase_correction: bool = True
+    cob_sigma_frac: typing.Annotated[float, pydantic.Field(ge=0.0, le=1.0)] = 0.1
+    prior_position_m: typing.Annotated[tuple[_RdvPriorP, _RdvPriorP, _RdvPriorP],
+                                       pydantic.Field(min_length=3, max_length=3)] = (2.0, 100.0, 2.0)
+    prior_velocity_m_s: typing.Annotated[tuple[_RdvPriorV, _RdvPriorV, _RdvPriorV],
+                                         pydantic.Field(min_length=3, max_length=3)] = (1e-4, 1e-4, 1e-4)
+    accel_psd: typing.Annotated[float, pydantic.Field(ge=0.0, le=1e-3)] = 1e-12
+    iterations: typing.Annotated[int, pydantic.Field(ge=1, le=20)] = 3
+    converged_after_frames: typing.Annotated[int, pydantic.Field(ge=0, le=10_000)] = 10
+    environment: ApproachEnvironmentConfig | None = dataclasses.field(default=None,
+                                                                      metadata={"omit_if_default": True})
+
+    def __post_init__(self):
+        check_fields(self, lambda name, msg: ConfigError(msg, field=f"rendezvous.{name}"), _RDV_UNITS)
+        frames = int(math.floor(self.duration_s / self.frame_interval_s + 1e-9)) + 1
+        if frames > 10_000 or frames < 2:
+            raise ConfigError(f"duration_s / frame_interval_s must give 2 to 10000 frames, got {frames}",
+                              field="rendezvous.frame_interval_s")
+        if len(self.manoeuvre_times_s) != len(self.manoeuvre_dv_m_s):
+            raise ConfigError(f"must have one [dvx, dvy, dvz] per manoeuvre time ({len(self.manoeuvre_times_s)}), "
+                              f"got {len(self.manoeuvre_dv_m_s)}", field="rendezvous.manoeuvre_dv_m_s")
+        for i, t in enumerate(self.manoeuvre_times_s):
+            if t > self.duration_s:
+                raise ConfigError(f"must lie in (0, duration_s = {self.duration_s:g}] s, got {t!r}",
+                                  field=f"rendezvous.manoeuvre_times_s[{i}]")
+        if self.sun_icrs is not None and abs(math.hypot(*self.sun_icrs) - 1.0) > 1e-3:
+            raise ConfigError(f"must be a unit vector (norm 1 +- 1e-3), got {list(self.sun_icrs)!r}",
+                              field="rendezvous.sun_icrs")
+
+    @property
+    def frames(self) -> int:
+        """Frames per approach: t = 0, dt, ... <= duration_s."""
+        return int(math.floor(self.duration_s / self.frame_interval_s + 1e-9)) + 1
 
 
 DEFAULT_CASES = 100

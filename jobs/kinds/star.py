@@ -23,10 +23,10 @@ Spec (TOML; every table optional, defaults = preset ``paper``)::
     [detect]   ... (kernels/detect.py DetectConfig)
     [voting]   ... (nav/starid.py VotingConfig; angles as *_arcsec)
     [robust]   ... (the same keys, for the robust method)
-    [target]   ... (dualsight/config.py TargetConfig: a spacecraft in the field, issue 23; absent = none, and the
+    [target]   ... (scene/target_config.py TargetConfig: a spacecraft in the field, issue 23; absent = none, and the
                    run is exactly the run of the same spec before [target] existed, with the target columns null)
-    [output]   detections = "auto" (or "on", "off"), detections_max_cases = 100000 (dualsight/config.py
-               OutputConfig; jobs/kinds/star_output.py: whether star_detections is written, part of the identity)
+    [output]   detections = "auto" (or "on", "off"), detections_max_cases = 100000 (jobs/kinds/star_output.py
+               OutputConfig: whether star_detections is written, part of the identity)
 """
 
 from __future__ import annotations
@@ -49,7 +49,9 @@ from dualsight.jobs.kinds import star_summaries
 from dualsight.jobs.kinds.star_tables import CASES_SCHEMA, DETECTIONS_SCHEMA, cases_table, detections_table
 from dualsight.jobs.kinds.star_output import with_case_count
 from dualsight.jobs.engine.runner import prepare, run_job
-from dualsight.config import OutputConfig, TargetConfig, dataclass_from_table, dataclass_to_table, validate
+from dualsight.config import dataclass_from_table, dataclass_to_table, validate
+from dualsight.jobs.kinds.star_output import OutputConfig
+from dualsight.scene.target_config import TargetConfig
 from dualsight.jobs.engine.specs import preset_and_config, seed_and_case_count
 from dualsight.kernels import detect as kdetect
 from dualsight.kernels import starfield as kstar

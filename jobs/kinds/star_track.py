@@ -13,8 +13,8 @@ primary dataset; :mod:`dualsight.jobs.kinds.star_track_tables`).  Case ``i`` dra
 Spec (TOML): the star job's layout and presets (``ideal``, ``paper``, ``realistic``: camera, catalog, sensor,
 detect, voting, robust; :mod:`dualsight.jobs.kinds.star`) plus::
 
-    [sequence]   ... (dualsight/config.py SequenceConfig: frames, fps, exposure_s, motion, rate_max_deg_s, ...)
-    [tracking]   ... (dualsight/config.py TrackingConfig: windows, lock rules)
+    [sequence]   ... (SequenceConfig below: frames, fps, exposure_s, motion, rate_max_deg_s, ...)
+    [tracking]   ... (nav/tracking_config.py TrackingConfig: windows, lock rules)
 
 Lost-in-space is the star job's robust method (``[robust]``: its chance-match probability verifies a fix), or its
 reference method with ``compare_robust = false``.  The sequence's exposure replaces the sensor's.
@@ -26,16 +26,21 @@ own instantaneous rate over the exposure (a straight chord, ``kernels/psf_models
 
 from __future__ import annotations
 
+import typing
 import dataclasses
 import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import pydantic
 import numpy as np
 import pyarrow as pa
 
-from dualsight.config import SequenceConfig, TrackingConfig, dataclass_from_table, dataclass_to_table
+from dualsight.config import check_fields
+from dualsight.errors import ConfigError
+from dualsight.config import dataclass_from_table, dataclass_to_table
+from dualsight.nav.tracking_config import TrackingConfig
 from dualsight.errors import InputError
 from dualsight.jobs.engine.runner import prepare, run_job
 from dualsight.jobs.engine.specs import preset_and_config, seed_and_case_count
@@ -55,6 +60,134 @@ from dualsight.scene.attitude_trajectory import (BLANK, BLINDED, CROSSING, DROPP
 from dualsight.scene.rotation_vector import frame_rotation
 from dualsight.scene.starfield_geometry import FieldStars, stars_in_field
 from dualsight.scene.units import ARCSEC, DEG
+
+
+_SeqRate = typing.Annotated[float, pydantic.Field(ge=0.0, le=30.0)]
+_SeqCount = typing.Annotated[int, pydantic.Field(ge=0, le=10_000)]
+_SeqPsdFreq = typing.Annotated[float, pydantic.Field(ge=0.0, le=500.0)]
+_SeqPsd = typing.Annotated[float, pydantic.Field(ge=0.0, le=1e8)]
+_SeqPsdAxis = typing.Annotated[float, pydantic.Field(ge=0.0, le=100.0)]
+_SEQUENCE_UNITS = {"frames": "frames", "fps": "Hz", "exposure_s": "s", "rate_max_deg_s": "deg/s",
+                   "slew_angle_max_deg": "deg", "slew_accel_deg_s2": "deg/s^2", "jitter_arcsec": "arcsec",
+                   "jitter_freq_hz": "Hz", "jitter_psd_freq_hz": "Hz",
+                   "jitter_psd_arcsec2_hz": "arcsec^2/Hz", "gyro_noise_deg_s": "deg/s", "gyro_bias_deg_s": "deg/s",
+                   "blank": "frames", "blinded": "frames", "dropped": "frames", "max_coast_frames": "frames",
+                   "lis_min_stars": "stars", "error_limit_arcsec": "arcsec", "bright_crossings": "crossings",
+                   "crossing_frames": "frames", "crossing_vmag": "mag", "crossing_radius_px": "px"}
+
+
+@dataclasses.dataclass(frozen=True)
+class SequenceConfig:
+    """One case of a star-tracking campaign (``[sequence]`` of a ``dualsight star track`` spec; issue 22): an
+    image sequence, its attitude trajectory, gyro and events (``jobs/kinds/star_track.py``,
+    ``scene/attitude_trajectory.py``, ``nav/sequence.py``).
+
+    Every field's range is part of its type, checked when the dataclass is built (ConfigError naming
+    ``sequence.<field>``, the value and the range) and when a TOML table is validated (:func:`dataclass_from_table`).
+
+    frames : images per sequence, integer in [2, 10000] (default 50).  fps : frame rate (Hz), in (0, 1000]
+        (default 10).  exposure_s : exposure of every frame (s), in (0, 10], at most 1 / fps (default 0.1);
+        it replaces the sensor's ``exposure_s``.
+    motion : "constant" (a constant body rate about a random axis, magnitude uniform in [0, rate_max_deg_s]),
+        "slew" (a rest-to-rest eigenaxis slew of an angle uniform in [0, slew_angle_max_deg] about a random axis,
+        rate limit ``rate_max_deg_s``, acceleration limit ``slew_accel_deg_s2``, starting in the first third of the
+        sequence) or "mixed" (either, with equal chance per case) (default "constant").
+    rate_max_deg_s : in [0, 30] deg/s (default 1).  slew_angle_max_deg : in [0, 180] (default 10).
+    slew_accel_deg_s2 : in (0, 100] deg/s^2 (default 0.5).
+    jitter_arcsec : amplitude per axis of a sinusoidal jitter (arcsec), in [0, 3600] (default 0: none);
+        jitter_freq_hz : its frequency, in (0, 1000] Hz (default 2); phases from the case's generator.
+    jitter_psd_freq_hz, jitter_psd_arcsec2_hz : a jitter with a given one-sided power spectral density, laid over
+        the motion besides the sinusoid (default none): >= 2 strictly increasing frequencies in [0, fps / 2] Hz (the
+        frame rate's Nyquist frequency: the renderer smears each frame along one straight chord, so faster jitter
+        would only alias) and the PSD at each, arcsec^2/Hz in [0, 1e8], not all zero; piecewise linear between the
+        points, zero outside (``scene/attitude_trajectory.jitter_from_psd_table``: each axis' variance is the PSD's
+        integral).  jitter_psd_axes : the PSD's factor per camera axis [x, y, z], each in [0, 100] (default
+        [1, 1, 1]: the same spectrum on every axis; [1, 1, 0]: no roll jitter).
+    smear : render each frame smeared by its true body rate over the exposure (default True).
+    gyro : the tracker gets a rate gyro's readings (default False): true rate + a constant bias drawn per axis
+        with 1-sigma ``gyro_bias_deg_s`` (in [0, 10], default 0) + white noise ``gyro_noise_deg_s`` per sample
+        (in [0, 10], default 0.01).
+    blank, blinded, dropped : frames of each event per sequence, at random frames after the first (a blank frame:
+        no star light; blinded: the Sun or the Earth saturates the background; dropped: no image), integers in
+        [0, 10000] (defaults 0, 1, 1); together fewer than ``frames``.
+    max_coast_frames : a fix older than this many frames is no prior for tracking, in [0, 10000] (default 10).
+    lis_min_stars : fewest accepted stars of a verified lost-in-space fix, in [3, 100] (default 3).
+    error_limit_arcsec : a valid attitude whose error exceeds this on any axis is a false lock, in (0, 36000]
+        (default 100, the reference's limit).
+    shadow_lost_in_space : also run lost-in-space on every frame, for the identities and the speed of both on the
+        same frames (default False).
+    bright_crossings : bright objects crossing the field per sequence, integer in [0, 10000] (default 0): each a
+        planet or the Moon (not a catalog star) moving along a straight line across the image over
+        ``crossing_frames`` consecutive frames (in [1, 10000], < frames; default 5), at a random start after the
+        first frame, through a random point of the image's central half, covering the image's diagonal; its
+        magnitude ``crossing_vmag`` in [-30, 30] (default -4, Venus) and radius ``crossing_radius_px`` in
+        [0, 4096] px (default 0: a point with the star PSF; > 0: a uniform disk, the Moon ~ 0.0045 f).  Its frames
+        have the event ``crossing`` (a frame with another event keeps that one).
+    true_focal_error : the true focal length is the camera file's times (1 + this), in [-0.2, 0.2] (default 0):
+        frames are rendered with it, the tracker starts from the file's.
+    refine_focal : refine the focal length while tracking (``nav/focal_refine.py``: the least-squares focal
+        length of every fix, fused over the frames; the tracker uses the fused value), default False.
+    """
+
+    frames: typing.Annotated[int, pydantic.Field(ge=2, le=10_000)] = 50
+    fps: typing.Annotated[float, pydantic.Field(gt=0.0, le=1000.0)] = 10.0
+    exposure_s: typing.Annotated[float, pydantic.Field(gt=0.0, le=10.0)] = 0.1
+    motion: typing.Literal["constant", "slew", "mixed"] = "constant"
+    rate_max_deg_s: _SeqRate = 1.0
+    slew_angle_max_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=180.0)] = 10.0
+    slew_accel_deg_s2: typing.Annotated[float, pydantic.Field(gt=0.0, le=100.0)] = 0.5
+    jitter_arcsec: typing.Annotated[float, pydantic.Field(ge=0.0, le=3600.0)] = 0.0
+    jitter_freq_hz: typing.Annotated[float, pydantic.Field(gt=0.0, le=1000.0)] = 2.0
+    jitter_psd_freq_hz: tuple[_SeqPsdFreq, ...] = dataclasses.field(default=(), metadata={"omit_if_default": True})
+    jitter_psd_arcsec2_hz: tuple[_SeqPsd, ...] = dataclasses.field(default=(), metadata={"omit_if_default": True})
+    jitter_psd_axes: tuple[_SeqPsdAxis, _SeqPsdAxis, _SeqPsdAxis] = dataclasses.field(
+        default=(1.0, 1.0, 1.0), metadata={"omit_if_default": True})
+    smear: bool = True
+    gyro: bool = False
+    gyro_noise_deg_s: typing.Annotated[float, pydantic.Field(ge=0.0, le=10.0)] = 0.01
+    gyro_bias_deg_s: typing.Annotated[float, pydantic.Field(ge=0.0, le=10.0)] = 0.0
+    blank: _SeqCount = 0
+    blinded: _SeqCount = 1
+    dropped: _SeqCount = 1
+    max_coast_frames: _SeqCount = 10
+    lis_min_stars: typing.Annotated[int, pydantic.Field(ge=3, le=100)] = 3
+    error_limit_arcsec: typing.Annotated[float, pydantic.Field(gt=0.0, le=36000.0)] = 100.0
+    shadow_lost_in_space: bool = False
+    bright_crossings: _SeqCount = dataclasses.field(default=0, metadata={"omit_if_default": True})
+    crossing_frames: typing.Annotated[int, pydantic.Field(ge=1, le=10_000)] = dataclasses.field(
+        default=5, metadata={"omit_if_default": True})
+    crossing_vmag: typing.Annotated[float, pydantic.Field(ge=-30.0, le=30.0)] = dataclasses.field(
+        default=-4.0, metadata={"omit_if_default": True})
+    crossing_radius_px: typing.Annotated[float, pydantic.Field(ge=0.0, le=4096.0)] = dataclasses.field(
+        default=0.0, metadata={"omit_if_default": True})
+    true_focal_error: typing.Annotated[float, pydantic.Field(ge=-0.2, le=0.2)] = dataclasses.field(
+        default=0.0, metadata={"omit_if_default": True})
+    refine_focal: bool = dataclasses.field(default=False, metadata={"omit_if_default": True})
+
+    def __post_init__(self):
+        check_fields(self, lambda name, msg: ConfigError(msg, field=f"sequence.{name}"), _SEQUENCE_UNITS)
+        if self.exposure_s > 1.0 / self.fps:
+            raise ConfigError(f"must be <= 1 / fps ({1.0 / self.fps:g} s), got {self.exposure_s!r}",
+                              field="sequence.exposure_s")
+        f, S = self.jitter_psd_freq_hz, self.jitter_psd_arcsec2_hz
+        if f or S:
+            if len(f) < 2 or len(S) != len(f):
+                raise ConfigError(f"needs >= 2 frequencies and one PSD value per frequency, got "
+                                  f"{len(f)} frequencies and {len(S)} values", field="sequence.jitter_psd_arcsec2_hz")
+            if any(b <= a for a, b in zip(f[:-1], f[1:])):
+                raise ConfigError(f"must be strictly increasing, got {list(f)!r}", field="sequence.jitter_psd_freq_hz")
+            if f[-1] > 0.5 * self.fps:
+                raise ConfigError(f"must be <= fps / 2 ({0.5 * self.fps:g} Hz, the frames' Nyquist frequency), got "
+                                  f"{f[-1]!r}", field="sequence.jitter_psd_freq_hz")
+            if not any(v > 0 for v in S):
+                raise ConfigError("must not be all zero (leave both keys out for no jitter)",
+                                  field="sequence.jitter_psd_arcsec2_hz")
+        if self.bright_crossings and self.crossing_frames >= self.frames:
+            raise ConfigError(f"must be < frames ({self.frames}), got {self.crossing_frames!r}",
+                              field="sequence.crossing_frames")
+        if self.blank + self.blinded + self.dropped >= self.frames:
+            raise ConfigError(f"blank + blinded + dropped must be < frames ({self.frames}), got "
+                              f"{self.blank + self.blinded + self.dropped}", field="sequence.blinded")
 
 NAME = "star_track"
 PRIMARY = "star_sequences"
