@@ -30,6 +30,16 @@ def utc_seconds(text: str) -> float | None:
     return (t if t.tzinfo is not None else t.replace(tzinfo=datetime.timezone.utc)).timestamp()
 
 
+
+def epoch_seconds(text: str, field: str) -> float:
+    """POSIX seconds of an epoch ``text`` (:func:`utc_seconds`) that must lie within [:data:`EPOCH_MIN`,
+    :data:`EPOCH_MAX`]; else ConfigError naming ``field``."""
+    t = utc_seconds(text)
+    if t is None or not utc_seconds(EPOCH_MIN) <= t <= utc_seconds(EPOCH_MAX):
+        raise ConfigError(f"must be an ISO UTC time (YYYY-MM-DDTHH:MM:SS) within [{EPOCH_MIN}, {EPOCH_MAX}], got "
+                          f"{text!r}", field=field)
+    return t
+
 @dataclasses.dataclass(frozen=True)
 class EnvironmentConfig:
     """Where and when each case of a star run with a target is (``[target.environment]``; issue 23, point 1;
@@ -58,14 +68,7 @@ class EnvironmentConfig:
 
     def __post_init__(self):
         check_fields(self, lambda name, msg: ConfigError(msg, field=f"target.environment.{name}"), ENV_UNITS)
-        lo, hi = utc_seconds(EPOCH_MIN), utc_seconds(EPOCH_MAX)
-        sec = []
-        for i, text in enumerate(self.epoch_utc):
-            t = utc_seconds(text)
-            if t is None or not lo <= t <= hi:
-                raise ConfigError(f"must be an ISO UTC time (YYYY-MM-DDTHH:MM:SS) within [{EPOCH_MIN}, "
-                                  f"{EPOCH_MAX}], got {text!r}", field=f"target.environment.epoch_utc[{i}]")
-            sec.append(t)
+        sec = [epoch_seconds(text, f"target.environment.epoch_utc[{i}]") for i, text in enumerate(self.epoch_utc)]
         if sec[0] > sec[1]:
             raise ConfigError(f"must be [first, last] with first <= last, got {list(self.epoch_utc)!r}",
                               field="target.environment.epoch_utc")
@@ -97,10 +100,7 @@ class ApproachEnvironmentConfig:
 
     def __post_init__(self):
         check_fields(self, lambda name, msg: ConfigError(msg, field=f"rendezvous.environment.{name}"), ENV_UNITS)
-        t = utc_seconds(self.epoch_utc)
-        if t is None or not utc_seconds(EPOCH_MIN) <= t <= utc_seconds(EPOCH_MAX):
-            raise ConfigError(f"must be an ISO UTC time (YYYY-MM-DDTHH:MM:SS) within [{EPOCH_MIN}, "
-                              f"{EPOCH_MAX}], got {self.epoch_utc!r}", field="rendezvous.environment.epoch_utc")
+        epoch_seconds(self.epoch_utc, "rendezvous.environment.epoch_utc")
 
     @property
     def epoch_unix_s(self) -> float:
