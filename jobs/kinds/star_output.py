@@ -1,6 +1,6 @@
 """Whether a star run keeps its per-star detail (``star_detections``), and how readers learn it (issue 24, point 5).
 
-The spec's ``[output]`` table (:class:`OutputConfig` below): ``detections = "auto" | "on" | "off"``,
+The spec's ``[output]`` table (``jobs/kinds/star.py`` ``OutputConfig``): ``detections = "auto" | "on" | "off"``,
 ``detections_max_cases = 100000``; the command line's ``dualsight star run --detections`` overrides the first.
 "auto" is resolved against the run's case count when the spec is resolved (:func:`with_case_count`); a run that
 drops the detections stores ``output = {detections = "off"}`` in its canonical spec (so in its spec hash and its
@@ -10,40 +10,6 @@ detections from its row (``jobs/replay/cases.py``), kept or not.
 """
 
 from __future__ import annotations
-
-import dataclasses
-import typing
-
-import pydantic
-
-from dualsight.config import check_fields
-from dualsight.errors import ConfigError
-
-
-@dataclasses.dataclass(frozen=True)
-class OutputConfig:
-    """What a star run stores beside its one row per case (``[output]`` of a star spec; issue 24, point 5).
-
-    detections : the per-star detail (dataset ``star_detections``, one row per detection, ~420 B per case of the
-        paper preset against ~94 B in ``star_cases``): "on" always, "off" never, "auto" (default) only when the
-        run has at most ``detections_max_cases`` cases.  Every report number but the blob breakdown comes from
-        ``star_cases``; a replay recomputes a case's detections from its row whether they were kept or not.
-    detections_max_cases : the largest run "auto" keeps the detections of, an integer in [0, 1e9] (default 100,000:
-        ~42 MB of detections for the paper preset).
-
-    What a run keeps is part of its identity (``jobs/kinds/star.py`` stores the resolved choice in the canonical
-    spec when the detections are dropped), so a resume never mixes shards with and without them.
-    """
-
-    detections: typing.Literal["auto", "on", "off"] = "auto"
-    detections_max_cases: typing.Annotated[int, pydantic.Field(ge=0, le=10**9)] = 100_000
-
-    def __post_init__(self):
-        check_fields(self, lambda name, msg: ConfigError(msg, field=f"output.{name}"))
-
-    def keeps_detections(self, n_cases: int) -> bool:
-        """True when a run of ``n_cases`` cases stores ``star_detections`` under these settings."""
-        return self.detections == "on" or (self.detections == "auto" and n_cases <= self.detections_max_cases)
 
 DATASET = "star_detections"
 
