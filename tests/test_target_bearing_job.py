@@ -9,7 +9,7 @@ import pytest
 
 from dualsight.errors import ConfigError
 from dualsight.jobs.engine.specs import preset_and_config
-from dualsight.jobs.kinds import star
+from dualsight.jobs.kinds import star, star_target
 
 CHI2_2DOF_9973 = 11.829    # -2 ln(0.0027), written here
 
@@ -69,7 +69,7 @@ def test_phase_correction_brings_the_bearing_to_the_body_origin(cases):
 
 def test_without_phase_correction_the_corrected_columns_are_null():
     t = run(20, False)
-    for c in star.PHASE_CORRECTED_COLUMNS:
+    for c in star_target.PHASE_CORRECTED_COLUMNS:
         assert t.column(c).null_count == 20
 
 

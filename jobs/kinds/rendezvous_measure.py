@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from dualsight.scene.target_config import TargetConfig
-from dualsight.jobs.kinds import star
+from dualsight.jobs.kinds import star, star_target
 from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.kernels.sensor_config import flux_from_magnitude
 from dualsight.nav.attitude import solve_identified
@@ -114,7 +114,7 @@ def measure_star(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
         P_att = np.where(att_ok[:, None, None], cov_unit, 0.0) * s2[:, None, None]
         # every detection of a frame with an attitude is a candidate until the catalog and its motion say
         # otherwise (nav/target_finding.py); the truth only scores the pick afterwards (target_detection)
-        kt = star.target_detection(det, _take_tf(tf, fr))
+        kt = star_target.target_detection(det, _take_tf(tf, fr))
         case = np.asarray(det.case, np.int64)
         kk = np.flatnonzero(att_ok[case])
         cl = case[kk]
@@ -202,7 +202,7 @@ def measure_prox(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
         m["pixels"][fr] = np.where(found, np.nan_to_num(b.n_pixels), -1).astype(np.int64)
         xy = np.where(found[:, None], b.cob_px, 0.5 * np.array([cam.width, cam.height]))
         m["target_xy"][fr] = np.where(found[:, None], xy, np.nan)
-        sig_px = np.full(len(fr), star.CENTROID_FLOOR_PX)
+        sig_px = np.full(len(fr), star_target.CENTROID_FLOOR_PX)
         u, C = inertial_bearing(A_est[fr], np.broadcast_to(sa ** 2 * np.eye(3), (len(fr), 3, 3)), xy, sig_px, cam)
         m["u"][fr] = np.where(found[:, None], u, np.nan)        # the candidates (the one blob), picked by the gate
         m["C"][fr] = np.where(found[:, None, None], C, 0.0)
