@@ -170,7 +170,6 @@ def run_blobber(images, camera, table, config: BlobberConfig = BlobberConfig(), 
     cfg = config
     lab = label_blobs(images, cfg.threshold, coverage if cfg.estimator == "subpixel" else None, cfg.connectivity)
     S = lab["best"] if cfg.target == "largest" else lab["all"]
-    B = S.shape[0]
     n_pix = S[:, 0]
     found = n_pix >= cfg.min_pixels
     with np.errstate(divide="ignore", invalid="ignore"):

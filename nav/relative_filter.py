@@ -168,7 +168,6 @@ def bearing_update(x, P, u_meas, cov_meas, R_hill, iterations: int = 1, bias=Non
     u_meas = np.asarray(u_meas, np.float64)
     R = np.broadcast_to(np.asarray(R_hill, np.float64), (x.shape[0], 3, 3))
     E = tangent_basis(u_meas)
-    ER = E @ R
     G = None if bias is None or np.size(bias) == 0 else np.asarray(bias, np.float64).reshape(x.shape[0], 3, -1)
     nb = 0 if G is None else G.shape[-1]
 

@@ -77,8 +77,8 @@ def write_camera_toml(result_or_camera, path: str | Path, extra: dict | None = N
     head = []
     if comment:
         head += [f"# {line}".rstrip() for line in str(comment).splitlines()]
-    head += [f"# dualsight camera file. Pixel coordinates from the image's top-left corner "
-             f"(cx = cx_opencv + 0.5).",
+    head += ["# dualsight camera file. Pixel coordinates from the image's top-left corner "
+             "(cx = cx_opencv + 0.5).",
              f"# focal length {camera.focal_length_m * 1e3:.4f} mm"
              + ("" if result is None or result.pixel_pitch_known else " (placeholder pitch: not meaningful)")
              + f"; field of view {fh:.3f} x {fv:.3f} deg, diagonal {fd:.3f} deg"]
