@@ -9,9 +9,10 @@ OpenCV; the PSF fits and the tiles' last clipping window in Taichi with ``fit_en
 stars (each leaves the batched fit when it converges).
 
 One module per stage: step 1 is :mod:`dualsight.kernels.detect_background` (tile statistics), steps 2-3
-:mod:`dualsight.kernels.detect_candidates` (matched filter, candidates), the PSF and its fit (steps 4-5)
-:mod:`dualsight.kernels.detect_psf`; this module holds the settings, the hot-pixel and saturation handling
-(steps 4-6) around the fit, and assembles the detections (step 7).  Per frame:
+:mod:`dualsight.kernels.detect_candidates` (matched filter, candidates), the PSF and its fit (step 5)
+:mod:`dualsight.kernels.detect_psf`, the candidates' brightest pixel and hot-pixel test (step 4)
+:mod:`dualsight.kernels.detect_hot_pixels`; this module holds the settings, the saturation handling (step 6)
+around the fit, and assembles the detections (step 7).  Per frame:
 
 1. **Local background and noise.**  The frame is cut into ``tile_px`` squares (mirrored at the far edges
    to whole tiles).  ``clip_iters`` times, the kept pixels are those within ``clip_sigma`` standard
@@ -157,12 +158,13 @@ from dualsight.config import check_fields
 from dualsight.kernels.detect import Detections, as_frames
 from dualsight.kernels.detect_background import interpolate_tiles, tile_background
 from dualsight.kernels.detect_candidates import clamped, find_candidates, matched_filter
-from dualsight.kernels.detect_psf import cut_stamps, fit_psf, flux_fraction_3x3, psf_kernel_1d, sharpness_limit
+from dualsight.kernels.detect_psf import cut_stamps, fit_psf, flux_fraction_3x3, psf_kernel_1d
+from dualsight.kernels.detect_hot_pixels import screen_candidates, screen_candidates_compiled
 from dualsight.kernels.detect_passes import pixel_dtype_supported
 from dualsight.kernels.detect_psf_fit import MAX_STAMP, fit_frame_compiled, fit_psf_compiled
 from dualsight.kernels.sensor_config import MAX_ADU
 
-__all__ = ["LocalDetectConfig", "LocalDetections", "MIN_MEASURED_SIGMA_PX", "detect_real",
+__all__ = ["BinnedView", "LocalDetectConfig", "LocalDetections", "MIN_MEASURED_SIGMA_PX", "detect_real",
            "subtract_local_background"]
 
 log = logging.getLogger(__name__)
@@ -288,7 +290,7 @@ class _Frame:
     hot: int
 
 
-class _Binned:
+class BinnedView:
     """A 2 x 2-binned image seen at full-resolution pixel indices: ``view[r, c]`` is ``image[r // 2, c // 2]``
     (clipped to the binned image: the odd last row or column of the frame falls in the last bin)."""
 
@@ -331,49 +333,48 @@ def _measure(img, R, inv, Z, sig_f, s, cfg, sat, fit_sigma=False, cands=None, sp
         K = pr.size
         if K == 0:
             return dict(s=np.full(0, s), ok=np.zeros(0, bool), saturated=np.zeros(0, bool), snr=e)
-    # brightest R pixel of the candidate's 3 x 3 neighbourhood (within the frame)
-    off = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
-    rr, cc = pr[:, None] + off[:, 0], pc[:, None] + off[:, 1]
-    inside = (rr >= 0) & (rr < H) & (cc >= 0) & (cc < W)
-    vals = np.where(inside, R[np.clip(rr, 0, H - 1), np.clip(cc, 0, W - 1)], -np.inf)
-    best = vals.argmax(1)
-    r0, c0 = pr + off[best, 0], pc + off[best, 1]
-    at = lambda dr, dc: R[np.clip(r0 + dr, 0, H - 1), np.clip(c0 + dc, 0, W - 1)].astype(np.float64)
-    peak = at(0, 0)
-    # mean of the in-frame 4-neighbours (at an edge the clipped index would be the spike itself)
-    n4 = ((r0 > 0).astype(np.float64) + (r0 < H - 1) + (c0 > 0) + (c0 < W - 1))
-    m4 = (at(-1, 0) * (r0 > 0) + at(1, 0) * (r0 < H - 1) + at(0, -1) * (c0 > 0) + at(0, 1) * (c0 < W - 1)) / n4
-    noise = np.maximum(1.0 / inv[r0, c0].astype(np.float64), cfg.noise_floor_adu)
-    is_sat = img[r0, c0] >= sat if sat is not None else np.zeros(K, bool)     # saturation: at pixels, no map
-    hot_px = np.zeros(K, bool)
-    keep = np.ones(K, bool)
-    n_hot = 0
-    if cfg.hot_pixel_k > 0:
-        rmax = (1.0 + cfg.sharpness_tolerance) * sharpness_limit(s)
-        stat = peak - rmax * m4
-        hot_px = (stat > cfg.hot_pixel_k * noise * math.sqrt(1.0 + rmax * rmax / 4.0)) & ~is_sat
-        k0 = psf_kernel_1d(s)
-        k00 = float(k0[len(k0) // 2] ** 2) if spike_tap is None else spike_tap
-        z_wo = Z[r0, c0] - (peak - m4) * k00 / sig_f[r0, c0]          # Z at the spike without its excess
-        keep = ~hot_px | (z_wo > cfg.k_sigma)
-        n_hot = int((hot_px & ~keep).sum())
+    # the brightest pixel of each candidate's 3 x 3 neighbourhood, its noise and saturation, the hot-pixel test
+    # (step 4: kernels.detect_hot_pixels)
+    if cfg.engine == "taichi" and pixel_dtype_supported(img.dtype):
+        b = 2 if isinstance(Z, BinnedView) else 1
+        Zi, nf = (Z.image, sig_f.image) if b == 2 else (Z, sig_f)
+        r0, c0, noise, is_sat, hot_px, keep = screen_candidates_compiled(
+            R, inv, img, pr, pc, Zi, nf.inv, nf.row, nf.col, nf.ratio, b, sat, s, cfg, spike_tap)
+    else:
+        r0, c0, noise, is_sat, hot_px, keep = screen_candidates(R, inv, img, pr, pc, Z, sig_f, sat, s, cfg,
+                                                                spike_tap)
+    n_hot = int((hot_px & ~keep).sum())
     if fit_sigma:    # the width only from candidates without a spike: clusters of hot pixels (or a cosmic
         # ray's track) keep Z above the threshold without their brightest pixel and fit a width of ~0.2 px
         keep = keep & (np.cumsum(keep) <= 25)
     pr, pc, r0, c0, npix, noise, hot_px, is_sat = (a[keep] for a in (pr, pc, r0, c0, npix, noise, hot_px, is_sat))
     K = pr.size
     h = max(2, int(math.ceil(2.5 * s)))
+    # saturated candidates (a saturated pixel in the stamp): the stamp grows by the plateau radius (below)
+    sat_any = np.zeros(K, bool)
+    if sat is not None and K:
+        st_s, inside, _, _ = cut_stamps(img, None, r0, c0, h)
+        sat_any = ((st_s >= sat) & (inside > 0)).reshape(K, -1).any(1)
+    if K and not sat_any.any() and cfg.engine == "taichi" and 2 * h + 1 <= MAX_STAMP \
+            and pixel_dtype_supported(img.dtype):
+        # one compiled fit for all the candidates: the general path below without its bookkeeping (same values)
+        f = fit_frame_compiled(R, img, r0, c0, hot_px, h, sat, s, noise, cfg.gain_e_per_adu, fit_sigma=fit_sigma)
+        x, y, A, ok = f["x"], f["y"], f["A"], f["ok"]
+        fb = ~ok
+        if fb.any():     # fallback: the 3 x 3 centroid
+            x, y = np.where(fb, f["x0"], x), np.where(fb, f["y0"], y)
+            A = np.where(fb, np.maximum(f["tot"], 0) / flux_fraction_3x3(s), A)
+        zpk = Z[pr, pc].astype(np.float64)
+        sigma_px = np.where(ok, np.sqrt(np.maximum(0.5 * (f["cxx"] + f["cyy"]), 0)),
+                            math.sqrt(2.0) * s / np.maximum(zpk, 1e-6))
+        return dict(x=x, y=y, flux=A, npix=npix, sigma_px=sigma_px, saturated=sat_any, s=f["s"], large=n_large,
+                    hot=n_hot, snr=zpk, ok=ok)
     x = np.zeros(K)
     y = np.zeros(K)
     A = np.zeros(K)
     cov = np.full((K, 4, 4), np.nan)
     ok = np.zeros(K, bool)
     sfit = np.full(K, s)
-    # saturated candidates: stamp grown by the plateau radius
-    sat_any = np.zeros(K, bool)
-    if sat is not None and K:
-        st_s, inside, _, _ = cut_stamps(img, None, r0, c0, h)
-        sat_any = ((st_s >= sat) & (inside > 0)).reshape(K, -1).any(1)
     if sat_any.any():
         win, win_in, _, _ = cut_stamps(img, None, r0[sat_any], c0[sat_any], 3 * h)   # (6h + 1)^2 around each
         nsat = ((win >= sat) & (win_in > 0)).sum((1, 2))                                 # saturated star
@@ -474,7 +475,7 @@ def _measure_width(img, R, inv, inv_tiles, s, cfg, sat, tail):
     Zb, _, sfb = matched_filter(Rb, ib, 0.5 * s, tail)
     prb, pcb, npix, n_large = find_candidates(Zb, cfg)
     kb = psf_kernel_1d(0.5 * s)
-    return _measure(img, R, inv, _Binned(Zb, Zb.shape), _Binned(sfb, Zb.shape), s, cfg, sat, fit_sigma=True,
+    return _measure(img, R, inv, BinnedView(Zb, Zb.shape), BinnedView(sfb, Zb.shape), s, cfg, sat, fit_sigma=True,
                     cands=(2 * prb, 2 * pcb, npix, n_large), spike_tap=float(kb[len(kb) // 2] ** 2) / 4.0)
 
 
