@@ -39,9 +39,10 @@ around the fit, and assembles the detections (step 7).  Per frame:
    constant beyond the outer centres): the pixel noise is the harmonic interpolation of the tiles'.
 2. **Matched filter.**  The background-subtracted frame R is correlated with the pixel-integrated
    Gaussian PSF of standard deviation ``psf_sigma_px`` (separable kernel k_i = Phi((i + 1/2)/s) -
-   Phi((i - 1/2)/s), |i| <= ceil(3 s), normalised; R = 0 outside the frame).  The filtered image's own
+   Phi((i - 1/2)/s), |i| <= h, normalised, h the fewest taps that keep 0.999 of the untruncated filter's SNR:
+   ``detect_psf.FILTER_SNR_EFFICIENCY``; R = 0 outside the frame).  The filtered image's own
    noise is measured: the clipped mean and standard deviation of a strided sample of F / sigma (every 8th row and column
-   from 4 ceil(h / 4) px off the edges, h = ceil(3 s): ~12,000 pixels of a 1024 x 768 frame; median, MAD and the first
+   from 4 ceil(h / 4) px off the edges, h the kernel's half-width: ~12,000 pixels of a 1024 x 768 frame; median, MAD and the first
    two windows on every 4th sample value, the last window on all): the mean is subtracted and the standard deviation
    (the ratio sigma_F / sigma: sum_i k_i^2 for white noise, more for a noise correlated between pixels) scales the
    local noise map, so Z is in units of the filtered noise's own sigma even where

@@ -42,14 +42,29 @@ def _phi(z):
 
 
 # ============================================================================ PSF helpers
+FILTER_SNR_EFFICIENCY = 0.999
+"""The matched filter's kernel (:func:`psf_kernel_1d`) ends where it keeps this fraction of the untruncated filter's
+SNR.  For a separable kernel k_ij = p_i p_j cut to |i|, |j| <= h (p: a pixel-centred star's pixel fractions) the
+filtered star over the filtered white noise is F (sum_{|i|<=h} p_i^2) / sigma, so the fraction is
+sum_{|i|<=h} p_i^2 / sum_i p_i^2: 0.1 % of SNR moves a Z = 5 star by 0.005, a sixth of the noise ratio's own
+measurement error (``detect_candidates.NOISE_SAMPLE_STRIDE``).  Cut at |i| <= ceil(3 s) until 2026-11-28: at
+s = 0.9 px 7 taps instead of 5 (SNR 0.99995 of the full filter's), which OpenCV's ``sepFilter2D`` runs at 0.59 ms
+per 1024 x 1024 float32 frame instead of 0.35 (one core)."""
+
+
 @functools.lru_cache(maxsize=256)
 def psf_kernel_1d(sigma: float) -> np.ndarray:
     """Normalised 1-D pixel-integrated Gaussian of ``sigma`` px, k_i = Phi((i + 1/2) / sigma) - Phi((i - 1/2) /
-    sigma), |i| <= h = max(1, ceil(3 sigma)): (2h + 1,) float64 summing to 1 (the matched filter's kernel), read-only
-    (computed once per width: a frame asks for it up to five times)."""
-    h = max(1, int(math.ceil(3.0 * sigma)))
-    i = np.arange(-h, h + 1, dtype=np.float64)
-    k = _Phi((i + 0.5) / sigma) - _Phi((i - 0.5) / sigma)
+    sigma), |i| <= h, h >= 1 the smallest half-width that keeps :data:`FILTER_SNR_EFFICIENCY` of the untruncated
+    matched filter's SNR (h = 2 at 0.7-1.1 px, 3 at 1.2-1.5 px): (2h + 1,) float64 summing to 1 (the matched
+    filter's kernel), read-only (computed once per width: a frame asks for it up to five times)."""
+    n = max(2, int(math.ceil(8.0 * sigma)) + 1)
+    i = np.arange(-n, n + 1, dtype=np.float64)
+    p = _Phi((i + 0.5) / sigma) - _Phi((i - 0.5) / sigma)
+    q = p * p
+    kept = q[n] + 2.0 * np.cumsum(q[n + 1:])          # sum of p_i^2 over |i| <= h, h = 1 .. n
+    h = 1 + int(np.argmax(kept >= FILTER_SNR_EFFICIENCY * q.sum()))
+    k = p[n - h:n + h + 1]
     k = k / k.sum()
     k.flags.writeable = False
     return k
