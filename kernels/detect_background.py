@@ -312,7 +312,9 @@ def tile_background(img: np.ndarray, tile: int = 32, clip: float = 3.0, iters: i
         rows = np.ascontiguousarray(a[::2, ::2].reshape(ny, h, nx, h).transpose(0, 2, 1, 3)).reshape(T, h * h)
     else:
         rows = np.ascontiguousarray(a.reshape(ny, tile, nx, tile).transpose(0, 2, 1, 3)).reshape(T, tile * tile)
-    rows = np.sort(rows, axis=1, kind=kind)
+    if np.may_share_memory(rows, img):     # a one-tile-wide frame's rows can be a view of the caller's frame
+        rows = rows.copy()
+    rows.sort(axis=1, kind=kind)           # in place: a copy of the frame's pixels already
     if engine == "taichi" and pixel_dtype_supported(a.dtype):    # compiled, float64 sums
         level, sig, kept = sorted_clipped_stats(rows, clip, iters, 1.0 / math.sqrt(_clip_var_factor(clip)))
     else:                                                         # numpy, float32 sums

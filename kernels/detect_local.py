@@ -42,8 +42,8 @@ around the fit, and assembles the detections (step 7).  Per frame:
    Phi((i - 1/2)/s), |i| <= h, normalised, h the fewest taps that keep 0.999 of the untruncated filter's SNR:
    ``detect_psf.FILTER_SNR_EFFICIENCY``; R = 0 outside the frame).  The filtered image's own
    noise is measured: the clipped mean and standard deviation of a strided sample of F / sigma (every 8th row and column
-   from 4 ceil(h / 4) px off the edges, h the kernel's half-width: ~12,000 pixels of a 1024 x 768 frame; median, MAD and the first
-   two windows on every 4th sample value, the last window on all): the mean is subtracted and the standard deviation
+   from 4 ceil(h / 4) px off the edges, h the kernel's half-width: ~12,000 pixels of a 1024 x 768 frame; median,
+   MAD and the first two windows on every 4th sample value, the last window on all): the mean is subtracted and the standard deviation
    (the ratio sigma_F / sigma: sum_i k_i^2 for white noise, more for a noise correlated between pixels) scales the
    local noise map, so Z is in units of the filtered noise's own sigma even where
    the tiles' sigma is off (quantised, clamped); a frame clamped at its black level (over a quarter of its
@@ -559,7 +559,7 @@ def detect_real(images: np.ndarray, cfg: LocalDetectConfig = LocalDetectConfig()
     for b in np.flatnonzero(large):
         log.warning("frame %d: %d extended objects not centroided (foreground regions over max_blob_pixels=%d px"
                     " or saturated plateaus wider than a star's)", b, large[b], cfg.max_blob_pixels)
-    cat = lambda name, dt: (np.concatenate([getattr(f, name)[o] for f, o in zip(frames, parts)]).astype(dt)
+    cat = lambda name, dt: (np.concatenate([getattr(f, name)[o] for f, o in zip(frames, parts)]).astype(dt, copy=False)
                             if frames else np.zeros(0, dt))
     counts = np.array([o.size for o in parts], np.int64) if frames else np.zeros(B, np.int64)
     offsets = np.zeros(B + 1, np.int64)

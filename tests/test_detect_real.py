@@ -87,6 +87,18 @@ def test_tile_background_is_unbiased_on_integer_adu_and_finds_the_noise():
     assert float(np.median(sig)) == pytest.approx(math.sqrt(2.5 ** 2 + 1 / 12), rel=0.02)
 
 
+@pytest.mark.parametrize("shape, tile", [((66, 33), 33), ((33, 33), 33), ((64, 32), 32), ((96, 100), 32)])
+@pytest.mark.parametrize("engine", ["numpy", "taichi"])
+def test_tile_statistics_leave_the_frame_unchanged(shape, tile, engine):
+    """The tiles' samples are sorted in place: never in the caller's frame (a one-tile-wide frame of odd tiles gives
+    sample rows that are a view of it)."""
+    img = np.random.default_rng(4).integers(0, 4000, shape).astype(np.uint16)
+    before = img.copy()
+    level, sig = tile_background(img, tile, engine=engine)
+    assert np.array_equal(img, before)
+    assert np.all(np.abs(level - 2000) < 400) and np.all(sig > 500)
+
+
 def test_interpolation_puts_each_tile_value_at_its_centre():
     """A tile grid sampling a plane at the tile centres ((j + 1/2) T, (i + 1/2) T) interpolates to that plane at
     every pixel centre between the outer centres (bilinear interpolation is exact on a plane), and is constant
