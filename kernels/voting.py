@@ -108,19 +108,27 @@ def _search(angle: ti.template(), starts: ti.template(), inv_w, key, right):
 @ti.func
 def _keep_best(ids: ti.template(), cs: ti.template(), s, v, k: ti.template()):
     """Offer catalog row ``s`` with ``v`` votes to the best-``k`` list (ids, cs), sorted by votes descending,
-    ties to the lower row; one bubble pass upwards.  Rows offered in ascending order (the whole-row scan)
-    never displace an equal count, so both vote walks keep exactly the numpy stage's candidates."""
+    ties to the lower row; one bubble pass upwards (the walk over the touched counts, in any row order; the
+    whole-row scan offers rows in ascending order, where an equal count never displaces, and inserts only counts
+    above the last kept one: the same lists, without a branch per row)."""
     if v > cs[k - 1] or (v == cs[k - 1] and v > 0 and s < ids[k - 1]):
-        ids[k - 1] = s
-        cs[k - 1] = v
-        for j in ti.static(range(k - 1, 0, -1)):
-            if cs[j] > cs[j - 1] or (cs[j] == cs[j - 1] and ids[j] < ids[j - 1]):
-                i_j = ids[j]
-                c_j = cs[j]
-                ids[j] = ids[j - 1]
-                cs[j] = cs[j - 1]
-                ids[j - 1] = i_j
-                cs[j - 1] = c_j
+        _insert(ids, cs, s, v, k)
+
+
+@ti.func
+def _insert(ids: ti.template(), cs: ti.template(), s, v, k: ti.template()):
+    """Put catalog row ``s`` with ``v`` votes in the best-``k`` list's last place and bubble it up (more votes first,
+    ties to the lower row)."""
+    ids[k - 1] = s
+    cs[k - 1] = v
+    for j in ti.static(range(k - 1, 0, -1)):
+        if cs[j] > cs[j - 1] or (cs[j] == cs[j - 1] and ids[j] < ids[j - 1]):
+            i_j = ids[j]
+            c_j = cs[j]
+            ids[j] = ids[j - 1]
+            cs[j] = cs[j - 1]
+            ids[j - 1] = i_j
+            cs[j - 1] = c_j
 
 
 # ============================================================================ kernels (built lazily)
@@ -178,9 +186,9 @@ def _build_vote(k: int, once: bool, serial_pairs: bool = False, serial_slots: bo
                     # the lower row already kept), clear it
                     for s in range(N):
                         v = table[sl, s]
-                        if v != 0:
-                            table[sl, s] = 0
-                            _keep_best(ids, cs, s, v, k)
+                        table[sl, s] = 0
+                        if v > cs[k - 1]:        # ascending rows: a tie never displaces, only more votes do
+                            _insert(ids, cs, s, v, k)
                 else:
                     # few entries: read each touched count once (then clear it), keep the k best
                     for y in range(K):

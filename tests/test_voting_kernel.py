@@ -184,7 +184,9 @@ PLANTED = {   # name: (text of kernels/voting.py or voting_select.py, its replac
     "verify_one_sided": ("for y in range(K):\n                    c += ti.cast(cons[b, x, y]",
                          "for y in range(x):\n                    c += ti.cast(cons[b, x, y]"),
     "clique_tie_to_lower_index": ("if d < bd or (d == bd and sc <= bs):", "if d < bd or (d == bd and sc < bs):"),
-    "row_scan_ties_to_higher_row": (          # the best-k list (both vote walks) keeps the higher row on a tie
+    "row_scan_ties_to_higher_row": (          # the whole-row scan lets a tie displace the lower row kept
+        "if v > cs[k - 1]:        # ascending rows", "if v >= cs[k - 1] and v > 0:        # ascending rows"),
+    "row_walk_ties_to_higher_row": (          # the walk over the touched counts keeps the higher row on a tie
         "(v == cs[k - 1] and v > 0 and s < ids[k - 1])", "(v == cs[k - 1] and v > 0 and s > ids[k - 1])"),
 }
 PLANTED_ON = {"row_scan_ties_to_higher_row": "v70"}   # the whole-row scan runs for V 7 (the others: V 5.5)
