@@ -119,7 +119,12 @@ the frame with a bright sky, which has fewer than 3 stars above SNR 30, is measu
 instead of keeping the initial 1.0; from the binned first pass, 2026-11-27: within 0.015 px of those.)
 
 Centroids use the continuous pixel convention (pixel (r, c) has its centre at (c + 0.5, r + 0.5)).
-Cost (one core, ``benchmarks/bench_detect_speed.py --against ff0fe3d --rounds 3``, CPU time, load 1.0-1.1),
+Cost (one core, ``benchmarks/bench_detect_speed.py --against 28d26a5 --rounds 3 --rendered 20``, CPU time, load
+0.2-0.5), 2026-11-28 after the five-tap filter (``detect_psf.FILTER_SNR_EFFICIENCY``), the compiled candidate screening
+(:mod:`dualsight.kernels.detect_hot_pixels`) and the tiles' windows found by walks: 4.2-4.5 ms per rendered 1024 x 1024
+frame (background ~1.05, filter ~1.4 for both passes, candidates ~0.45, hot pixels and fits ~0.6, other ~0.75) against
+4.8-5.0 ms (median ratio 0.90), 3.8-4.2 ms per ESA frame against 4.4-4.9 (0.91).  Before that (one core,
+``--against ff0fe3d --rounds 3``, CPU time, load 1.0-1.1),
 2026-11-28, the tiles' windows on their quarter samples and the noise sample every 8th row and column: 5.1-5.7 ms
 per rendered 1024 x 1024 frame (background ~1.2, filter ~1.8 for both passes, candidates ~0.5, fits ~0.9, other ~0.85)
 against 6.4-6.7 ms (median ratio 0.80), 4.5-5.6 ms per ESA frame against 5.9-6.2 (0.91); the PSF-width pass is
