@@ -43,10 +43,10 @@ around the fit, and assembles the detections (step 7).  Per frame:
    ``detect_psf.FILTER_SNR_EFFICIENCY``; R = 0 outside the frame).  The filtered image's own
    noise is measured: the clipped mean and standard deviation of a strided sample of F / sigma (every 8th row and column
    from 4 ceil(h / 4) px off the edges, h the kernel's half-width: ~12,000 pixels of a 1024 x 768 frame; median,
-   MAD and the first two windows on every 4th sample value, the last window on all): the mean is subtracted and the standard deviation
-   (the ratio sigma_F / sigma: sum_i k_i^2 for white noise, more for a noise correlated between pixels) scales the
-   local noise map, so Z is in units of the filtered noise's own sigma even where
-   the tiles' sigma is off (quantised, clamped); a frame clamped at its black level (over a quarter of its
+   MAD and the first two windows on every 4th sample value, the last window on all): the mean is subtracted and the
+   standard deviation (the ratio sigma_F / sigma: sum_i k_i^2 for white noise, more for a noise correlated between
+   pixels) scales the local noise map, so Z is in units of the filtered noise's own sigma even where the tiles' sigma
+   is off (quantised, clamped); a frame clamped at its black level (over a quarter of its
    pixels at its minimum) also has the sample's upper tail checked (``detect_candidates.TAIL_P``: its noise is
    skewed to the right).  Near the edges the kernel's missing taps
    are accounted for exactly (Z's noise is evaluated at pixels on demand, not stored as a map).  Pixels of
@@ -164,8 +164,8 @@ from dualsight.config import check_fields
 from dualsight.kernels.detect import Detections, as_frames
 from dualsight.kernels.detect_background import interpolate_tiles, tile_background
 from dualsight.kernels.detect_candidates import clamped, find_candidates, matched_filter
-from dualsight.kernels.detect_psf import cut_stamps, fit_psf, flux_fraction_3x3, psf_kernel_1d
 from dualsight.kernels.detect_hot_pixels import screen_candidates, screen_candidates_compiled
+from dualsight.kernels.detect_psf import cut_stamps, fit_psf, flux_fraction_3x3, psf_kernel_1d
 from dualsight.kernels.detect_passes import pixel_dtype_supported
 from dualsight.kernels.detect_psf_fit import MAX_STAMP, fit_frame_compiled, fit_psf_compiled
 from dualsight.kernels.sensor_config import MAX_ADU
