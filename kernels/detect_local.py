@@ -531,7 +531,9 @@ def detect_real(images: np.ndarray, cfg: LocalDetectConfig = LocalDetectConfig()
 
     Parameters
     ----------
-    images : (B, H, W) uint8, uint16, float32 or float64 frames (ADU), not background-subtracted.
+    images : (B, H, W) uint8, uint16, float32 or float64 frames (ADU), not background-subtracted, finite (NaN or
+        infinite pixels give meaningless detections, differently per engine: ``hil star`` replaces them first,
+        ``jobs.kinds.hil_star.fill_nonfinite``).
     cfg : :class:`LocalDetectConfig`.
     saturation_adu : saturation level when ``cfg.saturation_adu`` is None (e.g. the camera's 2^bits - 1);
         None = the largest value of an integer dtype, no saturation for float frames.
