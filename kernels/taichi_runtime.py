@@ -19,6 +19,7 @@ import contextlib
 import io
 import os
 import threading
+from ctypes import addressof as _addressof, c_char as _c_char
 from pathlib import Path
 
 import numpy as np
@@ -176,7 +177,11 @@ def _signature(args) -> tuple | None:
 
 
 def _set_array(ctx, idx, a):
-    ctx.set_arg_external_array_with_shape(idx, a.ctypes.data, a.nbytes, a.shape, 0)
+    try:         # the data address through the buffer protocol: ~0.3 us against ~1 us for ``a.ctypes.data``
+        ptr = _addressof(_c_char.from_buffer(a))       # (~85 arrays per frame)
+    except (TypeError, ValueError):                    # read-only or empty arrays
+        ptr = a.ctypes.data
+    ctx.set_arg_external_array_with_shape(idx, ptr, a.nbytes, a.shape, 0)
 
 
 def _set_float(ctx, idx, v):

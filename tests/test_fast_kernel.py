@@ -89,3 +89,21 @@ def test_launcher_switch(monkeypatch):
     out = np.empty((4, 4))
     k(a, m, s, n, bits, out)
     np.testing.assert_array_equal(out, _expected(a, m, s, n, bits))
+
+
+def test_read_only_and_empty_arrays_pass_through_the_short_launcher():
+    """An array the buffer protocol will not export writable (read-only: a cached catalog array) and an empty one
+    take the other address route; the kernel still reads the right values (and an empty output stays empty)."""
+    k = _cache().get("affine")
+    rng = np.random.default_rng(5)
+    a, m, s, n, bits = _args(rng, 6, 3)
+    k(a, m, s, n, bits, np.empty((6, 3)))                       # plan the signature
+    for frozen in ("a", "m", "bits"):
+        args = dict(a=a.copy(), m=m.copy(), bits=bits.copy())
+        args[frozen].flags.writeable = False
+        out = np.full((6, 3), np.nan)
+        k(args["a"], args["m"], s, n, args["bits"], out)
+        np.testing.assert_array_equal(out, _expected(a, m, s, n, bits), err_msg=frozen)
+    empty = np.empty((0, 3))
+    k(a[:0], m[:0], s, n, bits[:0], empty)
+    assert empty.shape == (0, 3)
