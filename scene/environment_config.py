@@ -19,6 +19,7 @@ EPOCH_MIN, EPOCH_MAX = "1950-01-01T00:00:00", "2050-01-01T00:00:00"
 ENV_UNITS = {"altitude_km": "km", "inclination_deg": "deg", "earth_keepout_deg": "deg", "moon_keepout_deg": "deg",
               "sun_keepout_deg": "deg"}
 _EnvTime = typing.Annotated[str, pydantic.Field(min_length=10, max_length=40)]
+_Keepout = typing.Annotated[float, pydantic.Field(ge=0.0, le=90.0)]      # a keep-out half-angle, deg
 
 
 def utc_seconds(text: str) -> float | None:
@@ -62,8 +63,8 @@ class EnvironmentConfig:
         ("2025-01-01T00:00:00", "2026-01-01T00:00:00")
     altitude_km: typing.Annotated[float, pydantic.Field(ge=150.0, le=40000.0)] = 500.0
     inclination_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=180.0)] = 97.4
-    earth_keepout_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=90.0)] = 20.0
-    moon_keepout_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=90.0)] = 10.0
+    earth_keepout_deg: _Keepout = 20.0
+    moon_keepout_deg: _Keepout = 10.0
     __pydantic_config__ = pydantic.ConfigDict(extra="forbid")      # a nested table: unknown keys refused too
 
     def __post_init__(self):
@@ -93,9 +94,9 @@ class ApproachEnvironmentConfig:
     """
 
     epoch_utc: _EnvTime = "2025-03-20T12:00:00"
-    sun_keepout_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=90.0)] = 30.0
-    earth_keepout_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=90.0)] = 20.0
-    moon_keepout_deg: typing.Annotated[float, pydantic.Field(ge=0.0, le=90.0)] = 10.0
+    sun_keepout_deg: _Keepout = 30.0
+    earth_keepout_deg: _Keepout = 20.0
+    moon_keepout_deg: _Keepout = 10.0
     __pydantic_config__ = pydantic.ConfigDict(extra="forbid")      # a nested table: unknown keys refused too
 
     def __post_init__(self):
