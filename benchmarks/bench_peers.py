@@ -133,7 +133,14 @@ def render_inputs(n: int, seed: int, out: Path, mag_limit: float):
     out.mkdir(parents=True, exist_ok=True)
     camera_path, truth_path = out / "camera.toml", out / "truth.json"
     paths = [out / f"frame_{i:04d}.png" for i in range(n)]
-    if all(p.exists() for p in paths) and truth_path.exists() and camera_path.exists():
+    # the camera file, with the PSF width the frames are rendered with (a camera's calibrated PSF: hil star's
+    # detector filters at it and checks it on each frame), written every time (a cache of older frames too)
+    lines = ["# bench_peers --rendered: the camera of the rendered frames", "[camera]"]
+    for k, v in RENDER_CAMERA.items():
+        lines.append(f"{k} = {json.dumps(v)}")
+    lines.append(f"psf_sigma_px = {float(cfg['sensor']['psf_sigma_px'])!r}")
+    camera_path.write_text("\n".join(lines) + "\n")
+    if all(p.exists() for p in paths) and truth_path.exists():
         return paths, camera_path, truth_path, noise
     from dualsight.jobs.kinds import star
     from dualsight.scene.attitude import unit_to_radec
@@ -167,10 +174,6 @@ def render_inputs(n: int, seed: int, out: Path, mag_limit: float):
                             for k, r in zip(keep, rows)]}
     print(f"bench_peers: rendered {n} frames into {out} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     truth_path.write_text(json.dumps(truth, indent=1))
-    lines = ["# bench_peers --rendered: the camera of the rendered frames", "[camera]"]
-    for k, v in RENDER_CAMERA.items():
-        lines.append(f"{k} = {json.dumps(v)}")
-    camera_path.write_text("\n".join(lines) + "\n")
     return paths, camera_path, truth_path, noise
 
 

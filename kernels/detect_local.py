@@ -107,7 +107,13 @@ around the fit, and assembles the detections (step 7).  Per frame:
 7. **No silent caps.**  At most ``max_blobs_per_frame`` stars per frame (the highest fitted flux) are
    returned; the others are counted in ``blobs_dropped`` and a warning is logged, as for ``large_blobs``.
 
-With ``psf_sigma_px`` None the PSF width is measured per frame: a first pass at ``psf_sigma_init_px``, on the
+With ``psf_sigma_px`` None the PSF width is measured per frame.  When the camera states its width
+(``psf_sigma_stated_px``, from the camera file's ``psf_sigma_px``: its calibration) the frame is filtered at that
+width and the width is measured on the bright stars of that one pass (the same selection and fits as below); the
+stars' fits then take the measured width, and only a frame whose measured width costs the stated width's filter
+more than 1 % of its SNR (``STATED_WIDTH_MIN_EFFICIENCY``: a defocused or smeared frame) is filtered again at it:
+one full-resolution pass instead of two (~1.7-2 ms less per 1024 x 1024 frame, a quarter of the detector).
+Otherwise a first pass at ``psf_sigma_init_px``, on the
 2 x 2-binned R (its matched filter at half the width in binned pixels: a quarter of a full pass; the stars' fits on
 full-resolution stamps), fits the width of up to 25 bright (SNR > 30; SNR > 15 when fewer than 3 reach 30),
 unsaturated, isolated stars;
@@ -165,17 +171,17 @@ from dualsight.kernels.detect import Detections, as_frames
 from dualsight.kernels.detect_background import interpolate_tiles, tile_background
 from dualsight.kernels.detect_candidates import clamped, find_candidates, matched_filter
 from dualsight.kernels.detect_hot_pixels import screen_candidates, screen_candidates_compiled
-from dualsight.kernels.detect_psf import cut_stamps, fit_psf, flux_fraction_3x3, psf_kernel_1d
+from dualsight.kernels.detect_psf import cut_stamps, filter_efficiency, fit_psf, flux_fraction_3x3, psf_kernel_1d
 from dualsight.kernels.detect_passes import pixel_dtype_supported
 from dualsight.kernels.detect_psf_fit import MAX_STAMP, fit_frame_compiled, fit_psf_compiled
 from dualsight.kernels.sensor_config import MAX_ADU
 
-__all__ = ["BinnedView", "LocalDetectConfig", "LocalDetections", "MIN_MEASURED_SIGMA_PX", "detect_real",
-           "subtract_local_background"]
+__all__ = ["BinnedView", "LocalDetectConfig", "LocalDetections", "MIN_MEASURED_SIGMA_PX",
+           "STATED_WIDTH_MIN_EFFICIENCY", "detect_real", "subtract_local_background"]
 
 log = logging.getLogger(__name__)
 
-_UNITS = {"k_sigma": "sigma", "psf_sigma_px": "px", "psf_sigma_init_px": "px", "tile_px": "px",
+_UNITS = {"k_sigma": "sigma", "psf_sigma_px": "px", "psf_sigma_init_px": "px", "psf_sigma_stated_px": "px", "tile_px": "px",
           "clip_sigma": "sigma", "hot_pixel_k": "sigma", "saturation_adu": "ADU", "gain_e_per_adu": "e-/ADU",
           "noise_floor_adu": "ADU", "max_blob_pixels": "px", "deblend_min_sep_px": "px"}
 
@@ -189,7 +195,10 @@ class LocalDetectConfig:
     k_sigma : detection threshold on the matched-filtered SNR (integrated, PSF-weighted SNR), in [1, 1000].
     psf_sigma_px : Gaussian PSF standard deviation (px) of the matched filter and the fit, in [0.2, 20];
         None = measured per frame.
-    psf_sigma_init_px : first-pass width when ``psf_sigma_px`` is None, in [0.2, 20].
+    psf_sigma_init_px : first-pass width when ``psf_sigma_px`` and ``psf_sigma_stated_px`` are None, in [0.2, 20].
+    psf_sigma_stated_px : the width the camera states (its camera file's ``psf_sigma_px``), in [0.2, 20], or None:
+        with ``psf_sigma_px`` None the frame is filtered at it and its width measured on that pass's bright stars,
+        without the first pass (module docstring); None = the first pass at ``psf_sigma_init_px``.
     tile_px : background tile side (px), an integer in [8, 4096].
     clip_sigma : sigma clipping of the tile statistics, in [1.5, 10].
     clip_iters : clipping iterations, an integer in [0, 20] (0 = median and 1.4826 MAD of the whole tile).
@@ -218,6 +227,7 @@ class LocalDetectConfig:
     k_sigma: Annotated[float, Field(ge=1.0, le=1000.0)] = 5.0
     psf_sigma_px: Annotated[float, Field(ge=0.2, le=20.0)] | None = None
     psf_sigma_init_px: Annotated[float, Field(ge=0.2, le=20.0)] = 1.0
+    psf_sigma_stated_px: Annotated[float, Field(ge=0.2, le=20.0)] | None = None
     tile_px: Annotated[int, Field(ge=8, le=4096)] = 32
     clip_sigma: Annotated[float, Field(ge=1.5, le=10.0)] = 3.0
     clip_iters: Annotated[int, Field(ge=0, le=20)] = 3
@@ -460,6 +470,31 @@ clusters or cosmic-ray tracks (measured ~0.2 px on rendered frames with hot pixe
 is undersampled: its stars cannot be told from hot pixels anyway."""
 
 
+STATED_WIDTH_MIN_EFFICIENCY = 0.99
+"""A camera's stated PSF width (``psf_sigma_stated_px``) stays the matched filter's width on a frame when that filter
+keeps at least this fraction of the SNR of the filter at the frame's measured width
+(:func:`~dualsight.kernels.detect_psf.filter_efficiency`: a stated 0.9 px serves frames of 0.77-1.05 px, 0.67 px
+frames of 0.58-0.78 px); else the frame is filtered again at its measured width.  1 % of SNR moves a Z = 5 star by
+0.05 sigma; the fits always take the frame's measured width."""
+
+
+def _frame_width(m, s):
+    """The frame's PSF width from :func:`_measure`'s width-free fits ``m`` (module docstring: the median of up to
+    25 of the brightest good fits, SNR > 30, or > 15 when fewer than 3 reach 30), else ``s``; a median within 2 %
+    of ``s`` keeps ``s``."""
+    # fitted widths under MIN_MEASURED_SIGMA_PX are not stars' (hot-pixel clusters, cosmic-ray tracks: ~0.2 px)
+    good = m["ok"] & ~m["saturated"] & (m["s"] >= MIN_MEASURED_SIGMA_PX)
+    use = np.flatnonzero(good & (m["snr"] > 30))
+    if use.size < 3:              # a bright sky or a sparse field: fainter stars, still well measured
+        use = np.flatnonzero(good & (m["snr"] > 15))
+    use = use[np.argsort(-m["snr"][use])][:25]
+    if use.size >= 1:             # a sparse field: the one or two stars it has (a smeared frame's streaks
+        s_new = float(np.clip(np.median(m["s"][use]), 0.2, 20.0))      # fit wider than the initial width)
+        if abs(s_new - s) > 0.02 * s:
+            return s_new
+    return s
+
+
 def _measure_width(img, R, inv, inv_tiles, s, cfg, sat, tail):
     """The PSF-width pass (module docstring): the candidates of the 2 x 2-binned residual's matched filter (PSF
     sigma s / 2 in binned pixels; a quarter of the full pass's work; its noise map ``inv_tiles``, the tiles'
@@ -500,22 +535,34 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
         R = np.subtract(img, bg, dtype=np.float32)
     if sat is not None and not img.max() >= sat:    # no saturated pixel: every saturation test is void (one
         sat = None                                  # SIMD pass instead of the candidates' stamp gathers)
-    s = cfg.psf_sigma_px if cfg.psf_sigma_px is not None else cfg.psf_sigma_init_px
     tail = clamped(img)                   # a frame clamped at its black level: its filtered noise's tail checked
-    if cfg.psf_sigma_px is None:     # measure the PSF width on bright, unsaturated, isolated stars
-        m = _measure_width(img, R, inv, inv_tiles, s, cfg, sat, tail)
-        # fitted widths under MIN_MEASURED_SIGMA_PX are not stars' (hot-pixel clusters, cosmic-ray tracks: ~0.2 px)
-        good = m["ok"] & ~m["saturated"] & (m["s"] >= MIN_MEASURED_SIGMA_PX)
-        use = np.flatnonzero(good & (m["snr"] > 30))
-        if use.size < 3:              # a bright sky or a sparse field: fainter stars, still well measured
-            use = np.flatnonzero(good & (m["snr"] > 15))
-        use = use[np.argsort(-m["snr"][use])][:25]
-        if use.size >= 1:             # a sparse field: the one or two stars it has (a smeared frame's streaks
-            s_new = float(np.clip(np.median(m["s"][use]), 0.2, 20.0))      # fit wider than the initial width)
-            if abs(s_new - s) > 0.02 * s:
-                s = s_new
-    Z, ratio, sig_f = matched_filter(R, inv, s, tail)   # sig_f: Z's noise, edges included
-    m = _measure(img, R, inv, Z, sig_f, s, cfg, sat)
+    if cfg.psf_sigma_px is not None:      # the width given: one pass
+        s = cfg.psf_sigma_px
+        Z, ratio, sig_f = matched_filter(R, inv, s, tail)   # sig_f: Z's noise, edges included
+        m = _measure(img, R, inv, Z, sig_f, s, cfg, sat)
+    elif cfg.psf_sigma_stated_px is not None:    # the camera's width: filtered at it, checked on its bright stars
+        s = cfg.psf_sigma_stated_px
+        Z, ratio, sig_f = matched_filter(R, inv, s, tail)
+        cands = find_candidates(Z, cfg)
+        k = psf_kernel_1d(s)
+        tap = float(k[len(k) // 2] ** 2)             # a spike's weight in this Z (the fits below take other widths)
+        # the width fits as the first pass makes them (stamps, start and hot-pixel test at psf_sigma_init_px: a real
+        # PSF's wings make a Gaussian's fitted width depend on the stamp), on this pass's candidates
+        s0 = cfg.psf_sigma_init_px
+        s_meas = _frame_width(_measure(img, R, inv, Z, sig_f, s0, cfg, sat, fit_sigma=True, cands=cands,
+                                       spike_tap=tap), s0)
+        if filter_efficiency(s, s_meas) < STATED_WIDTH_MIN_EFFICIENCY:     # this frame's PSF is not the stated one:
+            s = s_meas                                                      # the pass at its measured width
+            Z, ratio, sig_f = matched_filter(R, inv, s, tail)
+            m = _measure(img, R, inv, Z, sig_f, s, cfg, sat)
+        else:                                # the stated width's filter, the measured width's fits
+            m = _measure(img, R, inv, Z, sig_f, s_meas, cfg, sat, cands=cands, spike_tap=tap)
+            s = s_meas
+    else:                  # measure the PSF width on bright, unsaturated, isolated stars of a first, binned pass
+        s = cfg.psf_sigma_init_px
+        s = _frame_width(_measure_width(img, R, inv, inv_tiles, s, cfg, sat, tail), s)
+        Z, ratio, sig_f = matched_filter(R, inv, s, tail)
+        m = _measure(img, R, inv, Z, sig_f, s, cfg, sat)
     med_sig = float(np.median(sig))
     med_level = float(np.median(level))
     return _Frame(x=m["x"], y=m["y"], flux=m["flux"], npix=m["npix"], sigma_px=m["sigma_px"],

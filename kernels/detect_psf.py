@@ -86,6 +86,22 @@ def sharpness_limit(sigma: float) -> float:
 
 
 @functools.lru_cache(maxsize=256)
+def filter_efficiency(s_filter: float, s_star: float) -> float:
+    """Fraction of the optimal matched-filter SNR that a filter of PSF width ``s_filter`` (px) keeps on a star of
+    width ``s_star`` (px), both pixel-integrated Gaussians, the star centred on a pixel, untruncated kernels: the
+    filtered star over the filtered white noise is F <k, p> / (sigma ||k||) against the matched filter's
+    F ||p|| / sigma, so the fraction is the normalised correlation <k, p> / (||k|| ||p||), for separable kernels
+    the square of the 1-D one (Cauchy-Schwarz: 1 at s_filter = s_star).  For widths >= 0.8 px within 0.1 % of the
+    continuous Gaussians' 2 a b / (a^2 + b^2) with a^2 = s_filter^2 + 1/12, b^2 = s_star^2 + 1/12 (the pixel's
+    variance added; a sharper pixel-centred star is less Gaussian: 4 % off at 0.5 px)."""
+    n = max(2, int(math.ceil(8.0 * max(s_filter, s_star))) + 1)
+    i = np.arange(-n, n + 1, dtype=np.float64)
+    k = _Phi((i + 0.5) / s_filter) - _Phi((i - 0.5) / s_filter)
+    p = _Phi((i + 0.5) / s_star) - _Phi((i - 0.5) / s_star)
+    return float((k @ p) ** 2 / ((k @ k) * (p @ p)))
+
+
+@functools.lru_cache(maxsize=256)
 def flux_fraction_3x3(sigma: float) -> float:
     """Fraction of a pixel-integrated Gaussian star's flux (PSF sigma ``sigma`` px) in the 3 x 3 pixels centred on
     it, (Phi(1.5 / s) - Phi(-1.5 / s))^2: the flux of a fallback 3 x 3 centroid is its box sum over this."""

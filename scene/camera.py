@@ -59,8 +59,9 @@ _Side = Annotated[int, Field(ge=1, le=MAX_SIDE_PX)]
 _Focal = Annotated[float, Field(ge=1.0, le=MAX_FOCAL_PX)]
 _Principal = Annotated[float, Field(ge=-MAX_PRINCIPAL_PX, le=MAX_PRINCIPAL_PX)]
 _BitDepth = Annotated[int, Field(ge=1, le=32)]
+_PsfSigma = Annotated[float, Field(ge=0.2, le=20.0)]
 _UNITS = {"width": "px", "height": "px", "pixel_pitch_m": "m", "fx": "px", "fy": "px", "cx": "px", "cy": "px",
-          "bit_depth": "bits"}
+          "bit_depth": "bits", "psf_sigma_px": "px"}
 
 
 @dataclass(frozen=True)
@@ -80,6 +81,10 @@ class Camera:
     distortion : (k1, k2, p1, p2, k3), OpenCV's radial-tangential model on normalised coordinates;
         exactly 5 finite numbers (dimensionless).
     bit_depth : ADC bits of the sensor (used by renderers to quantise), an integer in [1, 32].
+    psf_sigma_px : the optics' PSF as a Gaussian's standard deviation (px), as calibrated, in [0.2, 20], or None
+        (unknown): the real-sensor detector filters each frame at this width and checks it on the frame's bright
+        stars (``LocalDetectConfig.psf_sigma_stated_px``) instead of measuring it in a first pass.  Renderers
+        take the PSF from the sensor's settings, not from here.
     """
 
     width: _Side
@@ -92,6 +97,7 @@ class Camera:
     distortion: Annotated[tuple[float, ...], Field(min_length=_DIST_LEN, max_length=_DIST_LEN)] = \
         field(default=(0.0,) * _DIST_LEN)
     bit_depth: _BitDepth = 12
+    psf_sigma_px: _PsfSigma | None = None
 
     def __post_init__(self):
         _check_camera(self, source=None)
@@ -148,7 +154,7 @@ class Camera:
         cx = t.cx if t.cx is not None else t.width / 2.0
         cy = t.cy if t.cy is not None else t.height / 2.0
         try:
-            return cls(t.width, t.height, pitch, fx, fy, cx, cy, d, t.bit_depth)
+            return cls(t.width, t.height, pitch, fx, fy, cx, cy, d, t.bit_depth, t.psf_sigma_px)
         except ConfigError as e:
             if derived and e.field in ("camera.fx", "camera.fy"):
                 raise ConfigError(f"focal_length_mm / pixel_pitch_um gives a focal length of {fx:g} px, outside "
@@ -166,10 +172,11 @@ class Camera:
         return cls.from_dict(data["camera"], source=str(path))
 
     def to_dict(self) -> dict:
-        """The ``[camera]`` table (round-trips through :meth:`from_dict`)."""
+        """The ``[camera]`` table (round-trips through :meth:`from_dict`; ``psf_sigma_px`` only when stated)."""
         return {"width": self.width, "height": self.height, "pixel_pitch_um": self.pixel_pitch_m * 1e6,
                 "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy,
-                "distortion": list(self.distortion), "bit_depth": self.bit_depth}
+                "distortion": list(self.distortion), "bit_depth": self.bit_depth,
+                **({} if self.psf_sigma_px is None else {"psf_sigma_px": self.psf_sigma_px})}
 
     # ------------------------------------------------------------------ derived
     @property
@@ -341,7 +348,8 @@ class CameraTable(pydantic.BaseModel):
     :data:`UNKNOWN_PITCH_M` stands in (every algorithm works in pixels, and Eq. 1's f / p is fx).  focal_length_mm : mm, in (0, 10000] (10 m, beyond any camera of a
     spacecraft); used when fx is absent.  fx, fy : px, in [1, 1e7] (fy defaults to fx).  cx, cy : px, in
     [-1e6, 1e6] (default: the image centre).  distortion : 1-5 numbers [k1, k2, p1, p2, k3] (the rest 0).
-    bit_depth : bits, an integer in [1, 32].  name, notes : free text.
+    bit_depth : bits, an integer in [1, 32].  psf_sigma_px : px, in [0.2, 20] (optional: the calibrated PSF width,
+    :class:`Camera`).  name, notes : free text.
     """
 
     model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
@@ -355,5 +363,6 @@ class CameraTable(pydantic.BaseModel):
     cy: _Principal | None = None
     distortion: Annotated[tuple[_Finite, ...], Field(min_length=1, max_length=_DIST_LEN)] = (0.0,) * _DIST_LEN
     bit_depth: _BitDepth = 12
+    psf_sigma_px: _PsfSigma | None = None
     name: str | None = None
     notes: str | None = None

@@ -174,7 +174,8 @@ def normalise_settings(s: StarSettings, *, source: str, section: str | None = No
     ``camera`` (:func:`dualsight.catalogs.auto_limit.auto_mag_limit` with
     :data:`~dualsight.catalogs.auto_limit.HIL_TARGET_PER_FIELD` stars per field), resolved to a number
     here; without a camera it stays "auto" until :func:`spec_from_dict` (which has the camera) resolves it,
-    so a stored spec always holds the number."""
+    so a stored spec always holds the number.  The local detector's ``psf_sigma_stated_px`` defaults to the
+    camera's ``psf_sigma_px`` (its camera file's calibrated PSF width; the table's number wins, its None does not)."""
     def sec(name):
         return f"{section}.{name}" if section else name
 
@@ -199,8 +200,13 @@ def normalise_settings(s: StarSettings, *, source: str, section: str | None = No
     detect = dataclass_from_table(DetectConfig, s.detect, source=source, section=sec("detect"),
                                   base=checked(lambda: DetectConfig(k_sigma=k_sigma, min_pixels=min_pixels),
                                                "detect"))
-    detect_local = dataclass_from_table(LocalDetectConfig, s.detect_local, source=source, section=sec("detect_local"),
-                                        base=checked(lambda: LocalDetectConfig(k_sigma=max(k_sigma, 1.0)),
+    stated = None if camera is None else camera.psf_sigma_px      # the camera file's calibrated PSF width
+    dl_table = dict(s.detect_local)
+    if dl_table.get("psf_sigma_stated_px", None) is None:          # unset (or None: a table completed before the
+        dl_table.pop("psf_sigma_stated_px", None)                   # camera was known) takes the camera's
+    detect_local = dataclass_from_table(LocalDetectConfig, dl_table, source=source, section=sec("detect_local"),
+                                        base=checked(lambda: LocalDetectConfig(k_sigma=max(k_sigma, 1.0),
+                                                                               psf_sigma_stated_px=stated),
                                                      "detect_local"))
     common = dict(max_stars=max_stars, max_vote_cells=MAX_VOTE_CELLS)
     base = checked(lambda: _METHOD_CONFIG[s.method](tolerance_arcsec * ARCSEC, **common), "voting")
