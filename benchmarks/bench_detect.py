@@ -26,6 +26,8 @@ Methods:
   local-auto    the same with the PSF width measured per frame (psf_sigma_px None), as in HIL; both with the
                 default fit_engine "taichi" (PSF fits, tile statistics and components compiled:
                 kernels/detect_psf_fit.py, kernels/detect_passes.py), and local-auto with fit_engine "numpy"
+  local-stated  the width stated (psf_sigma_stated_px = the sensor's, as a camera file's psf_sigma_px gives it to
+                hil star): one filter at it, the frame's width measured on that pass's bright stars
   global        detect_stars(frames, the spec's DetectConfig) (k 5, min_pixels 3)
   sep           sep.Background (32 px meshes, 3 x 3 filter) + sep.extract(matched filter = the pixel-
                 integrated PSF, err = the background rms map, minarea 1) + sep.winpos (windowed centroid,
@@ -153,12 +155,13 @@ def per_frame(det):
 
 
 # ============================================================================ methods
-def run_local(images, sensor, auto=False, fit_engine=None):
+def run_local(images, sensor, auto=False, fit_engine=None, stated=False):
     from dualsight.kernels.detect_local import LocalDetectConfig, detect_real
 
     engine = {} if fit_engine is None else {"fit_engine": fit_engine}       # None: the default ("taichi")
-    cfg = LocalDetectConfig(psf_sigma_px=None if auto else sensor.psf_sigma_px, gain_e_per_adu=sensor.gain_e_per_adu,
-                            **engine)
+    cfg = LocalDetectConfig(psf_sigma_px=None if auto or stated else sensor.psf_sigma_px,
+                            psf_sigma_stated_px=sensor.psf_sigma_px if stated else None,
+                            gain_e_per_adu=sensor.gain_e_per_adu, **engine)
     sat = min(sensor.full_well_e / sensor.gain_e_per_adu + sensor.bias_adu, sensor.max_adu) - 3 * (
         sensor.read_noise_e / sensor.gain_e_per_adu)
     det = detect_real(images, cfg, saturation_adu=sat)
@@ -250,6 +253,9 @@ def bench(condition, frames, repeats, out=print, sil=True):
     (ax, ay), adet = run_local(images, sensor, auto=True)
     rows.append(["local-auto", score(ax, ay, truth, snr),
                  best_time(lambda: run_local(images, sensor, auto=True), repeats)])
+    (cx, cy), _ = run_local(images, sensor, stated=True)
+    rows.append(["local-stated", score(cx, cy, truth, snr),
+                 best_time(lambda: run_local(images, sensor, stated=True), repeats)])
     (tx, ty), _ = run_local(images, sensor, auto=True, fit_engine="numpy")
     rows.append(["local-auto, numpy engine", score(tx, ty, truth, snr),
                  best_time(lambda: run_local(images, sensor, auto=True, fit_engine="numpy"), repeats)])

