@@ -88,12 +88,18 @@ def match_radius_px(sigma_px, sigma_sys_px: float, cfg: UnknownConfig) -> np.nda
 
 
 def explained_by_catalog(xy: np.ndarray, mag: np.ndarray, radius_px: np.ndarray, cat_xy: np.ndarray,
-                         cat_vmag: np.ndarray, mag_window: float, chunk: int = 256):
-    """Which detections a catalog star explains (brute force over the stars in the image, in chunks).
+                         cat_vmag: np.ndarray, mag_window: float):
+    """Which detections a catalog star explains, and the nearest catalog star of the others.
 
     xy (K, 2) px; mag (K,) (NaN: any catalog star within the radius explains it); radius_px (K,); cat_xy (M, 2)
-    projected catalog stars; cat_vmag (M,).  Returns (explained (K,) bool, nearest (K,) int64 row of ``cat_xy``
-    (-1 when M = 0), nearest distance (K,) px)."""
+    projected catalog stars; cat_vmag (M,).  Returns (explained (K,) bool, nearest (K,) int64 row of ``cat_xy`` for
+    the detections no star explains (-1 for the explained ones, and when M = 0), its distance (K,) px (inf where
+    nearest is -1)).
+
+    A star explains a detection when it lies within the detection's radius and is not ``mag_window`` fainter.  Only
+    the stars whose column lies within the radius are compared (the catalog sorted by column once, each detection's
+    range by a binary search: ~K M (2 r / W) pairs instead of K M); the nearest star of each unexplained detection
+    (a few per frame) by a full comparison."""
     xy = np.asarray(xy, np.float64).reshape(-1, 2)
     K, M = len(xy), len(cat_xy)
     explained = np.zeros(K, bool)
@@ -101,16 +107,25 @@ def explained_by_catalog(xy: np.ndarray, mag: np.ndarray, radius_px: np.ndarray,
     dist = np.full(K, np.inf)
     if M == 0:
         return explained, nearest, dist
-    cxy = np.asarray(cat_xy, np.float64)
+    cxy = np.asarray(cat_xy, np.float64).reshape(-1, 2)
     cv = np.asarray(cat_vmag, np.float64)
     m = np.asarray(mag, np.float64)
-    for s in range(0, K, chunk):
-        e = slice(s, min(K, s + chunk))
-        d = np.hypot(xy[e, None, 0] - cxy[None, :, 0], xy[e, None, 1] - cxy[None, :, 1])
-        j = np.argmin(d, axis=1)
-        nearest[e], dist[e] = j, d[np.arange(len(j)), j]
-        bright_enough = ~(cv[None, :] > (m[e, None] + mag_window))          # NaN magnitude: any star
-        explained[e] = ((d <= np.asarray(radius_px)[e, None]) & bright_enough).any(1)
+    r = np.broadcast_to(np.asarray(radius_px, np.float64), (K,))
+    order = np.argsort(cxy[:, 0], kind="stable")
+    cx_sorted = cxy[order, 0]
+    lo = np.searchsorted(cx_sorted, xy[:, 0] - r, side="left")
+    hi = np.searchsorted(cx_sorted, xy[:, 0] + r, side="right")
+    n = hi - lo
+    det = np.repeat(np.arange(K), n)                                   # candidate pairs (detection, star)
+    star = order[np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n) + np.repeat(lo, n)]
+    d = np.hypot(xy[det, 0] - cxy[star, 0], xy[det, 1] - cxy[star, 1])
+    bright_enough = ~(cv[star] > (m[det] + mag_window))                 # NaN magnitude: any star
+    explained[det[(d <= r[det]) & bright_enough]] = True
+    u = np.flatnonzero(~explained)
+    if u.size:
+        du = np.hypot(xy[u, None, 0] - cxy[None, :, 0], xy[u, None, 1] - cxy[None, :, 1])
+        j = np.argmin(du, axis=1)
+        nearest[u], dist[u] = j, du[np.arange(u.size), j]
     return explained, nearest, dist
 
 

@@ -54,11 +54,22 @@ def test_catalog_explanation_against_a_brute_force_loop():
     rad = rng.uniform(0.5, 3.0, 60)
     cxy = rng.uniform(0, 100, (300, 2))
     cv = rng.uniform(2, 12, 300)
-    ex, near, dist = explained_by_catalog(xy, mag, rad, cxy, cv, 3.0, chunk=7)
+    ex, near, dist = explained_by_catalog(xy, mag, rad, cxy, cv, 3.0)
     for k in range(60):
         d = [math.hypot(*(xy[k] - c)) for c in cxy]
         assert ex[k] == any(d[j] <= rad[k] and cv[j] <= mag[k] + 3.0 for j in range(300))
-        assert near[k] == int(np.argmin(d)) and dist[k] == pytest.approx(min(d))
+        if ex[k]:
+            assert near[k] == -1 and dist[k] == math.inf
+        else:                                     # the unexplained ones: their nearest star, at any distance
+            assert near[k] == int(np.argmin(d)) and dist[k] == pytest.approx(min(d))
+    # a star exactly at the radius explains (<=), one a hair beyond does not; stars sharing a column are all seen
+    one = explained_by_catalog(np.array([[10.0, 10.0]]), np.array([5.0]), np.array([2.0]),
+                               np.array([[12.0, 10.0], [10.0, 30.0], [10.0, 12.0 + 1e-9]]), np.array([5.0, 5.0, 5.0]),
+                               3.0)
+    assert one[0][0]
+    col = explained_by_catalog(np.array([[10.0, 10.0]]), np.array([5.0]), np.array([2.0]),
+                               np.array([[10.0, 30.0], [10.0, 20.0], [10.0, 11.0]]), np.array([5.0, 5.0, 5.0]), 3.0)
+    assert col[0][0]
     # planted bug seen failing: dropping the magnitude window (any faint star explains a bright light)
     assert not ex.all() and (~ex).sum() < 60
 
