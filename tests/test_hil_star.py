@@ -555,3 +555,34 @@ def test_an_answer_from_two_identified_stars_is_not_identified(monkeypatch):
     assert r["ra_deg"] is None and r["boresight_error_arcsec"] is None
     assert r["alt"]["identified"] is False and r["alt"]["stars_identified"] == 2
     assert r["alt"]["status"] not in (None, "success") and full["alt"]["status"] == "success"
+
+
+def test_a_camera_file_without_the_psf_width_gets_the_measured_one_suggested(tmp_path):
+    """Frames rendered with a known Gaussian PSF, solved with a camera file that does not state its width: the run
+    ends with one stderr line suggesting ``psf_sigma_px`` = the frames' measured median, within 3 % of the width they
+    were rendered with; with that line in the camera file the frames are solved the same and nothing is suggested."""
+    from dualsight.kernels.starfield import render_star_fields
+
+    cam = Camera.from_toml(CAMERA)
+    A, cat, sensor, f = orion_field(cam)
+    for i in range(3):
+        img = render_star_fields(f.x, f.y, f.flux_e, f.valid, cam.width, cam.height, sensor,
+                                 np.array([100 + i], np.uint64))[0]
+        cv2.imwrite(str(tmp_path / f"f{i}.tiff"), np.clip(np.round(img), 0, 4095).astype(np.uint16) << 4)
+    plain = tmp_path / "plain.toml"
+    plain.write_text("".join(l for l in CAMERA.read_text().splitlines(True) if not l.startswith("psf_sigma_px")))
+    rc, out, err = run_cli(["hil", "star", str(tmp_path), "--camera", str(plain), "--json", "--no-lake",
+                            "--epoch", "2019.6"])
+    assert rc == 0, err
+    hint = [l for l in err.splitlines() if "psf_sigma_px = " in l]
+    assert len(hint) == 1 and str(plain) in hint[0], err
+    width = float(hint[0].split("psf_sigma_px = ")[1].split()[0])
+    assert width == pytest.approx(sensor.psf_sigma_px, rel=0.03)
+    stated = tmp_path / "stated.toml"
+    stated.write_text(plain.read_text() + f"psf_sigma_px = {width}\n")
+    rc2, out2, err2 = run_cli(["hil", "star", str(tmp_path), "--camera", str(stated), "--json", "--no-lake",
+                               "--epoch", "2019.6"])
+    assert rc2 == 0 and "psf_sigma_px = " not in err2, err2
+    a, b = json.loads(out), json.loads(out2)
+    assert all(x["identified"] and y["identified"] for x, y in zip(a, b))
+    assert [x["stars_identified"] for x in a] == [y["stars_identified"] for y in b]

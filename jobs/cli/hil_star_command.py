@@ -167,11 +167,42 @@ def run(args) -> int:
         cols, srows = run_report(con, "hil_star_summary", run=run_id)
         summary = dict(zip(cols, srows[0]))
         con.close()
+    hint = psf_width_hint(rows, spec.settings, args.camera)
+    if hint:
+        print(f"dualsight: {hint}", file=sys.stderr)
     n_err = summary["errors"]
     print(done_message(f"{summary['images']} images: {summary['identified']} identified, {n_err} could not be "
                        "processed", time.perf_counter() - t_start, run_id, lake, kept, tuple(hs.SCHEMAS),
                        query="hil_star"), file=sys.stderr)
     return 1 if n_err else 0
+
+
+PSF_HINT_MIN_IMAGES = 3
+"""Images with a measured PSF width from which ``hil star`` suggests stating it in the camera file."""
+
+PSF_HINT_MAX_SPREAD = 1.15
+"""The images' widths agree enough for the hint when their 90th percentile is at most this times their 10th (one
+stated width then serves every one of them in one pass: ``kernels/detect_local.STATED_WIDTH_MIN_EFFICIENCY``)."""
+
+
+def psf_width_hint(rows: list[dict], settings, camera_file) -> str | None:
+    """One line suggesting ``psf_sigma_px`` for the camera file when the local detector measured the PSF width on
+    every frame (neither the camera file nor the settings state it) and the frames agree on it (at least
+    :data:`PSF_HINT_MIN_IMAGES` images, spread under :data:`PSF_HINT_MAX_SPREAD`); else None."""
+    dl = settings.detect_local
+    if settings.detector != "local" or dl.get("psf_sigma_px") is not None or dl.get("psf_sigma_stated_px") is not None:
+        return None
+    w = sorted(float(r["psf_sigma_px"]) for r in rows
+               if not r.get("error") and r.get("psf_sigma_px") is not None and r["psf_sigma_px"] > 0)
+    if len(w) < PSF_HINT_MIN_IMAGES:
+        return None
+    q = lambda p: w[min(len(w) - 1, int(p * (len(w) - 1) + 0.5))]
+    if q(0.9) > PSF_HINT_MAX_SPREAD * q(0.1):
+        return None
+    med = q(0.5)
+    return (f"the frames' PSF width is {w[0]:.2f}-{w[-1]:.2f} px (median {med:.2f}, {len(w)} images): "
+            f"psf_sigma_px = {med:.2f} in the [camera] table of {camera_file} spares the detector's width pass on "
+            "every frame (~20 % of its time)")
 
 
 def run_sweep(args, base, t_start: float) -> int:
