@@ -483,8 +483,8 @@ frames of 0.58-0.78 px); else the frame is filtered again at its measured width.
 
 def _frame_width(m, s):
     """The frame's PSF width from :func:`_measure`'s width-free fits ``m`` (module docstring: the median of up to
-    25 of the brightest good fits, SNR > 30, or > 15 when fewer than 3 reach 30), else ``s``; a median within 2 %
-    of ``s`` keeps ``s``."""
+    25 of the brightest good fits, SNR > 30, or > 15 when fewer than 3 reach 30), else (no such star) ``s``, the
+    width the frame is filtered at; a median within 2 % of ``s`` keeps ``s``."""
     # fitted widths under MIN_MEASURED_SIGMA_PX are not stars' (hot-pixel clusters, cosmic-ray tracks: ~0.2 px)
     good = m["ok"] & ~m["saturated"] & (m["s"] >= MIN_MEASURED_SIGMA_PX)
     use = np.flatnonzero(good & (m["snr"] > 30))
@@ -551,9 +551,9 @@ def _detect_frame(img: np.ndarray, cfg: LocalDetectConfig, sat) -> _Frame:
         tap = float(k[len(k) // 2] ** 2)             # a spike's weight in this Z (the fits below take other widths)
         # the width fits as the first pass makes them (stamps, start and hot-pixel test at psf_sigma_init_px: a real
         # PSF's wings make a Gaussian's fitted width depend on the stamp), on this pass's candidates
-        s0 = cfg.psf_sigma_init_px
-        s_meas = _frame_width(_measure(img, R, inv, Z, sig_f, s0, cfg, sat, fit_sigma=True, cands=cands,
-                                       spike_tap=tap), s0)
+        m0 = _measure(img, R, inv, Z, sig_f, cfg.psf_sigma_init_px, cfg, sat, fit_sigma=True, cands=cands,
+                      spike_tap=tap)
+        s_meas = _frame_width(m0, s)       # no star to measure, or within 2 % of it: the stated width
         if filter_efficiency(s, s_meas) < STATED_WIDTH_MIN_EFFICIENCY:     # this frame's PSF is not the stated one:
             s = s_meas                                                      # the pass at its measured width
             Z, ratio, sig_f = matched_filter(R, inv, s, tail)

@@ -147,3 +147,18 @@ def test_the_camera_files_psf_width_reaches_the_hil_spec(tmp_path):
         spec = spec_from_dict({"images": [{"path": str(img)}], "camera": cam.to_dict(),
                                "settings": st_.model_dump()})
         assert spec.settings.detect_local["psf_sigma_stated_px"] == want
+
+
+def test_a_frame_without_bright_stars_keeps_the_stated_width(monkeypatch):
+    """No star bright enough to measure a width (SNR ~8): the frame is filtered once, at the stated width (0.67 px,
+    far from the first pass's 1.0 px), and that width is the one reported, not the first pass's."""
+    rng = np.random.default_rng(3)
+    x = rng.uniform(20, W - 20, (1, 30))
+    y = rng.uniform(20, H - 20, (1, 30))
+    sensor = SensorConfig(psf_sigma_px=0.67, read_noise_e=10.0, sky_background_e=50.0, shot_noise=True)
+    img = render_star_fields(x, y, np.full(x.shape, 250.0), None, W, H, sensor, np.array([9], np.uint64))
+    calls = _count_filters(monkeypatch)
+    det = detect_real(img, LocalDetectConfig(psf_sigma_stated_px=0.67))
+    assert calls == [((H, W), 0.67)]
+    assert det.psf_sigma_px[0] == 0.67
+    assert 0 < len(det) <= 30                                       # faint stars found, none measured

@@ -560,7 +560,8 @@ def test_an_answer_from_two_identified_stars_is_not_identified(monkeypatch):
 def test_a_camera_file_without_the_psf_width_gets_the_measured_one_suggested(tmp_path):
     """Frames rendered with a known Gaussian PSF, solved with a camera file that does not state its width: the run
     ends with one stderr line suggesting ``psf_sigma_px`` = the frames' measured median, within 3 % of the width they
-    were rendered with; with that line in the camera file the frames are solved the same and nothing is suggested."""
+    were rendered with; with that line in the camera file nothing is suggested and the frames are solved alike (the
+    same boresight to 1 arcsec, the identified stars within 2)."""
     from dualsight.kernels.starfield import render_star_fields
 
     cam = Camera.from_toml(CAMERA)
@@ -585,4 +586,7 @@ def test_a_camera_file_without_the_psf_width_gets_the_measured_one_suggested(tmp
     assert rc2 == 0 and "psf_sigma_px = " not in err2, err2
     a, b = json.loads(out), json.loads(out2)
     assert all(x["identified"] and y["identified"] for x, y in zip(a, b))
-    assert [x["stars_identified"] for x in a] == [y["stars_identified"] for y in b]
+    for x, y in zip(a, b):                        # each frame's own width, or the stated median: nearly one answer
+        assert abs(x["stars_identified"] - y["stars_identified"]) <= 2
+        assert abs(x["ra_deg"] - y["ra_deg"]) * math.cos(math.radians(x["dec_deg"])) * 3600 < 1.0
+        assert abs(x["dec_deg"] - y["dec_deg"]) * 3600 < 1.0
