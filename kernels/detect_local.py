@@ -125,9 +125,9 @@ the frame with a bright sky, which has fewer than 3 stars above SNR 30, is measu
 instead of keeping the initial 1.0; from the binned first pass, 2026-11-27: within 0.015 px of those.)
 
 Centroids use the continuous pixel convention (pixel (r, c) has its centre at (c + 0.5, r + 0.5)).
-Cost with a stated width (2026-11-28, ``python benchmarks/bench_detect.py --frames 48``, one core): 4.4 ms per
-1024 x 768 frame against 5.3-5.4 ms measuring it in the binned first pass and 3.9-4.0 ms with the width given,
-completeness, false rate and centroid rms those of the given width (to 0.001, 0.01 per frame and 1e-4 px).
+Cost with a stated width (2026-11-28, ``python benchmarks/bench_detect.py --frames 48``, one core): 4.1-4.3 ms per
+1024 x 768 frame against 5.1-5.2 ms measuring it in the binned first pass and 3.7-3.9 ms with the width given,
+completeness, false rate and centroid rms those of the given width (to 1e-4 px).
 Cost (one core, ``benchmarks/bench_detect_speed.py --against 28d26a5 --rounds 3 --rendered 20``, CPU time, load
 0.2-0.5), 2026-11-28 after the five-tap filter (``detect_psf.FILTER_SNR_EFFICIENCY``), the compiled candidate screening
 (:mod:`dualsight.kernels.detect_hot_pixels`) and the tiles' windows found by walks: 4.2-4.5 ms per rendered 1024 x 1024
