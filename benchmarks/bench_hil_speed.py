@@ -381,17 +381,23 @@ def against(a, argv: list[str]) -> None:
     """Run this benchmark with ``argv`` (its own options but ``--against``/``--rounds``) in this tree and in a
     worktree of ``a.against``, alternating ``a.rounds`` times (each run a fresh process with the tree's package
     first on PYTHONPATH, started in the tree: ``python -m dualsight`` is that tree's too), so a ratio is measured
-    under the same load; prints each run's output."""
+    under the same load; prints each run's output.  Each tree runs its own copy of this script (its camera files
+    and the rendered frames' camera file in its own temporary folder: an older tree may not read a newer camera
+    file), on the same ESA frames."""
     tmp = Path(tempfile.mkdtemp(prefix="bench-hil-old-"))
     old = tmp / "tree"
+    (tmp / "tmp").mkdir()
     subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(old), a.against], check=True,
                    capture_output=True)
+    name = Path(__file__).name
     try:
         for i in range(a.rounds):
             for tag, tree in (("this", ROOT), (a.against[:7], old)):
-                env = dict(os.environ, PYTHONPATH=str(tree))
-                r = subprocess.run([PY, str(Path(__file__).resolve()), *argv], capture_output=True, text=True,
-                                   env=env, cwd=str(tree))
+                script = tree / "benchmarks" / name
+                env = dict(os.environ, PYTHONPATH=str(tree), DUALSIGHT_SHARED=str(ESA.parents[2]),
+                           **({"TMPDIR": str(tmp / "tmp")} if tree == old else {}))
+                r = subprocess.run([PY, str(script if script.exists() else Path(__file__).resolve()), *argv],
+                                   capture_output=True, text=True, env=env, cwd=str(tree))
                 print(f"=== round {i + 1}, {tag} ({tree})")
                 print(r.stdout.strip() + (f"\nFAILED: {r.stderr.strip()[-800:]}" if r.returncode else ""))
     finally:
