@@ -203,9 +203,9 @@ def identified_stars(pix: FramePixels, sp: SolvePass, cat_unit: np.ndarray):
 
 
 def camera_with(camera, intr: dfit.Intrinsics) -> Camera:
-    """``camera`` with the intrinsics ``intr`` (size, pixel pitch and bit depth kept)."""
-    return Camera(camera.width, camera.height, camera.pixel_pitch_m, intr.fx, intr.fy, intr.cx, intr.cy,
-                  tuple(intr.distortion), camera.bit_depth)
+    """``camera`` with the intrinsics ``intr`` (size, pixel pitch, bit depth and stated PSF width kept)."""
+    return dataclasses.replace(camera, fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy,
+                               distortion=tuple(intr.distortion))
 
 
 def with_tolerance(voting, tol: float):

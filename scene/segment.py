@@ -19,6 +19,8 @@ numpy plus OpenCV.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from dualsight.scene.camera import Camera
@@ -98,6 +100,5 @@ def undistort_image(pixels: np.ndarray, camera: Camera, fill: float = 0.0) -> tu
     src = a.astype(np.float32) if a.dtype not in (np.uint8, np.uint16, np.float32) else a
     fill_v = (float(fill),) * 4
     out = cv2.remap(src, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=fill_v)
-    cam0 = Camera(camera.width, camera.height, camera.pixel_pitch_m, camera.fx, camera.fy, camera.cx, camera.cy,
-                  (0.0,) * 5, camera.bit_depth)
+    cam0 = dataclasses.replace(camera, distortion=(0.0,) * 5)
     return out.astype(a.dtype, copy=False), cam0

@@ -230,3 +230,17 @@ def test_refusals_are_one_line(sky, tmp_path):
     assert rc == 2 and last.startswith("dualsight: error: --fit-distortion: only "), err
     assert "stars identified" in last and "at least 30" in last, err
     assert not (tmp_path / "few_out.toml").exists()
+
+
+def test_the_fitted_camera_keeps_everything_but_the_intrinsics():
+    """A fit replaces fx, fy, cx, cy and the distortion; the size, pixel pitch, bit depth and the stated PSF width of
+    the input camera file stay (a fitted camera file that dropped ``psf_sigma_px`` would slow every later run)."""
+    from dualsight.nav.distortion_procedure import camera_with
+    from dualsight.scene.segment import undistort_image
+
+    cam = Camera(640, 480, 4.65e-6, 800.0, 800.0, 320.0, 240.0, (0.01, 0.0, 0.0, 0.0, 0.0), 10, 0.8)
+    out = camera_with(cam, dfit.Intrinsics(810.0, 812.0, 321.0, 239.0, (0.1, 0.01, 0.0, 0.0, 0.0)))
+    assert (out.fx, out.fy, out.cx, out.cy, out.distortion) == (810.0, 812.0, 321.0, 239.0, (0.1, 0.01, 0.0, 0.0, 0.0))
+    assert (out.width, out.height, out.pixel_pitch_m, out.bit_depth, out.psf_sigma_px) == (640, 480, 4.65e-6, 10, 0.8)
+    _, flat = undistort_image(np.zeros((480, 640), np.uint16), cam)
+    assert flat.distortion == (0.0,) * 5 and flat.psf_sigma_px == 0.8 and flat.fx == 800.0
