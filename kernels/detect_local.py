@@ -181,7 +181,7 @@ from dualsight.kernels.detect_psf_fit import MAX_STAMP, fit_frame_compiled, fit_
 from dualsight.kernels.sensor_config import MAX_ADU
 
 __all__ = ["BinnedView", "LocalDetectConfig", "LocalDetections", "MIN_MEASURED_SIGMA_PX",
-           "STATED_WIDTH_MIN_EFFICIENCY", "detect_real", "subtract_local_background"]
+           "STATED_WIDTH_MIN_EFFICIENCY", "detect_real", "frames_psf_width", "subtract_local_background"]
 
 log = logging.getLogger(__name__)
 
@@ -480,6 +480,26 @@ keeps at least this fraction of the SNR of the filter at the frame's measured wi
 (:func:`~dualsight.kernels.detect_psf.filter_efficiency`: a stated 0.9 px serves frames of 0.77-1.05 px, 0.67 px
 frames of 0.58-0.78 px); else the frame is filtered again at its measured width.  1 % of SNR moves a Z = 5 star by
 0.05 sigma; the fits always take the frame's measured width."""
+
+
+FRAMES_WIDTH_MIN_FRAMES, FRAMES_WIDTH_MAX_SPREAD = 3, 1.15
+"""A set of frames has one PSF width (:func:`frames_psf_width`) when at least this many measured it and the 90th
+percentile of their widths is at most this times the 10th: one stated width then serves each of them in one pass
+(:data:`STATED_WIDTH_MIN_EFFICIENCY`: +-13 % at 0.9 px)."""
+
+
+def frames_psf_width(widths) -> tuple[float, int] | None:
+    """(median width px, frames) of the frames' measured PSF widths ``widths`` (per frame, px; NaN or <= 0: not
+    measured) when they agree (:data:`FRAMES_WIDTH_MIN_FRAMES`, :data:`FRAMES_WIDTH_MAX_SPREAD`), else None: the
+    width a camera file can state (``psf_sigma_px``).  Percentiles are order statistics (nearest rank)."""
+    w = np.sort(np.asarray([v for v in widths if v is not None], np.float64))
+    w = w[np.isfinite(w) & (w > 0)]
+    if w.size < FRAMES_WIDTH_MIN_FRAMES:
+        return None
+    q = lambda p: float(w[min(w.size - 1, int(p * (w.size - 1) + 0.5))])
+    if q(0.9) > FRAMES_WIDTH_MAX_SPREAD * q(0.1):
+        return None
+    return q(0.5), int(w.size)
 
 
 def _frame_width(m, s):

@@ -133,12 +133,14 @@ class FramePixels:
 
     x, y : (F, S) float64 centroids (col, row), px (NaN in padding); valid : (F, S) bool.
     errors : (F,) None or why the image could not be processed (then no detections).
+    psf_sigma_px : (F,) the PSF width each frame's detector used (px; NaN: none, e.g. the global detector), or ().
     """
 
     x: np.ndarray
     y: np.ndarray
     valid: np.ndarray
     errors: tuple
+    psf_sigma_px: tuple = ()
 
 
 @dataclass(frozen=True)

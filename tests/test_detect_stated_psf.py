@@ -15,7 +15,8 @@ from hypothesis import strategies as st
 
 from dualsight.errors import ConfigError
 from dualsight.kernels import detect_local
-from dualsight.kernels.detect_local import LocalDetectConfig, STATED_WIDTH_MIN_EFFICIENCY, detect_real
+from dualsight.kernels.detect_local import (LocalDetectConfig, STATED_WIDTH_MIN_EFFICIENCY, detect_real,
+                                           frames_psf_width)
 from dualsight.kernels.detect_psf import filter_efficiency
 from dualsight.kernels.sensor_config import SensorConfig
 from dualsight.kernels.starfield import render_star_fields
@@ -162,3 +163,12 @@ def test_a_frame_without_bright_stars_keeps_the_stated_width(monkeypatch):
     assert calls == [((H, W), 0.67)]
     assert det.psf_sigma_px[0] == 0.67
     assert 0 < len(det) <= 30                                       # faint stars found, none measured
+
+
+def test_frames_agree_on_a_width_only_when_enough_of_them_measure_a_close_one():
+    """Three or more measured widths (NaN and None are not measured) whose 90th percentile is at most 1.15 x the 10th
+    give their median (nearest-rank order statistics) and their count; fewer, or a wider spread, give None."""
+    assert frames_psf_width([0.9, 0.9]) is None
+    assert frames_psf_width([0.66, 0.68, float("nan"), None, 0.67]) == (0.67, 3)
+    assert frames_psf_width([0.80, 0.90, 1.00]) is None                 # 1.00 / 0.80 = 1.25
+    assert frames_psf_width([0.80, 0.85, 0.90, 0.91]) == (0.90, 4)      # 0.91 / 0.80 = 1.14; median rank 2 of 0-3

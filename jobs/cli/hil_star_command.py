@@ -177,30 +177,22 @@ def run(args) -> int:
     return 1 if n_err else 0
 
 
-PSF_HINT_MIN_IMAGES = 3
-"""Images with a measured PSF width from which ``hil star`` suggests stating it in the camera file."""
-
-PSF_HINT_MAX_SPREAD = 1.15
-"""The images' widths agree enough for the hint when their 90th percentile is at most this times their 10th (one
-stated width then serves every one of them in one pass: ``kernels/detect_local.STATED_WIDTH_MIN_EFFICIENCY``)."""
-
-
 def psf_width_hint(rows: list[dict], settings, camera_file) -> str | None:
     """One line suggesting ``psf_sigma_px`` for the camera file when the local detector measured the PSF width on
-    every frame (neither the camera file nor the settings state it) and the frames agree on it (at least
-    :data:`PSF_HINT_MIN_IMAGES` images, spread under :data:`PSF_HINT_MAX_SPREAD`); else None."""
+    every frame (neither the camera file nor the settings state it) and the frames agree on it
+    (``kernels.detect_local.frames_psf_width``); else None."""
+    from dualsight.kernels.detect_local import frames_psf_width
+
     dl = settings.detect_local
     if settings.detector != "local" or dl.get("psf_sigma_px") is not None or dl.get("psf_sigma_stated_px") is not None:
         return None
-    w = sorted(float(r["psf_sigma_px"]) for r in rows
-               if not r.get("error") and r.get("psf_sigma_px") is not None and r["psf_sigma_px"] > 0)
-    if len(w) < PSF_HINT_MIN_IMAGES:
+    w = [r["psf_sigma_px"] for r in rows if not r.get("error")]
+    one = frames_psf_width(w)
+    if one is None:
         return None
-    q = lambda p: w[min(len(w) - 1, int(p * (len(w) - 1) + 0.5))]
-    if q(0.9) > PSF_HINT_MAX_SPREAD * q(0.1):
-        return None
-    med = q(0.5)
-    return (f"the frames' PSF width is {w[0]:.2f}-{w[-1]:.2f} px (median {med:.2f}, {len(w)} images): "
+    med, n = one
+    lo, hi = min(v for v in w if v and v > 0), max(v for v in w if v and v > 0)
+    return (f"the frames' PSF width is {lo:.2f}-{hi:.2f} px (median {med:.2f}, {n} images): "
             f"psf_sigma_px = {med:.2f} in the [camera] table of {camera_file} spares the detector's width pass on "
             "every frame (~20 % of its time)")
 
@@ -268,7 +260,10 @@ def write_fitted_camera(rep, output: Path, camera_file: Path, images: list) -> P
         f"rms residual {rep.rms_before_px:.3f} px before (input camera, attitudes re-fitted), {fit.rms_px:.3f} px "
         f"after; {int((~fit.inlier).sum())} stars rejected as outliers (> {FULL_CONFIG.reject_sigma:g} sigma).",
         f"Re-solved with this camera: {int(rep.final.solved.sum())}/{n_img} frames, "
-        f"{int(rep.final.stars.sum())} stars identified."])
+        f"{int(rep.final.stars.sum())} stars identified."]
+        + ([f"psf_sigma_px: the stars' PSF width the detector measured on these frames (their median, "
+            f"{rep.camera.psf_sigma_px:g} px)."] if rep.camera.psf_sigma_px is not None
+           and rep.camera_in.psf_sigma_px is None else []))
     table = {"method": "nav/distortion_fit.py: Levenberg-Marquardt, OpenCV radial model, Huber + rejection",
              "input_camera": str(camera_file), "images": n_img, "frames_used": fit.n_frames,
              "stars_used": fit.n_stars, "stars_rejected": int((~fit.inlier).sum()),

@@ -26,6 +26,7 @@ import numpy as np
 
 from dualsight.errors import ImageError, InputError
 from dualsight.jobs.kinds import hil_star as hs
+from dualsight.kernels.detect_local import frames_psf_width
 from dualsight.nav.distortion_procedure import MIN_STARS, FitReport, FramePixels, TooFewStars, fit_camera_from_sky
 from dualsight.nav.observations import observations
 
@@ -37,6 +38,7 @@ def detect_all(spec, rt) -> FramePixels:
     chain of jobs/kinds/hil_star.py: read_frame, detect_frames, observations); ``rt`` its runtime."""
     F, bs = len(spec.images), spec.settings.batch_size
     errors: list = [None] * F
+    widths = [float("nan")] * F                      # the PSF width each frame's detector used (local detector)
     parts = []                                       # (frame indices, x, y, valid)
     for s in range(0, F, bs):
         good, frames = [], []
@@ -48,6 +50,9 @@ def detect_all(spec, rt) -> FramePixels:
                 errors[k] = str(e)
         if good:
             _, _, det = hs.detect_frames(np.stack(frames), rt.settings, rt.detect)
+            if getattr(det, "psf_sigma_px", None) is not None:
+                for k, w in zip(good, det.psf_sigma_px):
+                    widths[k] = float(w)
             obs = observations(det, len(good), rt.camera, max_obs=rt.settings.max_obs)
             parts.append((np.asarray(good), obs.x, obs.y, obs.valid))
     S = max([p[1].shape[1] for p in parts], default=1)
@@ -56,7 +61,7 @@ def detect_all(spec, rt) -> FramePixels:
     valid = np.zeros((F, S), bool)
     for k, px, py, pv in parts:
         x[k, :px.shape[1]], y[k, :px.shape[1]], valid[k, :px.shape[1]] = px, py, pv
-    return FramePixels(x, y, valid, tuple(errors))
+    return FramePixels(x, y, valid, tuple(errors), tuple(widths))
 
 
 def true_attitudes(spec) -> np.ndarray | None:
@@ -73,7 +78,9 @@ def true_attitudes(spec) -> np.ndarray | None:
 
 def fit_from_spec(spec, progress=None, warn=None) -> FitReport:
     """Read and detect the frames of a validated ``hil_star`` spec, then solve, fit and re-solve them
-    (``nav.distortion_procedure.fit_camera_from_sky``, whose ``progress`` events this passes on).
+    (``nav.distortion_procedure.fit_camera_from_sky``, whose ``progress`` events this passes on).  When the input
+    camera states no PSF width and the frames measured one (``kernels.detect_local.frames_psf_width``), the fitted
+    camera states it (rounded to 0.001 px).
 
     ``warn``: None or a callable taking the message of an image that could not be processed.  Raises
     InputError (too few stars)."""
@@ -91,4 +98,7 @@ def fit_from_spec(spec, progress=None, warn=None) -> FitReport:
         raise InputError(f"only {e.stars} stars identified in {e.solved} solved of {e.frames} frames; the fit needs "
                          f"at least {MIN_STARS} (give more frames, or a camera file closer to the lens)",
                          source="--fit-distortion") from None
+    one = frames_psf_width(pix.psf_sigma_px) if rep.camera.psf_sigma_px is None else None
+    if one is not None:        # the frames measured one PSF width: the fitted camera file states it too
+        rep = dataclasses.replace(rep, camera=dataclasses.replace(rep.camera, psf_sigma_px=round(one[0], 3)))
     return dataclasses.replace(rep, seconds=time.perf_counter() - t0)
