@@ -23,7 +23,7 @@ from dualsight.kernels.taichi_runtime import KernelCache
 __all__ = ["splitmix64", "frame_digest", "frame_digest_taichi", "patch_digest", "patch_digest_taichi", "to_int64"]
 
 _C1, _C2, _C3 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
-_WEIGHTS: dict[int, np.ndarray] = {}
+_WEIGHTS: dict[int, tuple[np.ndarray, np.uint64]] = {}
 
 
 def splitmix64(index: np.ndarray) -> np.ndarray:
@@ -35,13 +35,15 @@ def splitmix64(index: np.ndarray) -> np.ndarray:
         return z ^ (z >> np.uint64(31))
 
 
-def _weights(n: int) -> np.ndarray:
-    """splitmix64(0..n-1), cached for the last few frame sizes (8 bytes per pixel)."""
+def _weights(n: int) -> tuple[np.ndarray, np.uint64]:
+    """(splitmix64(0..n-1), their sum mod 2^64), cached for the last few frame sizes (8 bytes per pixel)."""
     w = _WEIGHTS.get(n)
     if w is None:
         if len(_WEIGHTS) >= 4:
             _WEIGHTS.pop(next(iter(_WEIGHTS)))
-        w = _WEIGHTS[n] = splitmix64(np.arange(n, dtype=np.uint64))
+        v = splitmix64(np.arange(n, dtype=np.uint64))
+        with np.errstate(over="ignore"):
+            w = _WEIGHTS[n] = (v, np.uint64(v.sum(dtype=np.uint64)))
     return w
 
 
@@ -73,9 +75,7 @@ def frame_digest(frames: np.ndarray, sky=0) -> np.ndarray:
     frames = np.asarray(frames)
     B = frames.shape[0]
     flat = frames.reshape(B, -1)
-    n = flat.shape[1]
-    w = _weights(n)
-    w_sum = _weight_sum(n)
+    w, w_sum = _weights(flat.shape[1])
     sky_bits = _bits(np.broadcast_to(np.asarray(sky, dtype=frames.dtype), (B,)))
     out = np.empty(B, np.uint64)
     with np.errstate(over="ignore"):
@@ -85,20 +85,6 @@ def frame_digest(frames: np.ndarray, sky=0) -> np.ndarray:
             dot = np.einsum("i,i->", _unsigned_view(flat[b]), w, dtype=np.uint64, casting="unsafe")
             out[b] = np.uint64(dot) - sky_bits[b] * w_sum
     return out
-
-
-_WEIGHT_SUMS: dict[int, np.uint64] = {}
-
-
-def _weight_sum(n: int) -> np.uint64:
-    """sum of splitmix64(0..n-1) mod 2^64 (cached per frame size)."""
-    v = _WEIGHT_SUMS.get(n)
-    if v is None:
-        if len(_WEIGHT_SUMS) >= 16:
-            _WEIGHT_SUMS.pop(next(iter(_WEIGHT_SUMS)))
-        with np.errstate(over="ignore"):
-            v = _WEIGHT_SUMS[n] = np.uint64(_weights(n).sum(dtype=np.uint64))
-    return v
 
 
 def patch_digest(values: np.ndarray, poff: np.ndarray, boxes: np.ndarray, patch_frame: np.ndarray,
