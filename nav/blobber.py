@@ -90,6 +90,8 @@ class BlobResult:
     n_pixels : (B,) whole pixels in the target blob.  n_coverage : (B,) summed coverage of those pixels.
     n_blob : (B,) the N_blob used in Eq. 1 (n_pixels for paper, n_coverage for subpixel).
     cob_px : (B, 2) centre of brightness (col, row), pixels from the top-left corner.
+    centre_px : (B, 2) the blob's geometric centre (col, row): the mean of its pixels' centres (``paper``) or
+        weighted by their coverage (``subpixel``: the centroid of the silhouette), whatever their brightness.
     unit : (B, 3) unit vector to the COB, camera frame.
     cov_px : (B, 2, 2) second central moments of the blob (px^2) used for the axes.
     major_px, minor_px : (B,) axis lengths 4 sqrt(lambda) (px).  axis_ratio : (B,) >= 1.
@@ -107,6 +109,7 @@ class BlobResult:
     n_blob: np.ndarray
     cob_px: np.ndarray
     unit: np.ndarray
+    centre_px: np.ndarray
     cov_px: np.ndarray
     major_px: np.ndarray
     minor_px: np.ndarray
@@ -202,7 +205,8 @@ def run_blobber(images, camera, table, config: BlobberConfig = BlobberConfig(), 
     return BlobResult(
         found=found, n_blobs=lab["n_blobs"].astype(np.int64), n_pixels=n_pix.astype(np.int64),
         n_coverage=S[:, 9].copy(), n_blob=np.asarray(n_blob, dtype=np.float64) * nan,
-        cob_px=cob * nan[:, None], unit=unit * nan[:, None], cov_px=cov,
+        cob_px=cob * nan[:, None], unit=unit * nan[:, None], centre_px=np.stack([mx, my], -1) * nan[:, None],
+        cov_px=cov,
         major_px=4.0 * np.sqrt(l1) * nan, minor_px=4.0 * np.sqrt(l2) * nan, axis_ratio=r,
         angle_rad=angle * nan, area_rel_min=a_min, area_rel_est=a_est, area_rel_max=a_max,
         range_min=rng[0] * nan, range_est=rng[1] * nan, range_max=rng[2] * nan,

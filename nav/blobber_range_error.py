@@ -22,7 +22,7 @@ the silhouette's exact axis ratio where the blobber only sees a measured one: a 
 ratio so poorly that q depends on the observed ratio far more than the table says (rendered 3U CubeSat at 50 m:
 -5.8 % to +3.2 % between quintiles of the observed ratio, -1.7 % on average after ``m_q``; at 2-25 m within 0.4 %).
 :class:`RangeRatioCalibration` is the measured answer: q over renders through the camera's own renderer and blobber
-(``jobs/kinds/rendezvous_context.blobber_range_calibration``), its mean and standard deviation conditioned on what the
+(``jobs/kinds/rendezvous_context.blobber_calibration``), its mean and standard deviation conditioned on what the
 blobber sees, the blob's summed coverage ``n_blob`` and its observed axis ratio, by Gaussian-kernel regression
 (Nadaraya-Watson; Hastie, Tibshirani & Friedman, *The Elements of Statistical Learning*, 2nd ed., 2009, Sec. 6.1)
 in (log10 n_blob, axis ratio).  Orientations uniform on SO(3) in both.  Units: ratios (dimensionless); pure numpy.

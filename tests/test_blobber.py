@@ -103,6 +103,25 @@ def test_centre_of_brightness_and_axes(table_3u):
     assert res.unit[0] == pytest.approx(CAM.backproject(res.cob_px[0]))
 
 
+def test_silhouette_centre_ignores_the_brightness_and_weighs_the_coverage(table_3u):
+    """The rectangle's centre (45, 30) whatever its brightness gradient (the centre of brightness leans to the
+    bright side, above); ``subpixel`` weighs each pixel by its coverage: a half-covered last column moves the
+    centre to the coverage's centroid, computed here by hand."""
+    img = np.zeros((1, 120, 160), np.float32)
+    x = np.arange(30, 60)
+    img[0, 20:40, 30:60] = x[None, :].astype(np.float32) ** 2
+    res = run_blobber(img, CAM, table_3u)
+    assert res.centre_px[0] == pytest.approx([45.0, 30.0], abs=1e-12)
+    assert res.cob_px[0, 0] > 46.0
+    cov = np.where(img > 0, 1.0, 0.0).astype(np.float32)
+    cov[0, 20:40, 59] = 0.5
+    sp = run_blobber(img, CAM, table_3u, BlobberConfig(estimator="subpixel"), coverage=cov)
+    xc = np.arange(30, 60) + 0.5
+    w = np.where(np.arange(30, 60) == 59, 0.5, 1.0)
+    assert sp.centre_px[0] == pytest.approx([(w * xc).sum() / w.sum(), 30.0], abs=1e-9)
+    assert not np.isfinite(run_blobber(np.zeros((1, 20, 20), np.float32), CAM, table_3u).centre_px).any()
+
+
 def test_rotated_rectangle_axes():
     a, b, th = 60.0, 20.0, math.radians(30)
     yy, xx = np.mgrid[0:200, 0:200] + 0.5

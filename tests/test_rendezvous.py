@@ -189,6 +189,8 @@ def test_report_numbers_equal_numpy_over_the_rows(small_runs):
      "rendezvous.manoeuvre_times_s[0]", "(0, "),
     ("[rendezvous]\ndispersion_position_m = [1.0, -5.0, 1.0]\n", "rendezvous.dispersion_position_m.1",
      "greater than or equal to 0"),
+    ('[rendezvous]\nbearing_point = "silhouette"\nphase_correction = false\n', "rendezvous.bearing_point",
+     '"brightness" with camera = "star"'),
 ])
 def test_a_hostile_spec_value_is_one_line_naming_file_field_and_range(tmp_path, body, field, allowed):
     cfg = tmp_path / "bad.toml"

@@ -25,7 +25,7 @@ One case is one approach of a chaser to a target near a circular orbit::
        brightness's residual that a target spinning about a fixed axis keeps from frame to frame,
        scene/photocentre_bias.py; the blobber's range with its bias removed and its spread as a fraction of the
        predicted range, both from a calibration of the blobber through the camera's own renderer,
-       :func:`~dualsight.jobs.kinds.rendezvous_context.blobber_range_calibration`,
+       :func:`~dualsight.jobs.kinds.rendezvous_context.blobber_calibration`,
        nav/blobber_range_error.py; a blob cut by the frame's edge gives neither;
        no process noise: the truth has none) -> Arrow rows (jobs/kinds/rendezvous_tables.py)
 

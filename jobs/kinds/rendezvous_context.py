@@ -1,7 +1,7 @@
 """Per-process state of the rendezvous job (:mod:`dualsight.jobs.kinds.rendezvous`): the target's satellite
 file and photometric shape, the star job's context or the proximity renderer's mesh, and the two ground
 calibrations through the camera's own renderer and detector: the point target's centroid error against its flux
-(star camera) and the blobber's range against the truth (proximity camera)."""
+(star camera) and the blobber's range and silhouette centre against the truth (proximity camera)."""
 
 from __future__ import annotations
 
@@ -11,12 +11,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from dualsight.jobs.kinds import star
+from dualsight.nav.blob_centre_error import CentreErrorCalibration, sequence_gain
 from dualsight.nav.blobber import BlobberConfig, run_blobber
 from dualsight.nav.blobber_range_error import RangeRatioCalibration, range_ratio_statistics
 from dualsight.nav.target_bearing import PointCentroidTable, point_centroid_table
 from dualsight.scene.attitude import quat_to_dcm, quaternions_from_uniforms
 from dualsight.scene.camera import Camera
 from dualsight.scene.motion import place_body
+from dualsight.scene.rotation_vector import frame_rotation
 from dualsight.scene.photocentre_bias import (PhotocentreStatistics, facet_materials, photocentre_statistics,
                                               shaded_photocentre_offset)
 from dualsight.scene.satellite import load_satellite
@@ -51,7 +53,9 @@ class RendezvousContext:
     table: object = None
     range_ratio: tuple = ()                # (bin centres, m_q, s_q): nav/blobber_range_error on ``table``
     centroid: PointCentroidTable | None = None   # star camera: point_centroid_calibration(spec)
-    range_calibration: RangeRatioCalibration | None = None   # proximity: blobber_range_calibration(...)
+    range_calibration: RangeRatioCalibration | None = None   # proximity: blobber_calibration(...)[0]
+    centre_calibration: CentreErrorCalibration | None = None  # proximity: blobber_calibration(...)[1]
+    silhouette_gain: np.ndarray | None = None     # proximity, bearing_point "silhouette": silhouette_sequence_gain
 
 
 def make_context(spec: RendezvousSpec) -> RendezvousContext:
@@ -70,29 +74,38 @@ def make_context(spec: RendezvousSpec) -> RendezvousContext:
     mq, sq = range_ratio_statistics(table.samples_ratio, table.samples_area, table.ratio_lo, table.ratio_hi,
                                     table.curve(BLOBBER.curve))
     mesh, materials = sat.mesh(), sat.materials()
-    cal = blobber_range_calibration(sat, mesh, materials, table, spec.camera) if spec.cfg.range_source == "blobber" \
-        else None
+    cal = cen = gain = None
+    if spec.cfg.range_source == "blobber" or spec.cfg.bearing_point == "silhouette":
+        cal, cen = blobber_calibration(sat, mesh, materials, table, spec.camera)
+    if spec.cfg.bearing_point == "silhouette":      # an approach in the orbit plane: its line of sight turns
+        c = spec.cfg                                # with the Hill frame, n dt a frame
+        gain = silhouette_sequence_gain(sat, mesh, materials, table, spec.camera, cen,
+                                        c.target_rate_deg_s * DEG * c.frame_interval_s,
+                                        spec.orbit.mean_motion * c.frame_interval_s, c.frames)
     return RendezvousContext(sat, shape, pc, pb, mesh=mesh, materials=materials, table=table,
-                             range_ratio=(table.ratio, mq, sq), range_calibration=cal)
+                             range_ratio=(table.ratio, mq, sq), range_calibration=cal,
+                             centre_calibration=cen, silhouette_gain=gain)
 
 
 RANGE_CALIB_SPANS = ((10.0, 80.0, 12000), (0.4, 10.0, 6000))
-"""Ranges (m) of :func:`blobber_range_calibration`'s renders: (low, high, count) log-uniform; more where the blob
+"""Ranges (m) of :func:`blobber_calibration`'s renders: (low, high, count) log-uniform; more where the blob
 is small (its observed axis ratio is poor and q's mean moves with it) than where the table alone is right."""
 RANGE_CALIB_POINTING_DEG = 0.5
 """1-sigma per axis of the calibration target's offset from the boresight (the presets' pointing error)."""
 
 
-def blobber_range_calibration(sat, mesh, materials, table, camera: Camera) -> RangeRatioCalibration:
-    """The proximity camera's blobber range against the truth, by Monte Carlo of the camera's own renderer
-    (``kernels/points.render``, "accurate", the satellite file's light) and blobber (:data:`BLOBBER`, the area
-    table ``table``): the target at ranges log-uniform in each of :data:`RANGE_CALIB_SPANS`, off the boresight by
-    :data:`RANGE_CALIB_POINTING_DEG`, orientations uniform on SO(3), the Sun from a uniform direction; a blob that
-    touches the image's edge is not a range (:func:`touches_edge`) and is left out.  Returns the samples as
-    ``nav/blobber_range_error.RangeRatioCalibration`` (q = range_est / range against n_blob and the observed axis
-    ratio).  Deterministic (its own generator, not the run's seed): a ground calibration of the blobber on the
-    target's model, as :func:`point_centroid_calibration` is of the star camera.  ~10 s for the 3U CubeSat and the
-    paper's proximity camera (one process, 2 shared cores)."""
+def blobber_calibration(sat, mesh, materials, table,
+                        camera: Camera) -> tuple[RangeRatioCalibration, CentreErrorCalibration]:
+    """The proximity camera's blobber range and silhouette centre against the truth, by Monte Carlo of the camera's
+    own renderer (``kernels/points.render``, "accurate", the satellite file's light) and blobber (:data:`BLOBBER`,
+    the area table ``table``): the target at ranges log-uniform in each of :data:`RANGE_CALIB_SPANS`, off the
+    boresight by :data:`RANGE_CALIB_POINTING_DEG`, orientations uniform on SO(3), the Sun from a uniform direction;
+    a blob that touches the image's edge is not a range (:func:`touches_edge`) and is left out.  Returns the
+    samples as ``nav/blobber_range_error.RangeRatioCalibration`` (q = range_est / range against n_blob and the
+    observed axis ratio) and ``nav/blob_centre_error.CentreErrorCalibration`` (the blob's ``centre_px`` minus the
+    projection of the body's origin, px, against n_blob).  Deterministic (its own generator, not the run's seed): a
+    ground calibration of the blobber on the target's model, as :func:`point_centroid_calibration` is of the star
+    camera.  ~10 s for the 3U CubeSat and the paper's proximity camera (one process, 2 shared cores)."""
     from dualsight.kernels.points import render              # Taichi
 
     rng = np.random.default_rng([23, 6, 4])
@@ -106,6 +119,7 @@ def blobber_range_calibration(sat, mesh, materials, table, camera: Camera) -> Ra
     sun = rng.normal(size=(M, 3))
     sun /= np.linalg.norm(sun, axis=1, keepdims=True)
     q, n_blob, ratio = np.full(M, np.nan), np.full(M, np.nan), np.full(M, np.nan)
+    err = np.full((M, 2), np.nan)
     light = sat.camera
     for s in range(0, M, PROX_CHUNK):
         i = np.arange(s, min(M, s + PROX_CHUNK))
@@ -116,7 +130,53 @@ def blobber_range_calibration(sat, mesh, materials, table, camera: Camera) -> Ra
         q[i] = np.where(ok, b.range_est / r[i], np.nan)
         n_blob[i] = np.where(ok, b.n_blob, np.nan)
         ratio[i] = np.where(ok, b.axis_ratio, np.nan)
-    return RangeRatioCalibration(n_blob, ratio, q)
+        err[i] = np.where(ok[:, None], b.centre_px - camera.project(pos[i])[0], np.nan)
+    return RangeRatioCalibration(n_blob, ratio, q), CentreErrorCalibration(n_blob, err)
+
+
+SEQUENCE_GAIN_SEQUENCES, SEQUENCE_GAIN_FRAMES = 100, 48
+"""Rendered sequences x frames (at most; the approach's frames if fewer) of :func:`silhouette_sequence_gain`: ~4,800
+renders, ~5 s; the gain's sampling error ~sqrt(2 / 100) = 14 %."""
+SEQUENCE_GAIN_RANGES_M = (2.0, 50.0)
+"""Ranges (m) of the sequences, log-uniform (one per sequence, the close preset's span)."""
+
+
+def silhouette_sequence_gain(sat, mesh, materials, table, camera: Camera, centre: CentreErrorCalibration,
+                             spin_step_rad: float, turn_step_rad: float, frames: int) -> np.ndarray:
+    """(2,) ``nav/blob_centre_error.sequence_gain`` of the silhouette centre's error along the observer's turn
+    axis and across it, by the camera's own renderer and blobber (the area table ``table``): sequences of the
+    target spinning about an axis uniform on the sphere (its initial attitude uniform on SO(3)) by
+    ``spin_step_rad`` a frame while the observer turns about the camera's y axis (the Sun along it) by
+    ``turn_step_rad`` a frame, at a range log-uniform in :data:`SEQUENCE_GAIN_RANGES_M`, each frame's error over
+    the calibration's sigma at its coverage (``centre``).  Deterministic (its own generator): a ground
+    calibration, as :func:`blobber_calibration`."""
+    from dualsight.kernels.points import render              # Taichi
+
+    rng = np.random.default_rng([23, 6, 5])
+    S, L = SEQUENCE_GAIN_SEQUENCES, max(1, min(int(frames), SEQUENCE_GAIN_FRAMES))
+    axes = rng.normal(size=(S, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    u = rng.random((S, 3))
+    R0 = quat_to_dcm(quaternions_from_uniforms(u[:, 0], u[:, 1], u[:, 2]))
+    lo, hi = SEQUENCE_GAIN_RANGES_M
+    r = np.exp(rng.uniform(math.log(lo), math.log(hi), S))
+    k = np.arange(L)
+    spin = frame_rotation((axes[:, None, :] * (k * spin_step_rad)[None, :, None]).reshape(-1, 3)).reshape(S, L, 3, 3)
+    obs = frame_rotation(np.outer(k * turn_step_rad, [0.0, 1.0, 0.0]))[None]
+    R_body = (obs @ spin @ R0[:, None]).reshape(-1, 3, 3)
+    pos = np.repeat(np.stack([np.zeros(S), np.zeros(S), r], -1), L, 0)
+    sun = np.tile([0.0, 1.0, 0.0], (S * L, 1))
+    z = np.full((S * L, 2), np.nan)
+    light = sat.camera
+    for s in range(0, S * L, PROX_CHUNK):
+        i = np.arange(s, min(S * L, s + PROX_CHUNK))
+        poses = place_body(sat, R_body[i], pos[i], sun[i])
+        img, cov = render("accurate", mesh, materials, poses.R, poses.t, poses.light, camera, light.I_a, light.I_l)
+        b = run_blobber(img, camera, table, BLOBBER, coverage=cov)
+        ok = b.found & ~touches_edge(b.box, camera)
+        e = (b.centre_px - camera.project(pos[i])[0])[:, ::-1]          # (row: along the turn axis, column)
+        z[i] = np.where(ok[:, None], e / centre.sigma_px(b.n_coverage)[:, None], np.nan)
+    return sequence_gain(z.reshape(S, L, 2))
 
 
 def touches_edge(box: np.ndarray, camera: Camera) -> np.ndarray:

@@ -89,9 +89,24 @@ def gauss_markov_cob(spec: RendezvousSpec, ctx: RendezvousContext) -> CobBias | 
 
 def cob_states(spec: RendezvousSpec, ctx: RendezvousContext, cob: CobBias | None) -> tuple[CobBias | None, int]:
     """The bias model the filter runs with (``cob``, or the product's :func:`gauss_markov_cob` for None) and its
-    number of states (0 without ``phase_correction``: the photocentre's whole spread is then white)."""
+    number of states (0 without ``phase_correction``, and so for a silhouette bearing: the photocentre's whole
+    spread is then white)."""
     cob = gauss_markov_cob(spec, ctx) if cob is None else cob
     return cob, (cob.n if (cob is not None and spec.cfg.phase_correction) else 0)
+
+
+def silhouette_cov(ctx: RendezvousContext, sigma_px: float, v: np.ndarray, normal: np.ndarray, r: float,
+                   fx: float) -> np.ndarray:
+    """(K, 3, 3) rad^2: the white covariance a filter takes for a silhouette centre's error (``bearing_point``
+    "silhouette") of the calibrated 1-sigma ``sigma_px`` (px, per axis; ``nav/blob_centre_error.py``) at lines of
+    sight v (K, 3) and range r m: along the orbit normal ``normal`` (3,) projected across v (the line of sight of
+    an approach in the orbit plane turns about it) and across that, its variance (sigma_px r / fx)^2 times the
+    error's sequence gain on each (``ctx.silhouette_gain``: its frame-to-frame correlation under the target's spin
+    and the observer's turn, ``rendezvous_context.silhouette_sequence_gain``), over r^2."""
+    D = cob_axes(v, normal)
+    s_m = sigma_px * r / fx * np.sqrt(ctx.silhouette_gain)
+    Dw = D * s_m[None, None, :] / r
+    return Dw @ np.swapaxes(Dw, -1, -2)
 
 
 def target_selector(spec: RendezvousSpec, ctx: RendezvousContext, m: dict, cob: CobBias | None = None):
@@ -111,7 +126,9 @@ def target_selector(spec: RendezvousSpec, ctx: RendezvousContext, m: dict, cob: 
     scatter about the spin average (``white_sun``, ``white_cross`` along the same two axes) joins the bearing's
     white covariance, with
     ``(cob_sigma_frac x 2 bounding_radius / r)^2`` in any case.  Without ``phase_correction`` the mean offset is
-    not removed and the table's whole spread is white (no bias states: :func:`cob_bias_states`).
+    not removed and the table's whole spread is white (no bias states: :func:`cob_bias_states`).  A bearing through
+    the silhouette centre (``bearing_point`` "silhouette") has no centre of brightness to correct: its error is
+    white, :func:`silhouette_cov` (with the ``cob_sigma_frac`` term).
 
     Records per frame the raw and used bearing and covariance (``u``, ``C``, ``u_used``, ``C_used``),
     ``bearing_used``, ``found_by`` (``FOUND_BY`` code) and ``found_true`` (the pick is the true target's
@@ -136,7 +153,9 @@ def target_selector(spec: RendezvousSpec, ctx: RendezvousContext, m: dict, cob: 
         var = np.full(len(u), extra ** 2)
         v = u
         G = np.zeros((len(u), 3, max(nb, 1)))
-        if c.phase_correction:
+        if c.bearing_point == "silhouette":        # no centre of brightness: the silhouette centre's own error
+            C = C + silhouette_cov(ctx, float(m["centre_sigma_px"][k]), v, R_k[:, 2], r, spec.camera.fx)
+        elif c.phase_correction:
             alpha = np.arccos(np.clip(-(u @ s), -1.0, 1.0))          # Sun - target - chaser
             v = sphere_phase_correction(u, np.broadcast_to(s, u.shape), np.interp(alpha, grid, mean), r)
             if nb:

@@ -13,6 +13,7 @@ from dualsight.jobs.kinds import star, star_target
 from dualsight.kernels.digest import frame_digest, to_int64
 from dualsight.kernels.sensor_config import flux_from_magnitude
 from dualsight.nav.attitude import solve_identified
+from dualsight.nav.blob_centre_error import CENTRE_SIGMA_FLOOR_PX
 from dualsight.nav.blobber import run_blobber
 from dualsight.nav.blobber_range_error import range_ratio_at
 from dualsight.nav.observations import observations
@@ -55,7 +56,7 @@ def _empty_meas(T: int) -> dict:
             "u_used": np.full((T, 3), np.nan), "C_used": np.zeros((T, 3, 3)), "bearing_raw_err": nan.copy(),
             "target_xy": np.full((T, 2), np.nan), "found_by": np.zeros(T, np.int8), "found_true": np.zeros(T, bool),
             "axis_ratio": nan.copy(), "range_filter": nan.copy(), "cand": None, "n_blob": nan.copy(), "range_sigma_frac": nan.copy(),
-            "cut": np.zeros(T, bool)}
+            "cut": np.zeros(T, bool), "centre_sigma_px": nan.copy()}
 
 
 def _candidates(frame, u, C, xy, true) -> dict:
@@ -164,8 +165,10 @@ def bearing_scores(m: dict, geo: dict) -> None:
 
 
 def measure_prox(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: dict, keep_images: bool = False):
-    """Proximity camera: the target rendered alone (exact coverage), the blobber's centre of brightness and range,
-    the bearing through the chaser's star-tracker attitude (truth + ``attitude_err``).  Returns (measurements,
+    """Proximity camera: the target rendered alone (exact coverage), the blobber's centre of brightness (or, with
+    ``bearing_point`` "silhouette", its silhouette centre and that centre's calibrated spread,
+    ``nav/blob_centre_error.py``) and range, the bearing through the chaser's star-tracker attitude (truth +
+    ``attitude_err``).  Returns (measurements,
     images (T, H, W) or None)."""
     from dualsight.kernels.points import render              # Taichi
 
@@ -200,9 +203,13 @@ def measure_prox(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
         found = b.found & tc.present[fr]
         m["detected"][fr] = found
         m["pixels"][fr] = np.where(found, np.nan_to_num(b.n_pixels), -1).astype(np.int64)
-        xy = np.where(found[:, None], b.cob_px, 0.5 * np.array([cam.width, cam.height]))
+        point = b.centre_px if c.bearing_point == "silhouette" else b.cob_px
+        xy = np.where(found[:, None], point, 0.5 * np.array([cam.width, cam.height]))
         m["target_xy"][fr] = np.where(found[:, None], xy, np.nan)
         sig_px = np.full(len(fr), star_target.CENTROID_FLOOR_PX)
+        if c.bearing_point == "silhouette":      # the silhouette centre's spread at the blob's coverage, which
+            sig_px[:] = CENTRE_SIGMA_FLOOR_PX    # the filter adds with its gains (rendezvous_filter.silhouette_cov)
+            m["centre_sigma_px"][fr] = np.where(found, ctx.centre_calibration.sigma_px(b.n_coverage), np.nan)
         u, C = inertial_bearing(A_est[fr], np.broadcast_to(sa ** 2 * np.eye(3), (len(fr), 3, 3)), xy, sig_px, cam)
         m["u"][fr] = np.where(found[:, None], u, np.nan)        # the candidates (the one blob), picked by the gate
         m["C"][fr] = np.where(found[:, None, None], C, 0.0)
@@ -234,7 +241,7 @@ def range_model(ctx: RendezvousContext, m: dict) -> None:
     (``relative_filter.run``'s ``range_sig_frac``: a sigma scaled by the measured range biases the estimate short).  m_q and
     s_q are the calibration's (``ctx.range_calibration``: q's mean and spread over renders at the blob's summed
     coverage ``m["n_blob"]`` and observed axis ratio,
-    :func:`~dualsight.jobs.kinds.rendezvous_context.blobber_range_calibration`), else the area table's
+    :func:`~dualsight.jobs.kinds.rendezvous_context.blobber_calibration`), else the area table's
     at the observed axis ratio (``ctx.range_ratio``: exact silhouettes, no pixel sampling)."""
     rok = m["range_used"]
     if ctx.range_calibration is not None:

@@ -83,6 +83,12 @@ class RendezvousConfig:
         True).
     cob_sigma_frac: a further 1-sigma of the centre of brightness about the body's centre, as a fraction of the
         bounding sphere's diameter, at the predicted range (in [0, 1], default 0.1).
+    bearing_point: the point of a proximity camera's blob the bearing goes through: "brightness" (default: the
+        centre of brightness, with ``phase_correction``) or "silhouette" (the centre of the blob's pixels weighted
+        by their coverage, whatever their brightness: a centrally symmetric body's silhouette is centred on its
+        origin, so no phase correction (``phase_correction`` must be false); its spread from the blobber's
+        calibration on renders, ``nav/blob_centre_error.py``).  The star camera's target is a point: "brightness"
+        only.
     Filter (``nav/relative_filter.py``): prior_position_m 3 values in (0, 1e5] m and prior_velocity_m_s 3 values in
         (0, 100] m/s (1-sigma per Hill axis about the nominal state; defaults: the dispersion's), accel_psd in
         [0, 1e-3] m^2/s^3 (default 1e-12), iterations in [1, 20] (default 3).
@@ -121,6 +127,8 @@ class RendezvousConfig:
     range_source: typing.Literal["blobber", "none"] = "none"
     phase_correction: bool = True
     cob_sigma_frac: typing.Annotated[float, pydantic.Field(ge=0.0, le=1.0)] = 0.1
+    bearing_point: typing.Literal["brightness", "silhouette"] = dataclasses.field(
+        default="brightness", metadata={"omit_if_default": True})
     prior_position_m: typing.Annotated[tuple[_RdvPriorP, _RdvPriorP, _RdvPriorP],
                                        pydantic.Field(min_length=3, max_length=3)] = (2.0, 100.0, 2.0)
     prior_velocity_m_s: typing.Annotated[tuple[_RdvPriorV, _RdvPriorV, _RdvPriorV],
@@ -144,6 +152,13 @@ class RendezvousConfig:
             if t > self.duration_s:
                 raise ConfigError(f"must lie in (0, duration_s = {self.duration_s:g}] s, got {t!r}",
                                   field=f"rendezvous.manoeuvre_times_s[{i}]")
+        if self.bearing_point == "silhouette" and self.camera == "star":
+            raise ConfigError('must be "brightness" with camera = "star" (its target is a point: no silhouette), got '
+                              '"silhouette"', field="rendezvous.bearing_point")
+        if self.bearing_point == "silhouette" and self.phase_correction:
+            raise ConfigError('must be false with bearing_point = "silhouette" (the phase correction moves a centre '
+                              'of brightness; a silhouette is centred on the body), got true',
+                              field="rendezvous.phase_correction")
         if self.sun_icrs is not None and abs(math.hypot(*self.sun_icrs) - 1.0) > 1e-3:
             raise ConfigError(f"must be a unit vector (norm 1 +- 1e-3), got {list(self.sun_icrs)!r}",
                               field="rendezvous.sun_icrs")
@@ -184,15 +199,16 @@ PRESETS = {
         cob_sigma_frac=0.0, accel_psd=0.0)},
     # issue 23.6 (d): the paper's proximity camera and 3U CubeSat, 50 m -> 2 m on V-bar in one orbit, bearings and
     # the blobber's range every frame the target is resolved; 61 frames (~96 s apart), the burn at frame 1.  No
-    # process noise (as far); the centre of brightness corrected by the renderer's own shading's mean photocentre
-    # (prox_photocentre: ambient + diffuse + specular, ~1.4 cm towards the Sun at 90 deg phase, which the bearings
-    # carried uncorrected before) with its bias states; the blobber's range with its known bias removed
-    # (range_model).
+    # process noise (as far); the bearing through the blob's silhouette centre (bearing_point; its spread from the
+    # blobber's calibration: 0.2-0.6 mm at 10-60 m), not its centre of brightness, which leans ~1.4 cm towards the
+    # Sun at 90 deg phase and, after a mean correction, keeps a spin-aliased, heavy-tailed residual of ~8 mm that
+    # no Gaussian filter state held (issue 23 c: docs/rendezvous.md); the blobber's range with its known bias
+    # removed (range_model).
     "close": {"seed": 1, "cases": DEFAULT_CASES, "rendezvous": _hop_preset(
         500.0, 50.0, 2.0, 1, 59, camera="examples/cameras/paper_prox.toml", range_source="blobber",
         dv_error_frac=0.01, dispersion_position_m=[0.1, 2.5, 0.1], dispersion_velocity_m_s=[1e-4] * 3,
         prior_position_m=[0.1, 2.5, 0.1], prior_velocity_m_s=[1e-4] * 3, pointing_error_deg=0.5,
-        phase_correction=True, cob_sigma_frac=0.0, accel_psd=0.0)},
+        phase_correction=False, bearing_point="silhouette", cob_sigma_frac=0.0, accel_psd=0.0)},
 }
 
 

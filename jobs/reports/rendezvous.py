@@ -49,7 +49,8 @@ def build(lake: Lake, run_id: str) -> dict:
     if not s["frames"]:
         raise InputError(f"run {run_id!r} has no rendezvous frames in {lake.root}", source="--run")
     m = lake.read_manifest(run_id) or {}
-    conv = int(((m.get("spec") or {}).get("rendezvous") or {}).get("converged_after_frames", 10))
+    rdv = (m.get("spec") or {}).get("rendezvous") or {}
+    conv = int(rdv.get("converged_after_frames", 10))
     per_frame = [dict(zip(tables["rendezvous_nees"][0], r)) for r in tables["rendezvous_nees"][1]]
     M = int(s["approaches"])
     lo, hi = chi2_mean_bounds(6, M, 0.95)
@@ -62,6 +63,7 @@ def build(lake: Lake, run_id: str) -> dict:
              if s["filtered_range_err_rms_m"] is not None and s["blobber_range_err_rms_m"] else None)
     js = {"run": run_id, **{k: (float(v) if isinstance(v, float) else v) for k, v in s.items()},
           "after_frames": AFTER_FRAMES, "converged_after_frames": conv, "nees_bounds_95": [lo, hi],
+          "bearing_point": rdv.get("bearing_point", "brightness"),
           "nees_frames_checked": len(after), "nees_frames_inside": int(sum(inside)),
           "nees_inside_share": (sum(inside) / len(after)) if after else None,
           "nees_frames_outside": [r["frame"] for r, ok in zip(after, inside) if not ok],
@@ -127,7 +129,8 @@ def text(rep: dict) -> str:
         f"{'-' if j['target_found_rate'] is None else percent(j['target_found_rate'])} of the frames with a "
         f"detection of it ({'-' if j['target_detected_share'] is None else percent(j['target_detected_share'])} of "
         f"frames); {j['target_false_picks']} picks not the target, {j['target_gated_out']} frames gated out",
-        "bearing error (used, after the centre-of-brightness correction): RMS "
+        ("bearing error (used: through the target's silhouette centre): RMS " if j["bearing_point"] == "silhouette"
+         else "bearing error (used, after the centre-of-brightness correction): RMS ") +
         f"{formatted(j['bearing_err_rms_arcsec'], '{:.2f}')} arcsec, median {formatted(j['bearing_err_p50_arcsec'], '{:.2f}')}, "
         f"p95 {formatted(j['bearing_err_p95_arcsec'], '{:.2f}')}"
         f"; as measured {formatted(j['bearing_raw_err_rms_arcsec'], '{:.2f}')}; stated 1-sigma per axis RMS "

@@ -1,0 +1,96 @@
+"""How far a resolved target's silhouette centre (``nav/blobber.py``'s ``centre_px``: the blob's pixels weighted by
+their coverage, whatever their brightness) lies from the projection of the body's origin, as a function of what the
+blobber saw: its summed coverage ``n_blob`` (issue 23, points 4 and 6 c).
+
+Why a silhouette and not the centre of brightness: the centre of brightness of a lit body leans towards the Sun by
+a fraction of its size (the 3U CubeSat under the proximity renderer's shading at 90 deg of phase: 14 mm mean and
+8 mm spread over attitudes, from 50 m to 2 m), and what a mean phase correction leaves of it is heavy-tailed over
+spin axes and aliased by the spin from frame to frame (docs/rendezvous.md).  The silhouette of a centrally
+symmetric convex body (a cuboid, a cylinder) in orthographic projection is centrally symmetric about the projection
+of its centre, so its area centroid is that projection exactly (a centrally symmetric plane figure's centroid is its
+centre of symmetry); what is left is the pixel sampling of the silhouette's edge and, close in, the perspective
+(the near faces drawn larger): 0.2-0.6 mm at 10-60 m and 1.3 / 4.4 mm at 5-10 / 2-5 m for the 3U CubeSat (seed 1,
+30 approaches of the close preset, 2026-11-28).  It needs the faces turned away from the Sun to be seen: the
+proximity renderer's ambient term (the reference's Eq. 3) lights every visible facet.
+
+:class:`CentreErrorCalibration` holds the errors of renders of the target through the camera's own renderer and
+blobber (``jobs/kinds/rendezvous_context.blobber_calibration``) and gives the root mean square per axis against
+n_blob by a Gaussian kernel in log10 n_blob (Nadaraya 1964; Watson 1964), on a fixed grid interpolated linearly.
+Units: pixels.
+
+The error of a spinning target is not white from frame to frame: it is a function of the body's attitude seen
+from the camera, so frames taken every dt of a spin at rate omega sample it at spin phases omega dt apart (96 deg a
+frame in the close preset: every 4th frame nearly repeats), and the observer's turn about the target changes it
+slowly, most along the turn's axis.  A filter that takes it as white is overconfident by the low-frequency content
+of those sequences: :func:`sequence_gain` measures it on rendered sequences (the 3U CubeSat at 96 deg of spin and
+6.1 deg of turn a frame: ~2.9 along the turn axis, ~1.4 across; ``jobs/kinds/rendezvous_context.
+silhouette_sequence_gain``) and the rendezvous filter takes the white error's variance times it.  Modelling the
+sequence instead (the spin average as Gauss-Markov states, the first two harmonics of the spin phase as damped
+rotating state pairs: 0.20, 0.35 and 0.36 of the error's mean square at 3-25 m) left the filter overconfident at
+4-10 m (mean NEES 7.9 at the last frames, 100 approaches; 9.3 white; 2026-11-28): the observer's turn shifts each
+harmonic's phase by an amount the unknown spin axis sets."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["CentreErrorCalibration", "CENTRE_SIGMA_FLOOR_PX", "sequence_gain"]
+
+CENTRE_SIGMA_FLOOR_PX = 1e-3
+"""Smallest 1-sigma per axis (px) :meth:`CentreErrorCalibration.sigma_px` gives (a noise-free render of a large
+blob centres to ~1e-3 px: the grid's exact coverage; the floor keeps a bearing's covariance positive)."""
+
+
+@dataclass(frozen=True)
+class CentreErrorCalibration:
+    """Silhouette-centre errors ``err_px`` (M, 2) (measured minus the projection of the body's origin, col and row,
+    px) of renders whose blobs had summed coverage ``n_blob`` (M,) px; non-finite samples are ignored.
+    :meth:`sigma_px` gives their root mean square per axis (the mean of the two axes' mean squares, bias included)
+    at new blobs, by a Gaussian kernel of width ``bw_log_n`` decades of n_blob evaluated on ``grid_points`` points
+    spanning the samples and interpolated (clamped at the ends)."""
+
+    n_blob: np.ndarray
+    err_px: np.ndarray
+    bw_log_n: float = 0.1
+    grid_points: int = 256
+    _grid: tuple = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        n = np.asarray(self.n_blob, np.float64).ravel()
+        e = np.asarray(self.err_px, np.float64).reshape(-1, 2)
+        ok = np.isfinite(n) & (n > 0) & np.isfinite(e).all(1)
+        if not ok.any():
+            raise ValueError("CentreErrorCalibration: no finite sample (n_blob > 0 and a finite error)")
+        ls = np.log10(n[ok])
+        e2 = 0.5 * (e[ok] ** 2).sum(1)                          # the mean square per axis of each sample
+        g = np.linspace(ls.min(), ls.max(), self.grid_points)
+        w = np.exp(-0.5 * ((g[:, None] - ls[None]) / self.bw_log_n) ** 2)
+        ms = (w @ e2) / np.maximum(w.sum(1), 1e-300)
+        object.__setattr__(self, "_grid", (g, np.sqrt(ms)))
+
+    def sigma_px(self, n_blob) -> np.ndarray:
+        """(B,) 1-sigma per axis (px) of the silhouette centre of blobs of summed coverage ``n_blob`` (B,) px, at
+        least :data:`CENTRE_SIGMA_FLOOR_PX`; NaN where n_blob is not finite or <= 0."""
+        n = np.asarray(n_blob, np.float64).ravel()
+        ok = np.isfinite(n) & (n > 0)
+        g, s = self._grid
+        out = np.interp(np.log10(np.where(ok, n, 1.0)), g, s)
+        return np.where(ok, np.maximum(out, CENTRE_SIGMA_FLOOR_PX), np.nan)
+
+
+
+def sequence_gain(z: np.ndarray, max_frames: int | None = None) -> np.ndarray:
+    """How much more the running sums of a correlated error spread than a white error's of the same variance:
+    ``max over N <= max_frames of E[(z_1 + ... + z_N)^2] / N`` per axis, from sequences ``z`` (S, L, A) of
+    unit-variance errors (S sequences of L frames, A axes; NaN frames count as 0), N up to ``max_frames`` (default
+    L).  1 for a white error; N for one held constant; for a first-order Gauss-Markov error of correlation a per
+    frame, 1 + 2 sum_{l=1}^{N-1} (1 - l/N) a^l at each N (Bendat & Piersol, *Random Data*, 4th ed., 2010,
+    Sec. 8.2.1).  A filter that takes the error as white with its variance times this gain is, over every window up
+    to ``max_frames`` frames, no more confident than the error's running sums allow."""
+    z = np.nan_to_num(np.asarray(z, np.float64))
+    S, L, A = z.shape
+    n_max = L if max_frames is None else min(int(max_frames), L)
+    c = np.cumsum(z, axis=1)[:, :n_max]                                  # (S, N, A) running sums
+    return np.max(np.mean(c ** 2, axis=0) / np.arange(1, n_max + 1)[:, None], axis=0)
