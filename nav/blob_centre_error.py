@@ -23,8 +23,9 @@ from the camera, so frames taken every dt of a spin at rate omega sample it at s
 frame in the close preset: every 4th frame nearly repeats), and the observer's turn about the target changes it
 slowly, most along the turn's axis.  A filter that takes it as white is overconfident by the low-frequency content
 of those sequences: :func:`sequence_gain` measures it on rendered sequences (the 3U CubeSat at 96 deg of spin and
-6.1 deg of turn a frame: ~2.9 along the turn axis, ~1.4 across; ``jobs/kinds/rendezvous_context.
-silhouette_sequence_gain``) and the rendezvous filter takes the white error's variance times it.  Modelling the
+6.1 deg of turn a frame: 2.3 along the turn axis, 1.9 across, 400 sequences of 48 frames;
+``jobs/kinds/rendezvous_context.silhouette_sequence_gain``) and the rendezvous filter takes the white error's
+variance times it.  Modelling the
 sequence instead (the spin average as Gauss-Markov states, the first two harmonics of the spin phase as damped
 rotating state pairs: 0.20, 0.35 and 0.36 of the error's mean square at 3-25 m) left the filter overconfident at
 4-10 m (mean NEES 7.9 at the last frames, 100 approaches; 9.3 white; 2026-11-28): the observer's turn shifts each
