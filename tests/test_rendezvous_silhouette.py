@@ -147,3 +147,45 @@ def test_silhouette_cov_by_hand():
                        20.0, 1290.0)[0]
     s2 = (0.05 * 20 / 1290) ** 2 / 20 ** 2
     np.testing.assert_allclose(C, np.diag([0.0, 1.2 * s2, 2.5 * s2]), atol=1e-20)
+
+
+def test_calibrations_are_cached_by_content_and_rebuilt_when_stale(tmp_path, monkeypatch):
+    """The second call reads what the first wrote (no render: the computing functions would raise), the same arrays;
+    another camera is another key (computed again); a corrupt file is rebuilt, not trusted."""
+    from dataclasses import replace
+
+    from dualsight.jobs.kinds import rendezvous_context as rc
+
+    monkeypatch.setattr(rc, "RANGE_CALIB_SPANS", ((10.0, 20.0, 24),))
+    monkeypatch.setattr(rc, "SEQUENCE_GAIN_SEQUENCES", 4)
+    monkeypatch.setattr(rc, "SEQUENCE_GAIN_FRAMES", 6)
+    d, _ = rendezvous_spec.resolve_spec("close", None, cases=1)
+    spec = rz.spec_from_dict(d)
+    sat = rc.load_satellite(spec.cfg.satellite)
+    mesh, materials = sat.mesh(), sat.materials()
+    from dualsight.catalogs.areas import area_table
+
+    table = area_table(sat, n=2000, bin_width=0.05, cache_dir=tmp_path)
+    cal, cen = rc.cached_blobber_calibration(sat, mesh, materials, table, spec.camera, cache_dir=tmp_path)
+    g = rc.cached_sequence_gain(sat, mesh, materials, table, spec.camera, cen, 1.7, 0.1, 6, cache_dir=tmp_path)
+    computed = {"blobber_calibration": rc.blobber_calibration, "silhouette_sequence_gain": rc.silhouette_sequence_gain}
+
+    def refuse(*a, **k):
+        raise AssertionError("computed again")
+    monkeypatch.setattr(rc, "blobber_calibration", refuse)
+    monkeypatch.setattr(rc, "silhouette_sequence_gain", refuse)
+    cal2, cen2 = rc.cached_blobber_calibration(sat, mesh, materials, table, spec.camera, cache_dir=tmp_path)
+    g2 = rc.cached_sequence_gain(sat, mesh, materials, table, spec.camera, cen2, 1.7, 0.1, 6, cache_dir=tmp_path)
+    np.testing.assert_array_equal(cal2.q, cal.q)
+    np.testing.assert_array_equal(cen2.err_px, cen.err_px)
+    np.testing.assert_array_equal(g2, g)
+    other = replace(spec.camera, fx=spec.camera.fx * 1.01)
+    with pytest.raises(AssertionError, match="computed again"):
+        rc.cached_blobber_calibration(sat, mesh, materials, table, other, cache_dir=tmp_path)
+    with pytest.raises(AssertionError, match="computed again"):                  # another spin step
+        rc.cached_sequence_gain(sat, mesh, materials, table, spec.camera, cen, 1.8, 0.1, 6, cache_dir=tmp_path)
+    for f in (tmp_path / "rendezvous").glob("*.parquet"):
+        f.write_bytes(b"not parquet")
+    monkeypatch.setattr(rc, "blobber_calibration", computed["blobber_calibration"])
+    cal3, _ = rc.cached_blobber_calibration(sat, mesh, materials, table, spec.camera, cache_dir=tmp_path)
+    np.testing.assert_array_equal(cal3.q, cal.q)

@@ -1,15 +1,18 @@
 """Per-process state of the rendezvous job (:mod:`dualsight.jobs.kinds.rendezvous`): the target's satellite
 file and photometric shape, the star job's context or the proximity renderer's mesh, and the two ground
 calibrations through the camera's own renderer and detector: the point target's centroid error against its flux
-(star camera) and the blobber's range and silhouette centre against the truth (proximity camera)."""
+(star camera) and the blobber's range and silhouette centre against the truth (proximity camera; cached on disk by
+content, :func:`cached_blobber_calibration`)."""
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, replace
 
 import numpy as np
 
+from dualsight.catalogs.cache import resolve_cache_dir, short_hash
 from dualsight.jobs.kinds import star
 from dualsight.nav.blob_centre_error import CentreErrorCalibration, sequence_gain
 from dualsight.nav.blobber import BlobberConfig, run_blobber
@@ -76,12 +79,12 @@ def make_context(spec: RendezvousSpec) -> RendezvousContext:
     mesh, materials = sat.mesh(), sat.materials()
     cal = cen = gain = None
     if spec.cfg.range_source == "blobber" or spec.cfg.bearing_point == "silhouette":
-        cal, cen = blobber_calibration(sat, mesh, materials, table, spec.camera)
+        cal, cen = cached_blobber_calibration(sat, mesh, materials, table, spec.camera)
     if spec.cfg.bearing_point == "silhouette":      # an approach in the orbit plane: its line of sight turns
         c = spec.cfg                                # with the Hill frame, n dt a frame
-        gain = silhouette_sequence_gain(sat, mesh, materials, table, spec.camera, cen,
-                                        c.target_rate_deg_s * DEG * c.frame_interval_s,
-                                        spec.orbit.mean_motion * c.frame_interval_s, c.frames)
+        gain = cached_sequence_gain(sat, mesh, materials, table, spec.camera, cen,
+                                    c.target_rate_deg_s * DEG * c.frame_interval_s,
+                                    spec.orbit.mean_motion * c.frame_interval_s, c.frames)
     return RendezvousContext(sat, shape, pc, pb, mesh=mesh, materials=materials, table=table,
                              range_ratio=(table.ratio, mq, sq), range_calibration=cal,
                              centre_calibration=cen, silhouette_gain=gain)
@@ -179,6 +182,70 @@ def silhouette_sequence_gain(sat, mesh, materials, table, camera: Camera, centre
         e = (b.centre_px - camera.project(pos[i])[0])[:, ::-1]          # (row: along the turn axis, column)
         z[i] = np.where(ok[:, None], e / centre.sigma_px(b.n_coverage)[:, None], np.nan)
     return sequence_gain(z.reshape(S, L, 2))
+
+
+CALIBRATION_VERSION = 1
+"""Part of the cache key of :func:`cached_blobber_calibration` and :func:`cached_sequence_gain`: raise it when the
+renderer, the blobber or the calibrations' sampling change what they compute (as ``catalogs/areas.TABLE_VERSION``)."""
+_CAL_META = b"dualsight.rendezvous_calibration"
+
+
+def _calibration_key(sat, mesh, materials, table, camera: Camera, **extra) -> str:
+    """A content key of a calibration's inputs: the target's mesh, materials, light and components, its area
+    table's key, the camera, :data:`CALIBRATION_VERSION`, the sampling constants and ``extra``."""
+    light = sat.camera
+    body = short_hash(b"".join(np.ascontiguousarray(a).tobytes() for a in (mesh.vertices, mesh.normals,
+                                                                            mesh.component, materials)))
+    payload = {"version": CALIBRATION_VERSION, "body": body, "components": repr(sat.components),
+               "light": [float(light.I_a), float(light.I_l)], "table": table.key, "camera": camera.to_dict(),
+               "spans": RANGE_CALIB_SPANS, "pointing": RANGE_CALIB_POINTING_DEG,
+               "sequences": [SEQUENCE_GAIN_SEQUENCES, SEQUENCE_GAIN_FRAMES, list(SEQUENCE_GAIN_RANGES_M)], **extra}
+    return short_hash(json.dumps(payload, sort_keys=True, default=str))
+
+
+def cached_blobber_calibration(sat, mesh, materials, table, camera: Camera,
+                               cache_dir=None) -> tuple[RangeRatioCalibration, CentreErrorCalibration]:
+    """:func:`blobber_calibration`, read from ``<cache>/rendezvous/<key>.parquet`` (``catalogs/cache``:
+    DUALSIGHT_CACHE or ~/.cache/dualsight) when a run on the same target and camera made it, else computed and
+    written there (atomically); a missing, unreadable or foreign file is rebuilt."""
+    import pyarrow as pa
+
+    from dualsight.catalogs.parquet_cache import read_parquet_or_none, write_parquet_atomic
+
+    key = _calibration_key(sat, mesh, materials, table, camera, kind="blobber")
+    path = resolve_cache_dir(cache_dir) / "rendezvous" / f"{key}.parquet"
+    t = read_parquet_or_none(path, _CAL_META, key.encode())
+    if t is not None:
+        c = {name: t.column(name).to_numpy() for name in t.column_names}
+        return (RangeRatioCalibration(c["n_blob"], c["ratio"], c["q"]),
+                CentreErrorCalibration(c["n_blob"], np.stack([c["err_x"], c["err_y"]], -1)))
+    cal, cen = blobber_calibration(sat, mesh, materials, table, camera)
+    err = np.asarray(cen.err_px, np.float64)
+    t = pa.table({"n_blob": np.asarray(cal.n_blob, np.float64), "ratio": np.asarray(cal.ratio, np.float64),
+                  "q": np.asarray(cal.q, np.float64), "err_x": err[:, 0], "err_y": err[:, 1]})
+    write_parquet_atomic(t.replace_schema_metadata({_CAL_META: key.encode()}), path)
+    return cal, cen
+
+
+def cached_sequence_gain(sat, mesh, materials, table, camera: Camera, centre: CentreErrorCalibration,
+                         spin_step_rad: float, turn_step_rad: float, frames: int, cache_dir=None) -> np.ndarray:
+    """:func:`silhouette_sequence_gain`, cached as :func:`cached_blobber_calibration` (its key adds the spin and
+    turn steps and the frames; the centre calibration it normalises by is the cached one of the same target and
+    camera)."""
+    import pyarrow as pa
+
+    from dualsight.catalogs.parquet_cache import read_parquet_or_none, write_parquet_atomic
+
+    key = _calibration_key(sat, mesh, materials, table, camera, kind="sequence_gain",
+                           steps=[float(spin_step_rad), float(turn_step_rad)], frames=int(frames))
+    path = resolve_cache_dir(cache_dir) / "rendezvous" / f"{key}.parquet"
+    t = read_parquet_or_none(path, _CAL_META, key.encode())
+    if t is not None:
+        return t.column("gain").to_numpy().astype(np.float64)
+    gain = silhouette_sequence_gain(sat, mesh, materials, table, camera, centre, spin_step_rad, turn_step_rad, frames)
+    write_parquet_atomic(pa.table({"gain": np.asarray(gain, np.float64)}).replace_schema_metadata(
+        {_CAL_META: key.encode()}), path)
+    return gain
 
 
 def touches_edge(box: np.ndarray, camera: Camera) -> np.ndarray:
