@@ -146,7 +146,10 @@ def test_report_numbers_equal_numpy_over_the_rows(small_runs):
     for name in ("far", "close"):
         run = runs[name].run_id
         f = _rows(lake, run, "rendezvous_frames")
-        j = report.build(lake, run)["json"]
+        rep = report.build(lake, run)
+        j = rep["json"]
+        assert j["bearing_point"] == ("silhouette" if name == "close" else "brightness")   # the presets' specs
+        assert ("through the target's silhouette centre" in report.text(rep)) == (name == "close")
         used = f["bearing_used"].astype(bool)
         assert j["approaches"] == len(set(f["case_id"]))
         assert j["availability"] == pytest.approx(used.mean())
