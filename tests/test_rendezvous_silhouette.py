@@ -150,8 +150,9 @@ def test_silhouette_cov_by_hand():
 
 
 def test_calibrations_are_cached_by_content_and_rebuilt_when_stale(tmp_path, monkeypatch):
-    """The second call reads what the first wrote (no render: the computing functions would raise), the same arrays;
-    another camera is another key (computed again); a corrupt file is rebuilt, not trusted."""
+    """The second call reads what the first wrote (no render: the computing functions would raise), the same arrays,
+    and announces nothing (the first announced each calibration with its render count); another camera is another
+    key (computed again); a corrupt file is rebuilt, not trusted."""
     from dataclasses import replace
 
     from dualsight.jobs.kinds import rendezvous_context as rc
@@ -166,16 +167,23 @@ def test_calibrations_are_cached_by_content_and_rebuilt_when_stale(tmp_path, mon
     from dualsight.catalogs.areas import area_table
 
     table = area_table(sat, n=2000, bin_width=0.05, cache_dir=tmp_path)
-    cal, cen = rc.cached_blobber_calibration(sat, mesh, materials, table, spec.camera, cache_dir=tmp_path)
-    g = rc.cached_sequence_gain(sat, mesh, materials, table, spec.camera, cen, 1.7, 0.1, 6, cache_dir=tmp_path)
+    said = []
+    cal, cen = rc.cached_blobber_calibration(sat, mesh, materials, table, spec.camera, cache_dir=tmp_path,
+                                             announce=said.append)
+    g = rc.cached_sequence_gain(sat, mesh, materials, table, spec.camera, cen, 1.7, 0.1, 6, cache_dir=tmp_path,
+                                announce=said.append)
+    assert len(said) == 2 and "24 renders" in said[0] and "24 renders" in said[1], said    # 24 and 4 x 6
     computed = {"blobber_calibration": rc.blobber_calibration, "silhouette_sequence_gain": rc.silhouette_sequence_gain}
 
     def refuse(*a, **k):
         raise AssertionError("computed again")
     monkeypatch.setattr(rc, "blobber_calibration", refuse)
     monkeypatch.setattr(rc, "silhouette_sequence_gain", refuse)
-    cal2, cen2 = rc.cached_blobber_calibration(sat, mesh, materials, table, spec.camera, cache_dir=tmp_path)
-    g2 = rc.cached_sequence_gain(sat, mesh, materials, table, spec.camera, cen2, 1.7, 0.1, 6, cache_dir=tmp_path)
+    cal2, cen2 = rc.cached_blobber_calibration(sat, mesh, materials, table, spec.camera, cache_dir=tmp_path,
+                                               announce=said.append)
+    g2 = rc.cached_sequence_gain(sat, mesh, materials, table, spec.camera, cen2, 1.7, 0.1, 6, cache_dir=tmp_path,
+                                 announce=said.append)
+    assert len(said) == 2                                 # read from the cache: nothing announced
     np.testing.assert_array_equal(cal2.q, cal.q)
     np.testing.assert_array_equal(cen2.err_px, cen.err_px)
     np.testing.assert_array_equal(g2, g)

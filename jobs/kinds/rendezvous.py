@@ -51,6 +51,7 @@ V-bar hop 50 m -> 2 m, bearings + blobber range).
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -99,7 +100,13 @@ def plan_run(preset: str | None = None, config: Path | str | dict | None = None,
 
 def start_run(plan: RendezvousRun, lake, *, workers: int | None = None, scheduler: str | None = None,
               shard_size: int | None = None, progress: bool = True) -> dict:
-    """Run (or resume) a planned campaign into ``lake`` with the engine's ``run_job``; returns the manifest."""
+    """Run (or resume) a planned campaign into ``lake`` with the engine's ``run_job``; returns the manifest.  On
+    this machine (no ``scheduler``) a proximity spec's calibrations are made (or read from the cache) here first,
+    once, with a line on stderr when they must be computed, not by every worker at once
+    (``rendezvous_context.warm_calibrations``)."""
+    if scheduler is None:
+        rendezvous_context.warm_calibrations(
+            spec_from_dict(plan.spec), (lambda msg: print(f"rendezvous: {msg}", file=sys.stderr)) if progress else None)
     return run_job(NAME, plan.spec, n_cases=plan.n_cases, lake=lake, run_id=plan.run_id, workers=workers,
                    scheduler=scheduler, shard_size=shard_size, progress=progress, label=f"rendezvous {plan.run_id}")
 

@@ -77,14 +77,7 @@ def make_context(spec: RendezvousSpec) -> RendezvousContext:
     mq, sq = range_ratio_statistics(table.samples_ratio, table.samples_area, table.ratio_lo, table.ratio_hi,
                                     table.curve(BLOBBER.curve))
     mesh, materials = sat.mesh(), sat.materials()
-    cal = cen = gain = None
-    if spec.cfg.range_source == "blobber" or spec.cfg.bearing_point == "silhouette":
-        cal, cen = cached_blobber_calibration(sat, mesh, materials, table, spec.camera)
-    if spec.cfg.bearing_point == "silhouette":      # an approach in the orbit plane: its line of sight turns
-        c = spec.cfg                                # with the Hill frame, n dt a frame
-        gain = cached_sequence_gain(sat, mesh, materials, table, spec.camera, cen,
-                                    c.target_rate_deg_s * DEG * c.frame_interval_s,
-                                    spec.orbit.mean_motion * c.frame_interval_s, c.frames)
+    cal, cen, gain = prox_calibrations(spec, sat, mesh, materials, table)
     return RendezvousContext(sat, shape, pc, pb, mesh=mesh, materials=materials, table=table,
                              range_ratio=(table.ratio, mq, sq), range_calibration=cal,
                              centre_calibration=cen, silhouette_gain=gain)
@@ -184,6 +177,33 @@ def silhouette_sequence_gain(sat, mesh, materials, table, camera: Camera, centre
     return sequence_gain(z.reshape(S, L, 2))
 
 
+def prox_calibrations(spec: RendezvousSpec, sat, mesh, materials, table, announce=None):
+    """(range calibration, centre calibration, sequence gain) a proximity spec needs (None each where it does not:
+    the range with ``range_source`` "blobber", the centre with it or with ``bearing_point`` "silhouette", the gain
+    with the latter), from the cache or computed (:func:`cached_blobber_calibration`); ``announce(message)`` is
+    called before a calibration is computed."""
+    c = spec.cfg
+    cal = cen = gain = None
+    if c.range_source == "blobber" or c.bearing_point == "silhouette":
+        cal, cen = cached_blobber_calibration(sat, mesh, materials, table, spec.camera, announce=announce)
+    if c.bearing_point == "silhouette":      # an approach in the orbit plane: its line of sight turns with the Hill
+        gain = cached_sequence_gain(sat, mesh, materials, table, spec.camera, cen,         # frame, n dt a frame
+                                    c.target_rate_deg_s * DEG * c.frame_interval_s,
+                                    spec.orbit.mean_motion * c.frame_interval_s, c.frames, announce=announce)
+    return cal, cen, gain
+
+
+def warm_calibrations(spec: RendezvousSpec, announce=None) -> None:
+    """Compute and cache the calibrations a proximity spec's workers will read (:func:`prox_calibrations`), once in
+    this process instead of in every worker at once; nothing for the star camera."""
+    if spec.is_star:
+        return
+    from dualsight.catalogs.areas import area_table        # pyarrow
+
+    sat = load_satellite(spec.cfg.satellite)
+    prox_calibrations(spec, sat, sat.mesh(), sat.materials(), area_table(sat, n=20000, bin_width=0.05), announce)
+
+
 CALIBRATION_VERSION = 1
 """Part of the cache key of :func:`cached_blobber_calibration` and :func:`cached_sequence_gain`: raise it when the
 renderer, the blobber or the calibrations' sampling change what they compute (as ``catalogs/areas.TABLE_VERSION``)."""
@@ -203,11 +223,11 @@ def _calibration_key(sat, mesh, materials, table, camera: Camera, **extra) -> st
     return short_hash(json.dumps(payload, sort_keys=True, default=str))
 
 
-def cached_blobber_calibration(sat, mesh, materials, table, camera: Camera,
-                               cache_dir=None) -> tuple[RangeRatioCalibration, CentreErrorCalibration]:
+def cached_blobber_calibration(sat, mesh, materials, table, camera: Camera, cache_dir=None,
+                               announce=None) -> tuple[RangeRatioCalibration, CentreErrorCalibration]:
     """:func:`blobber_calibration`, read from ``<cache>/rendezvous/<key>.parquet`` (``catalogs/cache``:
     DUALSIGHT_CACHE or ~/.cache/dualsight) when a run on the same target and camera made it, else computed and
-    written there (atomically); a missing, unreadable or foreign file is rebuilt."""
+    written there (atomically); a missing, unreadable or foreign file is rebuilt (``announce(message)`` first)."""
     import pyarrow as pa
 
     from dualsight.catalogs.parquet_cache import read_parquet_or_none, write_parquet_atomic
@@ -219,6 +239,10 @@ def cached_blobber_calibration(sat, mesh, materials, table, camera: Camera,
         c = {name: t.column(name).to_numpy() for name in t.column_names}
         return (RangeRatioCalibration(c["n_blob"], c["ratio"], c["q"]),
                 CentreErrorCalibration(c["n_blob"], np.stack([c["err_x"], c["err_y"]], -1)))
+    if announce is not None:
+        n = sum(k for _, _, k in RANGE_CALIB_SPANS)
+        announce(f"calibrating the blobber's range and silhouette centre on {n:,} renders of the target (once per "
+                 f"target and camera, cached in {path.parent})")
     cal, cen = blobber_calibration(sat, mesh, materials, table, camera)
     err = np.asarray(cen.err_px, np.float64)
     t = pa.table({"n_blob": np.asarray(cal.n_blob, np.float64), "ratio": np.asarray(cal.ratio, np.float64),
@@ -228,7 +252,8 @@ def cached_blobber_calibration(sat, mesh, materials, table, camera: Camera,
 
 
 def cached_sequence_gain(sat, mesh, materials, table, camera: Camera, centre: CentreErrorCalibration,
-                         spin_step_rad: float, turn_step_rad: float, frames: int, cache_dir=None) -> np.ndarray:
+                         spin_step_rad: float, turn_step_rad: float, frames: int, cache_dir=None,
+                         announce=None) -> np.ndarray:
     """:func:`silhouette_sequence_gain`, cached as :func:`cached_blobber_calibration` (its key adds the spin and
     turn steps and the frames; the centre calibration it normalises by is the cached one of the same target and
     camera)."""
@@ -242,6 +267,10 @@ def cached_sequence_gain(sat, mesh, materials, table, camera: Camera, centre: Ce
     t = read_parquet_or_none(path, _CAL_META, key.encode())
     if t is not None:
         return t.column("gain").to_numpy().astype(np.float64)
+    if announce is not None:
+        n = SEQUENCE_GAIN_SEQUENCES * max(1, min(int(frames), SEQUENCE_GAIN_FRAMES))
+        announce(f"calibrating the silhouette centre's frame-to-frame correlation on {n:,} renders of the spinning "
+                 f"target (once per target, camera, spin and frame rate, cached in {path.parent})")
     gain = silhouette_sequence_gain(sat, mesh, materials, table, camera, centre, spin_step_rad, turn_step_rad, frames)
     write_parquet_atomic(pa.table({"gain": np.asarray(gain, np.float64)}).replace_schema_metadata(
         {_CAL_META: key.encode()}), path)
