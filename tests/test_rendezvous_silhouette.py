@@ -13,6 +13,7 @@ from dualsight.errors import ConfigError
 from dualsight.jobs.kinds import rendezvous as rz, rendezvous_measure, rendezvous_spec, rendezvous_truth
 from dualsight.jobs.kinds.rendezvous_filter import silhouette_cov
 from dualsight.nav.blob_centre_error import CENTRE_SIGMA_FLOOR_PX, CentreErrorCalibration
+from dualsight.scene.satellite import load_satellite
 
 
 def test_calibration_recovers_a_known_spread_against_coverage():
@@ -162,7 +163,7 @@ def test_calibrations_are_cached_by_content_and_rebuilt_when_stale(tmp_path, mon
     monkeypatch.setattr(rc, "SEQUENCE_GAIN_FRAMES", 6)
     d, _ = rendezvous_spec.resolve_spec("close", None, cases=1)
     spec = rz.spec_from_dict(d)
-    sat = rc.load_satellite(spec.cfg.satellite)
+    sat = load_satellite(spec.cfg.satellite)
     mesh, materials = sat.mesh(), sat.materials()
     from dualsight.catalogs.areas import area_table
 

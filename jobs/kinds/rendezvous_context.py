@@ -70,10 +70,8 @@ def make_context(spec: RendezvousSpec) -> RendezvousContext:
         pb = photocentre_statistics(shape, spinning=spinning)
         sctx = star.make_context(spec.star)
         return RendezvousContext(sat, shape, pc, pb, star=sctx, centroid=point_centroid_calibration(spec, sctx.psf))
-    from dualsight.catalogs.areas import area_table        # pyarrow
-
     pc, pb = prox_photocentre(sat, shape, spinning)
-    table = area_table(sat, n=20000, bin_width=0.05)
+    table = prox_area_table(sat)
     mq, sq = range_ratio_statistics(table.samples_ratio, table.samples_area, table.ratio_lo, table.ratio_hi,
                                     table.curve(BLOBBER.curve))
     mesh, materials = sat.mesh(), sat.materials()
@@ -90,6 +88,29 @@ RANGE_CALIB_POINTING_DEG = 0.5
 """1-sigma per axis of the calibration target's offset from the boresight (the presets' pointing error)."""
 
 
+def rendered_blobs(sat, mesh, materials, table, camera: Camera, R_body, pos, sun):
+    """Yield (indices, ``nav/blobber.BlobResult``) over chunks of :data:`PROX_CHUNK` renders of the target by the
+    camera's own renderer ("accurate", the satellite file's light) and blobber (:data:`BLOBBER`, the area table
+    ``table``): attitudes R_body (M, 3, 3) body -> camera, positions pos (M, 3) m and Sun directions sun (M, 3) in
+    the camera frame."""
+    from dualsight.kernels.points import render              # Taichi
+
+    light = sat.camera
+    M = len(R_body)
+    for s in range(0, M, PROX_CHUNK):
+        i = np.arange(s, min(M, s + PROX_CHUNK))
+        poses = place_body(sat, R_body[i], pos[i], sun[i])
+        img, cov = render("accurate", mesh, materials, poses.R, poses.t, poses.light, camera, light.I_a, light.I_l)
+        yield i, run_blobber(img, camera, table, BLOBBER, coverage=cov)
+
+
+def prox_area_table(sat):
+    """The target's projected-area table as the proximity camera's blobber reads it (``catalogs/areas``, cached)."""
+    from dualsight.catalogs.areas import area_table        # pyarrow
+
+    return area_table(sat, n=20000, bin_width=0.05)
+
+
 def blobber_calibration(sat, mesh, materials, table,
                         camera: Camera) -> tuple[RangeRatioCalibration, CentreErrorCalibration]:
     """The proximity camera's blobber range and silhouette centre against the truth, by Monte Carlo of the camera's
@@ -102,8 +123,6 @@ def blobber_calibration(sat, mesh, materials, table,
     projection of the body's origin, px, against n_blob).  Deterministic (its own generator, not the run's seed): a
     ground calibration of the blobber on the target's model, as :func:`point_centroid_calibration` is of the star
     camera.  ~10 s for the 3U CubeSat and the paper's proximity camera (one process, 2 shared cores)."""
-    from dualsight.kernels.points import render              # Taichi
-
     rng = np.random.default_rng([23, 6, 4])
     r = np.concatenate([np.exp(rng.uniform(math.log(lo), math.log(hi), n)) for lo, hi, n in RANGE_CALIB_SPANS])
     M = r.size
@@ -116,12 +135,7 @@ def blobber_calibration(sat, mesh, materials, table,
     sun /= np.linalg.norm(sun, axis=1, keepdims=True)
     q, n_blob, ratio = np.full(M, np.nan), np.full(M, np.nan), np.full(M, np.nan)
     err = np.full((M, 2), np.nan)
-    light = sat.camera
-    for s in range(0, M, PROX_CHUNK):
-        i = np.arange(s, min(M, s + PROX_CHUNK))
-        poses = place_body(sat, R_body[i], pos[i], sun[i])
-        img, cov = render("accurate", mesh, materials, poses.R, poses.t, poses.light, camera, light.I_a, light.I_l)
-        b = run_blobber(img, camera, table, BLOBBER, coverage=cov)
+    for i, b in rendered_blobs(sat, mesh, materials, table, camera, R_body, pos, sun):
         ok = b.found & ~touches_edge(b.box, camera) & np.isfinite(b.range_est)
         q[i] = np.where(ok, b.range_est / r[i], np.nan)
         n_blob[i] = np.where(ok, b.n_blob, np.nan)
@@ -148,8 +162,6 @@ def silhouette_sequence_gain(sat, mesh, materials, table, camera: Camera, centre
     ``turn_step_rad`` a frame, at a range log-uniform in :data:`SEQUENCE_GAIN_RANGES_M`, each frame's error over
     the calibration's sigma at its coverage (``centre``).  Deterministic (its own generator): a ground
     calibration, as :func:`blobber_calibration`."""
-    from dualsight.kernels.points import render              # Taichi
-
     rng = np.random.default_rng([23, 6, 5])
     S, L = SEQUENCE_GAIN_SEQUENCES, max(1, min(int(frames), SEQUENCE_GAIN_FRAMES))
     axes = rng.normal(size=(S, 3))
@@ -165,12 +177,7 @@ def silhouette_sequence_gain(sat, mesh, materials, table, camera: Camera, centre
     pos = np.repeat(np.stack([np.zeros(S), np.zeros(S), r], -1), L, 0)
     sun = np.tile([0.0, 1.0, 0.0], (S * L, 1))
     z = np.full((S * L, 2), np.nan)
-    light = sat.camera
-    for s in range(0, S * L, PROX_CHUNK):
-        i = np.arange(s, min(S * L, s + PROX_CHUNK))
-        poses = place_body(sat, R_body[i], pos[i], sun[i])
-        img, cov = render("accurate", mesh, materials, poses.R, poses.t, poses.light, camera, light.I_a, light.I_l)
-        b = run_blobber(img, camera, table, BLOBBER, coverage=cov)
+    for i, b in rendered_blobs(sat, mesh, materials, table, camera, R_body, pos, sun):
         ok = b.found & ~touches_edge(b.box, camera)
         e = (b.centre_px - camera.project(pos[i])[0])[:, ::-1]          # (row: along the turn axis, column)
         z[i] = np.where(ok[:, None], e / centre.sigma_px(b.n_coverage)[:, None], np.nan)
@@ -198,10 +205,8 @@ def warm_calibrations(spec: RendezvousSpec, announce=None) -> None:
     this process instead of in every worker at once; nothing for the star camera."""
     if spec.is_star:
         return
-    from dualsight.catalogs.areas import area_table        # pyarrow
-
     sat = load_satellite(spec.cfg.satellite)
-    prox_calibrations(spec, sat, sat.mesh(), sat.materials(), area_table(sat, n=20000, bin_width=0.05), announce)
+    prox_calibrations(spec, sat, sat.mesh(), sat.materials(), prox_area_table(sat), announce)
 
 
 CALIBRATION_VERSION = 1
