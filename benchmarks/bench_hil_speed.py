@@ -428,6 +428,9 @@ def main() -> None:
         ap.error("--rendered must be in [1, 1000]")
     if not 1 <= a.rounds <= 20 or not all(1 <= w <= 64 for w in a.workers):
         ap.error("--rounds in [1, 20], --workers in [1, 64]")
+    if a.against and subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--verify", "--quiet",
+                                     a.against + "^{commit}"], capture_output=True).returncode != 0:
+        ap.error(f"--against {a.against!r}: not a commit of {ROOT} (leave it out to measure this tree alone)")
     if a.against:
         argv, skip = [], False
         for x in sys.argv[1:]:
