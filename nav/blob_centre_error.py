@@ -18,14 +18,25 @@ blobber (``jobs/kinds/rendezvous_context.blobber_calibration``) and gives the ro
 n_blob by a Gaussian kernel in log10 n_blob (Nadaraya 1964; Watson 1964), on a fixed grid interpolated linearly.
 Units: pixels.
 
+The error is not the same along every direction: it lies along the silhouette's own long axis.  Perspective draws
+the near end of the body larger, and the foreshortened long axis of a body seen near end-on carries it (the 3U
+CubeSat along the close preset's approach, 2-15 m: a mean square 1.7-2.0 times the per-axis one along the blob's
+major axis, 0.07-0.09 times across it; 4-7 times along it where the observed axis ratio is 1.3-2.0, 0.6-1.3 where
+it is 2-4; 2026-11-28).  So :meth:`CentreErrorCalibration.cov_px` gives the error along the new blob's major and
+minor axes (its angle from the blobber's second moments) from the samples' errors along theirs, kernel-weighted in
+log10 n_blob and the observed axis ratio: what the blobber sees of the body's attitude sets the error's size and
+direction frame by frame.  A filter that took one isotropic sigma per coverage was right on average over attitudes
+but not for an approach whose spin keeps the long axis foreshortened: those approaches made the close preset's
+mean NEES exceed its bounds (issue 23 c: the worst approaches' mean NEES 16-25 at the last frames).
+
 The error of a spinning target is not white from frame to frame: it is a function of the body's attitude seen
 from the camera, so frames taken every dt of a spin at rate omega sample it at spin phases omega dt apart (96 deg a
 frame in the close preset: every 4th frame nearly repeats), and the observer's turn about the target changes it
 slowly, most along the turn's axis.  A filter that takes it as white is overconfident by the low-frequency content
 of those sequences: :func:`sequence_gain` measures it on rendered sequences (the 3U CubeSat at 96 deg of spin and
-6.1 deg of turn a frame: 2.3 along the turn axis, 1.9 across, 400 sequences of 48 frames;
-``jobs/kinds/rendezvous_context.silhouette_sequence_gain``) and the rendezvous filter takes the white error's
-variance times it.  Modelling the
+6.1 deg of turn a frame, each frame's error over the stated sigma on its axis: 2.07 along the turn axis, 1.33
+across, 1,200 sequences of 48 frames; ``jobs/kinds/rendezvous_context.silhouette_sequence_gain``) and the rendezvous
+filter takes the white error's covariance scaled by it on those two axes.  Modelling the
 sequence instead (the spin average as Gauss-Markov states, the first two harmonics of the spin phase as damped
 rotating state pairs: 0.20, 0.35 and 0.36 of the error's mean square at 3-25 m) left the filter overconfident at
 4-10 m (mean NEES 7.9 at the last frames, 100 approaches; 9.3 white; 2026-11-28): the observer's turn shifts each
@@ -47,15 +58,24 @@ blob centres to ~1e-3 px: the grid's exact coverage; the floor keeps a bearing's
 @dataclass(frozen=True)
 class CentreErrorCalibration:
     """Silhouette-centre errors ``err_px`` (M, 2) (measured minus the projection of the body's origin, col and row,
-    px) of renders whose blobs had summed coverage ``n_blob`` (M,) px; non-finite samples are ignored.
-    :meth:`sigma_px` gives their root mean square per axis (the mean of the two axes' mean squares, bias included)
-    at new blobs, by a Gaussian kernel of width ``bw_log_n`` decades of n_blob evaluated on ``grid_points`` points
-    spanning the samples and interpolated (clamped at the ends)."""
+    px) of renders whose blobs had summed coverage ``n_blob`` (M,) px, observed axis ratio ``axis_ratio`` (M,) and
+    major-axis direction ``angle_rad`` (M,) (from +col towards +row, ``nav/blobber.BlobResult``; both optional);
+    non-finite samples are ignored.  :meth:`sigma_px` gives their root mean square per axis (the mean of the two
+    axes' mean squares, bias included) at new blobs, by a Gaussian kernel of width ``bw_log_n`` decades of n_blob
+    evaluated on ``grid_points`` points spanning the samples and interpolated (clamped at the ends).
+    :meth:`cov_px` gives the error's covariance along the new blob's own axes: the root mean squares along each
+    sample's major and minor axis, by a Gaussian kernel of widths ``bw_log_n`` and ``bw_ratio`` (axis ratio) at the
+    new blob's coverage and axis ratio, turned to its major axis (module docstring: the error lies along the
+    silhouette's long axis)."""
 
     n_blob: np.ndarray
     err_px: np.ndarray
+    axis_ratio: np.ndarray | None = None
+    angle_rad: np.ndarray | None = None
     bw_log_n: float = 0.1
     grid_points: int = 256
+    bw_ratio: float = 0.05
+    chunk: int = 256
     _grid: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
@@ -79,6 +99,48 @@ class CentreErrorCalibration:
         g, s = self._grid
         out = np.interp(np.log10(np.where(ok, n, 1.0)), g, s)
         return np.where(ok, np.maximum(out, CENTRE_SIGMA_FLOOR_PX), np.nan)
+
+    def axes_px(self, n_blob, axis_ratio) -> np.ndarray:
+        """(B, 2) 1-sigma (px) of the silhouette centre along the blob's major and minor axis at summed coverage
+        ``n_blob`` (B,) px and axis ratio (B,): the samples' root mean squares along their own major and minor axes
+        (bias included), kernel-weighted in log10 n_blob and the axis ratio, at least
+        :data:`CENTRE_SIGMA_FLOOR_PX`; NaN where an input is not finite or n_blob <= 0."""
+        if self.axis_ratio is None or self.angle_rad is None:
+            raise ValueError("CentreErrorCalibration: axes_px needs the samples' axis_ratio and angle_rad")
+        n_s = np.asarray(self.n_blob, np.float64).ravel()
+        e = np.asarray(self.err_px, np.float64).reshape(-1, 2)
+        r_s = np.asarray(self.axis_ratio, np.float64).ravel()
+        a_s = np.asarray(self.angle_rad, np.float64).ravel()
+        ok_s = np.isfinite(n_s) & (n_s > 0) & np.isfinite(e).all(1) & np.isfinite(r_s) & np.isfinite(a_s)
+        if not ok_s.any():
+            raise ValueError("CentreErrorCalibration: no finite sample with an axis ratio and angle")
+        c, s = np.cos(a_s[ok_s]), np.sin(a_s[ok_s])
+        e = e[ok_s]
+        e2 = np.stack([(e[:, 0] * c + e[:, 1] * s) ** 2, (e[:, 1] * c - e[:, 0] * s) ** 2], -1)   # (M, 2)
+        ls = np.log10(n_s[ok_s]) / self.bw_log_n
+        rs = r_s[ok_s] / self.bw_ratio
+        n = np.asarray(n_blob, np.float64).ravel()
+        r = np.asarray(axis_ratio, np.float64).ravel()
+        ok = np.isfinite(n) & (n > 0) & np.isfinite(r)
+        lq = np.log10(np.where(ok, n, 1.0)) / self.bw_log_n
+        rq = np.where(ok, r, 1.0) / self.bw_ratio
+        out = np.full((n.size, 2), np.nan)
+        for a in range(0, n.size, self.chunk):
+            sl = slice(a, a + self.chunk)
+            d2 = (lq[sl, None] - ls[None]) ** 2 + (rq[sl, None] - rs[None]) ** 2
+            w = np.exp(-0.5 * (d2 - d2.min(axis=1, keepdims=True)))     # rescaled per query: the ratios stay
+            out[sl] = (w @ e2) / w.sum(1)[:, None]
+        return np.where(ok[:, None], np.maximum(np.sqrt(out), CENTRE_SIGMA_FLOOR_PX), np.nan)
+
+    def cov_px(self, n_blob, axis_ratio, angle_rad) -> np.ndarray:
+        """(B, 2, 2) px^2 covariance of the silhouette centre in (col, row) of blobs of summed coverage ``n_blob``,
+        axis ratio ``axis_ratio`` and major axis at ``angle_rad`` (B,) (from +col towards +row): R diag(a^2, b^2)
+        R^T with (a, b) = :meth:`axes_px` and R the rotation by the angle; NaN where an input is not finite."""
+        ab = self.axes_px(n_blob, axis_ratio)
+        t = np.asarray(angle_rad, np.float64).ravel()
+        R = np.stack([np.stack([np.cos(t), -np.sin(t)], -1), np.stack([np.sin(t), np.cos(t)], -1)], -2)
+        C = R * (ab ** 2)[:, None, :] @ np.swapaxes(R, -1, -2)
+        return np.where(np.isfinite(t)[:, None, None], C, np.nan)
 
 
 

@@ -44,7 +44,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["line_of_sight", "los_jacobian", "attitude_covariance", "inertial_bearing", "sphere_phase_correction",
+__all__ = ["line_of_sight", "los_jacobian", "attitude_covariance", "inertial_bearing", "centroid_cov_icrs",
+           "sphere_phase_correction",
            "bearing_error", "bearing_nees", "skew", "BLOB_SIGMA_FRAC_POINT", "BLOB_SIGMA_FRAC_RESOLVED",
            "BLOB_SIGMA_FRAC_BY_DETECTOR", "blob_centroid_sigma", "offset_correction", "PointCentroidTable",
            "point_centroid_table", "point_centroid_sigma"]
@@ -106,6 +107,16 @@ def inertial_bearing(A: np.ndarray, att_cov: np.ndarray, xy: np.ndarray, sigma_p
     c_cam = s2[:, None, None] * (J @ np.swapaxes(J, -1, -2)) + K @ att_cov @ np.swapaxes(K, -1, -2)
     At = np.swapaxes(A, -1, -2)
     return np.einsum("bij,bj->bi", At, u_c), At @ c_cam @ A
+
+
+def centroid_cov_icrs(A: np.ndarray, xy: np.ndarray, cov_px: np.ndarray, camera) -> np.ndarray:
+    """(B, 3, 3) rad^2 ICRS covariance of the line of sight (rank 2, across it) from a centroid covariance ``cov_px``
+    (B, 2, 2) px^2 in (col, row) at pixels ``xy`` (B, 2), attitude A (B, 3, 3) inertial -> camera: A^T J C J^T A
+    with J = :func:`los_jacobian` (the centroid term of :func:`inertial_bearing`, for a covariance that is not the
+    same on both axes)."""
+    J = los_jacobian(xy, camera)
+    At = np.swapaxes(A, -1, -2)
+    return At @ (J @ np.asarray(cov_px, np.float64) @ np.swapaxes(J, -1, -2)) @ A
 
 
 def sphere_phase_correction(u: np.ndarray, sun: np.ndarray, offset_m, range_m) -> np.ndarray:

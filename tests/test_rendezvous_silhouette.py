@@ -84,8 +84,7 @@ def close_bearings():
             for j, k in enumerate(c["frame"]):           # the stated covariance (rank 2, across the line of sight)
                 C = c["C"][j]
                 if point == "silhouette":                 # what the filter adds (rendezvous_filter.target_selector)
-                    C = C + silhouette_cov(ctx, float(m["centre_sigma_px"][k]), c["u"][j:j + 1], geo["R"][k][:, 2],
-                                           float(r[j]), spec.camera.fx)[0]
+                    C = C + silhouette_cov(ctx, m["centre_cov"][k], c["u"][j:j + 1], geo["R"][k][:, 2])[0]
                 d2.append(float(e[j] @ np.linalg.pinv(C, rcond=1e-12, hermitian=True) @ e[j]))
         out[point] = (np.concatenate(err), np.array(d2))
     return out
@@ -139,15 +138,44 @@ def test_sequence_gain_against_closed_forms():
 
 
 def test_silhouette_cov_by_hand():
-    """Line of sight +x, orbit normal in the x-z plane (across the line of sight: +z), range 20 m, fx 1290 px, sigma 0.05 px, gains (2.5, 1.2): variance
-    (0.05 x 20 / 1290)^2 x gain metres^2, over r^2, along z (the normal, across the line of sight) and y."""
+    """Line of sight +x, orbit normal in the x-z plane (across the line of sight: +z), gains (2.5, 1.2) along z and
+    y: a centre covariance [[a, c], [c, b]] on (y, z) becomes [[1.2 a, sqrt(3) c], [sqrt(3) c, 2.5 b]] (each axis
+    times its gain, the cross term times the square root of their product), nothing along the line of sight."""
     from types import SimpleNamespace
 
     ctx = SimpleNamespace(silhouette_gain=np.array([2.5, 1.2]))
-    C = silhouette_cov(ctx, 0.05, np.array([[1.0, 0.0, 0.0]]), np.array([0.4, 0.0, 1.0]) / math.hypot(0.4, 1.0),
-                       20.0, 1290.0)[0]
-    s2 = (0.05 * 20 / 1290) ** 2 / 20 ** 2
-    np.testing.assert_allclose(C, np.diag([0.0, 1.2 * s2, 2.5 * s2]), atol=1e-20)
+    a, b, c = 4e-10, 1e-10, -1.5e-10
+    C_in = np.array([[0.0, 0.0, 0.0], [0.0, a, c], [0.0, c, b]])
+    C = silhouette_cov(ctx, C_in, np.array([[1.0, 0.0, 0.0]]), np.array([0.4, 0.0, 1.0]) / math.hypot(0.4, 1.0))[0]
+    x = math.sqrt(2.5 * 1.2) * c
+    np.testing.assert_allclose(C, [[0.0, 0.0, 0.0], [0.0, 1.2 * a, x], [0.0, x, 2.5 * b]], atol=1e-22)
+
+
+def test_calibration_gives_the_error_along_the_blobs_own_axes():
+    """Errors along each sample's major axis (a random angle) with sd 0.5 (3.5 - ratio) px and along its minor axis
+    with sd 0.1 px, for axis ratios uniform in [1, 3.4]: axes_px recovers both at ratios 1.5 and 2.5 (the kernel's
+    0.05 of ratio blurs a^2 by ~0.25 x 0.05^2; its ~3,000 effective samples know a sigma to ~1.3 %: within 6 %),
+    the same at any coverage; cov_px turns them to a new
+    blob's angle: its eigenvectors lie along and across that angle; without the samples' axes, a clear error."""
+    rng = np.random.default_rng([23, 63])
+    M = 200000
+    n = 10 ** rng.uniform(1.0, 4.0, M)
+    ratio = rng.uniform(1.0, 3.4, M)
+    ang = rng.uniform(-math.pi / 2, math.pi / 2, M)
+    a, b = 0.5 * (3.5 - ratio), np.full(M, 0.1)
+    e_maj, e_min = rng.normal(size=M) * a, rng.normal(size=M) * b
+    err = np.stack([e_maj * np.cos(ang) - e_min * np.sin(ang), e_maj * np.sin(ang) + e_min * np.cos(ang)], -1)
+    cal = CentreErrorCalibration(n, err, ratio, ang)
+    got = cal.axes_px(np.array([100.0, 1000.0, 100.0]), np.array([1.5, 1.5, 2.5]))
+    np.testing.assert_allclose(got[:, 0], [1.0, 1.0, 0.5], rtol=0.06)
+    np.testing.assert_allclose(got[:, 1], 0.1, rtol=0.06)
+    C = cal.cov_px(np.array([300.0]), np.array([2.0]), np.array([0.6]))[0]
+    w, V = np.linalg.eigh(C)
+    assert w[1] == pytest.approx(0.75 ** 2, rel=0.12) and w[0] == pytest.approx(0.01, rel=0.12)
+    assert abs(abs(V[:, 1] @ [math.cos(0.6), math.sin(0.6)]) - 1.0) < 1e-6
+    assert np.isnan(cal.cov_px(np.array([np.nan]), np.array([2.0]), np.array([0.1]))).all()
+    with pytest.raises(ValueError, match="axis_ratio and angle_rad"):
+        CentreErrorCalibration(n, err).cov_px(np.array([100.0]), np.array([2.0]), np.array([0.0]))
 
 
 def test_calibrations_are_cached_by_content_and_rebuilt_when_stale(tmp_path, monkeypatch):
@@ -187,6 +215,8 @@ def test_calibrations_are_cached_by_content_and_rebuilt_when_stale(tmp_path, mon
     assert len(said) == 2                                 # read from the cache: nothing announced
     np.testing.assert_array_equal(cal2.q, cal.q)
     np.testing.assert_array_equal(cen2.err_px, cen.err_px)
+    np.testing.assert_array_equal(cen2.angle_rad, cen.angle_rad)
+    np.testing.assert_array_equal(cen2.axis_ratio, cen.axis_ratio)
     np.testing.assert_array_equal(g2, g)
     other = replace(spec.camera, fx=spec.camera.fx * 1.01)
     with pytest.raises(AssertionError, match="computed again"):
@@ -198,3 +228,19 @@ def test_calibrations_are_cached_by_content_and_rebuilt_when_stale(tmp_path, mon
     monkeypatch.setattr(rc, "blobber_calibration", computed["blobber_calibration"])
     cal3, _ = rc.cached_blobber_calibration(sat, mesh, materials, table, spec.camera, cache_dir=tmp_path)
     np.testing.assert_array_equal(cal3.q, cal.q)
+
+
+def test_centroid_covariance_in_icrs_at_the_principal_point():
+    """At the principal point of a pinhole camera a pixel is 1 / fx rad along camera x and 1 / fy along y: a centroid
+    covariance [[4, 1], [1, 9]] px^2 is [[4 / fx^2, 1 / (fx fy)], [1 / (fx fy), 9 / fy^2]] rad^2 on (x, y) and 0
+    along the boresight, turned to ICRS by the attitude's transpose (A: ICRS -> camera)."""
+    from dualsight.nav.target_bearing import centroid_cov_icrs
+    from dualsight.scene.camera import Camera
+    from dualsight.scene.rotation_vector import frame_rotation
+
+    cam = Camera.from_toml("examples/cameras/paper_prox.toml")
+    fx, fy = cam.fx, cam.fy
+    want_cam = np.array([[4 / fx ** 2, 1 / (fx * fy), 0.0], [1 / (fx * fy), 9 / fy ** 2, 0.0], [0.0, 0.0, 0.0]])
+    A = frame_rotation(np.array([[0.3, -0.2, 1.1]]))
+    got = centroid_cov_icrs(A, np.array([[cam.cx, cam.cy]]), np.array([[[4.0, 1.0], [1.0, 9.0]]]), cam)[0]
+    np.testing.assert_allclose(got, A[0].T @ want_cam @ A[0], rtol=1e-5, atol=1e-16)

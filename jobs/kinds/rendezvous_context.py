@@ -133,22 +133,24 @@ def blobber_calibration(sat, mesh, materials, table,
     pos = los / np.linalg.norm(los, axis=1, keepdims=True) * r[:, None]
     sun = rng.normal(size=(M, 3))
     sun /= np.linalg.norm(sun, axis=1, keepdims=True)
-    q, n_blob, ratio = np.full(M, np.nan), np.full(M, np.nan), np.full(M, np.nan)
+    q, n_blob, ratio, angle = (np.full(M, np.nan) for _ in range(4))
     err = np.full((M, 2), np.nan)
     for i, b in rendered_blobs(sat, mesh, materials, table, camera, R_body, pos, sun):
         ok = b.found & ~touches_edge(b.box, camera) & np.isfinite(b.range_est)
         q[i] = np.where(ok, b.range_est / r[i], np.nan)
         n_blob[i] = np.where(ok, b.n_blob, np.nan)
         ratio[i] = np.where(ok, b.axis_ratio, np.nan)
+        angle[i] = np.where(ok, b.angle_rad, np.nan)
         err[i] = np.where(ok[:, None], b.centre_px - camera.project(pos[i])[0], np.nan)
-    return RangeRatioCalibration(n_blob, ratio, q), CentreErrorCalibration(n_blob, err)
+    return RangeRatioCalibration(n_blob, ratio, q), CentreErrorCalibration(n_blob, err, ratio, angle)
 
 
-SEQUENCE_GAIN_SEQUENCES, SEQUENCE_GAIN_FRAMES = 400, 48
-"""Rendered sequences x frames (at most; the approach's frames if fewer) of :func:`silhouette_sequence_gain`: 19,200
-renders, ~25 s on the shared cores.  The error's size varies with the spin axis (a heavy tail), so few sequences
-give an unstable gain: across the turn axis 1.12 from 100 sequences, 1.90 from 400 (along it 2.51 and 2.31; the
-close preset, 2026-11-28); windows of up to 24 frames instead of 48 give 1.46 across."""
+SEQUENCE_GAIN_SEQUENCES, SEQUENCE_GAIN_FRAMES = 1200, 48
+"""Rendered sequences x frames (at most; the approach's frames if fewer) of :func:`silhouette_sequence_gain`: 57,600
+renders, ~90 s on the shared cores, once per target, camera, spin and frame rate (cached).  The error's size varies
+with the spin axis (a heavy tail), so few sequences give an unstable gain, and the maximum over window lengths is
+biased upwards by the sampling noise: across the turn axis 1.83 from 400 sequences, 1.33 from 1,200 (along it 2.05
+and 2.07; the close preset, errors over the calibrated sigma along the blob's own axes, 2026-11-28)."""
 SEQUENCE_GAIN_RANGES_M = (2.0, 50.0)
 """Ranges (m) of the sequences, log-uniform (one per sequence, the close preset's span)."""
 
@@ -160,8 +162,8 @@ def silhouette_sequence_gain(sat, mesh, materials, table, camera: Camera, centre
     target spinning about an axis uniform on the sphere (its initial attitude uniform on SO(3)) by
     ``spin_step_rad`` a frame while the observer turns about the camera's y axis (the Sun along it) by
     ``turn_step_rad`` a frame, at a range log-uniform in :data:`SEQUENCE_GAIN_RANGES_M`, each frame's error over
-    the calibration's sigma at its coverage (``centre``).  Deterministic (its own generator): a ground
-    calibration, as :func:`blobber_calibration`."""
+    the calibration's sigma on that axis at the blob's coverage, axis ratio and angle (``centre.cov_px``).
+    Deterministic (its own generator): a ground calibration, as :func:`blobber_calibration`."""
     rng = np.random.default_rng([23, 6, 5])
     S, L = SEQUENCE_GAIN_SEQUENCES, max(1, min(int(frames), SEQUENCE_GAIN_FRAMES))
     axes = rng.normal(size=(S, 3))
@@ -180,7 +182,9 @@ def silhouette_sequence_gain(sat, mesh, materials, table, camera: Camera, centre
     for i, b in rendered_blobs(sat, mesh, materials, table, camera, R_body, pos, sun):
         ok = b.found & ~touches_edge(b.box, camera)
         e = (b.centre_px - camera.project(pos[i])[0])[:, ::-1]          # (row: along the turn axis, column)
-        z[i] = np.where(ok[:, None], e / centre.sigma_px(b.n_coverage)[:, None], np.nan)
+        C = centre.cov_px(np.where(ok, b.n_coverage, np.nan), b.axis_ratio, b.angle_rad)   # (col, row) px^2
+        sd = np.sqrt(np.stack([C[:, 1, 1], C[:, 0, 0]], -1))              # the stated sigma on each of those axes
+        z[i] = np.where(ok[:, None], e / sd, np.nan)
     return sequence_gain(z.reshape(S, L, 2))
 
 
@@ -209,7 +213,7 @@ def warm_calibrations(spec: RendezvousSpec, announce=None) -> None:
     prox_calibrations(spec, sat, sat.mesh(), sat.materials(), prox_area_table(sat), announce)
 
 
-CALIBRATION_VERSION = 1
+CALIBRATION_VERSION = 2
 """Part of the cache key of :func:`cached_blobber_calibration` and :func:`cached_sequence_gain`: raise it when the
 renderer, the blobber or the calibrations' sampling change what they compute (as ``catalogs/areas.TABLE_VERSION``)."""
 _CAL_META = b"dualsight.rendezvous_calibration"
@@ -243,7 +247,7 @@ def cached_blobber_calibration(sat, mesh, materials, table, camera: Camera, cach
     if t is not None:
         c = {name: t.column(name).to_numpy() for name in t.column_names}
         return (RangeRatioCalibration(c["n_blob"], c["ratio"], c["q"]),
-                CentreErrorCalibration(c["n_blob"], np.stack([c["err_x"], c["err_y"]], -1)))
+                CentreErrorCalibration(c["n_blob"], np.stack([c["err_x"], c["err_y"]], -1), c["ratio"], c["angle"]))
     if announce is not None:
         n = sum(k for _, _, k in RANGE_CALIB_SPANS)
         announce(f"calibrating the blobber's range and silhouette centre on {n:,} renders of the target (once per "
@@ -251,7 +255,8 @@ def cached_blobber_calibration(sat, mesh, materials, table, camera: Camera, cach
     cal, cen = blobber_calibration(sat, mesh, materials, table, camera)
     err = np.asarray(cen.err_px, np.float64)
     t = pa.table({"n_blob": np.asarray(cal.n_blob, np.float64), "ratio": np.asarray(cal.ratio, np.float64),
-                  "q": np.asarray(cal.q, np.float64), "err_x": err[:, 0], "err_y": err[:, 1]})
+                  "q": np.asarray(cal.q, np.float64), "err_x": err[:, 0], "err_y": err[:, 1],
+                  "angle": np.asarray(cen.angle_rad, np.float64)})
     write_parquet_atomic(t.replace_schema_metadata({_CAL_META: key.encode()}), path)
     return cal, cen
 

@@ -95,18 +95,19 @@ def cob_states(spec: RendezvousSpec, ctx: RendezvousContext, cob: CobBias | None
     return cob, (cob.n if (cob is not None and spec.cfg.phase_correction) else 0)
 
 
-def silhouette_cov(ctx: RendezvousContext, sigma_px: float, v: np.ndarray, normal: np.ndarray, r: float,
-                   fx: float) -> np.ndarray:
-    """(K, 3, 3) rad^2: the white covariance a filter takes for a silhouette centre's error (``bearing_point``
-    "silhouette") of the calibrated 1-sigma ``sigma_px`` (px, per axis; ``nav/blob_centre_error.py``) at lines of
-    sight v (K, 3) and range r m: along the orbit normal ``normal`` (3,) projected across v (the line of sight of
-    an approach in the orbit plane turns about it) and across that, its variance (sigma_px r / fx)^2 times the
-    error's sequence gain on each (``ctx.silhouette_gain``: its frame-to-frame correlation under the target's spin
-    and the observer's turn, ``rendezvous_context.silhouette_sequence_gain``), over r^2."""
-    D = cob_axes(v, normal)
-    s_m = sigma_px * r / fx * np.sqrt(ctx.silhouette_gain)
-    Dw = D * s_m[None, None, :] / r
-    return Dw @ np.swapaxes(Dw, -1, -2)
+def silhouette_cov(ctx: RendezvousContext, C_centre: np.ndarray, v: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) rad^2: the covariance a filter takes for a silhouette centre's error (``bearing_point``
+    "silhouette") at lines of sight v (K, 3): the calibrated white covariance ``C_centre`` (3, 3) rad^2 (ICRS,
+    across the line of sight: along the blob's own axes, ``nav/blob_centre_error.CentreErrorCalibration.cov_px``)
+    scaled by the error's sequence gain g along the orbit normal ``normal`` (3,) projected across v (the line of
+    sight of an approach in the orbit plane turns about it) and across that (``ctx.silhouette_gain``: its
+    frame-to-frame correlation under the target's spin and the observer's turn,
+    ``rendezvous_context.silhouette_sequence_gain``): D S D^T C D S D^T with D those two axes (``cob_axes``) and
+    S = diag(sqrt(g))."""
+    D = cob_axes(v, normal)                                               # (K, 3, 2)
+    DS = D * np.sqrt(np.asarray(ctx.silhouette_gain, np.float64))[None, None, :]
+    M = DS @ np.swapaxes(D, -1, -2)                                       # (K, 3, 3): D S D^T
+    return M @ np.asarray(C_centre, np.float64)[None] @ np.swapaxes(M, -1, -2)
 
 
 def target_selector(spec: RendezvousSpec, ctx: RendezvousContext, m: dict, cob: CobBias | None = None):
@@ -154,7 +155,7 @@ def target_selector(spec: RendezvousSpec, ctx: RendezvousContext, m: dict, cob: 
         v = u
         G = np.zeros((len(u), 3, max(nb, 1)))
         if c.bearing_point == "silhouette":        # no centre of brightness: the silhouette centre's own error
-            C = C + silhouette_cov(ctx, float(m["centre_sigma_px"][k]), v, R_k[:, 2], r, spec.camera.fx)
+            C = C + silhouette_cov(ctx, m["centre_cov"][k], v, R_k[:, 2])
         elif c.phase_correction:
             alpha = np.arccos(np.clip(-(u @ s), -1.0, 1.0))          # Sun - target - chaser
             v = sphere_phase_correction(u, np.broadcast_to(s, u.shape), np.interp(alpha, grid, mean), r)

@@ -21,7 +21,8 @@ from dualsight.nav.resolved_blobs import excluded_blobs, without_excluded
 from dualsight.nav.star_solution import centroid_weights, identify, solve
 from dualsight.nav.target_finding import repeats, unmatched
 from dualsight.nav.target_bearing import (BLOB_SIGMA_FRAC_BY_DETECTOR, attitude_covariance, bearing_error,
-                                          blob_centroid_sigma, inertial_bearing, point_centroid_sigma)
+                                          blob_centroid_sigma, centroid_cov_icrs, inertial_bearing,
+                                          point_centroid_sigma)
 from dualsight.scene.motion import place_body
 from dualsight.scene.rotation_vector import frame_rotation
 from dualsight.scene.starfield_geometry import stars_in_field
@@ -56,7 +57,7 @@ def _empty_meas(T: int) -> dict:
             "u_used": np.full((T, 3), np.nan), "C_used": np.zeros((T, 3, 3)), "bearing_raw_err": nan.copy(),
             "target_xy": np.full((T, 2), np.nan), "found_by": np.zeros(T, np.int8), "found_true": np.zeros(T, bool),
             "axis_ratio": nan.copy(), "range_filter": nan.copy(), "cand": None, "n_blob": nan.copy(), "range_sigma_frac": nan.copy(),
-            "cut": np.zeros(T, bool), "centre_sigma_px": nan.copy()}
+            "cut": np.zeros(T, bool), "centre_sigma_px": nan.copy(), "centre_cov": np.zeros((T, 3, 3))}
 
 
 def _candidates(frame, u, C, xy, true) -> dict:
@@ -207,9 +208,14 @@ def measure_prox(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
         xy = np.where(found[:, None], point, 0.5 * np.array([cam.width, cam.height]))
         m["target_xy"][fr] = np.where(found[:, None], xy, np.nan)
         sig_px = np.full(len(fr), star_target.CENTROID_FLOOR_PX)
-        if c.bearing_point == "silhouette":      # the silhouette centre's spread at the blob's coverage, which
-            sig_px[:] = CENTRE_SIGMA_FLOOR_PX    # the filter adds with its gains (rendezvous_filter.silhouette_cov)
-            m["centre_sigma_px"][fr] = np.where(found, ctx.centre_calibration.sigma_px(b.n_coverage), np.nan)
+        if c.bearing_point == "silhouette":      # the silhouette centre's spread at the blob's coverage and shape
+            sig_px[:] = CENTRE_SIGMA_FLOOR_PX    # (the filter adds it with its gains: rendezvous_filter.silhouette_cov)
+            cen = ctx.centre_calibration
+            m["centre_sigma_px"][fr] = np.where(found, cen.sigma_px(b.n_coverage), np.nan)
+            cpx = cen.cov_px(np.where(found, b.n_coverage, np.nan), b.axis_ratio, b.angle_rad)  # along its axes
+            ok_c = found & np.isfinite(cpx).all((1, 2))
+            m["centre_cov"][fr] = np.where(ok_c[:, None, None], centroid_cov_icrs(
+                A_est[fr], xy, np.where(ok_c[:, None, None], cpx, 0.0), cam), 0.0)
         u, C = inertial_bearing(A_est[fr], np.broadcast_to(sa ** 2 * np.eye(3), (len(fr), 3, 3)), xy, sig_px, cam)
         m["u"][fr] = np.where(found[:, None], u, np.nan)        # the candidates (the one blob), picked by the gate
         m["C"][fr] = np.where(found[:, None, None], C, 0.0)
