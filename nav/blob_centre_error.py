@@ -14,9 +14,8 @@ centre of symmetry); what is left is the pixel sampling of the silhouette's edge
 proximity renderer's ambient term (the reference's Eq. 3) lights every visible facet.
 
 :class:`CentreErrorCalibration` holds the errors of renders of the target through the camera's own renderer and
-blobber (``jobs/kinds/rendezvous_context.blobber_calibration``) and gives the root mean square per axis against
-n_blob by a Gaussian kernel in log10 n_blob (Nadaraya 1964; Watson 1964), on a fixed grid interpolated linearly.
-Units: pixels.
+blobber (``jobs/kinds/rendezvous_context.blobber_calibration``) and gives their root mean square along a new blob's
+axes by a Gaussian kernel in log10 n_blob and the axis ratio (Nadaraya 1964; Watson 1964).  Units: pixels.
 
 The error is not the same along every direction: it lies along the silhouette's own long axis.  Perspective draws
 the near end of the body larger, and the foreshortened long axis of a body seen near end-on carries it (the 3U
@@ -51,7 +50,7 @@ import numpy as np
 __all__ = ["CentreErrorCalibration", "CENTRE_SIGMA_FLOOR_PX", "sequence_gain"]
 
 CENTRE_SIGMA_FLOOR_PX = 1e-3
-"""Smallest 1-sigma per axis (px) :meth:`CentreErrorCalibration.sigma_px` gives (a noise-free render of a large
+"""Smallest 1-sigma per axis (px) :meth:`CentreErrorCalibration.axes_px` gives (a noise-free render of a large
 blob centres to ~1e-3 px: the grid's exact coverage; the floor keeps a bearing's covariance positive)."""
 
 
@@ -59,66 +58,40 @@ blob centres to ~1e-3 px: the grid's exact coverage; the floor keeps a bearing's
 class CentreErrorCalibration:
     """Silhouette-centre errors ``err_px`` (M, 2) (measured minus the projection of the body's origin, col and row,
     px) of renders whose blobs had summed coverage ``n_blob`` (M,) px, observed axis ratio ``axis_ratio`` (M,) and
-    major-axis direction ``angle_rad`` (M,) (from +col towards +row, ``nav/blobber.BlobResult``; both optional);
-    non-finite samples are ignored.  :meth:`sigma_px` gives their root mean square per axis (the mean of the two
-    axes' mean squares, bias included) at new blobs, by a Gaussian kernel of width ``bw_log_n`` decades of n_blob
-    evaluated on ``grid_points`` points spanning the samples and interpolated (clamped at the ends).
-    :meth:`cov_px` gives the error's covariance along the new blob's own axes: the root mean squares along each
-    sample's major and minor axis, by a Gaussian kernel of widths ``bw_log_n`` and ``bw_ratio`` (axis ratio) at the
-    new blob's coverage and axis ratio, turned to its major axis (module docstring: the error lies along the
-    silhouette's long axis)."""
+    major-axis direction ``angle_rad`` (M,) (from +col towards +row, ``nav/blobber.BlobResult``); non-finite samples
+    are ignored.  :meth:`axes_px` gives the error's root mean square along a new blob's major and minor axes (bias
+    included): the samples' errors along their own major and minor axes, weighted by a Gaussian kernel of widths
+    ``bw_log_n`` (decades of n_blob) and ``bw_ratio`` (axis ratio) around the new blob's coverage and axis ratio
+    (module docstring: the error lies along the silhouette's long axis); :meth:`cov_px` turns them to its angle."""
 
     n_blob: np.ndarray
     err_px: np.ndarray
-    axis_ratio: np.ndarray | None = None
-    angle_rad: np.ndarray | None = None
+    axis_ratio: np.ndarray
+    angle_rad: np.ndarray
     bw_log_n: float = 0.1
-    grid_points: int = 256
     bw_ratio: float = 0.05
     chunk: int = 256
-    _grid: tuple = field(init=False, repr=False, compare=False)
+    _samples: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
         n = np.asarray(self.n_blob, np.float64).ravel()
         e = np.asarray(self.err_px, np.float64).reshape(-1, 2)
-        ok = np.isfinite(n) & (n > 0) & np.isfinite(e).all(1)
+        r = np.asarray(self.axis_ratio, np.float64).ravel()
+        a = np.asarray(self.angle_rad, np.float64).ravel()
+        ok = np.isfinite(n) & (n > 0) & np.isfinite(e).all(1) & np.isfinite(r) & np.isfinite(a)
         if not ok.any():
-            raise ValueError("CentreErrorCalibration: no finite sample (n_blob > 0 and a finite error)")
-        ls = np.log10(n[ok])
-        e2 = 0.5 * (e[ok] ** 2).sum(1)                          # the mean square per axis of each sample
-        g = np.linspace(ls.min(), ls.max(), self.grid_points)
-        w = np.exp(-0.5 * ((g[:, None] - ls[None]) / self.bw_log_n) ** 2)
-        ms = (w @ e2) / np.maximum(w.sum(1), 1e-300)
-        object.__setattr__(self, "_grid", (g, np.sqrt(ms)))
-
-    def sigma_px(self, n_blob) -> np.ndarray:
-        """(B,) 1-sigma per axis (px) of the silhouette centre of blobs of summed coverage ``n_blob`` (B,) px, at
-        least :data:`CENTRE_SIGMA_FLOOR_PX`; NaN where n_blob is not finite or <= 0."""
-        n = np.asarray(n_blob, np.float64).ravel()
-        ok = np.isfinite(n) & (n > 0)
-        g, s = self._grid
-        out = np.interp(np.log10(np.where(ok, n, 1.0)), g, s)
-        return np.where(ok, np.maximum(out, CENTRE_SIGMA_FLOOR_PX), np.nan)
+            raise ValueError("CentreErrorCalibration: no finite sample (n_blob > 0, a finite error, axis ratio and "
+                             "angle)")
+        c, s = np.cos(a[ok]), np.sin(a[ok])
+        e = e[ok]
+        e2 = np.stack([(e[:, 0] * c + e[:, 1] * s) ** 2, (e[:, 1] * c - e[:, 0] * s) ** 2], -1)   # (M, 2)
+        object.__setattr__(self, "_samples", (np.log10(n[ok]) / self.bw_log_n, r[ok] / self.bw_ratio, e2))
 
     def axes_px(self, n_blob, axis_ratio) -> np.ndarray:
         """(B, 2) 1-sigma (px) of the silhouette centre along the blob's major and minor axis at summed coverage
-        ``n_blob`` (B,) px and axis ratio (B,): the samples' root mean squares along their own major and minor axes
-        (bias included), kernel-weighted in log10 n_blob and the axis ratio, at least
-        :data:`CENTRE_SIGMA_FLOOR_PX`; NaN where an input is not finite or n_blob <= 0."""
-        if self.axis_ratio is None or self.angle_rad is None:
-            raise ValueError("CentreErrorCalibration: axes_px needs the samples' axis_ratio and angle_rad")
-        n_s = np.asarray(self.n_blob, np.float64).ravel()
-        e = np.asarray(self.err_px, np.float64).reshape(-1, 2)
-        r_s = np.asarray(self.axis_ratio, np.float64).ravel()
-        a_s = np.asarray(self.angle_rad, np.float64).ravel()
-        ok_s = np.isfinite(n_s) & (n_s > 0) & np.isfinite(e).all(1) & np.isfinite(r_s) & np.isfinite(a_s)
-        if not ok_s.any():
-            raise ValueError("CentreErrorCalibration: no finite sample with an axis ratio and angle")
-        c, s = np.cos(a_s[ok_s]), np.sin(a_s[ok_s])
-        e = e[ok_s]
-        e2 = np.stack([(e[:, 0] * c + e[:, 1] * s) ** 2, (e[:, 1] * c - e[:, 0] * s) ** 2], -1)   # (M, 2)
-        ls = np.log10(n_s[ok_s]) / self.bw_log_n
-        rs = r_s[ok_s] / self.bw_ratio
+        ``n_blob`` (B,) px and axis ratio (B,), at least :data:`CENTRE_SIGMA_FLOOR_PX`; NaN where an input is not
+        finite or n_blob <= 0."""
+        ls, rs, e2 = self._samples
         n = np.asarray(n_blob, np.float64).ravel()
         r = np.asarray(axis_ratio, np.float64).ravel()
         ok = np.isfinite(n) & (n > 0) & np.isfinite(r)
@@ -141,7 +114,6 @@ class CentreErrorCalibration:
         R = np.stack([np.stack([np.cos(t), -np.sin(t)], -1), np.stack([np.sin(t), np.cos(t)], -1)], -2)
         C = R * (ab ** 2)[:, None, :] @ np.swapaxes(R, -1, -2)
         return np.where(np.isfinite(t)[:, None, None], C, np.nan)
-
 
 
 def sequence_gain(z: np.ndarray, max_frames: int | None = None) -> np.ndarray:

@@ -57,7 +57,7 @@ def _empty_meas(T: int) -> dict:
             "u_used": np.full((T, 3), np.nan), "C_used": np.zeros((T, 3, 3)), "bearing_raw_err": nan.copy(),
             "target_xy": np.full((T, 2), np.nan), "found_by": np.zeros(T, np.int8), "found_true": np.zeros(T, bool),
             "axis_ratio": nan.copy(), "range_filter": nan.copy(), "cand": None, "n_blob": nan.copy(), "range_sigma_frac": nan.copy(),
-            "cut": np.zeros(T, bool), "centre_sigma_px": nan.copy(), "centre_cov": np.zeros((T, 3, 3))}
+            "cut": np.zeros(T, bool), "centre_cov": np.zeros((T, 3, 3))}
 
 
 def _candidates(frame, u, C, xy, true) -> dict:
@@ -210,9 +210,8 @@ def measure_prox(spec: RendezvousSpec, ctx: RendezvousContext, draw: dict, geo: 
         sig_px = np.full(len(fr), star_target.CENTROID_FLOOR_PX)
         if c.bearing_point == "silhouette":      # the silhouette centre's spread at the blob's coverage and shape
             sig_px[:] = CENTRE_SIGMA_FLOOR_PX    # (the filter adds it with its gains: rendezvous_filter.silhouette_cov)
-            cen = ctx.centre_calibration
-            m["centre_sigma_px"][fr] = np.where(found, cen.sigma_px(b.n_coverage), np.nan)
-            cpx = cen.cov_px(np.where(found, b.n_coverage, np.nan), b.axis_ratio, b.angle_rad)  # along its axes
+            cpx = ctx.centre_calibration.cov_px(np.where(found, b.n_coverage, np.nan), b.axis_ratio,
+                                                 b.angle_rad)                             # along the blob's axes
             ok_c = found & np.isfinite(cpx).all((1, 2))
             m["centre_cov"][fr] = np.where(ok_c[:, None, None], centroid_cov_icrs(
                 A_est[fr], xy, np.where(ok_c[:, None, None], cpx, 0.0), cam), 0.0)
