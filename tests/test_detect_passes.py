@@ -61,12 +61,12 @@ def truncation_correction(c):
     return 1.0 / math.sqrt(1.0 - 2.0 * c * phi / math.erf(c / math.sqrt(2.0)))
 
 
-@pytest.mark.parametrize("kind", ["wide", "tied", "clamped", "float", "stars"])
+@pytest.mark.parametrize("kind", ["wide", "tied", "clamped", "capped", "float", "stars"])
 def test_sorted_clipped_stats_equal_the_numpy_clipping(kind):
     """The compiled clipping of sorted rows gives numpy's clipped_stats (searchsorted / reduceat over all rows,
     bisection for the MAD, lattice_start for tied medians) to float32 rounding, for 0, 2 and 3 windows: normal
-    16-bit rows, rows whose noise spans 1-2 ADU (tied medians), 8-bit rows clamped at 0, float rows, rows with a
-    bright tail; and a normal row's level and sigma are its mean and standard deviation within their errors."""
+    16-bit rows, rows whose noise spans 1-2 ADU (tied medians), 8-bit rows clamped at 0, rows capped at their top
+    (a quantile's run of equal values reaching the row's end), float rows, rows with a bright tail; and a normal row's level and sigma are its mean and standard deviation within their errors."""
     import math
 
     from dualsight.kernels.detect_background import clipped_stats
@@ -77,6 +77,7 @@ def test_sorted_clipped_stats_equal_the_numpy_clipping(kind):
     s = {"wide": lambda: rng.normal(1000, 20, (T, N)).round().astype(np.uint16),
          "tied": lambda: np.clip(rng.normal(3, 1.2, (T, N)).round(), 0, None).astype(np.uint16),
          "clamped": lambda: np.clip(rng.normal(0.3, 1.0, (T, N)).round(), 0, None).astype(np.uint8),
+         "capped": lambda: np.clip(rng.normal(3, 1.2, (T, N)).round(), 0, 4).astype(np.uint16),   # runs to the end
          "float": lambda: rng.normal(50, 3, (T, N)).astype(np.float32),
          "stars": lambda: np.concatenate([rng.normal(500, 5, (T, N - 26)), rng.uniform(500, 5000, (T, 26))],
                                          1).round().astype(np.uint16)}[kind]()
