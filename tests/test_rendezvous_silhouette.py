@@ -247,3 +247,34 @@ def test_centroid_covariance_in_icrs_at_the_principal_point():
     A = frame_rotation(np.array([[0.3, -0.2, 1.1]]))
     got = centroid_cov_icrs(A, np.array([[cam.cx, cam.cy]]), np.array([[[4.0, 1.0], [1.0, 9.0]]]), cam)[0]
     np.testing.assert_allclose(got, A[0].T @ want_cam @ A[0], rtol=1e-5, atol=1e-16)
+
+
+def test_the_central_window_changes_the_pixels_rendered_not_the_blobs():
+    """The sequence-gain calibration renders a window around the principal point (rendezvous_context.central_window):
+    the 3U CubeSat at 2-50 m on the boresight gives, in the window, the same silhouette centre relative to the
+    projection of its origin, the same coverage and the same axis ratio and angle as in the whole 1024 x 768 frame."""
+    from dualsight.jobs.kinds import rendezvous_context as rc
+    from dualsight.scene.attitude import quat_to_dcm, quaternions_from_uniforms
+
+    d, _ = rendezvous_spec.resolve_spec("close", None, cases=1)
+    spec = rz.spec_from_dict(d)
+    sat = load_satellite(spec.cfg.satellite)
+    mesh, materials, table = sat.mesh(), sat.materials(), rc.prox_area_table(sat)
+    cam = spec.camera
+    win = rc.central_window(cam, 123)
+    assert (win.width, win.height) == (246, 246) and (win.cx, win.cy) == (cam.cx - 389, cam.cy - 261)
+    rng = np.random.default_rng([23, 64])
+    M = 16
+    u = rng.random((M, 3))
+    R = quat_to_dcm(quaternions_from_uniforms(u[:, 0], u[:, 1], u[:, 2]))
+    pos = np.stack([np.zeros(M), np.zeros(M), np.geomspace(2.0, 50.0, M)], -1)
+    sun = np.tile([0.0, 1.0, 0.0], (M, 1))
+    got = {}
+    for c in (cam, win):
+        rows = []
+        for i, b in rc.rendered_blobs(sat, mesh, materials, table, c, R, pos, sun):
+            assert b.found.all() and not rc.touches_edge(b.box, c).any()
+            rows.append(np.column_stack([b.centre_px - c.project(pos[i])[0], b.n_coverage, b.axis_ratio,
+                                         b.angle_rad]))
+        got[c.width] = np.concatenate(rows)
+    np.testing.assert_allclose(got[246], got[cam.width], rtol=1e-9, atol=1e-9)

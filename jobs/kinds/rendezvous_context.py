@@ -155,6 +155,18 @@ SEQUENCE_GAIN_RANGES_M = (2.0, 50.0)
 """Ranges (m) of the sequences, log-uniform (one per sequence, the close preset's span)."""
 
 
+def central_window(camera: Camera, half_px: int) -> Camera:
+    """The camera cut to a window of at most 2 ``half_px`` x 2 ``half_px`` pixels around its principal point: the same
+    focal lengths and distortion (in normalised coordinates), the principal point moved by the cut, so a body near
+    the boresight projects to the same pixels relative to it.  A calibration of a target on the boresight renders and
+    blobs that window only (the 3U CubeSat at 2 m and more in the paper's proximity camera: 246 x 246 pixels instead
+    of 1024 x 768, ~2x faster per render, the same blobs)."""
+    x0 = max(0, min(int(math.floor(camera.cx)) - half_px, camera.width - 2 * half_px))
+    y0 = max(0, min(int(math.floor(camera.cy)) - half_px, camera.height - 2 * half_px))
+    return replace(camera, width=min(camera.width, 2 * half_px), height=min(camera.height, 2 * half_px),
+                   cx=camera.cx - x0, cy=camera.cy - y0)
+
+
 def silhouette_sequence_gain(sat, mesh, materials, table, camera: Camera, centre: CentreErrorCalibration,
                              spin_step_rad: float, turn_step_rad: float, frames: int) -> np.ndarray:
     """(2,) ``nav/blob_centre_error.sequence_gain`` of the silhouette centre's error along the observer's turn
@@ -179,9 +191,11 @@ def silhouette_sequence_gain(sat, mesh, materials, table, camera: Camera, centre
     pos = np.repeat(np.stack([np.zeros(S), np.zeros(S), r], -1), L, 0)
     sun = np.tile([0.0, 1.0, 0.0], (S * L, 1))
     z = np.full((S * L, 2), np.nan)
-    for i, b in rendered_blobs(sat, mesh, materials, table, camera, R_body, pos, sun):
-        ok = b.found & ~touches_edge(b.box, camera)
-        e = (b.centre_px - camera.project(pos[i])[0])[:, ::-1]          # (row: along the turn axis, column)
+    rb = sat.bounding_radius                # the window that holds the body at the nearest range, perspective included
+    win = camera if lo <= rb else central_window(camera, int(math.ceil(rb * max(camera.fx, camera.fy) / (lo - rb))) + 6)
+    for i, b in rendered_blobs(sat, mesh, materials, table, win, R_body, pos, sun):
+        ok = b.found & ~touches_edge(b.box, win)
+        e = (b.centre_px - win.project(pos[i])[0])[:, ::-1]             # (row: along the turn axis, column)
         C = centre.cov_px(np.where(ok, b.n_coverage, np.nan), b.axis_ratio, b.angle_rad)   # (col, row) px^2
         sd = np.sqrt(np.stack([C[:, 1, 1], C[:, 0, 0]], -1))              # the stated sigma on each of those axes
         z[i] = np.where(ok[:, None], e / sd, np.nan)
