@@ -147,10 +147,11 @@ def blobber_calibration(sat, mesh, materials, table,
 
 SEQUENCE_GAIN_SEQUENCES, SEQUENCE_GAIN_FRAMES = 1200, 48
 """Rendered sequences x frames (at most; the approach's frames if fewer) of :func:`silhouette_sequence_gain`: 57,600
-renders, ~90 s on the shared cores, once per target, camera, spin and frame rate (cached).  The error's size varies
-with the spin axis (a heavy tail), so few sequences give an unstable gain, and the maximum over window lengths is
-biased upwards by the sampling noise: across the turn axis 1.83 from 400 sequences, 1.33 from 1,200 (along it 2.05
-and 2.07; the close preset, errors over the calibrated sigma along the blob's own axes, 2026-11-28)."""
+renders, ~33 s in one process (a window around the body: :func:`central_window`), once per target, camera, spin and
+frame rate (cached).  The error's size varies with the spin axis (a heavy tail), so few sequences give an unstable
+gain, and the maximum over window lengths is biased upwards by the sampling noise: across the turn axis 1.83 from
+400 sequences, 1.33 from 1,200 (along it 2.05 and 2.07; the close preset, errors over the calibrated sigma along the
+blob's own axes, 2026-11-28)."""
 SEQUENCE_GAIN_RANGES_M = (2.0, 50.0)
 """Ranges (m) of the sequences, log-uniform (one per sequence, the close preset's span)."""
 
