@@ -47,6 +47,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dualsight.nav.blobber_range_error import kernel_means
+
 __all__ = ["CentreErrorCalibration", "CENTRE_SIGMA_FLOOR_PX", "sequence_gain"]
 
 CENTRE_SIGMA_FLOOR_PX = 1e-3
@@ -85,25 +87,15 @@ class CentreErrorCalibration:
         c, s = np.cos(a[ok]), np.sin(a[ok])
         e = e[ok]
         e2 = np.stack([(e[:, 0] * c + e[:, 1] * s) ** 2, (e[:, 1] * c - e[:, 0] * s) ** 2], -1)   # (M, 2)
-        object.__setattr__(self, "_samples", (np.log10(n[ok]) / self.bw_log_n, r[ok] / self.bw_ratio, e2))
+        object.__setattr__(self, "_samples", (n[ok], r[ok], e2))
 
     def axes_px(self, n_blob, axis_ratio) -> np.ndarray:
         """(B, 2) 1-sigma (px) of the silhouette centre along the blob's major and minor axis at summed coverage
         ``n_blob`` (B,) px and axis ratio (B,), at least :data:`CENTRE_SIGMA_FLOOR_PX`; NaN where an input is not
         finite or n_blob <= 0."""
-        ls, rs, e2 = self._samples
-        n = np.asarray(n_blob, np.float64).ravel()
-        r = np.asarray(axis_ratio, np.float64).ravel()
-        ok = np.isfinite(n) & (n > 0) & np.isfinite(r)
-        lq = np.log10(np.where(ok, n, 1.0)) / self.bw_log_n
-        rq = np.where(ok, r, 1.0) / self.bw_ratio
-        out = np.full((n.size, 2), np.nan)
-        for a in range(0, n.size, self.chunk):
-            sl = slice(a, a + self.chunk)
-            d2 = (lq[sl, None] - ls[None]) ** 2 + (rq[sl, None] - rs[None]) ** 2
-            w = np.exp(-0.5 * (d2 - d2.min(axis=1, keepdims=True)))     # rescaled per query: the ratios stay
-            out[sl] = (w @ e2) / w.sum(1)[:, None]
-        return np.where(ok[:, None], np.maximum(np.sqrt(out), CENTRE_SIGMA_FLOOR_PX), np.nan)
+        n_s, r_s, e2 = self._samples
+        ms, _ = kernel_means(n_blob, axis_ratio, n_s, r_s, e2, self.bw_log_n, self.bw_ratio, self.chunk)
+        return np.where(np.isfinite(ms), np.maximum(np.sqrt(ms), CENTRE_SIGMA_FLOOR_PX), np.nan)
 
     def cov_px(self, n_blob, axis_ratio, angle_rad) -> np.ndarray:
         """(B, 2, 2) px^2 covariance of the silhouette centre in (col, row) of blobs of summed coverage ``n_blob``,

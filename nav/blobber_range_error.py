@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["range_ratio_statistics", "range_ratio_at", "RangeRatioCalibration"]
+__all__ = ["range_ratio_statistics", "range_ratio_at", "RangeRatioCalibration", "kernel_means"]
 
 
 def range_ratio_statistics(samples_ratio, samples_area, ratio_lo, ratio_hi, area_curve):
@@ -86,24 +86,34 @@ class RangeRatioCalibration:
     def at(self, n_blob, ratio) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(mean (B,), standard deviation (B,), effective sample count (sum w)^2 / sum w^2 (B,)) of q at
         observations n_blob (B,) px and axis ratio (B,); NaN where an input is not finite or n_blob <= 0."""
-        n = np.asarray(n_blob, np.float64).ravel()
-        r = np.asarray(ratio, np.float64).ravel()
         ok_s = np.isfinite(self.n_blob) & (self.n_blob > 0) & np.isfinite(self.ratio) & np.isfinite(self.q)
-        ls = np.log10(self.n_blob[ok_s]) / self.bw_log_n
-        rs = self.ratio[ok_s] / self.bw_ratio
         qs = self.q[ok_s]
-        ok = np.isfinite(n) & (n > 0) & np.isfinite(r)
-        lq = np.log10(np.where(ok, n, 1.0)) / self.bw_log_n
-        rq = np.where(ok, r, 1.0) / self.bw_ratio
-        mean, sd, neff = (np.full(n.size, np.nan) for _ in range(3))
-        for s in range(0, n.size, self.chunk):
-            sl = slice(s, s + self.chunk)
-            d2 = (lq[sl, None] - ls[None]) ** 2 + (rq[sl, None] - rs[None]) ** 2
-            w = np.exp(-0.5 * (d2 - d2.min(axis=1, keepdims=True)))   # rescaled per query: the ratios are the same
-            sw = w.sum(1)
-            m = (w @ qs) / sw
-            mean[sl] = m
-            sd[sl] = np.sqrt(np.clip((w @ qs ** 2) / sw - m ** 2, 0.0, None))
-            neff[sl] = sw ** 2 / (w ** 2).sum(1)
-        bad = ~ok
-        return np.where(bad, np.nan, mean), np.where(bad, np.nan, sd), np.where(bad, np.nan, neff)
+        m, neff = kernel_means(n_blob, ratio, self.n_blob[ok_s], self.ratio[ok_s], np.stack([qs, qs ** 2], -1),
+                               self.bw_log_n, self.bw_ratio, self.chunk)
+        return m[:, 0], np.sqrt(np.clip(m[:, 1] - m[:, 0] ** 2, 0.0, None)), neff
+
+
+def kernel_means(n_blob, ratio, n_s: np.ndarray, ratio_s: np.ndarray, values: np.ndarray, bw_log_n: float,
+                 bw_ratio: float, chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """Nadaraya-Watson means of the samples' ``values`` (M, k) at new blobs of summed coverage ``n_blob`` (B,) px
+    and axis ratio ``ratio`` (B,): Gaussian weights of widths ``bw_log_n`` decades of coverage and ``bw_ratio`` of
+    axis ratio around each (samples at coverage ``n_s`` (M,) > 0 and ratio ``ratio_s`` (M,), all finite), in chunks
+    of ``chunk`` queries.  Returns (means (B, k), effective sample count (sum w)^2 / sum w^2 (B,)), NaN where an
+    input is not finite or n_blob <= 0."""
+    n = np.asarray(n_blob, np.float64).ravel()
+    r = np.asarray(ratio, np.float64).ravel()
+    ls = np.log10(np.asarray(n_s, np.float64)) / bw_log_n
+    rs = np.asarray(ratio_s, np.float64) / bw_ratio
+    v = np.asarray(values, np.float64).reshape(ls.size, -1)
+    ok = np.isfinite(n) & (n > 0) & np.isfinite(r)
+    lq = np.log10(np.where(ok, n, 1.0)) / bw_log_n
+    rq = np.where(ok, r, 1.0) / bw_ratio
+    means, neff = np.full((n.size, v.shape[1]), np.nan), np.full(n.size, np.nan)
+    for s in range(0, n.size, chunk):
+        sl = slice(s, s + chunk)
+        d2 = (lq[sl, None] - ls[None]) ** 2 + (rq[sl, None] - rs[None]) ** 2
+        w = np.exp(-0.5 * (d2 - d2.min(axis=1, keepdims=True)))   # rescaled per query: the ratios are the same
+        sw = w.sum(1)
+        means[sl] = (w @ v) / sw[:, None]
+        neff[sl] = sw ** 2 / (w ** 2).sum(1)
+    return np.where(ok[:, None], means, np.nan), np.where(ok, neff, np.nan)
