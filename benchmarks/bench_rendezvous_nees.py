@@ -33,7 +33,22 @@ light curve over the orbit tells (the spin-averaged brightness and its relative 
 4 harmonics, a linear fit on half of the spin axes): R^2 on the other half; and how far a variance set per approach
 from the first frames' light curve would shorten the first harmonic's tail (:func:`light_curve_conditioning`).
 
-    python benchmarks/bench_rendezvous_nees.py --truth-only      # the last two parts only (~10 s)
+    python benchmarks/bench_rendezvous_nees.py --truth-only      # the last two parts only (~30 s)
+
+And how often would a campaign pass?  ``--bootstrap B`` pools the seeds' approaches and draws ``B`` samples of
+``--cases`` approaches from them (with replacement): the share of samples whose mean NEES stays inside the bounds at
+every frame from ``converged_after_frames`` on -- check (c)'s chance for a campaign of this filter on this preset,
+whatever its seed.  The same for a *Gaussian twin* of the pool: errors that are exactly Gaussian with the stated
+covariance (NEES chi-square(6) at every frame) and as persistent from frame to frame as the pool's (6 normalised
+errors per approach, each a first-order autoregression with correlation rho per frame; a chi-square's lag-1
+correlation is then rho^2, set to the pool's lag-1 NEES correlation): what a consistent filter whose errors were
+Gaussian would score on the same check; and both counts with the usual reading of a 95 % bound over a run,
+inside at >= 95 % of the frames.
+
+The light-curve part uses the frames an approach really has (:func:`early_light_curve_fit`): frame k of the far
+preset at turn 2 pi k / 57 and spin phase 99.6 k deg, one brightness per frame, a linear fit of the first
+harmonic on the first K frames' brightnesses (K = 10, the frames before convergence, and K = 40), with the
+held-out residual's kurtosis.
 """
 
 from __future__ import annotations
@@ -182,6 +197,95 @@ def light_curve_conditioning(shape, alpha: float, n_axes: int = 4000, n_phases: 
             "variance_range": (float(var.min() / h2.mean()), float(var.max() / h2.mean()))}
 
 
+def early_light_curve_fit(shape, alpha: float, frames: int, n_axes: int = 6000, n_phases: int = 24,
+                          n_turns: int = 24, frames_orbit: int = 57, spin_step_deg: float = 99.6,
+                          seed: int = 7) -> dict:
+    """How much of the first harmonic along the Sun (a_1, b_1 of :func:`bias_harmonics`, over ``n_axes`` spin axes
+    and initial attitudes) does the light curve of an approach's first ``frames`` frames tell?  Frame k is seen at
+    turn 2 pi k / ``frames_orbit`` and spin phase k ``spin_step_deg`` (one brightness per frame, relative to its mean
+    over the axes); a linear fit of a_1 and b_1 on those brightnesses over half of the axes.  Returns the held-out
+    R^2 and the kurtosis before and after (the residual: what a filter that subtracted the prediction would still
+    hold), each (cos, sin)."""
+    rng = np.random.default_rng(seed)
+    axes = rng.normal(size=(n_axes, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    u = rng.random((3, n_axes))
+    R0 = quat_to_dcm(quaternions_from_uniforms(u[0], u[1], u[2]))
+    sun = np.array([0.0, 0.0, 1.0])
+    far = 1e6
+
+    def seen(psi, phi):                 # comp (turns, axes, phases, 2), brightness (turns, axes, phases)
+        R = frame_rotation((axes[:, None, :] * phi[None, :, None]).reshape(-1, 3)) @ np.repeat(R0, len(phi), 0)
+        obs = np.stack([np.sin(alpha) * np.cos(psi), np.sin(alpha) * np.sin(psi),
+                        np.full_like(psi, np.cos(alpha))], -1)
+        e_sun = sun - np.cos(alpha) * obs
+        e_sun /= np.linalg.norm(e_sun, axis=-1, keepdims=True)
+        pos = np.repeat(-far * obs, len(R), 0)
+        br = apparent_brightness(shape, np.tile(R, (len(psi), 1, 1)), pos, np.tile(sun, (len(psi) * len(R), 1)), 1.0)
+        off = (br.cob_cam - pos).reshape(len(psi), n_axes, len(phi), 3)
+        return np.einsum("tmkj,tj->tmk", off, e_sun), br.ratio.reshape(len(psi), n_axes, len(phi))
+
+    along, _ = seen(np.arange(n_turns) * (2.0 * np.pi / n_turns), np.arange(n_phases) * (2.0 * np.pi / n_phases))
+    bias = along.mean(2)
+    bias = bias - bias.mean(1, keepdims=True)
+    C = np.fft.rfft(bias, axis=0) / n_turns
+    lc = np.stack([seen(np.array([2.0 * np.pi * k / frames_orbit]), np.array([np.radians(spin_step_deg * k)]))[1][0, :, 0]
+                   for k in range(frames)], -1)
+    X = np.concatenate([np.ones((n_axes, 1)), lc / lc.mean(0, keepdims=True)], -1)
+    fit = np.arange(n_axes) < n_axes // 2
+
+    def kurt(x):
+        z = x - x.mean()
+        return float(np.mean(z ** 4) / np.mean(z ** 2) ** 2)
+
+    r2, k0, k1 = [], [], []
+    for y in (2.0 * C[1].real, -2.0 * C[1].imag):
+        beta, *_ = np.linalg.lstsq(X[fit], y[fit], rcond=None)
+        res = y[~fit] - X[~fit] @ beta
+        r2.append(1.0 - res.var() / y[~fit].var())
+        k0.append(kurt(y[~fit]))
+        k1.append(kurt(res))
+    return {"r2": np.array(r2), "kurtosis": np.array(k0), "kurtosis_residual": np.array(k1)}
+
+
+def ar1_nees(rng, shape: tuple, frames: int, rho: float) -> np.ndarray:
+    """(*shape, frames) NEES of errors exactly Gaussian with the stated covariance (6 unit normals per approach and
+    frame, each a first-order autoregression with correlation ``rho`` per frame): chi-square(6) at every frame."""
+    e = rng.normal(size=(*shape, 6))
+    out = np.empty((*shape, frames))
+    for k in range(frames):                        # frames: a short recursion over whole arrays
+        if k:
+            e = rho * e + np.sqrt(1.0 - rho ** 2) * rng.normal(size=e.shape)
+        out[..., k] = (e ** 2).sum(-1)
+    return out
+
+
+def check_c(means: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """Check (c) on mean-NEES curves ``means`` (samples, frames): inside [lo, hi] at every frame, and at >= 95 % of
+    the frames (the usual reading of a 95 % bound over a run: Bar-Shalom, Li and Kirubarajan 2001, the
+    filter consistency tests)."""
+    inside = (means >= lo) & (means <= hi)
+    return inside.all(-1), inside.mean(-1) >= 0.95
+
+
+def bootstrap_pass(nees: np.ndarray, M: int, lo: float, hi: float, B: int, seed: int = 11) -> dict:
+    """How often check (c) holds for a campaign of ``M`` approaches (module docstring): ``B`` samples drawn with
+    replacement from the pool ``nees`` (approaches, frames), from its Gaussian twin's pool of the same size, and
+    from the twin itself (fresh draws: the probability for a consistent Gaussian filter, which the bootstrap of a
+    finite pool understates).  Returns {name: (share inside at every frame, share inside at >= 95 % of frames)}
+    and ``lag1``, the pool's lag-1 NEES correlation."""
+    rng = np.random.default_rng(seed)
+    n, F = nees.shape
+    lag1 = float(np.mean([np.corrcoef(nees[:, k], nees[:, k + 1])[0, 1] for k in range(F - 1)]))
+    rho = np.sqrt(max(lag1, 0.0))
+    out = {"lag1": lag1}
+    for name, pool in (("pool", nees), ("twin_pool", ar1_nees(rng, (n,), F, rho))):
+        means = np.stack([pool[rng.integers(0, n, M)].mean(0) for _ in range(B)])
+        out[name] = tuple(float(x.mean()) for x in check_c(means, lo, hi))
+    out["twin"] = tuple(float(x.mean()) for x in check_c(ar1_nees(rng, (B, M), F, rho).mean(1), lo, hi))
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="far", choices=sorted(rendezvous_spec.PRESETS))
@@ -189,6 +293,9 @@ def main() -> int:
     ap.add_argument("--cases", type=int, default=100)
     ap.add_argument("--truth-only", action="store_true",
                     help="only the photocentre bias's tails, harmonics and light-curve fit (no filter runs)")
+    ap.add_argument("--save", metavar="FILE.npz", help="write each seed's NEES (approaches, frames >= convergence)")
+    ap.add_argument("--bootstrap", type=int, default=0, metavar="B",
+                    help="B samples of --cases approaches from the seeds' pool: the share passing check (c)")
     args = ap.parse_args()
     if args.truth_only:
         d, _ = rendezvous_spec.resolve_spec(args.preset, None, seed=args.seeds[0], cases=1)
@@ -199,13 +306,14 @@ def main() -> int:
     lo, hi = chi2_mean_bounds(6, M)
     print(f"preset {args.preset}, {M} approaches per seed, seeds {args.seeds}; 95 % bounds of a mean of {M}: "
           f"{lo:.2f}-{hi:.2f}")
-    means, last = [], None
+    means, last, pool = [], None, []
     for seed in args.seeds:
         t0 = time.perf_counter()
         r = seed_run(args.preset, seed, M)
         conv = r["spec"].cfg.converged_after_frames
         m = r["nees"].mean(0)[conv:]
         means.append(m)
+        pool.append(r["nees"][:, conv:])
         out = int(np.sum((m < lo) | (m > hi)))
         z2 = r["z2"][:, conv:].mean((0, 1))
         per = r["nees"][:, conv:].mean(1)
@@ -218,6 +326,17 @@ def main() -> int:
     if len(args.seeds) > 1:
         ratio = float(np.sqrt(np.mean(means.var(0, ddof=1))) / np.sqrt(12.0 / M))
         print(f"dispersion ratio across seeds: {ratio:.2f} (1 for Gaussian errors)")
+    if args.save:
+        np.savez_compressed(args.save, **{f"seed{seed}": p for seed, p in zip(args.seeds, pool)})
+    if args.bootstrap:
+        b = bootstrap_pass(np.concatenate(pool), M, lo, hi, args.bootstrap)
+        n = sum(map(len, pool))
+        print(f"check (c) on {args.bootstrap} samples of {M} approaches (share inside the bounds at every frame / at "
+              f">= 95 % of the frames; lag-1 NEES correlation of the pool {b['lag1']:.2f}):")
+        for key, what in (("pool", f"drawn from the pooled {n} approaches"),
+                          ("twin_pool", f"drawn from a pool of {n} of its Gaussian twin"),
+                          ("twin", "its Gaussian twin, fresh draws (a consistent Gaussian filter)")):
+            print(f"  {what}: {100 * b[key][0]:.0f} % / {100 * b[key][1]:.0f} %")
     truth_model(last["ctx"].shape, float(last["phase"]))
     return 0
 
@@ -242,6 +361,11 @@ def truth_model(shape, alpha: float) -> None:
           f"{lc['variance_range'][1]:.2f} x the overall; kurtosis of a_1 / b_1 {lc['kurtosis'][0]:.1f} / "
           f"{lc['kurtosis'][1]:.1f} -> {lc['kurtosis_conditioned'][0]:.1f} / {lc['kurtosis_conditioned'][1]:.1f} "
           "(Gaussian 3)")
+    for K in (10, 40):
+        e = early_light_curve_fit(shape, alpha, K)
+        print(f"  predicted from the approach's first {K} frames' brightness (one per frame, linear, held-out axes): "
+              f"R^2 {e['r2'][0]:.2f} / {e['r2'][1]:.2f} (cos / sin); kurtosis {e['kurtosis'][0]:.1f} / "
+              f"{e['kurtosis'][1]:.1f} -> residual {e['kurtosis_residual'][0]:.1f} / {e['kurtosis_residual'][1]:.1f}")
 
 
 if __name__ == "__main__":

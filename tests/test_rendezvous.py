@@ -18,6 +18,7 @@ from dualsight.jobs.kinds import (rendezvous as rz, rendezvous_context, rendezvo
                                   rendezvous_spec, rendezvous_truth, star)
 from dualsight.scene.target_photometry import photocentre_table
 from dualsight.jobs.reports import rendezvous as report
+from dualsight.nav.nees_band import simultaneous_mean_bounds
 from dualsight.nav import relative_filter as rf
 from dualsight.scene.relative_orbit import CircularOrbit, hill_to_icrs
 from dualsight.warehouse.lake import Lake
@@ -168,6 +169,15 @@ def test_report_numbers_equal_numpy_over_the_rows(small_runs):
         inside = [lo <= f["nees"][frames == k].mean() <= hi for k in range(conv, frames.max() + 1)]
         assert j["nees_frames_inside"] == sum(inside) and j["nees_frames_checked"] == len(inside)
         assert j["nees_first_frames_inside"] == sum(inside)       # fewer than 100 approaches: the same ones
+        # the simultaneous band: each approach's NEES after convergence, its lag-1 correlation by np.corrcoef
+        ks = range(conv, frames.max() + 1)
+        N = np.array([[f["nees"][(frames == k) & (f["case_id"] == c)][0] for k in ks] for c in sorted(set(f["case_id"]))])
+        lag1 = np.mean([np.corrcoef(N[:, i], N[:, i + 1])[0, 1] for i in range(N.shape[1] - 1)])
+        assert j["nees_band_lag1"] == pytest.approx(lag1)
+        blo, bhi, _ = simultaneous_mean_bounds(6, j["approaches"], len(inside), lag1)
+        assert j["nees_band_95"] == pytest.approx([blo, bhi])
+        assert j["nees_band_frames_inside"] == sum(blo <= f["nees"][frames == k].mean() <= bhi for k in ks)
+        assert "simultaneous 95 % band" in report.text(rep)
         if name == "far":
             o = f["orbit_after_burn"].astype(bool)
             assert o.sum() == j["approaches"] and set(frames[o]) == {10}
