@@ -44,12 +44,9 @@ def lag1_correlation(nees: np.ndarray) -> float:
     return float(r.mean()) if r.size else float("nan")
 
 
-def simultaneous_level(frames: int, lag1: float, prob: float = 0.95, samples: int = BAND_SAMPLES,
-                       seed: int = 0) -> float:
-    """The per-frame two-sided level a (probability outside at one frame) at which a consistent filter whose
-    mean NEES has lag-1 correlation ``lag1`` (clipped to [0, 1)) from frame to frame stays inside at all ``frames``
-    frames with probability ``prob`` (module docstring: the largest |score| of ``samples`` simulated AR(1) runs,
-    ``numpy.random.default_rng(seed)``)."""
+def _peaks(frames: int, lag1: float, samples: int, seed: int) -> np.ndarray:
+    """(samples,) the largest |score| over ``frames`` frames of simulated runs of the mean NEES's normal score, a
+    stationary AR(1) with lag-1 correlation ``lag1`` (clipped to [0, 1); NaN taken as 0)."""
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}")
     r = float(np.clip(lag1 if np.isfinite(lag1) else 0.0, 0.0, 1.0 - 1e-12))
@@ -60,8 +57,26 @@ def simultaneous_level(frames: int, lag1: float, prob: float = 0.95, samples: in
     for _ in range(frames - 1):                   # frames: a short recursion over whole arrays of runs
         z = r * z + s * rng.normal(size=samples)
         np.maximum(peak, np.abs(z), out=peak)
-    z_star = float(np.quantile(peak, prob))
+    return peak
+
+
+def simultaneous_level(frames: int, lag1: float, prob: float = 0.95, samples: int = BAND_SAMPLES,
+                       seed: int = 0) -> float:
+    """The per-frame two-sided level a (probability outside at one frame) at which a consistent filter whose
+    mean NEES has lag-1 correlation ``lag1`` from frame to frame stays inside at all ``frames`` frames with
+    probability ``prob`` (module docstring: the ``prob`` quantile of the largest |score| of ``samples`` simulated
+    runs, ``numpy.random.default_rng(seed)``)."""
+    z_star = float(np.quantile(_peaks(frames, lag1, samples, seed), prob))
     return 2.0 * (1.0 - NormalDist().cdf(z_star))
+
+
+def inside_probability(frames: int, lag1: float, level: float = 0.05, samples: int = BAND_SAMPLES,
+                       seed: int = 0) -> float:
+    """The probability that a consistent filter's mean NEES, lag-1 correlation ``lag1`` from frame to frame, stays
+    inside its one-frame two-sided bounds of level ``level`` (0.05: the 95 % bounds) at every one of ``frames``
+    frames (the simulation of :func:`simultaneous_level`)."""
+    z = NormalDist().inv_cdf(1.0 - level / 2.0)
+    return float(np.mean(_peaks(frames, lag1, samples, seed) <= z))
 
 
 def simultaneous_mean_bounds(dof: int, runs: int, frames: int, lag1: float, prob: float = 0.95,

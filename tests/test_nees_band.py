@@ -5,7 +5,7 @@ correlated normals, and a brute-force simulation of consistent filters' chi-squa
 import numpy as np
 from hypothesis import given, settings, strategies as st
 
-from dualsight.nav.nees_band import lag1_correlation, simultaneous_level, simultaneous_mean_bounds
+from dualsight.nav.nees_band import inside_probability, lag1_correlation, simultaneous_level, simultaneous_mean_bounds
 from dualsight.nav.relative_filter import chi2_mean_bounds
 
 
@@ -50,7 +50,8 @@ def test_a_consistent_filter_stays_inside_the_band_at_every_frame_95_percent_of_
     inside_all = np.mean(np.all((means >= lo) & (means <= hi), axis=1))
     assert abs(inside_all - 0.95) < 0.015                          # 4000 runs: 1 sigma 0.0034
     lo1, hi1 = chi2_mean_bounds(6, M, 0.95)                        # the one-frame bounds at every frame: far less
-    assert np.mean(np.all((means >= lo1) & (means <= hi1), axis=1)) < 0.75
+    p1 = np.mean(np.all((means >= lo1) & (means <= hi1), axis=1))
+    assert p1 < 0.75 and abs(inside_probability(F, lag1) - p1) < 0.03
     assert lo < lo1 and hi > hi1 and 0.0 < a < 0.05
 
 
@@ -60,3 +61,9 @@ def test_the_level_lies_between_sidaks_and_the_one_frame_level(frames, lag1):
     a = simultaneous_level(frames, lag1, samples=4000)
     sidak = 1.0 - 0.95 ** (1.0 / frames)
     assert 0.8 * sidak <= a <= 0.05 * 1.2
+
+
+def test_the_one_frame_bounds_hold_independent_frames_095_to_the_power_f_and_persistent_ones_095():
+    for frames in (5, 20):
+        assert abs(inside_probability(frames, 0.0) - 0.95 ** frames) < 0.006
+    assert abs(inside_probability(54, 1.0) - 0.95) < 0.004

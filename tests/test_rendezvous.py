@@ -18,7 +18,7 @@ from dualsight.jobs.kinds import (rendezvous as rz, rendezvous_context, rendezvo
                                   rendezvous_spec, rendezvous_truth, star)
 from dualsight.scene.target_photometry import photocentre_table
 from dualsight.jobs.reports import rendezvous as report
-from dualsight.nav.nees_band import simultaneous_mean_bounds
+from dualsight.nav.nees_band import inside_probability, simultaneous_mean_bounds
 from dualsight.nav import relative_filter as rf
 from dualsight.scene.relative_orbit import CircularOrbit, hill_to_icrs
 from dualsight.warehouse.lake import Lake
@@ -177,6 +177,7 @@ def test_report_numbers_equal_numpy_over_the_rows(small_runs):
         blo, bhi, _ = simultaneous_mean_bounds(6, j["approaches"], len(inside), lag1)
         assert j["nees_band_95"] == pytest.approx([blo, bhi])
         assert j["nees_band_frames_inside"] == sum(blo <= f["nees"][frames == k].mean() <= bhi for k in ks)
+        assert j["nees_bounds_inside_probability"] == pytest.approx(inside_probability(len(inside), lag1))
         assert "simultaneous 95 % band" in report.text(rep)
         if name == "far":
             o = f["orbit_after_burn"].astype(bool)

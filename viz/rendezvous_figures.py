@@ -50,10 +50,12 @@ def error_vs_range_figure(per_frame: dict, approaches: list[dict], path: Path) -
     return save_figure(error_vs_range_fig(per_frame, approaches), path)
 
 
-def nees_fig(per_frame: dict, bounds: list[tuple[str, float, float, str]], converged_after: int):
+def nees_fig(per_frame: dict, bounds: list[tuple[str, float, float, str]], converged_after: int,
+             band: tuple[str, float, float] | None = None):
     """Mean NEES (6 dof) per frame against time with the two-sided 95 % chi-square bounds of its mean; frames
     before ``converged_after`` shaded.  per_frame : {"t_s": (T,), series name: (T,) ...}; bounds : [(series name,
-    lower, upper, label)] one line pair per series; the open figure."""
+    lower, upper, label)] one line pair per series; band : optional (series name, lower, upper), that series'
+    simultaneous 95 % band over the frames (``nav/nees_band.py``), dotted in its colour; the open figure."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(11, 4.0), constrained_layout=True)
     t = np.asarray(per_frame["t_s"], np.float64)
@@ -65,17 +67,23 @@ def nees_fig(per_frame: dict, bounds: list[tuple[str, float, float, str]], conve
         ax.plot(t, np.asarray(per_frame[key], np.float64), ".-", color=c, lw=1.0, ms=3, label=lab)
         for v in (lo, hi):
             ax.axhline(v, color=c, ls="--", lw=0.8)
+    keys = [b[0] for b in bounds]
+    if band is not None and band[0] in keys:
+        c = f"C{keys.index(band[0])}"
+        for i, v in enumerate(band[1:]):
+            ax.axhline(v, color=c, ls=":", lw=1.2, label=None if i else "simultaneous 95 % band over the frames")
     ax.axhline(6.0, color="0.4", lw=0.6)
     ax.set_xlabel("time (s)")
     ax.set_ylabel("mean NEES (6 dof)")
-    ax.set_title("Filter consistency: mean NEES per frame and its 95 % bounds (dashed)", fontsize=10)
-    ax.legend(fontsize=8, loc="upper right")
+    ax.set_title("Filter consistency: mean NEES per frame, its one-frame 95 % bounds (dashed)"
+                 + (" and the simultaneous band (dotted)" if band is not None else ""), fontsize=10)
+    ax.legend(fontsize=8, loc="lower right", ncol=2)   # the curves sit near 6, above the lower bounds
     return fig
 
 
-def nees_figure(per_frame: dict, bounds: list, converged_after: int, path: Path) -> Path:
+def nees_figure(per_frame: dict, bounds: list, converged_after: int, path: Path, band=None) -> Path:
     """:func:`nees_fig` as the PNG ``path``."""
-    return save_figure(nees_fig(per_frame, bounds, converged_after), path)
+    return save_figure(nees_fig(per_frame, bounds, converged_after, band), path)
 
 
 def log_rendezvous_frame(rec, *, frame: int, image: np.ndarray, target_xy, truth_xy, truth_path: np.ndarray,
