@@ -65,7 +65,7 @@ def build(lake: Lake, run_id: str) -> dict:
     m100 = min(M, NEES_APPROACHES)
     lo1, hi1 = chi2_mean_bounds(6, m100, 0.95)
     inside1 = [lo1 <= r["mean_nees_first"] <= hi1 for r in after if r["mean_nees_first"] is not None]
-    band = simultaneous_band(tables["rendezvous_nees_cases"][1], m100, [r["mean_nees_first"] for r in after])
+    band = simultaneous_band(tables["rendezvous_nees_cases"][1], [r["mean_nees_first"] for r in after])
     ratio = (s["filtered_range_err_rms_m"] / s["blobber_range_err_rms_m"]
              if s["filtered_range_err_rms_m"] is not None and s["blobber_range_err_rms_m"] else None)
     js = {"run": run_id, **{k: (float(v) if isinstance(v, float) else v) for k, v in s.items()},
@@ -86,8 +86,8 @@ def build(lake: Lake, run_id: str) -> dict:
     return {"tables": tables, "summary": s, "json": js}
 
 
-def simultaneous_band(rows: list, approaches: int, means: list) -> dict:
-    """The simultaneous 95 % band of the first ``approaches`` approaches' mean NEES over the frames after
+def simultaneous_band(rows: list, means: list) -> dict:
+    """The simultaneous 95 % band of the first approaches' mean NEES (those in ``rows``) over the frames after
     convergence (``nav/nees_band.py``: wide enough that a consistent filter with this run's frame-to-frame NEES
     correlation, from ``rows`` (case_id, frame, nees) of ``rendezvous_nees_cases``, stays inside at every frame with
     95 %), how many of ``means`` (their mean NEES per frame after convergence) it holds, and how often a consistent
@@ -105,7 +105,7 @@ def simultaneous_band(rows: list, approaches: int, means: list) -> dict:
     if nees.shape[0] < 3 or nees.shape[1] < 2:
         return out
     lag1 = lag1_correlation(nees)
-    lo, hi, level = simultaneous_mean_bounds(6, approaches, len(means), lag1)
+    lo, hi, level = simultaneous_mean_bounds(6, nees.shape[0], len(means), lag1)
     return {"nees_band_95": [lo, hi], "nees_band_level": level, "nees_band_lag1": lag1,
             "nees_band_frames_inside": int(sum(m is not None and lo <= m <= hi for m in means)),
             "nees_bounds_inside_probability": inside_probability(len(means), lag1)}
